@@ -1,0 +1,81 @@
+"""``hil run SCENARIO``: one HIL run, recorded to MCAP; ``--json`` prints its summary."""
+from __future__ import annotations
+
+import json
+import sys
+
+from identifier import STRATEGIES
+
+from ..cli import UserError
+from ..scenario import load_scenario
+
+
+def parse_set(items) -> dict:
+    """``--set run.duration_s=600`` -> {"run.duration_s": 600} (values parsed as TOML scalars)."""
+    import tomllib
+
+    out = {}
+    for item in items or []:
+        if "=" not in item:
+            raise UserError(f"--set {item!r}: expected TABLE.KEY=VALUE")
+        key, value = item.split("=", 1)
+        try:
+            out[key.strip()] = tomllib.loads(f"v = {value}")["v"]
+        except tomllib.TOMLDecodeError:
+            out[key.strip()] = value
+    return out
+
+
+def register(sub) -> None:
+    p = sub.add_parser("run", help="run a scenario on the HIL loop and record it to MCAP")
+    p.add_argument("scenario", help="scenario TOML file, e.g. scenarios/ffcc_a.toml")
+    p.add_argument("--bus", default="inprocess", help="bus between plant and TCU (default: inprocess)")
+    p.add_argument("--strategy", default="nlls", help=f"identification strategy ({', '.join(sorted(STRATEGIES))})")
+    p.add_argument("--seed", type=int, default=None, help="seed for sensor noise and the identifier "
+                   "(default: the scenario's)")
+    p.add_argument("--out", default=None, help="directory for the MCAP log (default: logs/)")
+    p.add_argument("--set", action="append", metavar="TABLE.KEY=VALUE",
+                   help="override a scenario field, e.g. --set run.duration_s=600 (repeatable)")
+    p.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
+    p.set_defaults(func=cmd_run)
+
+
+def cmd_run(args) -> int:
+    from ..loop import run_inprocess
+
+    if args.strategy not in STRATEGIES:
+        raise UserError(f"unknown strategy {args.strategy!r}; available: {', '.join(sorted(STRATEGIES))}")
+    scenario = load_scenario(args.scenario, parse_set(args.set))
+    if args.bus != "inprocess":
+        raise UserError(f"unknown bus {args.bus!r}; available here: inprocess")
+    summary = run_inprocess(scenario, args.strategy, args.seed, args.out)
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        print_summary(summary)
+    return 0
+
+
+def _fmt(x, spec):
+    return "n/a" if x is None else format(x, spec)
+
+
+def print_summary(s: dict, file=sys.stdout) -> None:
+    print(f"scenario {s['scenario']}  strategy {s['strategy']}  seed {s['seed']}  bus {s['bus']}", file=file)
+    print(f"  fault at {s['t_fault_s']:.3f} s, serious stage at {_fmt(s['t_serious_s'], '.3f')} s "
+          f"(T_det {_fmt(s['t_det_s'] and s['t_det_s'] * 1e3, '.1f')} ms), slip detected at "
+          f"{_fmt(s['t_detected_s'], '.3f')} s", file=file)
+    if s["identified"]:
+        print(f"  identified at {s['t_identified_s']:.3f} s: RT {s['rt_percent']:.1f} % after "
+              f"{s['corrections']} corrections", file=file)
+    else:
+        print(f"  NOT identified within the run ({s['corrections']} corrections)", file=file)
+    if s.get("params"):
+        print("  params (l0, l1, l2, t1, t2): " + ", ".join(f"{x:.5g}" for x in s["params"]), file=file)
+        print(f"  fit: MSE {_fmt(s['mse'], '.3e')}  RMSE {_fmt(s['rmse'], '.3e')}  MAE {_fmt(s['mae'], '.3e')}  "
+              f"R2 {_fmt(s['r2'], '.5f')}", file=file)
+        print(f"  vs true curve: peak mu error {_fmt(s['peak_mu_err_percent'], '.2f')} %, peak creep error "
+              f"{_fmt(s['peak_creep_err_percent'], '.2f')} %", file=file)
+    print(f"  observer lag {_fmt(s.get('observer_lag_ms'), '.1f')} ms; "
+          f"{_fmt(s.get('sim_s'), '.2f')} s simulated in {_fmt(s.get('wall_s'), '.2f')} s", file=file)
+    print(f"  log: {s['mcap']}", file=file)

@@ -1,0 +1,72 @@
+"""Reading MCAP logs back, whole or damaged (a run killed mid-write, a file cut at any byte)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from mcap.records import Channel, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader
+from mcap_protobuf.decoder import DecoderFactory
+
+MAGIC = b"\x89MCAP0\r\n"
+
+
+class LogError(ValueError):
+    """A file that is not a log this tool can read; the message is one line."""
+
+
+@dataclass
+class LogContents:
+    path: str
+    messages: list = field(default_factory=list)     # (topic, log_time_ns, decoded protobuf message)
+    metadata: dict = field(default_factory=dict)     # name -> dict
+    complete: bool = True
+    damage: str = ""
+
+    def topic(self, name: str) -> list:
+        return [m for t, _, m in self.messages if t == name]
+
+
+def read_log(path, topics: set[str] | None = None) -> LogContents:
+    """Read every message that can be read; a damaged tail is reported, not raised."""
+    p = Path(path)
+    try:
+        head = p.open("rb").read(len(MAGIC))
+    except OSError as e:
+        raise LogError(f"{path}: cannot read: {e.strerror}") from None
+    if head != MAGIC:
+        raise LogError(f"{path}: not an MCAP file (no MCAP magic at the start)")
+    out = LogContents(str(path))
+    schemas: dict[int, Schema] = {}
+    channels: dict[int, Channel] = {}
+    decoders: dict[int, object] = {}
+    factory = DecoderFactory()
+    with p.open("rb") as f:
+        reader = StreamReader(f, skip_magic=False, emit_chunks=False, validate_crcs=True,
+                              record_size_limit=1 << 30)
+        try:
+            for record in reader.records:
+                if isinstance(record, Schema):
+                    schemas[record.id] = record
+                elif isinstance(record, Channel):
+                    channels[record.id] = record
+                elif isinstance(record, Metadata):
+                    out.metadata[record.name] = dict(record.metadata)
+                elif isinstance(record, Message):
+                    ch = channels.get(record.channel_id)
+                    if ch is None or (topics is not None and ch.topic not in topics):
+                        continue
+                    if record.channel_id not in decoders:
+                        decoders[record.channel_id] = factory.decoder_for(ch.message_encoding,
+                                                                          schemas.get(ch.schema_id))
+                    decode = decoders[record.channel_id]
+                    if decode is None:
+                        continue
+                    out.messages.append((ch.topic, record.log_time, decode(record.data)))
+        except Exception as e:  # noqa: BLE001 - any failure past this point is damage to report
+            out.complete = False
+            out.damage = f"{type(e).__name__}: {e}"
+    if out.complete and "summary" not in out.metadata:
+        out.complete = False
+        out.damage = out.damage or "no summary record (the run did not finish)"
+    return out

@@ -1,0 +1,240 @@
+"""Scenario files (TOML): load, validate, and build the plant and identifier configurations.
+
+Every problem is reported as one ``ScenarioError`` line naming the file and the field, e.g.
+``scenarios/x.toml: [run] fault_time_s: must be >= 0, got -1``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from identifier.settings import IdentifierSettings, VehicleModel
+from plant import FrictionCurve, PlantConfig, SensorConfig, WheelsetParams, equilibrium
+
+
+class ScenarioError(ValueError):
+    """A scenario file that cannot be used; the message is one line naming file and field."""
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    mu_required: float
+    fault_time_s: float
+    duration_s: float
+    initial_train_speed_ms: float
+    integration_step_s: float
+    exchange_period_s: float
+    seed: int = 1
+
+
+@dataclass(frozen=True)
+class Scenario:
+    name: str
+    path: str
+    source_text: str
+    description: str
+    vehicle: WheelsetParams
+    normal_curve: FrictionCurve
+    fault_curve: FrictionCurve
+    run: RunConfig
+    sensors: SensorConfig
+    identifier: dict = field(default_factory=dict)   # overrides of IdentifierSettings defaults
+    extra: dict = field(default_factory=dict)         # tables later issues add ([plant], [reality], ...)
+
+    def plant_config(self) -> PlantConfig:
+        r = self.run
+        return PlantConfig(self.vehicle, self.normal_curve, self.fault_curve, r.mu_required, r.fault_time_s,
+                           r.initial_train_speed_ms, r.integration_step_s, r.exchange_period_s)
+
+    def identifier_settings(self) -> IdentifierSettings:
+        v = self.vehicle
+        _, torque = equilibrium(self.plant_config())
+        vehicle = VehicleModel(v.equivalent_inertia_kgm2, v.torque_per_mu_nm, v.gear_ratio, v.wheel_radius_m)
+        overrides = dict(self.identifier)
+        options = overrides.pop("options", {})
+        return IdentifierSettings(period_s=self.run.exchange_period_s, vehicle=vehicle, torque_demand_nm=torque,
+                                  initial_guess=tuple(self.normal_curve.params), options=options, **overrides)
+
+    @property
+    def steps(self) -> int:
+        return int(round(self.run.duration_s / self.run.exchange_period_s))
+
+
+# -- validation ---------------------------------------------------------------------------------
+_IDENTIFIER_FIELDS = {f.name: f for f in dataclasses.fields(IdentifierSettings)
+                      if f.name not in ("period_s", "vehicle", "torque_demand_nm", "initial_guess")}
+_OPTIONAL_TABLES = ("plant", "reality", "bus")   # owned by the plant/FMU, gap and CAN layers
+
+
+def _fail(path, where, msg) -> ScenarioError:
+    return ScenarioError(f"{path}: {where}: {msg}")
+
+
+def _coerce(path, where, value, typ):
+    if typ in (float, "float"):
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise _fail(path, where, f"must be a number, got {value!r}")
+        if not math.isfinite(value):
+            raise _fail(path, where, f"must be finite, got {value!r}")
+        return float(value)
+    if typ in (int, "int"):
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise _fail(path, where, f"must be an integer, got {value!r}")
+        return value
+    if typ in (bool, "bool"):
+        if not isinstance(value, bool):
+            raise _fail(path, where, f"must be true or false, got {value!r}")
+        return value
+    if typ in (str, "str"):
+        if not isinstance(value, str):
+            raise _fail(path, where, f"must be a string, got {value!r}")
+        return value
+    if typ in (dict, "dict"):
+        if not isinstance(value, dict):
+            raise _fail(path, where, f"must be a table, got {value!r}")
+        return value
+    raise TypeError(typ)
+
+
+def _table(path, data: dict, name: str, cls, required: bool = True) -> dict:
+    if name not in data:
+        if required:
+            raise _fail(path, f"[{name}]", "missing table")
+        return {}
+    table = data[name]
+    if not isinstance(table, dict):
+        raise _fail(path, f"[{name}]", "must be a table")
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    out = {}
+    for key, value in table.items():
+        if key not in fields:
+            raise _fail(path, f"[{name}] {key}", f"unknown key (known: {', '.join(fields)})")
+        out[key] = _coerce(path, f"[{name}] {key}", value, fields[key].type)
+    for key, f in fields.items():
+        if key not in out and f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
+            raise _fail(path, f"[{name}] {key}", "missing field")
+    return out
+
+
+def _check(path, where, ok: bool, msg: str, value):
+    if not ok:
+        raise _fail(path, where, f"{msg}, got {value!r}")
+
+
+def _curve(path, data, key) -> FrictionCurve:
+    curves = data.get("curves")
+    if not isinstance(curves, dict):
+        raise _fail(path, "[curves]", "missing table")
+    if key not in curves or not isinstance(curves[key], dict):
+        raise _fail(path, f"[curves.{key}]", "missing table")
+    t = curves[key]
+    where = f"[curves.{key}]"
+    for k in t:
+        if k not in ("lambda0", "lambdas", "taus"):
+            raise _fail(path, f"{where} {k}", "unknown key (known: lambda0, lambdas, taus)")
+    for k in ("lambda0", "lambdas", "taus"):
+        if k not in t:
+            raise _fail(path, f"{where} {k}", "missing field")
+    lam0 = _coerce(path, f"{where} lambda0", t["lambda0"], float)
+    lists = {}
+    for k in ("lambdas", "taus"):
+        if not isinstance(t[k], list) or not t[k]:
+            raise _fail(path, f"{where} {k}", f"must be a non-empty list of numbers, got {t[k]!r}")
+        lists[k] = tuple(_coerce(path, f"{where} {k}", x, float) for x in t[k])
+    _check(path, f"{where} taus", len(lists["taus"]) == len(lists["lambdas"]), "must have as many entries as lambdas",
+           t["taus"])
+    _check(path, f"{where} taus", all(x < 0 for x in lists["taus"]), "must all be negative (decaying terms)",
+           t["taus"])
+    curve = FrictionCurve(lam0, lists["lambdas"], lists["taus"], key)
+    v_peak, mu_peak = curve.peak()
+    _check(path, where, mu_peak > 0 and 0 < v_peak < 29, "must rise to a positive peak inside 0-29 km/h",
+           (v_peak, mu_peak))
+    return curve
+
+
+def parse_scenario(text: str, path: str = "<scenario>", overrides: dict | None = None) -> Scenario:
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise ScenarioError(f"{path}: not valid TOML: {e}") from None
+    for dotted, value in (overrides or {}).items():
+        *tables, key = dotted.split(".")
+        node = data
+        for t in tables:
+            node = node.setdefault(t, {})
+        node[key] = value
+    known = {"name", "description", "vehicle", "curves", "run", "sensors", "identifier", *_OPTIONAL_TABLES}
+    for key in data:
+        if key not in known:
+            raise _fail(path, key, f"unknown key (known: {', '.join(sorted(known))})")
+    name = _coerce(path, "name", data.get("name", Path(path).stem), str)
+    description = _coerce(path, "description", data.get("description", ""), str)
+    vehicle = WheelsetParams(**_table(path, data, "vehicle", WheelsetParams, required=False))
+    for f in dataclasses.fields(vehicle):
+        value = getattr(vehicle, f.name)
+        if f.name not in ("davis_a_n", "davis_b_n_per_ms", "davis_c_n_per_ms2"):
+            _check(path, f"[vehicle] {f.name}", value > 0, "must be > 0", value)
+        else:
+            _check(path, f"[vehicle] {f.name}", value >= 0, "must be >= 0", value)
+    _check(path, "[vehicle] efficiency", vehicle.efficiency <= 1, "must be <= 1", vehicle.efficiency)
+
+    run = RunConfig(**_table(path, data, "run", RunConfig))
+    _check(path, "[run] mu_required", 0 < run.mu_required < 1, "must be in (0, 1)", run.mu_required)
+    _check(path, "[run] fault_time_s", run.fault_time_s >= 0, "must be >= 0", run.fault_time_s)
+    _check(path, "[run] duration_s", run.duration_s > run.fault_time_s, "must be after fault_time_s", run.duration_s)
+    _check(path, "[run] initial_train_speed_ms", run.initial_train_speed_ms > 0, "must be > 0",
+           run.initial_train_speed_ms)
+    _check(path, "[run] integration_step_s", 0 < run.integration_step_s <= 1e-2, "must be in (0, 0.01]",
+           run.integration_step_s)
+    ratio = run.exchange_period_s / run.integration_step_s
+    _check(path, "[run] exchange_period_s", run.exchange_period_s > 0 and abs(ratio - round(ratio)) < 1e-6
+           and round(ratio) >= 1, "must be a positive whole multiple of integration_step_s", run.exchange_period_s)
+    _check(path, "[run] seed", run.seed >= 0, "must be >= 0", run.seed)
+
+    sensors = SensorConfig(**_table(path, data, "sensors", SensorConfig, required=False))
+    for f in dataclasses.fields(sensors):
+        _check(path, f"[sensors] {f.name}", getattr(sensors, f.name) >= 0, "must be >= 0", getattr(sensors, f.name))
+
+    normal = _curve(path, data, "normal")
+    fault = _curve(path, data, "fault")
+    try:
+        normal.creep_for_mu(run.mu_required)
+    except ValueError:
+        raise _fail(path, "[run] mu_required", f"NFCC-0 never reaches {run.mu_required} on its stable side "
+                    f"(its peak is {normal.peak()[1]:.4f})") from None
+
+    ident_raw = data.get("identifier", {})
+    if not isinstance(ident_raw, dict):
+        raise _fail(path, "[identifier]", "must be a table")
+    identifier = {}
+    for key, value in ident_raw.items():
+        if key not in _IDENTIFIER_FIELDS:
+            raise _fail(path, f"[identifier] {key}", f"unknown key (known: {', '.join(_IDENTIFIER_FIELDS)})")
+        typ = _IDENTIFIER_FIELDS[key].type
+        identifier[key] = value if key == "options" and isinstance(value, dict) else \
+            _coerce(path, f"[identifier] {key}", value, typ)
+    extra = {k: data[k] for k in _OPTIONAL_TABLES if k in data}
+    scenario = Scenario(name, path, text, description, vehicle, normal, fault, run, sensors, identifier, extra)
+    try:
+        scenario.identifier_settings()
+        from identifier.observer import LoadTorqueObserver
+        LoadTorqueObserver(1.0, run.exchange_period_s, scenario.identifier_settings().observer_pole_rad_s)
+    except ValueError as e:
+        raise _fail(path, "[identifier]", str(e)) from None
+    return scenario
+
+
+def load_scenario(path, overrides: dict | None = None) -> Scenario:
+    """Load and validate a scenario file; raises ScenarioError with a one-line message."""
+    p = Path(path)
+    try:
+        text = p.read_text()
+    except FileNotFoundError:
+        raise ScenarioError(f"{path}: no such scenario file") from None
+    except OSError as e:
+        raise ScenarioError(f"{path}: cannot read: {e.strerror}") from None
+    return parse_scenario(text, str(path), overrides)

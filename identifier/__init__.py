@@ -1,0 +1,9 @@
+"""Estimation only: observer, curve model, strategies, evaluation, metrics. No processes, no CAN."""
+from .messages import (IdentificationEvent, ObserverSample, SensorReading, TcuOutput, TcuStatus,
+                       TorqueCommand)
+from .settings import IdentifierSettings, VehicleModel
+from .strategies import STRATEGIES, make_strategy
+from .tcu import TractionIdentifier
+
+__all__ = ["IdentificationEvent", "ObserverSample", "SensorReading", "TcuOutput", "TcuStatus", "TorqueCommand",
+           "IdentifierSettings", "VehicleModel", "STRATEGIES", "make_strategy", "TractionIdentifier"]

@@ -1,0 +1,61 @@
+"""What crosses the TCU's boundary: exactly what the CAN frames carry, as plain data.
+
+The identifier consumes ``SensorReading`` and produces ``TorqueCommand``, ``TcuStatus`` and
+``IdentificationEvent``; a bus layer (``hil/``) maps these to and from frames.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+# TCU identification stages as carried in the status frame
+STAGE_MONITORING, STAGE_IDENTIFYING, STAGE_CONFIRMED, STAGE_GAVE_UP = 0, 1, 2, 3
+STAGE_NAMES = {STAGE_MONITORING: "monitoring", STAGE_IDENTIFYING: "identifying",
+               STAGE_CONFIRMED: "confirmed", STAGE_GAVE_UP: "gave_up"}
+
+
+@dataclass(frozen=True)
+class SensorReading:
+    step: int
+    motor_speed_rad_s: float
+    train_speed_ms: float
+
+
+@dataclass(frozen=True)
+class TorqueCommand:
+    step: int            # echoes the sensor step it answers
+    torque_nm: float
+
+
+@dataclass(frozen=True)
+class ObserverSample:
+    step: int
+    t_s: float
+    creep_speed_kmh: float     # from measured speeds
+    mu_hat: float              # eq. 5 from the observer's load torque
+    load_torque_nm: float
+
+
+@dataclass(frozen=True)
+class IdentificationEvent:
+    step: int
+    t_s: float
+    kind: str                  # "correction" or "confirmed"
+    correction: int            # Q (the preliminary fit is 0)
+    params: tuple[float, ...]  # lambda0, lambda1..n, tau1..n
+    j_ef: float
+    samples: int               # samples used so far
+
+
+@dataclass(frozen=True)
+class TcuStatus:
+    step: int
+    stage: int
+    correction: int
+
+
+@dataclass
+class TcuOutput:
+    command: TorqueCommand
+    status: TcuStatus
+    observer: ObserverSample | None = None
+    events: list[IdentificationEvent] = field(default_factory=list)

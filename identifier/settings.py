@@ -1,0 +1,40 @@
+"""Everything the TCU knows before a run: the nominal vehicle model and the identifier's tuning.
+
+The TCU knows the vehicle's nominal parameters (it needs them to turn an estimated load torque
+into a friction coefficient) and the normal rail curve NFCC-0 it was running on; it never knows
+the fault curve or the fault time.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+
+@dataclass(frozen=True)
+class VehicleModel:
+    equivalent_inertia_kgm2: float
+    torque_per_mu_nm: float        # T_L = mu * this
+    gear_ratio: float
+    wheel_radius_m: float
+
+
+@dataclass(frozen=True)
+class IdentifierSettings:
+    period_s: float                               # sampling (= bus exchange) period
+    vehicle: VehicleModel
+    torque_demand_nm: float                       # the traction torque the TCU commands
+    initial_guess: tuple[float, ...]              # theta used before any fit (NFCC-0 by default)
+    observer_pole_rad_s: float = 400.0            # double pole p of the load-torque observer
+    lag_compensation: bool = True                 # pair mu^(k) with v_s(k - 2/(pT))
+    detection_creep_rise_kmh: float = 0.03        # creep above its pre-fault mean that flags a slip
+    baseline_samples: int = 50                    # samples averaged for the pre-fault creep mean
+    settle_time_s: float = 0.004                  # samples skipped after detection (observer transient)
+    window_samples: int = 8                       # L, samples per correction window
+    k_pe: float = 1e-4                            # K_PE, preliminary-evaluation threshold on J_EF
+    c_lw: float = 3.0                             # lower confidence coefficient
+    c_up: float = 3.0                             # upper confidence coefficient
+    max_corrections: int = 200                    # give up (unconfirmed) after this many
+    options: dict = field(default_factory=dict)   # strategy-specific tuning, by strategy name
+
+    def __post_init__(self):
+        if self.window_samples < 2 * ((len(self.initial_guess) - 1) // 2) + 2:
+            raise ValueError("window_samples must exceed 2n + 1 (the SE of eq. 29 divides by L - 2n - 1)")

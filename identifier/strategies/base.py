@@ -1,0 +1,103 @@
+"""The interface every identification strategy offers, and the window loop they share.
+
+A strategy is fed samples one at a time (``add_sample``) and returns the events it produced:
+``correction`` after each correction Q and ``confirmed`` once the multi-level evaluation accepts
+a curve.  The window bookkeeping (L samples per correction, the confidence check on the next
+window) lives here; a strategy only says how one correction is made (``correct``).
+"""
+from __future__ import annotations
+
+import math
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..evaluation import inside_confidence_band, j_ef, standard_error
+from ..messages import IdentificationEvent
+from ..settings import IdentifierSettings
+
+
+@dataclass(frozen=True)
+class Sample:
+    step: int
+    t_s: float
+    creep_speed_kmh: float
+    mu_hat: float
+
+
+class Strategy(ABC):
+    """Feed samples with ``add_sample``; read ``theta``, ``confirmed``, ``corrections``."""
+
+    name: str = ""
+
+    def __init__(self, settings: IdentifierSettings, seed: int = 0):
+        self.settings = settings
+        self.seed = seed
+        self.rng = np.random.default_rng(seed)
+        self.theta = np.array(settings.initial_guess, dtype=float)
+        self.corrections = 0
+        self.confirmed = False
+        self.gave_up = False
+        self._v: list[float] = []
+        self._mu: list[float] = []
+        self._window_start = 0          # index of the first sample of the open window
+        self._candidate: tuple[np.ndarray, float] | None = None   # (theta, SE) awaiting the check
+        self._last_estimate: np.ndarray | None = None
+
+    @property
+    def samples(self) -> int:
+        return len(self._v)
+
+    def data(self) -> tuple[np.ndarray, np.ndarray]:
+        return np.asarray(self._v), np.asarray(self._mu)
+
+    def add_sample(self, sample: Sample) -> list[IdentificationEvent]:
+        if self.confirmed or self.gave_up:
+            return []
+        if not (math.isfinite(sample.creep_speed_kmh) and math.isfinite(sample.mu_hat)):
+            return []   # a sample that cannot be fitted never reaches the estimator
+        self._v.append(sample.creep_speed_kmh)
+        self._mu.append(sample.mu_hat)
+        if len(self._v) - self._window_start < self.settings.window_samples:
+            return []
+        v = np.asarray(self._v[self._window_start:])
+        mu = np.asarray(self._mu[self._window_start:])
+        self._window_start = len(self._v)
+        return self._on_window(sample, v, mu)
+
+    def _on_window(self, sample: Sample, v: np.ndarray, mu: np.ndarray) -> list[IdentificationEvent]:
+        s = self.settings
+        if self._candidate is not None:
+            theta, se = self._candidate
+            self._candidate = None
+            if inside_confidence_band(v, mu, theta, se, s.c_lw, s.c_up):
+                self.confirmed = True
+                return [self._event(sample, "confirmed", math.nan)]
+            # the window did not fit: it feeds the next correction instead
+        estimate = self.correct(v, mu)
+        if not np.all(np.isfinite(estimate)):
+            estimate = self._last_estimate if self._last_estimate is not None else self.theta
+        self.theta = self.estimate_to_theta(estimate)
+        score = math.inf if self._last_estimate is None else j_ef(estimate, self._last_estimate)
+        self._last_estimate = np.asarray(estimate, float)
+        events = [self._event(sample, "correction", score)]
+        self.corrections += 1
+        if score <= s.k_pe:
+            self._candidate = (self.theta.copy(), standard_error(v, mu, self.theta))
+        elif self.corrections >= s.max_corrections:
+            self.gave_up = True
+        return events
+
+    def _event(self, sample: Sample, kind: str, score: float) -> IdentificationEvent:
+        return IdentificationEvent(sample.step, sample.t_s, kind, self.corrections,
+                                   tuple(float(x) for x in self.theta), float(score), len(self._v))
+
+    # -- what a strategy defines --------------------------------------------------------------
+    @abstractmethod
+    def correct(self, window_v: np.ndarray, window_mu: np.ndarray) -> np.ndarray:
+        """One correction from the newest window; returns the vector J_EF compares between corrections."""
+
+    def estimate_to_theta(self, estimate: np.ndarray) -> np.ndarray:
+        """Curve parameters from what ``correct`` returned (identity for strategies that fit theta)."""
+        return np.asarray(estimate, float)

@@ -1,0 +1,91 @@
+"""The traction control unit's identifier, at frame level: sensor readings in, commands and
+identification results out.  The same object runs in the TCU process, in replay and in benchmarks.
+
+Pipeline per reading: observer -> mu^ and creep speed -> slip detector -> (after the observer
+settles) samples to the strategy.
+"""
+from __future__ import annotations
+
+import math
+from collections import deque
+
+from .messages import (STAGE_CONFIRMED, STAGE_GAVE_UP, STAGE_IDENTIFYING, STAGE_MONITORING, ObserverSample,
+                       SensorReading, TcuOutput, TcuStatus, TorqueCommand)
+from .observer import LoadTorqueObserver
+from .settings import IdentifierSettings
+from .strategies import Sample, make_strategy
+
+KMH_PER_MS = 3.6
+
+
+class SlipDetector:
+    """Flags a slipping fault when the creep speed rises ``threshold`` above its pre-fault mean.
+
+    The mean is taken over the last ``baseline_samples`` readings before the detection, so a slow
+    drift of the operating point does not trigger it.
+    """
+
+    def __init__(self, threshold_kmh: float, baseline_samples: int):
+        self.threshold_kmh = threshold_kmh
+        self._history: deque[float] = deque(maxlen=baseline_samples)
+        self.detected_step: int | None = None
+
+    def update(self, step: int, creep_speed_kmh: float) -> bool:
+        if self.detected_step is not None:
+            return True
+        h = self._history
+        if len(h) == h.maxlen and creep_speed_kmh - sum(h) / len(h) > self.threshold_kmh:
+            self.detected_step = step
+            return True
+        h.append(creep_speed_kmh)
+        return False
+
+
+class TractionIdentifier:
+    """``on_sensor(reading) -> TcuOutput``; holds the observer, the detector and one strategy."""
+
+    def __init__(self, settings: IdentifierSettings, strategy: str = "nlls", seed: int = 0):
+        self.settings = settings
+        self.strategy_name = strategy
+        self.strategy = make_strategy(strategy, settings, seed)
+        v = settings.vehicle
+        self.observer = LoadTorqueObserver(v.equivalent_inertia_kgm2, settings.period_s,
+                                           settings.observer_pole_rad_s)
+        self.detector = SlipDetector(settings.detection_creep_rise_kmh, settings.baseline_samples)
+        # +1: mu^(k) comes from x^(k), which has seen measurements only up to k-1
+        lag_steps = round(self.observer.lag_s / settings.period_s) + 1 if settings.lag_compensation else 0
+        self._creep_history: deque[float] = deque(maxlen=lag_steps + 1)
+        self._settle_steps = round(settings.settle_time_s / settings.period_s)
+        self.rejected_readings = 0
+        self._last_torque = settings.torque_demand_nm
+
+    def stage(self) -> int:
+        if self.strategy.confirmed:
+            return STAGE_CONFIRMED
+        if self.strategy.gave_up:
+            return STAGE_GAVE_UP
+        return STAGE_IDENTIFYING if self.detector.detected_step is not None else STAGE_MONITORING
+
+    def on_sensor(self, reading: SensorReading) -> TcuOutput:
+        torque = self.settings.torque_demand_nm
+        if not (math.isfinite(reading.motor_speed_rad_s) and math.isfinite(reading.train_speed_ms)):
+            # a reading that cannot be trusted: hold the command, feed nothing downstream
+            self.rejected_readings += 1
+            return TcuOutput(TorqueCommand(reading.step, torque), self._status(reading.step))
+        v = self.settings.vehicle
+        t_s = reading.step * self.settings.period_s
+        load_torque = self.observer.update(reading.motor_speed_rad_s, self._last_torque)
+        self._last_torque = torque
+        mu_hat = load_torque / v.torque_per_mu_nm
+        creep = KMH_PER_MS * (reading.motor_speed_rad_s / v.gear_ratio * v.wheel_radius_m - reading.train_speed_ms)
+        self._creep_history.append(creep)
+        paired_creep = self._creep_history[0]   # v_s(k - lag): the creep mu^(k) really belongs to
+        observer = ObserverSample(reading.step, t_s, creep, mu_hat, load_torque)
+        events = []
+        if self.detector.update(reading.step, creep):
+            if reading.step - self.detector.detected_step >= self._settle_steps:
+                events = self.strategy.add_sample(Sample(reading.step, t_s, paired_creep, mu_hat))
+        return TcuOutput(TorqueCommand(reading.step, torque), self._status(reading.step), observer, events)
+
+    def _status(self, step: int) -> TcuStatus:
+        return TcuStatus(step, self.stage(), self.strategy.corrections)

@@ -1,0 +1,32 @@
+"""Speed sensors: what a TCU really gets from the plant (seeded noise, optional quantisation)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class SensorConfig:
+    motor_speed_noise_rad_s: float = 0.0     # standard deviation of white noise
+    train_speed_noise_ms: float = 0.0
+    motor_speed_quantum_rad_s: float = 0.0   # 0 = no quantisation
+    train_speed_quantum_ms: float = 0.0
+
+
+class SensorModel:
+    def __init__(self, cfg: SensorConfig, seed: int):
+        self.cfg = cfg
+        self._rng = np.random.default_rng(seed)
+
+    @staticmethod
+    def _quantise(value: float, quantum: float) -> float:
+        return value if quantum <= 0 else float(np.round(value / quantum) * quantum)
+
+    def measure(self, motor_speed_rad_s: float, train_speed_ms: float) -> tuple[float, float]:
+        """(measured motor speed rad/s, measured train speed m/s)."""
+        noise = self._rng.standard_normal(2)
+        omega = motor_speed_rad_s + self.cfg.motor_speed_noise_rad_s * noise[0]
+        v = train_speed_ms + self.cfg.train_speed_noise_ms * noise[1]
+        return (self._quantise(omega, self.cfg.motor_speed_quantum_rad_s),
+                self._quantise(v, self.cfg.train_speed_quantum_ms))
