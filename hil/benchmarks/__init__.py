@@ -1,0 +1,1 @@
+"""Benchmarks of ``hil bench``: one module each, each with ``register(subparsers)``."""
