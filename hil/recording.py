@@ -57,13 +57,42 @@ def sim_time_ns(t_s: float) -> int:
     return int(round(t_s * 1e9))
 
 
+class _DirectFile:
+    """A write-through file: every ``write`` reaches the kernel before it returns.
+
+    mcap wraps a raw (unbuffered) file in an 8 KiB ``BufferedWriter``, which would hold back the
+    newest chunks at a SIGKILL; this object is not a ``RawIOBase``, so mcap uses it as it is.
+    """
+
+    def __init__(self, path):
+        self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+        self._pos = 0
+
+    def write(self, data) -> int:
+        view = memoryview(data)
+        while view:
+            n = os.write(self._fd, view)
+            view = view[n:]
+        self._pos += len(data)
+        return len(data)
+
+    def tell(self) -> int:
+        return self._pos
+
+    def flush(self) -> None:
+        pass
+
+    def close(self) -> None:
+        os.close(self._fd)
+
+
 class Recorder:
     """``write(topic, t_s, **fields)`` appends one message; ``close(summary)`` finishes the file."""
 
     def __init__(self, path: str | os.PathLike, chunk_size: int = CHUNK_SIZE):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._file = open(self.path, "wb", buffering=0)
+        self._file = _DirectFile(self.path)
         self._writer = Writer(self._file, chunk_size=chunk_size, compression=CompressionType.LZ4)
         self._types = {topic: TYPES[name] for topic, name in TOPICS.items()}
         self.messages = 0

@@ -51,6 +51,8 @@ def summarise(*, scenario, strategy: str, seed: int, bus: str, tracker, events, 
         "t_serious_s": tracker.serious_time_s,
         "t_det_s": tracker.deterioration_time_s,
         "t_detected_s": t_detected_s,
+        # a slip flagged before the fault is a false alarm: whatever it identified is not the fault curve
+        "false_alarm": t_detected_s is not None and t_detected_s < scenario.run.fault_time_s,
         "t_identified_s": confirmed.t_s if confirmed else None,
         "rt_percent": rt_percent(confirmed.t_s if confirmed else None, scenario.run.fault_time_s,
                                  tracker.deterioration_time_s),

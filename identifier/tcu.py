@@ -9,6 +9,8 @@ from __future__ import annotations
 import math
 from collections import deque
 
+import numpy as np
+
 from .messages import (STAGE_CONFIRMED, STAGE_GAVE_UP, STAGE_IDENTIFYING, STAGE_MONITORING, ObserverSample,
                        SensorReading, TcuOutput, TcuStatus, TorqueCommand)
 from .observer import LoadTorqueObserver
@@ -19,24 +21,36 @@ KMH_PER_MS = 3.6
 
 
 class SlipDetector:
-    """Flags a slipping fault when the creep speed rises ``threshold`` above its pre-fault mean.
+    """Flags a slipping fault when the creep speed stays above its pre-fault mean by more than
+    ``max(threshold_kmh, sigmas * std)`` for ``consecutive`` readings.
 
-    The mean is taken over the last ``baseline_samples`` readings before the detection, so a slow
-    drift of the operating point does not trigger it.
+    Mean and standard deviation come from the last ``baseline_samples`` readings before the
+    detection, so a slow drift of the operating point does not trigger it, and the noise-scaled
+    threshold keeps false alarms negligible over long runs (a single 4-sigma outlier is not a slip).
     """
 
-    def __init__(self, threshold_kmh: float, baseline_samples: int):
+    def __init__(self, threshold_kmh: float, baseline_samples: int, sigmas: float = 6.0, consecutive: int = 2):
         self.threshold_kmh = threshold_kmh
+        self.sigmas = sigmas
+        self.consecutive = consecutive
         self._history: deque[float] = deque(maxlen=baseline_samples)
+        self._above = 0
         self.detected_step: int | None = None
 
     def update(self, step: int, creep_speed_kmh: float) -> bool:
         if self.detected_step is not None:
             return True
         h = self._history
-        if len(h) == h.maxlen and creep_speed_kmh - sum(h) / len(h) > self.threshold_kmh:
-            self.detected_step = step
-            return True
+        if len(h) == h.maxlen:
+            base = np.fromiter(h, float, len(h))
+            limit = max(self.threshold_kmh, self.sigmas * float(base.std()))
+            if creep_speed_kmh - float(base.mean()) > limit:
+                self._above += 1
+                if self._above >= self.consecutive:
+                    self.detected_step = step - self.consecutive + 1   # the slip began at the first one
+                    return True
+                return False        # a candidate is not part of the baseline
+            self._above = 0
         h.append(creep_speed_kmh)
         return False
 
@@ -52,8 +66,7 @@ class TractionIdentifier:
         self.observer = LoadTorqueObserver(v.equivalent_inertia_kgm2, settings.period_s,
                                            settings.observer_pole_rad_s)
         self.detector = SlipDetector(settings.detection_creep_rise_kmh, settings.baseline_samples)
-        # +1: mu^(k) comes from x^(k), which has seen measurements only up to k-1
-        lag_steps = round(self.observer.lag_s / settings.period_s) + 1 if settings.lag_compensation else 0
+        lag_steps = round(self.observer.lag_s / settings.period_s) if settings.lag_compensation else 0
         self._creep_history: deque[float] = deque(maxlen=lag_steps + 1)
         self._settle_steps = round(settings.settle_time_s / settings.period_s)
         self.rejected_readings = 0

@@ -1,0 +1,90 @@
+"""End to end: ``hil run`` as a user runs it, the MCAP it writes read back with the mcap library,
+and a run killed with SIGKILL."""
+import json
+import signal
+import subprocess
+import time
+
+import pytest
+from mcap.reader import make_reader
+from mcap_protobuf.decoder import DecoderFactory
+
+from hil.logread import read_log
+
+from .conftest import hil_command, subprocess_env
+
+TOPICS = {"/plant/state", "/plant/sensor", "/tcu/command", "/tcu/observer", "/tcu/status", "/tcu/identification",
+          "/run/summary"}
+
+
+@pytest.fixture(scope="module")
+def ffcc_a_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("run")
+    r = subprocess.run(hil_command() + ["run", "scenarios/ffcc_a.toml", "--bus", "inprocess", "--seed", "3",
+                                        "--out", str(out), "--json"],
+                       capture_output=True, text=True, env=subprocess_env(), timeout=300)
+    assert r.returncode == 0, r.stderr
+    return json.loads(r.stdout), out
+
+
+def test_json_has_the_promised_keys(ffcc_a_run):
+    s, out = ffcc_a_run
+    for key in ("scenario", "strategy", "seed", "bus", "identified", "t_fault_s", "t_serious_s", "t_identified_s",
+                "rt_percent", "params", "mse", "rmse", "mae", "r2", "peak_mu_err_percent", "peak_creep_err_percent",
+                "corrections", "mcap"):
+        assert key in s, key
+    assert s["scenario"] == "ffcc_a" and s["strategy"] == "nlls" and s["seed"] == 3
+    assert len(s["params"]) == 5
+    # T_det is tens of milliseconds, as the paper's figures imply
+    assert 0.03 < s["t_serious_s"] - s["t_fault_s"] < 0.12
+    if s["identified"]:
+        assert s["t_identified_s"] > s["t_fault_s"]
+        assert s["rt_percent"] == pytest.approx((s["t_identified_s"] - s["t_fault_s"])
+                                                / (s["t_serious_s"] - s["t_fault_s"]) * 100)
+    assert s["mcap"].endswith("ffcc_a-nlls-3.mcap")
+
+
+def test_mcap_reads_back_with_the_standard_reader(ffcc_a_run):
+    s, out = ffcc_a_run
+    path = out / "ffcc_a-nlls-3.mcap"
+    with open(path, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        summary = reader.get_summary()
+        topics = {ch.topic for ch in summary.channels.values()}
+        assert TOPICS <= topics
+        assert all(summary.schemas[ch.schema_id].encoding == "protobuf" for ch in summary.channels.values())
+        meta = {m.name: m.metadata for m in reader.iter_metadata()}
+        assert {"scenario", "versions", "run", "summary"} <= set(meta)
+        assert "[curves.fault]" in meta["scenario"]["toml"]
+        assert json.loads(meta["summary"]["json"]) == s
+        states = [m for _, _, _, m in reader.iter_decoded_messages(topics=["/plant/state"])]
+    steps = [m.step for m in states]
+    assert steps == list(range(len(steps))) and len(steps) == 1000
+    stages = [m.stage for m in states]
+    assert stages.index("serious") * 1e-3 == pytest.approx(s["t_serious_s"])
+    # every identification event the summary counts is in the log
+    log = read_log(path)
+    assert log.complete
+    events = log.topic("/tcu/identification")
+    assert sum(e.kind == "correction" for e in events) == s["corrections"]
+    assert [list(e.params) for e in events][-1] == pytest.approx(s["params"])
+
+
+def test_sigkill_leaves_a_readable_prefix(tmp_path):
+    cmd = hil_command() + ["run", "scenarios/ffcc_a.toml", "--bus", "inprocess", "--out", str(tmp_path),
+                           "--set", "run.duration_s=60", "--set", "run.fault_time_s=50"]
+    proc = subprocess.Popen(cmd, env=subprocess_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    path = tmp_path / "ffcc_a-nlls-1.mcap"
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and (not path.exists() or path.stat().st_size < 400_000):
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=30)
+    assert proc.returncode == -signal.SIGKILL
+    log = read_log(path)
+    assert not log.complete
+    states = log.topic("/plant/state")
+    assert len(states) > 1000
+    # what was read back is a gap-free prefix of the run
+    assert [m.step for m in states] == list(range(len(states)))
+    assert "scenario" in log.metadata
