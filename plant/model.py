@@ -62,10 +62,18 @@ def creep_speed_kmh(p: WheelsetParams, motor_speed_rad_s, train_speed_ms):
 
 def build_dynamics(cfg: PlantConfig) -> ca.Function:
     """f(x, T_e, t) -> (dx/dt, mu, v_s_kmh): the continuous-time model as a CasADi Function."""
-    p = cfg.params
     x = ca.SX.sym("x", 2)
     torque = ca.SX.sym("torque_nm")
     t = ca.SX.sym("t_s")
+    return ca.Function("wheelset_dynamics", [x, torque, t], list(dynamics(cfg, x, torque, t)),
+                       ["x", "torque_nm", "t_s"], ["dx", "mu", "creep_speed_kmh"])
+
+
+def dynamics(cfg: PlantConfig, x, torque, t):
+    """(dx/dt, mu, v_s_kmh) as CasADi expressions.  The numbers in ``cfg`` (params, curves, fault
+    time, mu_required) may themselves be CasADi symbols: the FMU export (plant/fmu) builds its
+    parameterised model from this same function."""
+    p = cfg.params
     omega_m, v_t = x[0], x[1]
     v_s = creep_speed_kmh(p, omega_m, v_t)
     mu = ca.if_else(t >= cfg.fault_time_s, cfg.fault_curve.mu_casadi(v_s), cfg.normal_curve.mu_casadi(v_s))
@@ -73,8 +81,21 @@ def build_dynamics(cfg: PlantConfig) -> ca.Function:
     other_axles_n = (p.driven_axles - 1) * cfg.mu_required * p.normal_force_n
     d_omega = (torque - load_torque) / p.equivalent_inertia_kgm2
     d_v = (mu * p.normal_force_n + other_axles_n - p.running_resistance_n(v_t)) / p.train_mass_kg
-    return ca.Function("wheelset_dynamics", [x, torque, t], [ca.vertcat(d_omega, d_v), mu, v_s],
-                       ["x", "torque_nm", "t_s"], ["dx", "mu", "creep_speed_kmh"])
+    return ca.vertcat(d_omega, d_v), mu, v_s
+
+
+def rk4_step(f, x, torque, t, h):
+    """One RK4 step of ``dx = f(x, torque, t)`` from t to t + h, torque held.
+
+    The rail condition is held over a sub-step (all four stages see its start time), so the
+    fault switches exactly at a sub-step boundary instead of leaking into a k4 stage.
+    Shared by the loop's plant and the FMU export (plant/fmu), so the two cannot drift.
+    """
+    k1 = f(x, torque, t)
+    k2 = f(x + h / 2 * k1, torque, t)
+    k3 = f(x + h / 2 * k2, torque, t)
+    k4 = f(x + h * k3, torque, t)
+    return x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
 
 
 def build_period_step(cfg: PlantConfig) -> ca.Function:
@@ -86,14 +107,7 @@ def build_period_step(cfg: PlantConfig) -> ca.Function:
     h = cfg.integration_step_s
     x = x0
     for i in range(cfg.substeps):
-        # the rail condition is held over a sub-step (all four stages see its start time), so the
-        # fault switches exactly at a sub-step boundary instead of leaking into a k4 stage
-        t = t0 + i * h
-        k1 = f(x, torque, t)[0]
-        k2 = f(x + h / 2 * k1, torque, t)[0]
-        k3 = f(x + h / 2 * k2, torque, t)[0]
-        k4 = f(x + h * k3, torque, t)[0]
-        x = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        x = rk4_step(lambda x_, u_, t_: f(x_, u_, t_)[0], x, torque, t0 + i * h, h)
     _, mu, v_s = f(x, torque, t0 + cfg.substeps * h)
     return ca.Function("wheelset_period_step", [x0, torque, t0], [x, mu, v_s],
                        ["x0", "torque_nm", "t0_s"], ["x", "mu", "creep_speed_kmh"])
