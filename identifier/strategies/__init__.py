@@ -1,8 +1,11 @@
 """Identification strategies by name."""
 from .base import Sample, Strategy
+from .mdipf import MdipfStrategy
 from .nlls import NllsStrategy, fit_curve
+from .proposed import ProposedMu0Strategy, ProposedStrategy
 
-STRATEGIES: dict[str, type[Strategy]] = {NllsStrategy.name: NllsStrategy}
+STRATEGIES: dict[str, type[Strategy]] = {cls.name: cls for cls in (
+    NllsStrategy, MdipfStrategy, ProposedStrategy, ProposedMu0Strategy)}
 
 
 def make_strategy(name: str, settings, seed: int = 0) -> Strategy:
@@ -13,4 +16,4 @@ def make_strategy(name: str, settings, seed: int = 0) -> Strategy:
     return cls(settings, seed)
 
 
-__all__ = ["Sample", "Strategy", "NllsStrategy", "fit_curve", "STRATEGIES", "make_strategy"]
+__all__ = ["Sample", "Strategy", "NllsStrategy", "MdipfStrategy", "ProposedStrategy", "ProposedMu0Strategy", "fit_curve", "STRATEGIES", "make_strategy"]

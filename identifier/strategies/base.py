@@ -36,6 +36,15 @@ class Strategy(ABC):
         self.seed = seed
         self.rng = np.random.default_rng(seed)
         self.theta = np.array(settings.initial_guess, dtype=float)
+        # per-strategy overrides of the shared evaluation constants: settings.options[name][key]
+        self.options = dict(settings.options.get(self.name, {})) if isinstance(settings.options, dict) else {}
+        self.window_samples = int(self.options.get("window_samples", settings.window_samples))   # L
+        self.k_pe = float(self.options.get("k_pe", settings.k_pe))                                # K_PE
+        self.c_lw = float(self.options.get("c_lw", settings.c_lw))
+        self.c_up = float(self.options.get("c_up", settings.c_up))
+        n = (len(self.theta) - 1) // 2
+        if self.window_samples < 2 * n + 2:
+            raise ValueError(f"{self.name}: window_samples must exceed 2n + 1 = {2 * n + 1}")
         self.corrections = 0
         self.confirmed = False
         self.gave_up = False
@@ -59,7 +68,8 @@ class Strategy(ABC):
             return []   # a sample that cannot be fitted never reaches the estimator
         self._v.append(sample.creep_speed_kmh)
         self._mu.append(sample.mu_hat)
-        if len(self._v) - self._window_start < self.settings.window_samples:
+        self.on_sample(sample.creep_speed_kmh, sample.mu_hat)
+        if len(self._v) - self._window_start < self.window_samples:
             return []
         v = np.asarray(self._v[self._window_start:])
         mu = np.asarray(self._mu[self._window_start:])
@@ -71,7 +81,7 @@ class Strategy(ABC):
         if self._candidate is not None:
             theta, se = self._candidate
             self._candidate = None
-            if inside_confidence_band(v, mu, theta, se, s.c_lw, s.c_up):
+            if inside_confidence_band(v, mu, theta, se, self.c_lw, self.c_up):
                 self.confirmed = True
                 return [self._event(sample, "confirmed", math.nan)]
             # the window did not fit: it feeds the next correction instead
@@ -83,7 +93,7 @@ class Strategy(ABC):
         self._last_estimate = np.asarray(estimate, float)
         events = [self._event(sample, "correction", score)]
         self.corrections += 1
-        if score <= s.k_pe:
+        if score <= self.k_pe:
             self._candidate = (self.theta.copy(), standard_error(v, mu, self.theta))
         elif self.corrections >= s.max_corrections:
             self.gave_up = True
@@ -94,6 +104,10 @@ class Strategy(ABC):
                                    tuple(float(x) for x in self.theta), float(score), len(self._v))
 
     # -- what a strategy defines --------------------------------------------------------------
+    def on_sample(self, creep_speed_kmh: float, mu_hat: float) -> None:
+        """Called with every finite sample before the window bookkeeping (a filter steps here, so its
+        cost is spread over the samples instead of landing on the window's last one)."""
+
     @abstractmethod
     def correct(self, window_v: np.ndarray, window_mu: np.ndarray) -> np.ndarray:
         """One correction from the newest window; returns the vector J_EF compares between corrections."""

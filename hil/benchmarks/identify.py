@@ -1,0 +1,313 @@
+"""``hil bench identify``: every strategy on every case and seed, fed the same measured samples
+(the paper's Table 3, plus peak errors, an 'ok' verdict and the identifier's cost per sample).
+
+Per case and seed the plant, the sensors and the TCU's torque demand run once; the sensor readings
+are recorded and then replayed, reading by reading, into a fresh ``TractionIdentifier`` per
+strategy, so every strategy sees the identical data.  Each ``on_sensor`` call of the identifying
+phase (slip detected -> confirmed or end of run) is timed: that is the cost per sample.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..cli import UserError
+from ..progress import Progress
+from ..scenario import load_scenario
+from ..summary import clean, summarise
+
+#: the verdict: a fast confirmation of a wrong curve is a failure
+OK_R2, OK_PEAK_MU_PERCENT, OK_PEAK_CREEP_PERCENT = 0.999, 3.0, 10.0
+MEDIAN_KEYS = ("rt_percent", "mse", "rmse", "mae", "r2", "r2_true_curve", "peak_mu_err_percent",
+               "peak_creep_err_percent", "corrections", "samples", "t_det_s", "curve_rmse_vs_truth")
+
+
+def register(sub) -> None:
+    from identifier import STRATEGIES
+
+    p = sub.add_parser("identify", help="all strategies on the same measured samples: Table 3 of the paper, "
+                       "peak errors, verdict and cost per sample")
+    p.add_argument("--cases", default="ffcc_a,ffcc_b", help="scenario names (scenarios/NAME.toml) or TOML paths")
+    p.add_argument("--strategies", default=",".join(STRATEGIES), help="comma-separated (default: all)")
+    p.add_argument("--seeds", type=int, default=20, help="seeds 1..N (default 20)")
+    p.add_argument("--particles", type=int, default=None, help="particles N for the particle-filter strategies")
+    p.add_argument("--set", action="append", metavar="TABLE.KEY=VALUE",
+                   help="override a scenario field for every case, e.g. --set identifier.settle_time_s=0.006")
+    p.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
+    p.add_argument("--plots", metavar="DIR", default=None, help="write PNG figures (first seed) to DIR")
+    p.set_defaults(func=cmd_identify)
+
+
+def case_path(name: str) -> Path:
+    p = Path(name)
+    if p.suffix == ".toml":
+        return p
+    return Path("scenarios") / f"{name}.toml"
+
+
+# -- data: one plant run per case and seed ------------------------------------------------------
+@dataclasses.dataclass
+class CaseData:
+    scenario: object
+    seed: int
+    readings: list
+    tracker: object
+
+
+def generate(scenario, seed: int) -> CaseData:
+    """Run plant + sensors with the TCU's torque demand and record the sensor readings."""
+    from identifier import TorqueCommand
+
+    from ..loop import PlantSide
+
+    plant_side = PlantSide(scenario, seed, None)
+    torque = scenario.identifier_settings().torque_demand_nm
+    readings = []
+    for _ in range(scenario.steps):
+        r = plant_side.sense()
+        readings.append(r)
+        plant_side.apply(TorqueCommand(r.step, torque))
+    return CaseData(scenario, seed, readings, plant_side.tracker)
+
+
+def with_particles(settings, strategy: str, particles: int | None):
+    if particles is None:
+        return settings
+    from identifier import STRATEGIES
+    from identifier.strategies.mdipf import MdipfStrategy
+
+    if not issubclass(STRATEGIES[strategy], MdipfStrategy):
+        return settings
+    options = {k: dict(v) if isinstance(v, dict) else v for k, v in settings.options.items()}
+    options.setdefault(strategy, {})["particles"] = particles
+    return dataclasses.replace(settings, options=options)
+
+
+def replay(data: CaseData, strategy: str, particles: int | None) -> tuple[dict, object]:
+    """Feed the recorded readings to a fresh identifier; summary (hil run --json keys) + costs."""
+    from identifier import TractionIdentifier
+
+    sc = data.scenario
+    settings = with_particles(sc.identifier_settings(), strategy, particles)
+    ident = TractionIdentifier(settings, strategy, data.seed)
+    events, costs_ns = [], []
+    clock = time.perf_counter_ns
+    for r in data.readings:
+        t0 = clock()
+        out = ident.on_sensor(r)
+        dt = clock() - t0
+        events.extend(out.events)
+        if ident.detector.detected_step is not None:
+            costs_ns.append(dt)
+        if ident.strategy.confirmed or ident.strategy.gave_up:
+            break
+    ident.events_seen = events
+    v, mu = ident.strategy.data()
+    detected = ident.detector.detected_step
+    period = sc.run.exchange_period_s
+    s = summarise(scenario=sc, strategy=strategy, seed=data.seed, bus="replay", tracker=data.tracker, events=events,
+                  samples_v=v, samples_mu=mu, t_detected_s=None if detected is None else detected * period,
+                  mcap_path=None)
+    from identifier.metrics import fit_metrics
+
+    s["r2_true_curve"] = clean(fit_metrics(v, mu, sc.fault_curve.params)["r2"]) if len(v) else None
+    c = np.asarray(costs_ns, float) / 1e3
+    s["cost_median_us"] = float(np.median(c)) if c.size else None
+    s["cost_p99_us"] = float(np.percentile(c, 99)) if c.size else None
+    s["cost_max_us"] = float(c.max()) if c.size else None
+    s["cost_p99_percent_of_period"] = None if not c.size else s["cost_p99_us"] / (period * 1e6) * 100.0
+    s["ok"] = verdict(s)
+    return s, ident
+
+
+def verdict(s: dict) -> bool:
+    return bool(s["identified"] and s.get("r2") is not None and s["r2"] >= OK_R2
+                and s["peak_mu_err_percent"] is not None and s["peak_mu_err_percent"] <= OK_PEAK_MU_PERCENT
+                and s["peak_creep_err_percent"] is not None and s["peak_creep_err_percent"] <= OK_PEAK_CREEP_PERCENT)
+
+
+def _median(values):
+    vals = [v for v in values if v is not None and not (isinstance(v, float) and math.isnan(v))]
+    return float(np.median(vals)) if vals else None
+
+
+def aggregate(per_seed: list[dict]) -> dict:
+    """Medians over seeds (RT over identified seeds only; 'identified' and 'ok' as fractions)."""
+    out = {k: _median([s.get(k) for s in per_seed]) for k in MEDIAN_KEYS}
+    out["identified"] = float(np.mean([s["identified"] for s in per_seed]))
+    out["ok"] = float(np.mean([s["ok"] for s in per_seed]))
+    costs = [s for s in per_seed if s["cost_p99_us"] is not None]
+    out["cost_median_us"] = _median([s["cost_median_us"] for s in costs])
+    out["cost_p99_us"] = float(np.max([s["cost_p99_us"] for s in costs])) if costs else None
+    out["cost_p99_percent_of_period"] = float(np.max([s["cost_p99_percent_of_period"] for s in costs])) \
+        if costs else None
+    out["seeds"] = per_seed
+    return out
+
+
+# -- output ----------------------------------------------------------------------------------
+def _f(x, spec):
+    return "n/a" if x is None else format(x, spec)
+
+
+def table(results: dict, cases: list[str], n_seeds: int) -> str:
+    head = ("| strategy | case | MSE | RMSE | MAE | R² | R² true curve | RT % | corrections | peak μ err % | "
+            "peak creep err % | identified | ok | cost median µs | cost p99 µs | p99 % of period |")
+    lines = [head, "|" + "---|" * (head.count("|") - 1)]
+    for strat, per_case in results.items():
+        for case in cases:
+            r = per_case[case]
+            lines.append(
+                f"| {strat} | {case} | {_f(r['mse'], '.3e')} | {_f(r['rmse'], '.3e')} | {_f(r['mae'], '.3e')} | "
+                f"{_f(r['r2'], '.5f')} | {_f(r['r2_true_curve'], '.5f')} | {_f(r['rt_percent'], '.1f')} | "
+                f"{_f(r['corrections'], '.0f')} | {_f(r['peak_mu_err_percent'], '.2f')} | "
+                f"{_f(r['peak_creep_err_percent'], '.2f')} | {r['identified'] * 100:.0f}% | {r['ok'] * 100:.0f}% | "
+                f"{_f(r['cost_median_us'], '.1f')} | {_f(r['cost_p99_us'], '.1f')} | "
+                f"{_f(r['cost_p99_percent_of_period'], '.1f')} |")
+    notes = (f"\nMedians over {n_seeds} seeds (RT, fit and peak errors over the seeds' final curves; cost p99 is the "
+             f"worst seed's p99 over the identifying phase). ok = confirmed and R² >= {OK_R2} and peak μ err <= "
+             f"{OK_PEAK_MU_PERCENT:g} % and peak creep err <= {OK_PEAK_CREEP_PERCENT:g} %, as % of seeds. "
+             "R² true curve: the true fault curve against the same μ̂ samples (what the samples allow).")
+    return "\n".join(lines) + notes
+
+
+def cmd_identify(args) -> int:
+    from identifier import STRATEGIES
+
+    from .. import commands  # noqa: F401  (ensures the CLI package is importable for parse_set)
+    from ..commands.run import parse_set
+
+    strategies = [s.strip() for s in args.strategies.split(",") if s.strip()]
+    for s in strategies:
+        if s not in STRATEGIES:
+            raise UserError(f"--strategies: unknown strategy {s!r}; available: {', '.join(sorted(STRATEGIES))}")
+    if args.seeds < 1:
+        raise UserError("--seeds: must be >= 1")
+    if args.particles is not None and args.particles < 2:
+        raise UserError("--particles: must be >= 2")
+    cases = [c.strip() for c in args.cases.split(",") if c.strip()]
+    overrides = parse_set(args.set)
+    scenarios = {}
+    for c in cases:
+        path = case_path(c)
+        if not path.exists():
+            raise UserError(f"--cases: no scenario file {path}")
+        scenarios[c] = load_scenario(path, overrides)
+    seeds = list(range(1, args.seeds + 1))
+    per_seed = {s: {c: [] for c in cases} for s in strategies}
+    first_runs = {c: {} for c in cases}
+    bar = Progress(len(cases) * len(seeds) * (len(strategies) + 1), "bench identify", None)
+    done = 0
+    for c in cases:
+        for seed in seeds:
+            data = generate(scenarios[c], seed)
+            done += 1
+            bar.update(done, f"{c} seed {seed}")
+            for strat in strategies:
+                summary, ident = replay(data, strat, args.particles)
+                per_seed[strat][c].append(summary)
+                if seed == seeds[0]:
+                    first_runs[c][strat] = (summary, ident, data)
+                done += 1
+                bar.update(done, f"{c} seed {seed} {strat}")
+    bar.close()
+    results = {s: {c: aggregate(per_seed[s][c]) for c in cases} for s in strategies}
+    if args.plots:
+        paths = write_plots(Path(args.plots), first_runs, strategies)
+        print(f"wrote {len(paths)} figures to {args.plots}", file=sys.stderr)
+    if args.json:
+        print(json.dumps(clean({"results": results})))
+    else:
+        print(table(results, cases, len(seeds)))
+    return 0
+
+
+# -- figures (paper figs 7-9 / 11-13 and 14-15), first seed -----------------------------------
+def write_plots(out_dir: Path, first_runs: dict, strategies: list[str]) -> list[Path]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from identifier.curve import mu_model
+    from identifier.metrics import fit_metrics
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for case, runs in first_runs.items():
+        if not runs:
+            continue
+        any_summary, _, data = next(iter(runs.values()))
+        sc = data.scenario
+        true_theta = sc.fault_curve.params
+        v_peak, _ = sc.fault_curve.peak()
+        grid = np.linspace(0.0, 2.5 * v_peak, 300)
+        for strat in strategies:
+            summary, ident, _ = runs[strat]
+            v, mu = ident.strategy.data()
+            corr = [e for e in ident_events(summary, ident) if e.kind == "correction"]
+            fig, ax = plt.subplots(figsize=(7.5, 4.8))
+            ax.plot(v, mu, ".", color="0.55", ms=4, label=f"μ̂ samples ({len(v)})")
+            ax.plot(grid, mu_model(grid, true_theta), "k-", lw=2.2, label="true curve")
+            cmap = plt.get_cmap("viridis")
+            shown = corr if len(corr) <= 8 else corr[:: max(1, len(corr) // 8)] + [corr[-1]]
+            for i, e in enumerate(shown):
+                ax.plot(grid, mu_model(grid, np.asarray(e.params)), "--", lw=1.1,
+                        color=cmap(i / max(1, len(shown) - 1)),
+                        label=f"Q={e.correction} ({e.samples} samples, t-t_f={1e3 * (e.t_s - sc.run.fault_time_s):.0f} ms)")
+            ax.axvline(v_peak, color="tab:red", lw=1.2, ls=":")
+            ax.text(v_peak, 0.02, "  serious stage →", color="tab:red", fontsize=8)
+            ax.text(v_peak, 0.02, "← early stage  ", color="tab:red", fontsize=8, ha="right")
+            status = (f"confirmed, RT {summary['rt_percent']:.1f} %" if summary["identified"] else "not confirmed")
+            ax.set_title(f"{case} {strat} (seed {data.seed}): {status}; peak μ err "
+                         f"{_f(summary['peak_mu_err_percent'], '.1f')} %, creep err "
+                         f"{_f(summary['peak_creep_err_percent'], '.1f')} %", fontsize=9)
+            ax.set_xlabel("creep speed v_s (km/h)")
+            ax.set_ylabel("adhesion coefficient μ")
+            ax.set_xlim(0, grid[-1])
+            ax.set_ylim(0, 1.4 * max(sc.fault_curve.peak()[1], 0.05))
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=7, loc="lower right")
+            fig.tight_layout()
+            path = out_dir / f"{case}-{strat}-curves.png"
+            fig.savefig(path, dpi=110)
+            plt.close(fig)
+            paths.append(path)
+        # MSE, RMSE, MAE, R^2 per correction and strategy, against the samples known at that correction
+        fig, axes = plt.subplots(2, 2, figsize=(9, 6.2))
+        for strat in strategies:
+            summary, ident, _ = runs[strat]
+            v, mu = ident.strategy.data()
+            corr = [e for e in ident_events(summary, ident) if e.kind == "correction"]
+            if not corr:
+                continue
+            m = [fit_metrics(v[:e.samples], mu[:e.samples], np.asarray(e.params)) for e in corr]
+            q = [e.correction for e in corr]
+            for ax, key in zip(axes.flat, ("mse", "rmse", "mae", "r2")):
+                ax.plot(q, [x[key] for x in m], "o-", ms=3, label=strat)
+        for ax, key in zip(axes.flat, ("MSE", "RMSE", "MAE", "R²")):
+            ax.set_title(key, fontsize=10)
+            ax.set_xlabel("correction Q")
+            ax.grid(alpha=0.3)
+            if key != "R²":
+                ax.set_yscale("log")
+            else:
+                ax.set_ylim(0.9, 1.0005)
+        axes.flat[0].legend(fontsize=8)
+        fig.suptitle(f"{case}: goodness of fit per correction (seed {data.seed})", fontsize=10)
+        fig.tight_layout()
+        path = out_dir / f"{case}-metrics.png"
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        paths.append(path)
+    return paths
+
+
+def ident_events(summary, ident):
+    return ident.events_seen

@@ -1,0 +1,151 @@
+"""Small particle-filter pieces for the MDIPF (paper §3.3-3.4, Appendix B), each on a whole cloud.
+
+Particles are error vectors chi = (xi0, xi1..n, gamma1..n), an (N, P) array added to the current
+curve parameters theta (P = 2n + 1).  Every function is vectorised over particles; none loops over
+them in Python.  The pieces, in the order a filter step uses them:
+
+- ``correlation_transition``  Theta(k-1): the Pearson correlation of the cloud's dimensions,
+  made stable (the paper leaves this open; see ``STABILISERS``).
+- ``propagate``               chi(k) = Theta chi(k-1) + beta,  beta ~ N(0, diag(B)).
+- ``log_likelihood``          log p(Z | chi) for Z = M_cor(v_s) + phi,  phi ~ N(0, G).
+- ``normalise``               weights from log weights, NaN/inf safe.
+- ``ess``, ``resample``       effective sample size; systematic / multinomial / stratified resampling.
+- ``project_to_box``          the dynamic projection domain: particles outside [lo, hi] moved inside
+  by minimising -log p(chi~ - chi_out) - log p(Z - M_cor(chi~)) over the box.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .curve import mu_model
+
+STABILISERS = ("rownorm", "spectral", "raw", "identity")
+RESAMPLERS = ("systematic", "multinomial", "stratified")
+PROJECTORS = ("map", "clip")
+
+
+def weighted_correlation(particles: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Weighted Pearson correlation matrix (P, P) of the cloud; a dimension with no spread
+    correlates only with itself (1 on the diagonal, 0 elsewhere)."""
+    mean = weights @ particles
+    d = particles - mean
+    cov = (d * weights[:, None]).T @ d
+    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    ok = sd > 1e-300
+    denom = np.outer(np.where(ok, sd, 1.0), np.where(ok, sd, 1.0))
+    corr = np.where(np.outer(ok, ok), cov / denom, 0.0)
+    np.fill_diagonal(corr, 1.0)
+    return np.clip(corr, -1.0, 1.0)
+
+
+def correlation_transition(particles: np.ndarray, weights: np.ndarray, stabiliser: str = "rownorm") -> np.ndarray:
+    """Theta(k-1) of eq. 12 (Appendix B): the cloud's correlation matrix, made non-expanding.
+
+    A raw correlation matrix has eigenvalues up to P, so chi(k) = Theta chi(k-1) would amplify the
+    errors along strongly correlated directions every step.  ``rownorm`` divides each row by its sum
+    of absolute values (so ||Theta||_inf = 1: each new error is a weighted average of the old ones,
+    the fusion the paper describes); ``spectral`` scales the matrix to spectral radius 1;
+    ``raw`` is the literal matrix; ``identity`` switches the fusion off (a random-walk filter).
+    """
+    p = particles.shape[1]
+    if stabiliser == "identity":
+        return np.eye(p)
+    corr = weighted_correlation(particles, weights)
+    if stabiliser == "raw":
+        return corr
+    if stabiliser == "rownorm":
+        return corr / np.abs(corr).sum(axis=1, keepdims=True)
+    if stabiliser == "spectral":
+        radius = float(np.max(np.abs(np.linalg.eigvalsh(corr))))
+        return corr / max(radius, 1.0)
+    raise ValueError(f"unknown stabiliser {stabiliser!r} (known: {', '.join(STABILISERS)})")
+
+
+def propagate(particles: np.ndarray, transition: np.ndarray, noise_std: np.ndarray, rng) -> np.ndarray:
+    """chi(k) = Theta chi(k-1) + beta, beta ~ N(0, diag(noise_std^2))  (eq. 12)."""
+    return particles @ transition.T + rng.standard_normal(particles.shape) * noise_std
+
+
+def log_likelihood(particles: np.ndarray, base_theta: np.ndarray, creep_speed_kmh, mu_samples,
+                   noise_std: float) -> np.ndarray:
+    """Sum over the given samples of log N(mu^ ; M_cor(v_s), G), per particle (N,); -inf where the
+    corrected curve is not finite."""
+    v = np.atleast_1d(np.asarray(creep_speed_kmh, float))
+    y = np.atleast_1d(np.asarray(mu_samples, float))
+    resid = y - mu_model(v, base_theta + particles)          # (N, S)
+    ll = -0.5 * np.sum(resid * resid, axis=1) / noise_std ** 2
+    return np.where(np.isfinite(ll), ll, -np.inf)
+
+
+def normalise(log_weights: np.ndarray) -> np.ndarray:
+    """Normalised weights from log weights; all-degenerate (every entry -inf or NaN) -> uniform."""
+    lw = np.where(np.isnan(log_weights), -np.inf, log_weights)
+    top = np.max(lw)
+    if not np.isfinite(top):
+        return np.full(lw.shape, 1.0 / lw.size)
+    w = np.exp(lw - top)
+    return w / w.sum()
+
+
+def ess(weights: np.ndarray) -> float:
+    """Effective sample size 1 / sum(w^2) of normalised weights."""
+    return float(1.0 / np.dot(weights, weights))
+
+
+def resample(weights: np.ndarray, rng, scheme: str = "systematic") -> np.ndarray:
+    """Ancestor indices (N,) drawn from ``weights`` (normalised)."""
+    n = weights.size
+    cdf = np.cumsum(weights)
+    cdf[-1] = 1.0
+    if scheme == "systematic":
+        u = (rng.random() + np.arange(n)) / n
+    elif scheme == "stratified":
+        u = (rng.random(n) + np.arange(n)) / n
+    elif scheme == "multinomial":
+        u = np.sort(rng.random(n))
+    else:
+        raise ValueError(f"unknown resampling scheme {scheme!r} (known: {', '.join(RESAMPLERS)})")
+    return np.minimum(np.searchsorted(cdf, u, side="right"), n - 1)
+
+
+def project_to_box(particles: np.ndarray, lo: np.ndarray, hi: np.ndarray, base_theta: np.ndarray,
+                   creep_speed_kmh: float, mu_sample: float, prior_std: np.ndarray, noise_std: float,
+                   method: str = "map", iterations: int = 3) -> np.ndarray:
+    """Move the edge particles (outside [lo, hi]) into the box (eq. 24); inside ones are untouched.
+
+    ``map``: minimise 0.5 |(chi~ - chi_out)/B|^2 + 0.5 (Z - M_cor(v_s; chi~))^2 / G over the box by
+    projected Gauss-Newton steps started from the clipped particle (the measurement is one scalar,
+    so each step is a rank-one, Kalman-like update, vectorised over the edge particles); every
+    iterate is clipped, so the result is always inside.  ``clip``: the Euclidean projection.
+    A non-finite coordinate is replaced by the point of the box nearest to zero first.
+    """
+    x = np.where(np.isfinite(particles), particles, np.clip(0.0, lo, hi))
+    edge = np.any((x < lo) | (x > hi), axis=1)
+    out = x.copy()
+    if not edge.any():
+        return out
+    raw = x[edge]
+    z = np.clip(raw, lo, hi)
+    if method == "map" and np.isfinite(mu_sample) and np.isfinite(creep_speed_kmh):
+        p_var = np.asarray(prior_std, float) ** 2
+        n = (particles.shape[1] - 1) // 2
+        v = float(creep_speed_kmh)
+        for _ in range(iterations):
+            th = base_theta + z
+            lams, taus = th[:, 1:1 + n], th[:, 1 + n:]
+            e = np.exp(taus * v)
+            m = th[:, 0] + np.sum(lams * e, axis=1)
+            jac = np.hstack([np.ones((z.shape[0], 1)), e, lams * e * v])      # (E, P)
+            # linearise M about z; minimise over delta = chi~ - z (prior centred at raw):
+            # (P^-1 + J^T J / G) delta = -P^-1 (z - raw) + J^T r / G, solved by Sherman-Morrison
+            r = mu_sample - m
+            g = -(z - raw) / p_var + jac * (r / noise_std ** 2)[:, None]
+            pg = p_var * g
+            pj = p_var * jac
+            delta = pg - pj * (np.sum(jac * pg, axis=1) / (noise_std ** 2 + np.sum(jac * pj, axis=1)))[:, None]
+            step = np.clip(z + delta, lo, hi)
+            z = np.where(np.isfinite(step), step, z)
+    elif method not in PROJECTORS:
+        raise ValueError(f"unknown projection {method!r} (known: {', '.join(PROJECTORS)})")
+    out[edge] = z
+    return out

@@ -1,0 +1,147 @@
+"""MDIPF: NLLS preliminary fit, then particle-filter corrections of the curve (paper §3.3, §9).
+
+Window 1 (L samples): preliminary fit theta_pre by trust-region NLLS (§3.2).  Every later sample
+steps a particle filter over *error* vectors chi = (xi0, xi1..n, gamma1..n) added to the current
+parameters theta_{Q-1}; at the end of each window the weighted mean chi^_Q gives
+theta_Q = theta_{Q-1} + chi^_Q (correction Q), and the multi-level evaluation of ``Strategy``
+compares chi^_Q with chi^_{Q-1}.  ``ProposedStrategy`` (proposed.py) adds the dynamic projection box.
+
+Tuning (``settings.options["mdipf"]`` etc.; each default measured with ``hil bench identify``, see
+``DEFAULTS``): per-dimension standard deviations are given as three numbers, for lambda0, for
+every lambda_i and for every tau_i.
+
+Choices the paper leaves open (alternatives behind options):
+- Theta's stability: ``stabiliser`` (pf.STABILISERS), default row-normalised correlation.
+- resampling: ``resampler`` (systematic by default) whenever ESS < ``ess_fraction`` * N.
+- what chi^_0 is: the preliminary fit corrects nothing, so chi^_0 = 0 and J_EF(1) = |chi^_1|^2
+  (``j_ef_from_prelim``); with False the first J_EF is at Q = 2 (one window later).
+- between corrections the cloud is re-centred on the new theta (chi <- chi - chi^_Q), so it keeps
+  its learnt spread and weights; ``reset_cloud`` re-draws it from the initial spread instead.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .. import pf
+from .base import Strategy
+from .nlls import fit_curve
+
+DEFAULTS = {
+    "particles": 1000,                        # N
+    "init_std": [0.003, 0.02, 0.03],          # initial cloud spread (lambda0, lambda_i, tau_i)
+    "transition_std": [0.0005, 0.003, 0.005], # B: sqrt of the diagonal of the transition noise
+    "noise_std": 0.002,                       # G: sqrt of the measurement-noise variance (mu units)
+    "stabiliser": "rownorm",
+    "resampler": "systematic",
+    "ess_fraction": 0.5,
+    "j_ef_from_prelim": True,
+    "reset_cloud": False,
+}
+
+
+def per_dimension(triple, n: int) -> np.ndarray:
+    """(lambda0, lambda_i, tau_i) -> a (2n+1,) vector; a scalar applies to every dimension."""
+    t = np.broadcast_to(np.asarray(triple, float), (3,)) if np.ndim(triple) == 0 else np.asarray(triple, float)
+    if t.size == 2 * n + 1:
+        return t.copy()
+    if t.size != 3:
+        raise ValueError(f"expected 3 or {2 * n + 1} numbers, got {t.size}")
+    return np.r_[t[0], np.full(n, t[1]), np.full(n, t[2])]
+
+
+class MdipfStrategy(Strategy):
+    name = "mdipf"
+    defaults = DEFAULTS
+    use_box = False
+
+    def __init__(self, settings, seed: int = 0):
+        super().__init__(settings, seed)
+        opts = {**self.defaults, **self.options}
+        unknown = set(opts) - set(self.defaults) - {"window_samples", "k_pe", "c_lw", "c_up"}
+        if unknown:
+            raise ValueError(f"{self.name}: unknown option(s) {', '.join(sorted(unknown))}")
+        self.opts = opts
+        p = self.theta.size
+        n = (p - 1) // 2
+        self.n_particles = int(opts["particles"])
+        self.init_std = per_dimension(opts["init_std"], n)
+        self.transition_std = per_dimension(opts["transition_std"], n)
+        self.noise_std = float(opts["noise_std"])
+        self.particles = np.zeros((self.n_particles, p))
+        self.weights = np.full(self.n_particles, 1.0 / self.n_particles)
+        self.base = self.theta.copy()        # theta_{Q-1}: the curve the errors are relative to
+        self.prelim_done = False
+        self.history: list[np.ndarray] = []  # theta after each correction (for plots)
+
+    # -- the filter -------------------------------------------------------------------------
+    def _draw_cloud(self) -> None:
+        self.particles = self.rng.standard_normal(self.particles.shape) * self.init_std
+        self.weights = np.full(self.n_particles, 1.0 / self.n_particles)
+        self._constrain()
+
+    def _constrain(self) -> None:
+        """Hook for variants that restrict the cloud (e.g. mu(0) = 0); also keeps it finite."""
+        bad = ~np.all(np.isfinite(self.particles), axis=1)
+        if bad.any():
+            self.particles[bad] = 0.0
+
+    def on_sample(self, creep_speed_kmh: float, mu_hat: float) -> None:
+        if not self.prelim_done:
+            return
+        o = self.opts
+        transition = pf.correlation_transition(self.particles, self.weights, o["stabiliser"])
+        self.particles = pf.propagate(self.particles, transition, self.transition_std, self.rng)
+        self._constrain()
+        self._project(creep_speed_kmh, mu_hat)
+        ll = pf.log_likelihood(self.particles, self.base, creep_speed_kmh, mu_hat, self.noise_std)
+        with np.errstate(divide="ignore"):
+            self.weights = pf.normalise(np.log(self.weights) + ll)
+        if pf.ess(self.weights) < o["ess_fraction"] * self.n_particles:
+            idx = pf.resample(self.weights, self.rng, o["resampler"])
+            self.particles = self.particles[idx]
+            self.weights = np.full(self.n_particles, 1.0 / self.n_particles)
+
+    def _project(self, creep_speed_kmh: float, mu_hat: float) -> None:
+        """The projection domain (proposed strategy); MDIPF has none."""
+
+    def _after_correction(self, estimate: np.ndarray) -> None:
+        """Hook run after chi^_Q is known (the box update of the proposed strategy)."""
+
+    # -- one correction per window -------------------------------------------------------------
+    def preliminary_fit(self, window_v, window_mu) -> np.ndarray:
+        return fit_curve(window_v, window_mu, self.theta)
+
+    def correct(self, window_v, window_mu):
+        if not self.prelim_done:
+            self.base = self.preliminary_fit(window_v, window_mu)
+            if not np.all(np.isfinite(self.base)):
+                self.base = self.theta.copy()
+            self.prelim_done = True
+            self._draw_cloud()
+            self._after_prelim()
+            estimate = np.zeros_like(self.base)            # chi^_0: the prelim corrects nothing
+            self._estimate_for_theta = estimate
+            return estimate if self.opts["j_ef_from_prelim"] else np.full_like(self.base, np.nan)
+        estimate = self.weights @ self.particles
+        if not np.all(np.isfinite(estimate)):
+            estimate = np.zeros_like(self.base)
+        self._estimate_for_theta = estimate
+        return estimate
+
+    def _after_prelim(self) -> None:
+        """Hook: the proposed strategy opens its box here."""
+
+    def estimate_to_theta(self, estimate):
+        # ``estimate`` may be the NaN placeholder of the prelim (j_ef_from_prelim False): use ours
+        chi = self._estimate_for_theta
+        theta = self.base + chi
+        if not np.all(np.isfinite(theta)):
+            theta = self.base.copy()
+        self._after_correction(chi)
+        if self.opts["reset_cloud"]:
+            self._draw_cloud()
+        else:
+            self.particles = self.particles - chi           # errors now relative to the new theta
+        self.base = theta.copy()
+        self.history.append(theta.copy())
+        return theta

@@ -1,0 +1,128 @@
+"""The paper's proposed strategy: NLLS preliminary fit + MDIPF + dynamic projection domain +
+multi-level evaluation (§3.2-3.5), and a variant that adds physics the paper ignores.
+
+Dynamic projection domain (§3.4, eq. 22-24): correction Q keeps every error particle chi inside a
+box Omega_Q = [lo, hi].  After each correction the box contracts, literally
+
+    lo_{Q+1} = lo_Q + delta_dn * |chi^_Q - chi^_{Q-1}|,   hi_{Q+1} = hi_Q - delta_up * |chi^_Q - chi^_{Q-1}|
+
+never below ``min_width_fraction`` of its first width (the paper does not say what happens when
+the two sides cross; we stop them at that width, about the box's middle).  Particles outside are
+projected in by ``pf.project_to_box`` (``projector``: "map" solves eq. 24 by projected Gauss-Newton,
+"clip" is the Euclidean projection).  ``box_recentre``: the box lives in chi-space, i.e. it moves
+with theta and stays centred on the latest estimate (True, default), or stays fixed in parameter
+space around the preliminary fit (False).
+
+``ProposedMu0Strategy`` (beyond the paper): the fault curves satisfy mu(0) = 0, i.e.
+lambda0 + sum(lambda_i) = 0 (a wheel that does not slip transmits no creep force).  The
+preliminary NLLS fits n*2 free parameters with lambda0 = -sum(lambda_i), and every particle is
+kept on that plane (xi0 = -sum(xi_i) - (lambda0 + sum lambda_i of theta)), so the filter searches
+one dimension less and the early, low-creep samples cannot tilt the curve's offset.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from .. import pf
+from ..curve import jacobian, mu_model
+from .mdipf import DEFAULTS as MDIPF_DEFAULTS
+from .mdipf import MdipfStrategy, per_dimension
+from .nlls import parameter_bounds
+
+PROPOSED_DEFAULTS = {
+    **MDIPF_DEFAULTS,
+    "box_halfwidth": [0.01, 0.06, 0.09],     # initial Omega: +- this around chi = 0 (lambda0, lambda_i, tau_i)
+    "delta_dn": 0.5,                          # Delta_dn
+    "delta_up": 0.5,                          # Delta_up
+    "min_width_fraction": 0.1,
+    "box_recentre": True,
+    "projector": "map",
+}
+
+
+class ProposedStrategy(MdipfStrategy):
+    name = "proposed"
+    defaults = PROPOSED_DEFAULTS
+
+    def __init__(self, settings, seed: int = 0):
+        super().__init__(settings, seed)
+        n = (self.theta.size - 1) // 2
+        half = per_dimension(self.opts["box_halfwidth"], n)
+        if np.any(half <= 0):
+            raise ValueError(f"{self.name}: box_halfwidth must be > 0")
+        self.lo, self.hi = -half, half.copy()
+        self.min_width = 2 * half * float(self.opts["min_width_fraction"])
+        self._prev_estimate = np.zeros(self.theta.size)
+        self.boxes: list[tuple[np.ndarray, np.ndarray]] = []    # (lo, hi) per correction, for plots
+
+    def _after_prelim(self) -> None:
+        self.particles = np.clip(self.particles, self.lo, self.hi)
+        self._constrain()
+
+    def _project(self, creep_speed_kmh, mu_hat) -> None:
+        self.particles = pf.project_to_box(self.particles, self.lo, self.hi, self.base, creep_speed_kmh, mu_hat,
+                                           self.init_std, self.noise_std, self.opts["projector"])
+        self._constrain_in_box()
+
+    def _constrain_in_box(self) -> None:
+        """Hook for constrained variants: re-impose the constraint without leaving the box."""
+
+    def _after_correction(self, estimate) -> None:
+        change = np.abs(estimate - self._prev_estimate)
+        self._prev_estimate = np.asarray(estimate, float).copy()
+        lo = self.lo + float(self.opts["delta_dn"]) * change
+        hi = self.hi - float(self.opts["delta_up"]) * change
+        with np.errstate(invalid="ignore"):
+            narrow = hi - lo < self.min_width
+            mid = 0.5 * (lo + hi)
+        lo = np.where(narrow, mid - 0.5 * self.min_width, lo)
+        hi = np.where(narrow, mid + 0.5 * self.min_width, hi)
+        if not self.opts["box_recentre"]:
+            lo, hi = lo - estimate, hi - estimate       # fixed in parameter space: shift with the new origin
+        if not (np.any(np.isnan(lo)) or np.any(np.isnan(hi))):
+            self.lo, self.hi = lo, hi
+        self.boxes.append((self.lo.copy(), self.hi.copy()))
+
+
+def fit_curve_mu0(creep_speed_kmh, mu_samples, theta0) -> np.ndarray:
+    """NLLS with lambda0 = -sum(lambda_i) (mu(0) = 0): fits lambda_1..n, tau_1..n."""
+    v = np.asarray(creep_speed_kmh, float)
+    y = np.asarray(mu_samples, float)
+    theta0 = np.asarray(theta0, float)
+    n = (theta0.size - 1) // 2
+    lo, hi = parameter_bounds(n)
+    lo, hi = lo[1:], hi[1:]
+
+    def full(x):
+        return np.r_[-np.sum(x[:n]), x]
+
+    def jac(x):
+        j = jacobian(v, full(x))
+        return j[:, 1:] + np.hstack([-j[:, :1] * np.ones((1, n)), np.zeros((v.size, n))])
+
+    start = np.clip(theta0[1:], lo + 1e-9, hi - 1e-9)
+    res = least_squares(lambda x: mu_model(v, full(x)) - y, start, jac=jac, method="trf", bounds=(lo, hi),
+                        x_scale="jac", max_nfev=200)
+    return full(res.x)
+
+
+class ProposedMu0Strategy(ProposedStrategy):
+    name = "proposed_mu0"
+
+    def __init__(self, settings, seed: int = 0):
+        super().__init__(settings, seed)
+        self.lo[0], self.hi[0] = -np.inf, np.inf     # xi0 follows from the others: no box of its own
+
+    def preliminary_fit(self, window_v, window_mu):
+        return fit_curve_mu0(window_v, window_mu, self.theta)
+
+    def _constrain(self) -> None:
+        super()._constrain()
+        n = (self.base.size - 1) // 2
+        offset = self.base[0] + np.sum(self.base[1:1 + n])
+        self.particles[:, 0] = -np.sum(self.particles[:, 1:1 + n], axis=1) - offset
+
+    def _constrain_in_box(self) -> None:
+        # xi0 is determined by the others; keep it in the box by clipping, the plane wins ties
+        self._constrain()
