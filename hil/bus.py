@@ -1,0 +1,230 @@
+"""One factory for every bus the HIL runs on: ``open_bus(spec)``.
+
+Bus specs:
+  ``auto``               ``socketcan:vcan0`` when this kernel has it, otherwise ``hub``
+  ``socketcan:<ch>``     SocketCAN (vcan0, can0 ...), CAN FD enabled
+  ``hub``                a python-can-remote loopback hub that ``hil`` starts on 127.0.0.1 with a free
+                         port and stops at the end (processes connect with ``remote:ws://127.0.0.1:P/``)
+  ``remote:<url>``       an existing python-can-remote server
+  ``inprocess``          no bus and no second process: the TCU node answers in the plant's thread,
+                         still through the same DBC encode/decode (see ``InprocessTcuBus``)
+  ``<interface>:<ch>``   any python-can interface (pcan:PCAN_USBBUS1, kvaser:0, vector:0 ...); bitrates
+                         and timing come from python-can's own configuration (``~/.canrc``)
+
+``BusHandle.peer_spec`` is what a second process passes to ``open_bus`` to reach the same bus.
+Errors are ``BusError``: one line naming the bus and what is available here.
+"""
+from __future__ import annotations
+
+import errno
+import os
+import socket
+import subprocess
+import sys
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import can
+
+HUB_START_TIMEOUT_S = 15.0
+
+
+class BusError(ValueError):
+    """A bus spec that names nothing usable here; the message is one line."""
+
+
+# -- what this machine offers ---------------------------------------------------------------------
+def socketcan_support() -> tuple[bool, str]:
+    """(True, "") when the kernel can open AF_CAN raw sockets, else (False, why)."""
+    if not hasattr(socket, "AF_CAN"):
+        return False, "this Python has no AF_CAN"
+    try:
+        s = socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW)
+    except OSError as e:
+        return False, f"this kernel has no SocketCAN (socket(AF_CAN) failed: errno {e.errno} {os.strerror(e.errno)})"
+    s.close()
+    return True, ""
+
+
+def can_interfaces() -> list[str]:
+    """SocketCAN network interfaces present (ARPHRD_CAN = 280), e.g. ['vcan0']."""
+    out = []
+    for p in sorted(Path("/sys/class/net").glob("*")):
+        try:
+            if (p / "type").read_text().strip() == "280":
+                out.append(p.name)
+        except OSError:
+            continue
+    return out
+
+
+def vcan_available(channel: str = "vcan0") -> tuple[bool, str]:
+    ok, why = socketcan_support()
+    if not ok:
+        return False, why
+    if channel not in can_interfaces():
+        return False, f"no CAN interface {channel!r} (present: {', '.join(can_interfaces()) or 'none'})"
+    return True, ""
+
+
+def available_here() -> str:
+    names = ["auto", "hub", "inprocess"]
+    ok, _ = socketcan_support()
+    if ok:
+        names += [f"socketcan:{ch}" for ch in can_interfaces()]
+    return ", ".join(names) + "; or any python-can interface:channel (" + ", ".join(sorted(can.VALID_INTERFACES)) + ")"
+
+
+# -- the in-process "bus" ---------------------------------------------------------------------------
+class InprocessTcuBus(can.BusABC):
+    """A bus with a TCU node on the other end, in this thread: ``send`` hands the frame (as bytes,
+    through a copy) to ``node.handle`` and queues the node's replies for ``recv``."""
+
+    def __init__(self, node, channel="inprocess", **kwargs):
+        self.node = node
+        self.channel_info = "inprocess TCU node"
+        self._rx: deque[can.Message] = deque()
+        super().__init__(channel=channel, **kwargs)
+
+    def send(self, msg: can.Message, timeout=None) -> None:
+        now = time.time()
+        copy = can.Message(timestamp=now, arbitration_id=msg.arbitration_id, data=bytes(msg.data),
+                           is_extended_id=msg.is_extended_id, is_fd=msg.is_fd, bitrate_switch=msg.bitrate_switch,
+                           is_remote_frame=msg.is_remote_frame, is_error_frame=msg.is_error_frame, dlc=msg.dlc)
+        for reply in self.node.handle(copy):
+            reply.timestamp = time.time()
+            self._rx.append(reply)
+
+    def _recv_internal(self, timeout):
+        if self._rx:
+            return self._rx.popleft(), False
+        return None, False
+
+    def shutdown(self) -> None:
+        super().shutdown()
+
+
+# -- the hub -------------------------------------------------------------------------------------
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class Hub:
+    """python-can-remote server on 127.0.0.1 (a virtual bus behind a websocket), as a child process."""
+
+    def __init__(self, port: int | None = None):
+        self.port = port or free_port()
+        self.url = f"ws://127.0.0.1:{self.port}/"
+        self.proc = subprocess.Popen([sys.executable, "-m", "can_remote", "--interface", "virtual",
+                                      "--channel", f"hil-hub-{self.port}", "--host", "127.0.0.1",
+                                      "--port", str(self.port), "-v"],
+                                     stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        deadline = time.monotonic() + HUB_START_TIMEOUT_S
+        while True:
+            if self.proc.poll() is not None:
+                raise BusError(f"hub: python-can-remote exited with code {self.proc.returncode} on port {self.port}")
+            try:
+                with socket.create_connection(("127.0.0.1", self.port), timeout=0.2):
+                    break
+            except OSError:
+                if time.monotonic() > deadline:
+                    self.stop()
+                    raise BusError(f"hub: python-can-remote did not listen on 127.0.0.1:{self.port} "
+                                   f"within {HUB_START_TIMEOUT_S:g} s") from None
+                time.sleep(0.05)
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(5)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+
+
+# -- the factory ---------------------------------------------------------------------------------
+@dataclass
+class BusHandle:
+    """An open bus plus what it took to open it; ``close()`` shuts the bus and any hub down."""
+    spec: str                     # as asked ("auto")
+    name: str                     # as resolved ("hub", "socketcan:vcan0")
+    bus: can.BusABC | None        # None for inprocess until a node is attached
+    peer_spec: str | None         # what another process opens to reach this bus (None: in-process only)
+    hub: Hub | None = None
+    extra: dict = field(default_factory=dict)
+
+    def close(self) -> None:
+        if self.bus is not None:
+            try:
+                self.bus.shutdown()
+            except Exception:  # noqa: BLE001 - closing a dead connection must not hide the real error
+                pass
+            self.bus = None
+        if self.hub is not None:
+            self.hub.stop()
+            self.hub = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def resolve(spec: str) -> str:
+    """``auto`` -> ``socketcan:vcan0`` or ``hub``; other specs unchanged (checked by ``open_bus``)."""
+    if spec == "auto":
+        ok, _ = vcan_available("vcan0")
+        return "socketcan:vcan0" if ok else "hub"
+    return spec
+
+
+def open_python_can(interface: str, channel: str) -> can.BusABC:
+    if interface not in can.VALID_INTERFACES:
+        raise BusError(f"bus {interface}:{channel}: unknown python-can interface {interface!r}; "
+                       f"available here: {available_here()}")
+    if interface == "socketcan":
+        ok, why = vcan_available(channel)
+        if not ok:
+            raise BusError(f"bus socketcan:{channel}: {why}; available here: {available_here()}")
+    if interface == "remote":
+        kwargs = {}
+    else:
+        kwargs = {"fd": True}
+    try:
+        return can.Bus(interface=interface, channel=channel, receive_own_messages=False, **kwargs)
+    except (can.CanError, OSError, ImportError, ValueError, TypeError) as e:
+        raise BusError(f"bus {interface}:{channel}: cannot open: {str(e).splitlines()[0] if str(e) else type(e).__name__}"
+                       f"; available here: {available_here()}") from None
+
+
+def open_bus(spec: str, inprocess_node=None) -> BusHandle:
+    """Open the bus named by ``spec`` (see the module docstring); raises BusError with one line."""
+    if not isinstance(spec, str) or not spec:
+        raise BusError(f"bus {spec!r}: empty bus name; available here: {available_here()}")
+    name = resolve(spec)
+    if name == "inprocess":
+        if inprocess_node is None:
+            raise BusError("bus inprocess: needs the TCU node to answer in this process")
+        return BusHandle(spec, name, InprocessTcuBus(inprocess_node), None)
+    if name == "hub":
+        hub = Hub()
+        try:
+            bus = can.Bus(interface="remote", channel=hub.url, receive_own_messages=False)
+        except Exception as e:  # noqa: BLE001
+            hub.stop()
+            raise BusError(f"bus hub: cannot connect to {hub.url}: {e}") from None
+        return BusHandle(spec, "hub", bus, f"remote:{hub.url}", hub=hub)
+    if ":" not in name:
+        raise BusError(f"unknown bus {spec!r}; available here: {available_here()}")
+    interface, channel = name.split(":", 1)
+    if interface == "virtual":
+        bus = open_python_can(interface, channel)
+        return BusHandle(spec, name, bus, None)
+    bus = open_python_can(interface, channel)
+    return BusHandle(spec, name, bus, name)

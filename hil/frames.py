@@ -1,0 +1,218 @@
+"""The HIL frames (``hil/hil.dbc``), encoded and decoded only through cantools.
+
+``FrameCodec`` maps ``identifier.messages`` dataclasses to ``can.Message`` and back.  Every received
+frame goes through ``FrameCodec.classify``: it either yields a decoded ``Frame`` or a rejection
+reason (unknown id, wrong length, error/remote frame, undecodable, non-finite or out-of-range
+signal).  Rejected frames are counted by reason (``RejectCounter``) and never reach the identifier.
+
+Frame schedule per exchange period: PlantSensor (plant -> TCU), then TcuResult (0..n, only on an
+identification event), TcuStatus and TorqueCommand (TCU -> plant, in this order), heartbeats both
+ways every ``heartbeat_period_s`` of wall time.
+"""
+from __future__ import annotations
+
+import math
+from collections import Counter
+from dataclasses import dataclass
+from pathlib import Path
+
+import can
+import cantools
+
+from identifier.messages import IdentificationEvent, ObserverSample, SensorReading, TcuStatus, TorqueCommand
+
+DBC_NAME = "hil.dbc"
+DBC_PATH = Path(__file__).with_name(DBC_NAME)
+
+# frame ids (also in the DBC; checked against it at load)
+SENSOR_ID, COMMAND_ID, STATUS_ID, RESULT_ID = 0x100, 0x110, 0x120, 0x130
+PLANT_HEARTBEAT_ID, TCU_HEARTBEAT_ID = 0x701, 0x702
+PLANT_IDS = frozenset({SENSOR_ID, PLANT_HEARTBEAT_ID})
+TCU_IDS = frozenset({COMMAND_ID, STATUS_ID, RESULT_ID, TCU_HEARTBEAT_ID})
+
+# heartbeat states
+STATE_STARTING, STATE_RUNNING, STATE_FINISHED, STATE_FAULT = 0, 1, 2, 3
+STATE_NAMES = {STATE_STARTING: "starting", STATE_RUNNING: "running", STATE_FINISHED: "finished",
+               STATE_FAULT: "fault"}
+
+MAX_PARAMS = 6
+KINDS = ("correction", "confirmed")
+#: signals allowed to be non-finite (J_EF is inf before the 2nd correction and NaN on confirmation)
+NON_FINITE_OK = frozenset({"JEf"})
+
+
+def load_dbc() -> cantools.database.can.Database:
+    return cantools.database.load_file(str(DBC_PATH), database_format="dbc")
+
+
+@dataclass(frozen=True)
+class Heartbeat:
+    counter: int
+    state: int
+    step: int
+
+
+@dataclass(frozen=True)
+class Frame:
+    """A received frame that passed validation: its DBC name and the decoded object."""
+    name: str
+    value: object          # SensorReading | TorqueCommand | (TcuStatus, ObserverSample|None) | IdentificationEvent | Heartbeat
+
+
+class RejectCounter(Counter):
+    """Rejected frames by reason (``unknown_id``, ``bad_length``, ``non_finite:MotorSpeed`` ...)."""
+
+    @property
+    def total(self) -> int:
+        return sum(self.values())
+
+
+class FrameCodec:
+    """Encode/decode between frames and ``identifier.messages`` dataclasses, through the DBC."""
+
+    def __init__(self, period_s: float, db=None):
+        self.db = db or load_dbc()
+        self.period_s = period_s
+        self._by_id = {m.frame_id: m for m in self.db.messages}
+        expected = {SENSOR_ID: "PlantSensor", COMMAND_ID: "TorqueCommand", STATUS_ID: "TcuStatus",
+                    RESULT_ID: "TcuResult", PLANT_HEARTBEAT_ID: "PlantHeartbeat", TCU_HEARTBEAT_ID: "TcuHeartbeat"}
+        for fid, name in expected.items():
+            if fid not in self._by_id or self._by_id[fid].name != name:
+                raise ValueError(f"{DBC_NAME}: frame 0x{fid:X} must be {name}")
+        self._limits = {fid: [(s.name, s.is_float, s.minimum, s.maximum) for s in m.signals]
+                        for fid, m in self._by_id.items()}
+
+    # -- encoding ------------------------------------------------------------------------------
+    def _msg(self, fid: int, values: dict) -> can.Message:
+        m = self._by_id[fid]
+        data = m.encode(values, scaling=True, padding=False, strict=False)
+        return can.Message(arbitration_id=fid, data=data, is_extended_id=False, is_fd=True, bitrate_switch=True)
+
+    def sensor(self, r: SensorReading) -> can.Message:
+        return self._msg(SENSOR_ID, {"SensorStep": r.step, "MotorSpeed": r.motor_speed_rad_s,
+                                     "TrainSpeed": r.train_speed_ms})
+
+    def command(self, c: TorqueCommand) -> can.Message:
+        return self._msg(COMMAND_ID, {"CommandStep": c.step, "TorqueCmd": c.torque_nm})
+
+    def status(self, st: TcuStatus, obs: ObserverSample | None) -> can.Message:
+        valid = obs is not None
+        return self._msg(STATUS_ID, {"StatusStep": st.step, "Stage": st.stage, "ObserverValid": int(valid),
+                                     "Correction": st.correction,
+                                     "MuHat": obs.mu_hat if valid else 0.0,
+                                     "CreepSpeed": obs.creep_speed_kmh if valid else 0.0,
+                                     "LoadTorque": obs.load_torque_nm if valid else 0.0})
+
+    def result(self, e: IdentificationEvent) -> can.Message:
+        if len(e.params) > MAX_PARAMS:
+            raise ValueError(f"TcuResult carries at most {MAX_PARAMS} curve parameters, got {len(e.params)}")
+        values = {"ResultStep": e.step, "ResultCorrection": e.correction, "ResultSamples": min(e.samples, 65535),
+                  "ResultKind": KINDS.index(e.kind), "ParamCount": len(e.params), "JEf": e.j_ef}
+        for i in range(MAX_PARAMS):
+            values[f"Param{i}"] = e.params[i] if i < len(e.params) else 0.0
+        return self._msg(RESULT_ID, values)
+
+    def plant_heartbeat(self, counter: int, state: int, step: int) -> can.Message:
+        return self._msg(PLANT_HEARTBEAT_ID, {"PlantCounter": counter & 0xFFFF, "PlantState": state,
+                                              "PlantStep": max(step, 0)})
+
+    def tcu_heartbeat(self, counter: int, state: int, step: int) -> can.Message:
+        return self._msg(TCU_HEARTBEAT_ID, {"TcuCounter": counter & 0xFFFF, "TcuState": state,
+                                            "TcuStep": max(step, 0)})
+
+    # -- decoding ------------------------------------------------------------------------------
+    def classify(self, msg: can.Message) -> tuple[Frame | None, str]:
+        """(Frame, "ok") for a valid frame, else (None, reason).  Never raises."""
+        try:
+            return self._classify(msg)
+        except Exception as e:  # noqa: BLE001 - a frame must never crash a node
+            return None, f"undecodable:{type(e).__name__}"
+
+    def _classify(self, msg: can.Message) -> tuple[Frame | None, str]:
+        if msg.is_error_frame:
+            return None, "error_frame"
+        if msg.is_remote_frame:
+            return None, "remote_frame"
+        if msg.is_extended_id:
+            return None, "unknown_id"
+        m = self._by_id.get(msg.arbitration_id)
+        if m is None:
+            return None, "unknown_id"
+        data = bytes(msg.data)
+        if len(data) != m.length:
+            return None, "bad_length"
+        values = m.decode(data, decode_choices=False, scaling=True)
+        for name, is_float, lo, hi in self._limits[m.frame_id]:
+            x = values[name]
+            if is_float and not math.isfinite(x):
+                if name in NON_FINITE_OK:
+                    continue
+                return None, f"non_finite:{name}"
+            if (lo is not None and x < lo) or (hi is not None and x > hi):
+                return None, f"out_of_range:{name}"
+        return Frame(m.name, self._to_object(m.frame_id, values)), "ok"
+
+    def _to_object(self, fid: int, v: dict):
+        if fid == SENSOR_ID:
+            return SensorReading(int(v["SensorStep"]), float(v["MotorSpeed"]), float(v["TrainSpeed"]))
+        if fid == COMMAND_ID:
+            return TorqueCommand(int(v["CommandStep"]), float(v["TorqueCmd"]))
+        if fid == STATUS_ID:
+            step = int(v["StatusStep"])
+            status = TcuStatus(step, int(v["Stage"]), int(v["Correction"]))
+            obs = ObserverSample(step, step * self.period_s, float(v["CreepSpeed"]), float(v["MuHat"]),
+                                 float(v["LoadTorque"])) if v["ObserverValid"] else None
+            return status, obs
+        if fid == RESULT_ID:
+            step = int(v["ResultStep"])
+            n = int(v["ParamCount"])
+            return IdentificationEvent(step, step * self.period_s, KINDS[int(v["ResultKind"])],
+                                       int(v["ResultCorrection"]),
+                                       tuple(float(v[f"Param{i}"]) for i in range(n)), float(v["JEf"]),
+                                       int(v["ResultSamples"]))
+        if fid == PLANT_HEARTBEAT_ID:
+            return Heartbeat(int(v["PlantCounter"]), int(v["PlantState"]), int(v["PlantStep"]))
+        if fid == TCU_HEARTBEAT_ID:
+            return Heartbeat(int(v["TcuCounter"]), int(v["TcuState"]), int(v["TcuStep"]))
+        raise AssertionError(fid)
+
+
+# -- bus load ---------------------------------------------------------------------------------
+def fd_frame_time_s(data_len: int, bitrate: int, data_bitrate: int, brs: bool = True) -> float:
+    """Worst-case duration (s) of one CAN FD base-format (11-bit id) data frame with ``data_len`` bytes.
+
+    Arbitration phase at ``bitrate``: SOF, 11-bit id, RRS, IDE, FDF, res, BRS (17 bits) plus the
+    closing CRC delimiter, ACK slot, ACK delimiter, 7-bit EOF and 3-bit intermission (13 bits);
+    dynamic bit stuffing (1 in 5 worst case... here 1 per 4 bits) applies to the arbitration header.
+    Data phase at ``data_bitrate`` (``bitrate`` without BRS): ESI, 4-bit DLC, data, 4-bit stuff
+    count with parity, CRC-17 (<= 16 bytes) or CRC-21, fixed stuff bits every 4 bits of the CRC
+    field, and dynamic stuffing of ESI+DLC+data (worst case 1 per 4 bits).
+    """
+    arb = 17 + (17 - 1) // 4
+    crc = 17 if data_len <= 16 else 21
+    dyn = 1 + 4 + 8 * data_len
+    data_bits = dyn + (dyn - 1) // 4 + 4 + crc + math.ceil((crc + 4) / 4)
+    tail = 13
+    return (arb + tail) / bitrate + data_bits / (data_bitrate if brs else bitrate)
+
+
+def bus_load(db, period_s: float, heartbeat_period_s: float, bitrate: int, data_bitrate: int) -> dict:
+    """Worst-case bus load of the HIL schedule: per exchange period one sensor, status and command
+    frame; heartbeats from both sides every ``heartbeat_period_s``; one result frame per period
+    as the worst case of identification events (they are rare: one per correction window).
+    """
+    lengths = {m.frame_id: m.length for m in db.messages}
+    per_period = sum(fd_frame_time_s(lengths[i], bitrate, data_bitrate) for i in (SENSOR_ID, STATUS_ID, COMMAND_ID))
+    heartbeats = sum(fd_frame_time_s(lengths[i], bitrate, data_bitrate)
+                     for i in (PLANT_HEARTBEAT_ID, TCU_HEARTBEAT_ID)) / heartbeat_period_s
+    steady = per_period / period_s + heartbeats
+    peak = steady + fd_frame_time_s(lengths[RESULT_ID], bitrate, data_bitrate) / period_s
+    return {"bitrate": bitrate, "data_bitrate": data_bitrate, "period_s": period_s,
+            "heartbeat_period_s": heartbeat_period_s, "load_percent": 100.0 * steady,
+            "peak_load_percent": 100.0 * peak}
+
+
+def format_bus_load(load: dict) -> str:
+    return (f"bus load {load['load_percent']:.1f} % (peak {load['peak_load_percent']:.1f} % with a result frame) at "
+            f"{load['bitrate'] / 1e3:g} kbit/s arbitration, {load['data_bitrate'] / 1e6:g} Mbit/s data, "
+            f"{load['period_s'] * 1e3:g} ms exchange period")
