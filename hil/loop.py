@@ -134,14 +134,17 @@ def run_inprocess(scenario, strategy: str = "nlls", seed: int | None = None, out
     seed = scenario.run.seed if seed is None else seed
     path = log_path(scenario, strategy, seed, out_dir) if record else None
     rec = start_recording(scenario, strategy, seed, "inprocess", "lockstep", path) if record else None
-    plant_side = PlantSide(scenario, seed, rec)
+    from .reality_bus import Reality   # [reality] table / --reality: a "real" run (issue 7)
+    reality = Reality(scenario, seed)
+    plant_side = PlantSide(scenario, seed, rec, plant=reality.plant)
+    plant_side.sensors = reality.wrap_sensors(plant_side.sensors)
     tcu_side = TcuSide(scenario, strategy, seed, rec)
     bar = Progress(scenario.steps, f"{scenario.name} {strategy}", progress)
     wall0 = time.perf_counter()
     summary = None
     try:
         for _ in range(scenario.steps):
-            reading = plant_side.sense()
+            reading = reality.deliver(plant_side.sense())
             out = tcu_side.on_sensor(reading)
             plant_side.apply(out.command)
             if plant_side.step % 1000 == 0:
@@ -155,5 +158,6 @@ def run_inprocess(scenario, strategy: str = "nlls", seed: int | None = None, out
         if rec:
             if summary is None:
                 rec.event(plant_side.plant.t_s, "ERROR", "run aborted")
+            reality.record_truth(rec)
             rec.close(summary)
     return summary

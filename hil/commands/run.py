@@ -36,6 +36,9 @@ def register(sub) -> None:
     p.add_argument("--out", default=None, help="directory for the MCAP log (default: logs/)")
     p.add_argument("--set", action="append", metavar="TABLE.KEY=VALUE",
                    help="override a scenario field, e.g. --set run.duration_s=600 (repeatable)")
+    p.add_argument("--reality", action="append", metavar="EFFECT[:PARAM=VALUE,...]",
+                   help="switch on an effect the nominal model lacks, for a 'real' run (repeatable; "
+                   "see plant/reality.py, e.g. load_transfer:bogie_height_m=1.5, can:delay_ms=3)")
     p.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
     p.set_defaults(func=cmd_run)
 
@@ -46,6 +49,7 @@ def cmd_run(args) -> int:
     if args.strategy not in STRATEGIES:
         raise UserError(f"unknown strategy {args.strategy!r}; available: {', '.join(sorted(STRATEGIES))}")
     scenario = load_scenario(args.scenario, parse_set(args.set))
+    scenario = apply_reality_args(scenario, args.reality)
     if args.bus != "inprocess":
         raise UserError(f"unknown bus {args.bus!r}; available here: inprocess")
     summary = run_inprocess(scenario, args.strategy, args.seed, args.out)
@@ -54,6 +58,19 @@ def cmd_run(args) -> int:
     else:
         print_summary(summary)
     return 0
+
+
+def apply_reality_args(scenario, items):
+    """``--reality EFFECT[:p=v,...]`` merged into the scenario's [reality] table (validated)."""
+    from plant.reality import effects_from_table, parse_effect
+
+    from ..reality_bus import with_reality
+    try:
+        effects_from_table(scenario.extra.get("reality") or {}, f"{scenario.path}: [reality]")
+        parsed = dict(parse_effect(item) for item in items or [])
+    except ValueError as e:
+        raise UserError(str(e)) from None
+    return with_reality(scenario, parsed) if parsed else scenario
 
 
 def _fmt(x, spec):

@@ -1,0 +1,397 @@
+"""The reality emulator: effects the nominal wheelset model lacks, each switchable with parameters.
+
+A "real" run is the nominal plant plus one or more of these effects.  Three levels:
+
+* **plant** effects change the physics; ``RealityPlant`` integrates them in CasADi from the same
+  curve, creep and Davis expressions as ``plant.model`` (RK4 sub-steps held per exchange period):
+
+  - ``load_transfer``  axle load transfer under traction (Table 1's L, L_b, Z, z).  The faulty axle
+    is the leading axle of the leading bogie; its normal force drops with the tractive force of its
+    bogie (pitch moment at height z over the wheelbase 2 L_b) and of its car (coupler height Z over
+    the bogie distance 2 L, shared by the bogie's two axles):
+        N = N0 - (F + F_o) * z / (2 L_b) - (F + 3 F_o) * Z / (4 L),   F = mu N,  F_o = mu_req N0
+    solved for N:  N = (N0 - b) / (1 + a mu),  a = z/(2 L_b) + Z/(4 L),  b = F_o (z/(2 L_b) + 3Z/(4 L)).
+    The other axles hold their force (mu_req N0): their traction control is not modelled.
+  - ``torque_lag``     motor/inverter torque follows the command with a first-order lag tau_s.
+  - ``compliance``     drivetrain torsional compliance (stiffness, damping, referred to the motor
+    shaft) with gear backlash (half-width, motor-side rad): motor rotor and wheelset become two
+    inertias J_m and J_d / (eta R_g^2) joined by the shaft; the motor encoder sees the rotor.
+  - ``adhesion_lag``   adhesion dynamics: mu relaxes towards the curve's value with time constant
+    tau_s (d mu / dt = (mu_curve(v_s) - mu) / tau), so mu lags a changing creep and a rail switch.
+  - ``resistance``     running-resistance mismatch: the Davis polynomial scaled by ``factor``.
+  - ``torque_ripple``  (not a diagnosis candidate) sinusoidal ripple on the motor torque.
+  - ``wheel_radius``   (not a diagnosis candidate) true wheel radius off the nominal one.
+
+* **sensor** effects (``RealitySensors`` wraps ``plant.SensorModel``): ``sensor_delay`` (delay_ms,
+  fractional periods by linear interpolation) and ``sensor_quantisation`` (quanta on top of noise).
+
+* **bus** effects (``can``: delay, jitter, loss of sensor frames) live in ``hil/reality_bus.py``;
+  this module only knows their parameters.
+
+``parse_effect("load_transfer:z=1.5")`` and ``effects_from_table({...})`` turn text into
+``{name: {param: value}}`` with defaults filled in; unknown names/params raise ``ValueError`` with a
+one-line message.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import casadi as ca
+import numpy as np
+
+from .model import PlantConfig, PlantState, creep_speed_kmh, equilibrium, rk4_step
+from .params import KMH_PER_MS
+
+
+@dataclass(frozen=True)
+class EffectSpec:
+    name: str
+    level: str                         # "plant" | "sensor" | "bus"
+    params: dict                       # param -> default value
+    doc: str
+    units: dict = field(default_factory=dict)
+    candidate: bool = True             # offered to the diagnosis as an explanation
+
+
+EFFECTS: dict[str, EffectSpec] = {s.name: s for s in [
+    EffectSpec("load_transfer", "plant",
+               {"half_bogie_distance_m": None, "half_wheelbase_m": None, "coupler_height_m": None,
+                "bogie_height_m": None},
+               "axle load transfer under traction (L, L_b, Z, z; defaults from the scenario's [vehicle])",
+               {"half_bogie_distance_m": "m", "half_wheelbase_m": "m", "coupler_height_m": "m", "bogie_height_m": "m"}),
+    EffectSpec("torque_lag", "plant", {"tau_s": 0.005}, "first-order motor/inverter torque lag",
+               {"tau_s": "s"}),
+    EffectSpec("compliance", "plant",
+               {"stiffness_nm_rad": 3e5, "damping_ratio": 0.05, "backlash_rad": 0.0},
+               "drivetrain torsional compliance (motor side) with gear backlash (half-width)",
+               {"stiffness_nm_rad": "N·m/rad", "damping_ratio": "-", "backlash_rad": "rad"}),
+    EffectSpec("adhesion_lag", "plant", {"tau_s": 0.01}, "adhesion dynamics: mu relaxes to the curve with tau_s",
+               {"tau_s": "s"}),
+    EffectSpec("resistance", "plant", {"factor": 1.5}, "running resistance = factor x the Davis polynomial",
+               {"factor": "-"}),
+    EffectSpec("torque_ripple", "plant", {"amplitude": 0.02, "frequency_hz": 60.0, "phase_rad": 0.0},
+               "sinusoidal torque ripple (fraction of the torque)",
+               {"amplitude": "-", "frequency_hz": "Hz", "phase_rad": "rad"}, candidate=False),
+    EffectSpec("wheel_radius", "plant", {"error_percent": 0.2}, "true wheel radius = nominal x (1 + error)",
+               {"error_percent": "%"}, candidate=False),
+    EffectSpec("sensor_delay", "sensor", {"delay_ms": 3.0}, "speed sensors report values delay_ms old",
+               {"delay_ms": "ms"}),
+    EffectSpec("sensor_quantisation", "sensor", {"motor_quantum_rad_s": 0.05, "train_quantum_ms": 0.0},
+               "speed sensors quantised (on top of their noise)",
+               {"motor_quantum_rad_s": "rad/s", "train_quantum_ms": "m/s"}),
+    EffectSpec("can", "bus", {"delay_ms": 2.0, "jitter_ms": 0.0, "loss": 0.0},
+               "CAN sensor frames delayed (+ uniform jitter), lost with probability loss; the TCU uses the "
+               "newest frame it has", {"delay_ms": "ms", "jitter_ms": "ms", "loss": "-"}),
+]}
+
+PLANT_ORDER = ("torque_lag", "torque_ripple", "compliance", "wheel_radius", "adhesion_lag", "load_transfer",
+               "resistance")
+
+
+def _number(text: str, where: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise ValueError(f"{where}: expected a number, got {text!r}") from None
+    if not math.isfinite(v):
+        raise ValueError(f"{where}: must be finite, got {text!r}")
+    return v
+
+
+def check_effect(name: str, params: dict, where: str = "reality") -> dict:
+    """Validated ``params`` of effect ``name`` with defaults filled in (None = from the scenario)."""
+    if name not in EFFECTS:
+        raise ValueError(f"{where}: unknown effect {name!r} (known: {', '.join(EFFECTS)})")
+    spec = EFFECTS[name]
+    out = dict(spec.params)
+    for k, v in params.items():
+        if k not in spec.params:
+            raise ValueError(f"{where} {name}: unknown parameter {k!r} (known: {', '.join(spec.params)})")
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            v = _number(str(v), f"{where} {name}.{k}")
+        if not math.isfinite(v):
+            raise ValueError(f"{where} {name}.{k}: must be finite, got {v!r}")
+        out[k] = float(v)
+    for k, v in out.items():
+        if v is not None and v < 0 and k not in ("phase_rad", "error_percent"):
+            raise ValueError(f"{where} {name}.{k}: must be >= 0, got {v}")
+    if name in ("torque_lag", "adhesion_lag") and out["tau_s"] <= 0:
+        raise ValueError(f"{where} {name}.tau_s: must be > 0, got {out['tau_s']}")
+    if name == "compliance" and out["stiffness_nm_rad"] <= 0:
+        raise ValueError(f"{where} compliance.stiffness_nm_rad: must be > 0, got {out['stiffness_nm_rad']}")
+    if name == "can" and not out["loss"] < 1:
+        raise ValueError(f"{where} can.loss: must be < 1, got {out['loss']}")
+    return out
+
+
+def parse_effect(text: str) -> tuple[str, dict]:
+    """``"NAME[:p=v,...]"`` -> (name, params with defaults)."""
+    name, _, rest = text.partition(":")
+    name = name.strip()
+    params = {}
+    for item in filter(None, (s.strip() for s in rest.split(","))):
+        if "=" not in item:
+            raise ValueError(f"--reality {text!r}: expected PARAM=VALUE, got {item!r}")
+        k, v = item.split("=", 1)
+        params[k.strip()] = _number(v.strip(), f"--reality {name}.{k.strip()}")
+    return name, check_effect(name, params, "--reality")
+
+
+def effects_from_table(table: dict, where: str = "[reality]") -> dict:
+    """A scenario's ``[reality]`` table ``{effect: {param: value}}`` -> validated effects."""
+    if not isinstance(table, dict):
+        raise ValueError(f"{where}: must be a table of effects")
+    out = {}
+    for name, params in table.items():
+        if params is True:
+            params = {}
+        if not isinstance(params, dict):
+            raise ValueError(f"{where} {name}: must be a table of parameters (or true)")
+        out[name] = check_effect(name, params, where)
+    return out
+
+
+def fill_defaults(effects: dict, cfg: PlantConfig) -> dict:
+    """Effects with scenario-dependent defaults (None) replaced by the scenario's values."""
+    p = cfg.params
+    out = {}
+    for name, params in effects.items():
+        q = dict(params)
+        if name == "load_transfer":
+            for k in ("half_bogie_distance_m", "half_wheelbase_m", "coupler_height_m", "bogie_height_m"):
+                if q.get(k) is None:
+                    q[k] = float(getattr(p, k))
+        out[name] = q
+    return out
+
+
+def plant_effects(effects: dict) -> dict:
+    return {k: v for k, v in effects.items() if EFFECTS[k].level == "plant"}
+
+
+# -- plant-level physics ----------------------------------------------------------------------------
+def load_transfer_coefficients(cfg: PlantConfig, L, L_b, Z, z):
+    """(a, b_n) of N = (N0 - b) / (1 + a mu) for the leading axle of the leading bogie."""
+    f_o = cfg.mu_required * cfg.params.normal_force_n
+    a = z / (2 * L_b) + Z / (4 * L)
+    b = f_o * (z / (2 * L_b) + 3 * Z / (4 * L))
+    return a, b
+
+
+class RealityModel:
+    """Continuous-time dynamics of the nominal plant plus the given plant-level effects.
+
+    ``effects`` maps effect name -> {param: value}; a value may be a number or a CasADi symbol (the
+    diagnosis fits them).  States: omega_m, v_t, then [omega_w (wheel, motor side), twist] with
+    compliance, [T_a] with torque lag, [mu_s] with adhesion lag.
+    """
+
+    def __init__(self, cfg: PlantConfig, effects: dict):
+        self.cfg = cfg
+        self.effects = {k: v for k, v in effects.items() if EFFECTS[k].level == "plant"}
+        names = ["omega_m", "v_t"]
+        if "compliance" in self.effects:
+            names += ["omega_w", "twist"]
+        if "torque_lag" in self.effects:
+            names += ["torque_actual"]
+        if "adhesion_lag" in self.effects:
+            names += ["mu_state"]
+        self.state_names = names
+        self.nx = len(names)
+
+    def _i(self, name):
+        return self.state_names.index(name)
+
+    def rhs(self, x, torque_cmd, t):
+        """(dx, mu, v_s_kmh, normal_force_n) as CasADi expressions."""
+        cfg, e = self.cfg, self.effects
+        p = cfg.params
+        j_w = p.wheelset_inertia_kgm2 / (p.efficiency * p.gear_ratio ** 2)
+        omega_m, v_t = x[0], x[1]
+        dx = [None] * self.nx
+        torque = x[self._i("torque_actual")] if "torque_lag" in e else torque_cmd
+        if "torque_lag" in e:
+            dx[self._i("torque_actual")] = (torque_cmd - torque) / e["torque_lag"]["tau_s"]
+        if "torque_ripple" in e:
+            r = e["torque_ripple"]
+            torque = torque * (1 + r["amplitude"] * ca.sin(2 * math.pi * r["frequency_hz"] * t + r["phase_rad"]))
+        omega_wheel = x[self._i("omega_w")] if "compliance" in e else omega_m
+        radius = p.wheel_radius_m * (1 + e["wheel_radius"]["error_percent"] / 100) if "wheel_radius" in e \
+            else p.wheel_radius_m
+        v_s = KMH_PER_MS * (omega_wheel / p.gear_ratio * radius - v_t)
+        mu_curve = ca.if_else(t >= cfg.fault_time_s, cfg.fault_curve.mu_casadi(v_s), cfg.normal_curve.mu_casadi(v_s))
+        if "adhesion_lag" in e:
+            mu = x[self._i("mu_state")]
+            dx[self._i("mu_state")] = (mu_curve - mu) / e["adhesion_lag"]["tau_s"]
+        else:
+            mu = mu_curve
+        n0 = p.normal_force_n
+        if "load_transfer" in e:
+            lt = e["load_transfer"]
+            a, b = load_transfer_coefficients(cfg, lt["half_bogie_distance_m"], lt["half_wheelbase_m"],
+                                              lt["coupler_height_m"], lt["bogie_height_m"])
+            normal = (n0 - b) / (1 + a * mu)
+        else:
+            normal = n0
+        force = mu * normal
+        load_torque = force * radius / (p.efficiency * p.gear_ratio)
+        if "compliance" in e:
+            c = e["compliance"]
+            k, beta = c["stiffness_nm_rad"], c["backlash_rad"]
+            j_red = p.motor_inertia_kgm2 * j_w / (p.motor_inertia_kgm2 + j_w)
+            damping = 2 * c["damping_ratio"] * ca.sqrt(k * j_red)
+            twist = x[self._i("twist")]
+            rel = omega_m - omega_wheel
+            contact = ca.fabs(twist) > beta
+            shaft = ca.if_else(contact, k * (twist - ca.sign(twist) * beta) + damping * rel, 0)
+            dx[0] = (torque - shaft) / p.motor_inertia_kgm2
+            dx[self._i("omega_w")] = (shaft - load_torque) / j_w
+            dx[self._i("twist")] = rel
+        else:
+            dx[0] = (torque - load_torque) / p.equivalent_inertia_kgm2
+        resistance = p.running_resistance_n(v_t)
+        if "resistance" in e:
+            resistance = resistance * e["resistance"]["factor"]
+        other = (p.driven_axles - 1) * cfg.mu_required * n0
+        dx[1] = (force + other - resistance) / p.train_mass_kg
+        return ca.vertcat(*dx), mu, v_s, normal
+
+    def initial_state(self, x0_nominal, torque0: float, t0: float = 0.0) -> np.ndarray:
+        """Extra states consistent with the nominal (omega_m, v_t) and torque: no twist transient,
+        torque at the command, mu on the curve."""
+        cfg, e = self.cfg, self.effects
+        p = cfg.params
+        x = np.zeros(self.nx)
+        x[:2] = x0_nominal[:2]
+        if "torque_lag" in e:
+            x[self._i("torque_actual")] = torque0
+        v_s = float(creep_speed_kmh(p, x0_nominal[0], x0_nominal[1]))
+        curve = cfg.fault_curve if t0 >= cfg.fault_time_s else cfg.normal_curve
+        mu0 = float(curve.mu(v_s))
+        if "adhesion_lag" in e:
+            x[self._i("mu_state")] = mu0
+        if "compliance" in e:
+            c = e["compliance"]
+            x[self._i("omega_w")] = x0_nominal[0]
+            # shaft torque that gives the rotor the same acceleration as the rigid model's
+            accel = (torque0 - mu0 * p.torque_per_mu_nm) / p.equivalent_inertia_kgm2
+            shaft = torque0 - p.motor_inertia_kgm2 * accel
+            x[self._i("twist")] = shaft / float(c["stiffness_nm_rad"]) + math.copysign(float(c["backlash_rad"]), shaft)
+        return x
+
+    def period_step(self, param_syms=None) -> ca.Function:
+        """F(x0, T_cmd, t0[, p]) -> (x, mu, v_s_kmh, N) at t0 + exchange period."""
+        cfg = self.cfg
+        x0 = ca.SX.sym("x", self.nx)
+        u = ca.SX.sym("torque_nm")
+        t0 = ca.SX.sym("t0_s")
+        h = cfg.integration_step_s
+        x = x0
+        f = lambda x_, u_, t_: self.rhs(x_, u_, t_)[0]  # noqa: E731
+        for i in range(cfg.substeps):
+            x = rk4_step(f, x, u, t0 + i * h, h)
+        _, mu, v_s, normal = self.rhs(x, u, t0 + cfg.substeps * h)
+        ins = [x0, u, t0] + ([param_syms] if param_syms is not None else [])
+        return ca.Function("reality_period_step", ins, [x, mu, v_s, normal])
+
+
+class RealityPlant:
+    """WheelsetPlant's interface (``step(torque_nm) -> PlantState``, ``reset``, ``state``, ``t_s``,
+    ``step_index``, ``x0``, ``equilibrium_torque_nm``) for the nominal plant plus plant-level effects.
+
+    Starts from the nominal equilibrium (what the scenario and the TCU assume), so an effect that
+    moves the equilibrium shows as a transient from t = 0, as on a real vehicle.
+    """
+
+    def __init__(self, cfg: PlantConfig, effects: dict):
+        self.cfg = cfg
+        self.effects = fill_defaults(plant_effects(effects), cfg)
+        self.model = RealityModel(cfg, self.effects)
+        self._step_fn = self.model.period_step()
+        x0_nom, self.equilibrium_torque_nm = equilibrium(cfg)
+        self.x0 = self.model.initial_state(x0_nom, self.equilibrium_torque_nm)
+        n = self.model.nx
+        self._x_in, self._u_in, self._t_in = np.zeros(n), np.zeros(1), np.zeros(1)
+        self._x_out, self._mu_out, self._vs_out, self._n_out = np.zeros(n), np.zeros(1), np.zeros(1), np.zeros(1)
+        self._buffer, self._eval = self._step_fn.buffer()
+        for i, arr in enumerate((self._x_in, self._u_in, self._t_in)):
+            self._buffer.set_arg(i, memoryview(arr))
+        for i, arr in enumerate((self._x_out, self._mu_out, self._vs_out, self._n_out)):
+            self._buffer.set_res(i, memoryview(arr))
+        self.reset()
+
+    def reset(self) -> PlantState:
+        self.step_index = 0
+        self._x_out[:] = self.x0
+        self._u_in[0] = self.equilibrium_torque_nm
+        self._t_in[0] = 0.0
+        self._x_in[:] = self.x0
+        # outputs at t = 0 from a zero-length evaluation of the dynamics
+        xs = ca.SX.sym("x", self.model.nx)
+        _, mu, v_s, normal = self.model.rhs(xs, self.equilibrium_torque_nm, 0.0)
+        out = ca.Function("out0", [xs], [mu, v_s, normal])(self.x0)
+        self._mu_out[0], self._vs_out[0], self._n_out[0] = (float(v) for v in out)
+        self.state = self._observe(self.equilibrium_torque_nm)
+        return self.state
+
+    @property
+    def t_s(self) -> float:
+        return self.step_index * self.cfg.exchange_period_s
+
+    def step(self, torque_nm: float) -> PlantState:
+        self._x_in[:] = self._x_out
+        self._u_in[0] = torque_nm
+        self._t_in[0] = self.t_s
+        self._eval()
+        if not np.all(np.isfinite(self._x_out)):
+            raise FloatingPointError(f"reality plant diverged at t={self.t_s:.4f} s (torque {torque_nm} N·m)")
+        self.step_index += 1
+        self.state = self._observe(torque_nm)
+        return self.state
+
+    def _observe(self, torque_nm: float) -> PlantState:
+        t_s = self.t_s
+        p = self.cfg.params
+        mu = float(self._mu_out[0])
+        load = mu * float(self._n_out[0]) * p.wheel_radius_m / (p.efficiency * p.gear_ratio)
+        return PlantState(t_s, float(self._x_out[0]), float(self._x_out[1]), float(self._vs_out[0]), mu, load,
+                          float(torque_nm), t_s >= self.cfg.fault_time_s)
+
+
+# -- sensor-level ---------------------------------------------------------------------------------------
+class RealitySensors:
+    """Wraps a ``SensorModel`` (``measure(omega, v)``, called once per exchange period): delays the true
+    speeds by ``delay_ms`` (linear interpolation between periods), then the inner model adds its noise
+    and quantisation, then the reality quanta apply."""
+
+    def __init__(self, inner, effects: dict, period_s: float):
+        self.inner = inner
+        self.cfg = inner.cfg
+        d = effects.get("sensor_delay", {}).get("delay_ms", 0.0)
+        self.delay_periods = d * 1e-3 / period_s
+        q = effects.get("sensor_quantisation", {})
+        self.q_motor = q.get("motor_quantum_rad_s", 0.0)
+        self.q_train = q.get("train_quantum_ms", 0.0)
+        self._hist: list[tuple[float, float]] = []
+
+    def measure(self, motor_speed_rad_s: float, train_speed_ms: float) -> tuple[float, float]:
+        self._hist.append((motor_speed_rad_s, train_speed_ms))
+        if self.delay_periods > 0:
+            k = len(self._hist) - 1
+            pos = max(k - self.delay_periods, 0.0)
+            i = int(math.floor(pos))
+            frac = pos - i
+            a = self._hist[i]
+            b = self._hist[min(i + 1, k)]
+            motor_speed_rad_s = a[0] + frac * (b[0] - a[0])
+            train_speed_ms = a[1] + frac * (b[1] - a[1])
+            keep = int(self.delay_periods) + 3
+            if len(self._hist) > 4 * keep + 100:   # bounded memory on long runs
+                del self._hist[:len(self._hist) - keep - 1]
+        omega, v = self.inner.measure(motor_speed_rad_s, train_speed_ms)
+        if self.q_motor > 0:
+            omega = float(np.round(omega / self.q_motor) * self.q_motor)
+        if self.q_train > 0:
+            v = float(np.round(v / self.q_train) * self.q_train)
+        return omega, v
