@@ -129,14 +129,19 @@ def finish_summary(scenario, strategy, seed, bus, plant_side: PlantSide, tcu_sid
 
 
 def run_inprocess(scenario, strategy: str = "nlls", seed: int | None = None, out_dir=None, record: bool = True,
-                  progress: bool | None = None) -> dict:
-    """Plant and identifier in one process, no bus: the reference loop every bus must reproduce."""
+                  progress: bool | None = None, plant=None) -> dict:
+    """Plant and identifier in one process, no bus: the reference loop every bus must reproduce.
+
+    ``plant``: a plant object (e.g. ``plant.fmu_plant.FmuPlant``, see hil/plant_factory.py) instead of
+    the CasADi model; the caller closes it."""
     seed = scenario.run.seed if seed is None else seed
     path = log_path(scenario, strategy, seed, out_dir) if record else None
     rec = start_recording(scenario, strategy, seed, "inprocess", "lockstep", path) if record else None
     from .reality_bus import Reality   # [reality] table / --reality: a "real" run (issue 7)
     reality = Reality(scenario, seed)
-    plant_side = PlantSide(scenario, seed, rec, plant=reality.plant)
+    if rec and hasattr(plant, "metadata"):
+        rec.metadata("plant", plant.metadata())
+    plant_side = PlantSide(scenario, seed, rec, plant=plant if plant is not None else reality.plant)
     plant_side.sensors = reality.wrap_sensors(plant_side.sensors)
     tcu_side = TcuSide(scenario, strategy, seed, rec)
     bar = Progress(scenario.steps, f"{scenario.name} {strategy}", progress)

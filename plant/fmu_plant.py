@@ -180,6 +180,7 @@ class FmuPlant:
         if missing:
             raise FmuError(f"{self.path}: exported by {md.generationTool!r} but lacks parameters "
                            f"{', '.join(missing)} (re-export it with `hil fmu export`)")
+        self._param_names = list(params)
         self._param_vrs = [by_name[n].valueReference for n in params]
         self._param_values = list(params.values())
         self._unzipdir = fmpy.extract(str(self.path))
@@ -297,6 +298,15 @@ class FmuPlant:
         self._read_outputs()
         self.state = self._observe(torque_nm)
         return self.state
+
+    def metadata(self) -> dict[str, str]:
+        """What to record about this plant in the MCAP file (metadata record ``plant``)."""
+        md = self.md
+        return {"kind": f"fmu (FMI {md.fmiVersion} Co-Simulation)", "path": str(self.path),
+                "model_name": md.modelName or "", "generation_tool": md.generationTool or "",
+                "guid": md.guid or getattr(md, "instantiationToken", "") or "",
+                "mapping": {role: v.name for role, v in self.vars.items() if v is not None},
+                "parameters": dict(zip((v for v in self._param_names), self._param_values))}
 
     def close(self) -> None:
         """Terminate and free the FMU instance and delete its unpacked files (idempotent)."""
