@@ -29,7 +29,12 @@ def parse_set(items) -> dict:
 def register(sub) -> None:
     p = sub.add_parser("run", help="run a scenario on the HIL loop and record it to MCAP")
     p.add_argument("scenario", help="scenario TOML file, e.g. scenarios/ffcc_a.toml")
-    p.add_argument("--bus", default="inprocess", help="bus between plant and TCU (default: inprocess)")
+    p.add_argument("--bus", default="auto", help="bus between plant and TCU: auto (socketcan:vcan0 when the kernel "
+                   "has it, else hub), hub (python-can-remote on 127.0.0.1), socketcan:<ch>, inprocess (no second "
+                   "process, same frames), or any python-can interface:channel (default: auto)")
+    p.add_argument("--mode", choices=("lockstep", "realtime"), default="lockstep",
+                   help="lockstep: the plant waits for the TCU's command each period (deterministic); realtime: "
+                   "paced by the wall clock, deadline misses and jitter recorded (default: lockstep)")
     p.add_argument("--strategy", default="nlls", help=f"identification strategy ({', '.join(sorted(STRATEGIES))})")
     p.add_argument("--seed", type=int, default=None, help="seed for sensor noise and the identifier "
                    "(default: the scenario's)")
@@ -44,15 +49,21 @@ def register(sub) -> None:
 
 
 def cmd_run(args) -> int:
-    from ..loop import run_inprocess
-
     if args.strategy not in STRATEGIES:
         raise UserError(f"unknown strategy {args.strategy!r}; available: {', '.join(sorted(STRATEGIES))}")
     scenario = load_scenario(args.scenario, parse_set(args.set))
     scenario = apply_reality_args(scenario, args.reality)
-    if args.bus != "inprocess":
-        raise UserError(f"unknown bus {args.bus!r}; available here: inprocess")
-    summary = run_inprocess(scenario, args.strategy, args.seed, args.out)
+    from ..bus import BusError
+    from ..canloop import run_can
+    from ..tcu_process import EXIT_SILENT, PeerSilent
+
+    try:
+        summary = run_can(scenario, args.strategy, args.seed, bus=args.bus, mode=args.mode, out_dir=args.out,
+                          set_args=args.set)
+    except BusError as e:
+        raise UserError(str(e)) from None
+    except PeerSilent as e:
+        raise UserError(f"{e}; fault recorded, log closed", exit_code=EXIT_SILENT) from None
     if args.json:
         print(json.dumps(summary))
     else:
