@@ -27,15 +27,13 @@ PROJECTORS = ("map", "clip")
 def weighted_correlation(particles: np.ndarray, weights: np.ndarray) -> np.ndarray:
     """Weighted Pearson correlation matrix (P, P) of the cloud; a dimension with no spread
     correlates only with itself (1 on the diagonal, 0 elsewhere)."""
-    mean = weights @ particles
-    d = particles - mean
-    cov = (d * weights[:, None]).T @ d
-    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-    ok = sd > 1e-300
-    denom = np.outer(np.where(ok, sd, 1.0), np.where(ok, sd, 1.0))
-    corr = np.where(np.outer(ok, ok), cov / denom, 0.0)
+    d = particles - weights @ particles
+    cov = (d.T * weights) @ d
+    sd = np.sqrt(np.maximum(cov.diagonal(), 0.0))
+    inv = np.divide(1.0, sd, out=np.zeros_like(sd), where=sd > 1e-300)
+    corr = cov * inv[:, None] * inv[None, :]
     np.fill_diagonal(corr, 1.0)
-    return np.clip(corr, -1.0, 1.0)
+    return np.clip(corr, -1.0, 1.0, out=corr)
 
 
 def correlation_transition(particles: np.ndarray, weights: np.ndarray, stabiliser: str = "rownorm") -> np.ndarray:
@@ -61,20 +59,39 @@ def correlation_transition(particles: np.ndarray, weights: np.ndarray, stabilise
     raise ValueError(f"unknown stabiliser {stabiliser!r} (known: {', '.join(STABILISERS)})")
 
 
-def propagate(particles: np.ndarray, transition: np.ndarray, noise_std: np.ndarray, rng) -> np.ndarray:
-    """chi(k) = Theta chi(k-1) + beta, beta ~ N(0, diag(noise_std^2))  (eq. 12)."""
-    return particles @ transition.T + rng.standard_normal(particles.shape) * noise_std
+def propagate(particles: np.ndarray, transition: np.ndarray, noise_std: np.ndarray, rng=None,
+              noise: np.ndarray | None = None) -> np.ndarray:
+    """chi(k) = Theta chi(k-1) + beta, beta ~ N(0, diag(noise_std^2))  (eq. 12).
+
+    ``noise``: standard normal draws of the particles' shape, if already drawn (a strategy draws
+    them in blocks ahead of time: one large draw is much cheaper than many small ones)."""
+    if noise is None:
+        noise = rng.standard_normal(particles.shape)
+    return particles @ transition.T + noise * noise_std
+
+
+def curve_at(particles: np.ndarray, base_theta: np.ndarray, creep_speed_kmh: float) -> np.ndarray:
+    """M_cor(v_s) per particle (N,) at one creep speed: the hot path's model evaluation."""
+    n = (particles.shape[1] - 1) // 2
+    th = particles + base_theta
+    with np.errstate(over="ignore", invalid="ignore"):
+        return th[:, 0] + np.einsum("ij,ij->i", th[:, 1:1 + n], np.exp(th[:, 1 + n:] * creep_speed_kmh))
 
 
 def log_likelihood(particles: np.ndarray, base_theta: np.ndarray, creep_speed_kmh, mu_samples,
                    noise_std: float) -> np.ndarray:
     """Sum over the given samples of log N(mu^ ; M_cor(v_s), G), per particle (N,); -inf where the
     corrected curve is not finite."""
-    v = np.atleast_1d(np.asarray(creep_speed_kmh, float))
-    y = np.atleast_1d(np.asarray(mu_samples, float))
-    resid = y - mu_model(v, base_theta + particles)          # (N, S)
-    ll = -0.5 * np.sum(resid * resid, axis=1) / noise_std ** 2
-    return np.where(np.isfinite(ll), ll, -np.inf)
+    if np.ndim(creep_speed_kmh) == 0:
+        resid = float(mu_samples) - curve_at(particles, base_theta, float(creep_speed_kmh))
+        ll = resid * resid * (-0.5 / noise_std ** 2)
+    else:
+        v = np.asarray(creep_speed_kmh, float)
+        y = np.asarray(mu_samples, float)
+        resid = y - mu_model(v, base_theta + particles)          # (N, S)
+        ll = -0.5 * np.sum(resid * resid, axis=1) / noise_std ** 2
+    ll[~np.isfinite(ll)] = -np.inf
+    return ll
 
 
 def normalise(log_weights: np.ndarray) -> np.ndarray:
@@ -136,13 +153,18 @@ def project_to_box(particles: np.ndarray, lo: np.ndarray, hi: np.ndarray, base_t
             e = np.exp(taus * v)
             m = th[:, 0] + np.sum(lams * e, axis=1)
             jac = np.hstack([np.ones((z.shape[0], 1)), e, lams * e * v])      # (E, P)
-            # linearise M about z; minimise over delta = chi~ - z (prior centred at raw):
-            # (P^-1 + J^T J / G) delta = -P^-1 (z - raw) + J^T r / G, solved by Sherman-Morrison
+            # linearise M about z and minimise over delta = chi~ - z (prior centred at raw):
+            # (P^-1 + J^T J / G) delta = -P^-1 (z - raw) + J^T r / G, solved by Sherman-Morrison.
+            # Coordinates on a bound that the step would push outwards are frozen (active set:
+            # their variance is set to 0), so the clipped step still fits the measurement.
             r = mu_sample - m
-            g = -(z - raw) / p_var + jac * (r / noise_std ** 2)[:, None]
-            pg = p_var * g
-            pj = p_var * jac
-            delta = pg - pj * (np.sum(jac * pg, axis=1) / (noise_std ** 2 + np.sum(jac * pj, axis=1)))[:, None]
+            free = np.ones_like(z)
+            for _ in range(2):
+                pv = p_var * free
+                pg = -(z - raw) * free + pv * jac * (r / noise_std ** 2)[:, None]
+                pj = pv * jac
+                delta = pg - pj * (np.sum(jac * pg, axis=1) / (noise_std ** 2 + np.sum(jac * pj, axis=1)))[:, None]
+                free = free * ~(((z <= lo) & (delta < 0)) | ((z >= hi) & (delta > 0)))
             step = np.clip(z + delta, lo, hi)
             z = np.where(np.isfinite(step), step, z)
     elif method not in PROJECTORS:

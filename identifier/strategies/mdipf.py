@@ -36,6 +36,8 @@ DEFAULTS = {
     "ess_fraction": 0.5,
     "j_ef_from_prelim": True,
     "reset_cloud": False,
+    "noise_block": 32,
+    "prelim_radius": None,                    # None: free prelim; else (lambda0, lambda_i, tau_i) around the prior                        # transition-noise draws made ahead, in blocks of this many samples
 }
 
 
@@ -69,6 +71,9 @@ class MdipfStrategy(Strategy):
         self.noise_std = float(opts["noise_std"])
         self.particles = np.zeros((self.n_particles, p))
         self.weights = np.full(self.n_particles, 1.0 / self.n_particles)
+        self._noise_block = max(1, int(opts["noise_block"]))
+        self._noise = self.rng.standard_normal((self._noise_block, self.n_particles, p))   # drawn before the fault
+        self._noise_next = 0
         self.base = self.theta.copy()        # theta_{Q-1}: the curve the errors are relative to
         self.prelim_done = False
         self.history: list[np.ndarray] = []  # theta after each correction (for plots)
@@ -90,7 +95,12 @@ class MdipfStrategy(Strategy):
             return
         o = self.opts
         transition = pf.correlation_transition(self.particles, self.weights, o["stabiliser"])
-        self.particles = pf.propagate(self.particles, transition, self.transition_std, self.rng)
+        if self._noise_next >= self._noise_block:
+            self._noise = self.rng.standard_normal(self._noise.shape)
+            self._noise_next = 0
+        noise = self._noise[self._noise_next]
+        self._noise_next += 1
+        self.particles = pf.propagate(self.particles, transition, self.transition_std, noise=noise)
         self._constrain()
         self._project(creep_speed_kmh, mu_hat)
         ll = pf.log_likelihood(self.particles, self.base, creep_speed_kmh, mu_hat, self.noise_std)
@@ -108,8 +118,12 @@ class MdipfStrategy(Strategy):
         """Hook run after chi^_Q is known (the box update of the proposed strategy)."""
 
     # -- one correction per window -------------------------------------------------------------
+    def prelim_radius(self):
+        r = self.opts["prelim_radius"]
+        return None if r is None else per_dimension(r, (self.theta.size - 1) // 2)
+
     def preliminary_fit(self, window_v, window_mu) -> np.ndarray:
-        return fit_curve(window_v, window_mu, self.theta)
+        return fit_curve(window_v, window_mu, self.theta, self.prelim_radius())
 
     def correct(self, window_v, window_mu):
         if not self.prelim_done:
@@ -143,5 +157,9 @@ class MdipfStrategy(Strategy):
         else:
             self.particles = self.particles - chi           # errors now relative to the new theta
         self.base = theta.copy()
+        self._after_recentre()
         self.history.append(theta.copy())
         return theta
+
+    def _after_recentre(self) -> None:
+        """Hook: the proposed strategy puts the re-centred cloud back into its new box."""

@@ -22,12 +22,16 @@ def parameter_bounds(n_terms: int) -> tuple[np.ndarray, np.ndarray]:
     return lo, hi
 
 
-def fit_curve(creep_speed_kmh, mu_samples, theta0) -> np.ndarray:
-    """Trust-region-reflective least squares of M(v_s; theta) to mu^ samples, started at theta0."""
+def fit_curve(creep_speed_kmh, mu_samples, theta0, radius=None) -> np.ndarray:
+    """Trust-region-reflective least squares of M(v_s; theta) to mu^ samples, started at theta0.
+
+    ``radius`` (P,): optionally keep the solution within theta0 +- radius (a bounded fit)."""
     v = np.asarray(creep_speed_kmh, float)
     y = np.asarray(mu_samples, float)
     theta0 = np.asarray(theta0, float)
     lo, hi = parameter_bounds((theta0.size - 1) // 2)
+    if radius is not None:
+        lo, hi = np.maximum(lo, theta0 - radius), np.minimum(hi, theta0 + radius)
     start = np.clip(theta0, lo + 1e-9, hi - 1e-9)
     result = least_squares(lambda th: mu_model(v, th) - y, start, jac=lambda th: jacobian(v, th),
                            method="trf", bounds=(lo, hi), x_scale="jac", max_nfev=200)

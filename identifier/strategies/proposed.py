@@ -60,6 +60,11 @@ class ProposedStrategy(MdipfStrategy):
         self.particles = np.clip(self.particles, self.lo, self.hi)
         self._constrain()
 
+    def _after_recentre(self) -> None:
+        # no measurement at hand between windows: the Euclidean projection into the new box
+        self.particles = np.clip(self.particles, self.lo, self.hi)
+        self._constrain_in_box()
+
     def _project(self, creep_speed_kmh, mu_hat) -> None:
         self.particles = pf.project_to_box(self.particles, self.lo, self.hi, self.base, creep_speed_kmh, mu_hat,
                                            self.init_std, self.noise_std, self.opts["projector"])
@@ -85,13 +90,15 @@ class ProposedStrategy(MdipfStrategy):
         self.boxes.append((self.lo.copy(), self.hi.copy()))
 
 
-def fit_curve_mu0(creep_speed_kmh, mu_samples, theta0) -> np.ndarray:
+def fit_curve_mu0(creep_speed_kmh, mu_samples, theta0, radius=None) -> np.ndarray:
     """NLLS with lambda0 = -sum(lambda_i) (mu(0) = 0): fits lambda_1..n, tau_1..n."""
     v = np.asarray(creep_speed_kmh, float)
     y = np.asarray(mu_samples, float)
     theta0 = np.asarray(theta0, float)
     n = (theta0.size - 1) // 2
     lo, hi = parameter_bounds(n)
+    if radius is not None:
+        lo, hi = np.maximum(lo, theta0 - radius), np.minimum(hi, theta0 + radius)
     lo, hi = lo[1:], hi[1:]
 
     def full(x):
@@ -115,7 +122,7 @@ class ProposedMu0Strategy(ProposedStrategy):
         self.lo[0], self.hi[0] = -np.inf, np.inf     # xi0 follows from the others: no box of its own
 
     def preliminary_fit(self, window_v, window_mu):
-        return fit_curve_mu0(window_v, window_mu, self.theta)
+        return fit_curve_mu0(window_v, window_mu, self.theta, self.prelim_radius())
 
     def _constrain(self) -> None:
         super()._constrain()

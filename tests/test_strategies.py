@@ -1,0 +1,183 @@
+"""Identification strategies on synthetic samples: recovery, projection, evaluation, robustness, seeding."""
+import math
+
+import numpy as np
+import pytest
+
+from identifier import STRATEGIES, IdentifierSettings, VehicleModel, make_strategy
+from identifier import pf
+from identifier.curve import mu_model, peak
+from identifier.strategies import Sample, Strategy
+
+FFCC_A = np.array([-0.005, 0.585, -0.580, -0.525, -1.100])
+NFCC_0 = (0.0, 1.0, -1.0, -0.54, -1.2)
+PF_STRATEGIES = [s for s in STRATEGIES if s != "nlls"]
+
+
+def settings(**kw) -> IdentifierSettings:
+    vehicle = VehicleModel(equivalent_inertia_kgm2=16.6, torque_per_mu_nm=21373.0, gear_ratio=2.788,
+                           wheel_radius_m=0.4375)
+    return IdentifierSettings(period_s=1e-3, vehicle=vehicle, torque_demand_nm=3400.0, initial_guess=NFCC_0, **kw)
+
+
+def samples_spanning_peak(n=240, noise=3e-4, seed=7, theta=FFCC_A):
+    """Creep speeds over 0.2..2.6 km/h (the peak is at 1.27) in random order, mu on the curve + noise."""
+    rng = np.random.default_rng(seed)
+    v = rng.permutation(np.linspace(0.2, 2.6, n))
+    mu = mu_model(v, theta) + rng.normal(0.0, noise, n)
+    return [Sample(k, k * 1e-3, float(a), float(b)) for k, (a, b) in enumerate(zip(v, mu))]
+
+
+def feed(strategy: Strategy, samples):
+    events = []
+    for s in samples:
+        events.extend(strategy.add_sample(s))
+    return events
+
+
+@pytest.mark.parametrize("name", sorted(STRATEGIES))
+def test_each_strategy_recovers_a_known_curve(name):
+    strat = make_strategy(name, settings(), seed=3)
+    events = feed(strat, samples_spanning_peak(600))
+    assert strat.confirmed, f"{name} did not confirm after {strat.corrections} corrections"
+    assert events[-1].kind == "confirmed"
+    v_true, mu_true = peak(FFCC_A)
+    v_id, mu_id = peak(strat.theta)
+    assert abs(mu_id - mu_true) / mu_true < 0.03
+    assert abs(v_id - v_true) / v_true < 0.10
+    grid = np.linspace(0.2, 2.6, 50)
+    assert np.max(np.abs(mu_model(grid, strat.theta) - mu_model(grid, FFCC_A))) < 0.005
+
+
+def test_projection_puts_every_particle_inside_the_box():
+    rng = np.random.default_rng(0)
+    lo, hi = np.array([-0.01, -0.05, -0.05, -0.1, -0.1]), np.array([0.01, 0.05, 0.05, 0.1, 0.1])
+    particles = rng.normal(0.0, 0.3, (500, 5))
+    particles[0, 2] = np.nan
+    particles[1, 4] = np.inf
+    particles[2, :] = -np.inf
+    inside_before = np.all((particles >= lo) & (particles <= hi), axis=1)
+    for method in pf.PROJECTORS:
+        out = pf.project_to_box(particles, lo, hi, FFCC_A, 0.8, 0.14, np.full(5, 0.02), 0.002, method)
+        assert np.all(np.isfinite(out))
+        assert np.all((out >= lo) & (out <= hi)), method
+        # particles already inside are left where they were
+        np.testing.assert_array_equal(out[inside_before], particles[inside_before])
+
+
+def test_map_projection_moves_edge_particles_towards_the_measurement():
+    lo, hi = -np.full(5, 0.05), np.full(5, 0.05)
+    particles = np.tile([0.0, 0.3, 0.0, 0.0, 0.0], (4, 1))      # lambda1 far outside: curve much too high
+    z = float(mu_model(np.array([0.8]), FFCC_A)[0])
+    clip = pf.project_to_box(particles, lo, hi, FFCC_A, 0.8, z, np.full(5, 0.05), 0.001, "clip")
+    mapped = pf.project_to_box(particles, lo, hi, FFCC_A, 0.8, z, np.full(5, 0.05), 0.001, "map")
+    err = lambda x: np.abs(pf.curve_at(x, FFCC_A, 0.8) - z)       # noqa: E731
+    assert np.all(err(mapped) < err(clip))
+
+
+def test_proposed_cloud_stays_in_its_box_while_filtering():
+    strat = make_strategy("proposed", settings(), seed=1)
+    for s in samples_spanning_peak(60):
+        strat.add_sample(s)
+        if strat.prelim_done:
+            assert np.all((strat.particles >= strat.lo - 1e-12) & (strat.particles <= strat.hi + 1e-12))
+    assert strat.prelim_done and strat.boxes, "the box never contracted"
+    first, last = strat.boxes[0], strat.boxes[-1]
+    assert np.all(last[1] - last[0] <= first[1] - first[0] + 1e-12)
+
+
+class FixedCurve(Strategy):
+    """Always proposes the same curve: J_EF is 0 from the second correction on."""
+
+    name = "fixed"
+
+    def correct(self, window_v, window_mu):
+        return FFCC_A.copy()
+
+
+def window(v_values, offset=0.0, start=0):
+    v = np.asarray(v_values, float)
+    mu = mu_model(v, FFCC_A) + offset + 1e-4 * np.sin(np.arange(v.size))   # SE > 0
+    return [Sample(start + k, (start + k) * 1e-3, float(a), float(b)) for k, (a, b) in enumerate(zip(v, mu))]
+
+
+def test_multilevel_evaluation_confirms_only_when_the_next_window_fits():
+    s = settings(window_samples=8)
+    strat = FixedCurve(s)
+    v = np.linspace(0.4, 1.0, 8)
+    assert [e.kind for e in feed(strat, window(v))] == ["correction"]          # J_EF = inf
+    assert [e.kind for e in feed(strat, window(v + 0.1, start=8))] == ["correction"]   # J_EF = 0: candidate
+    # the next window lies 0.01 above the curve (>> 3 SE): no confirmation, it feeds a correction
+    kinds = [e.kind for e in feed(strat, window(v + 0.2, offset=0.01, start=16))]
+    assert kinds == ["correction"] and not strat.confirmed
+    # the window after that fits the candidate: confirmed at its end, not before
+    w = window(v + 0.3, start=24)
+    assert feed(strat, w[:-1]) == [] and not strat.confirmed
+    assert [e.kind for e in feed(strat, w[-1:])] == ["confirmed"] and strat.confirmed
+
+
+def test_k_pe_gates_the_confidence_check():
+    strat = FixedCurve(settings(window_samples=8, k_pe=-1.0))      # no J_EF can pass
+    for k in range(6):
+        feed(strat, window(np.linspace(0.4, 1.0, 8) + 0.05 * k, start=8 * k))
+    assert not strat.confirmed and strat.corrections == 6
+
+
+@pytest.mark.parametrize("name", PF_STRATEGIES)
+def test_bad_samples_and_degenerate_weights_never_give_nan_parameters(name):
+    # tiny G makes every likelihood underflow; huge and non-finite samples in between
+    s = settings(options={name: {"noise_std": 1e-9, "particles": 200}})
+    strat = make_strategy(name, s, seed=0)
+    good = samples_spanning_peak(40)
+    bad = [Sample(1000 + k, 1.0, v, m) for k, (v, m) in
+           enumerate([(math.nan, 0.1), (0.5, math.inf), (-math.inf, 0.1), (0.8, 1e6), (1e6, 0.1), (0.7, -1e6)])]
+    for k, smp in enumerate(good):
+        strat.add_sample(smp)
+        if k % 5 == 0:
+            for b in bad:
+                strat.add_sample(b)
+        assert np.all(np.isfinite(strat.theta)), f"NaN parameters after sample {k}"
+        if strat.prelim_done:
+            assert np.all(np.isfinite(strat.particles)) and np.all(np.isfinite(strat.weights))
+            assert abs(strat.weights.sum() - 1.0) < 1e-9
+
+
+def test_normalise_handles_all_degenerate_log_weights():
+    for lw in (np.full(10, -np.inf), np.full(10, np.nan), np.r_[np.nan, np.full(9, -np.inf)]):
+        w = pf.normalise(lw)
+        np.testing.assert_allclose(w, np.full(10, 0.1))
+    w = pf.normalise(np.r_[0.0, -np.inf, np.nan, -1000.0])
+    assert w[0] == pytest.approx(1.0) and np.all(np.isfinite(w))
+
+
+@pytest.mark.parametrize("name", PF_STRATEGIES)
+def test_same_seed_same_result(name):
+    data = samples_spanning_peak(40)
+    runs = []
+    for seed in (5, 5, 6):
+        strat = make_strategy(name, settings(), seed=seed)
+        feed(strat, data)
+        runs.append(strat.theta.copy())
+    np.testing.assert_array_equal(runs[0], runs[1])
+    assert not np.array_equal(runs[0], runs[2])
+
+
+def test_resampling_schemes_follow_the_weights():
+    rng = np.random.default_rng(0)
+    w = np.array([0.7, 0.0, 0.3, 0.0])
+    for scheme in pf.RESAMPLERS:
+        idx = np.concatenate([pf.resample(w, rng, scheme) for _ in range(500)])
+        assert set(np.unique(idx)) <= {0, 2}
+        assert abs(np.mean(idx == 0) - 0.7) < 0.03, scheme
+
+
+@pytest.mark.parametrize("stabiliser", ["rownorm", "spectral"])
+def test_correlation_transition_does_not_amplify(stabiliser):
+    rng = np.random.default_rng(1)
+    base = rng.normal(size=(1000, 1))
+    cloud = np.hstack([base + 0.01 * rng.normal(size=(1000, 1)) for _ in range(5)])   # all strongly correlated
+    w = np.full(1000, 1e-3)
+    raw = pf.correlation_transition(cloud, w, "raw")
+    assert np.max(np.abs(np.linalg.eigvals(raw))) > 4.0          # the literal matrix would amplify ~5x
+    theta = pf.correlation_transition(cloud, w, stabiliser)
+    assert np.max(np.abs(np.linalg.eigvals(theta))) <= 1.0 + 1e-9
