@@ -1,0 +1,278 @@
+"""The plant as an FMU: our FMI 2.0 CS export against the CasADi plant, FMUs in the loop, bad FMUs.
+
+Every FMU here is real: ours is built once per session with gcc (about 1 s); the third-party ones
+are OpenModelica- and PythonFMU3-built FMUs shipped in the ``gemseo-fmu`` wheel (installed with
+``pip install --no-deps gemseo-fmu``: its own requirements pin an older fmpy).
+"""
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import subprocess
+import zipfile
+from importlib import metadata
+from pathlib import Path
+
+import fmpy
+import numpy as np
+import pytest
+from fmpy.fmi2 import FMU2Slave
+from fmpy.validation import validate_fmu
+
+from hil.loop import run_inprocess
+from hil.logread import read_log
+from hil.plant_factory import make_plant
+from hil.scenario import load_scenario
+from plant import WheelsetPlant
+from plant.fmu import export_fmu, model_param_names, parameter_values
+from plant.fmu_plant import FmuError, FmuPlant
+
+from .conftest import SCENARIOS, hil_command, subprocess_env
+
+STATE_FIELDS = ("motor_speed_rad_s", "train_speed_ms", "creep_speed_kmh", "mu", "load_torque_nm")
+
+
+@pytest.fixture(scope="session")
+def wheelset_fmu(tmp_path_factory) -> Path:
+    """Our FMU, exported from FFCC-a (start values) once per test session."""
+    sc = load_scenario(SCENARIOS / "ffcc_a.toml")
+    return export_fmu(sc.plant_config(), tmp_path_factory.mktemp("fmu") / "wheelset.fmu",
+                      stop_time_s=sc.run.duration_s)
+
+
+def gemseo_fmu(name: str) -> Path:
+    try:
+        dist = metadata.distribution("gemseo-fmu")
+    except metadata.PackageNotFoundError:
+        pytest.skip("gemseo-fmu not installed (pip install --no-deps gemseo-fmu): no third-party FMUs")
+    for f in dist.files or []:
+        if str(f).endswith(f"fmu_files/linux/{name}"):
+            return Path(dist.locate_file(f))
+    pytest.fail(f"gemseo-fmu has no linux/{name}")
+
+
+def torque_profile(eq_torque: float, steps: int) -> np.ndarray:
+    """A torque that moves: slow sine plus a step and fixed pseudo-random noise."""
+    k = np.arange(steps)
+    rng = np.random.default_rng(0)
+    return eq_torque * (1 + 0.2 * np.sin(k / 37) + 0.05 * (k > steps // 3)) + rng.normal(0, 30, steps)
+
+
+# -- our export ---------------------------------------------------------------------------------------
+def test_export_passes_fmpy_validation_and_declares_the_parameters(wheelset_fmu):
+    assert validate_fmu(str(wheelset_fmu)) == []
+    md = fmpy.read_model_description(str(wheelset_fmu))
+    assert md.fmiVersion == "2.0" and md.coSimulation is not None and md.modelExchange is None
+    assert fmpy.platform in fmpy.supported_platforms(str(wheelset_fmu))
+    by_name = {v.name: v for v in md.modelVariables}
+    for name in (*model_param_names(2), "integration_step_s", "initial_motor_speed_rad_s", "initial_train_speed_ms"):
+        v = by_name[name]
+        assert (v.causality, v.variability, v.type) == ("parameter", "fixed", "Real"), name
+    # Table 1, curves and fault time carry FFCC-a's values as start values
+    assert float(by_name["gear_ratio"].start) == 2.788
+    assert float(by_name["fault_curve_tau2"].start) == -1.1
+    assert float(by_name["fault_time_s"].start) == 0.5
+    assert by_name["torque_nm"].causality == "input"
+    for name in STATE_FIELDS:
+        assert by_name[name].causality == "output"
+
+
+@pytest.mark.parametrize("scenario", ["ffcc_a", "ffcc_b"])
+def test_simulate_fmu_matches_the_casadi_plant(wheelset_fmu, scenario):
+    """fmpy's own simulate_fmu, other scenario's values passed as start values: one FMU, several scenarios."""
+    sc = load_scenario(SCENARIOS / f"{scenario}.toml")
+    cfg = sc.plant_config()
+    res = fmpy.simulate_fmu(str(wheelset_fmu), stop_time=sc.run.duration_s, step_size=cfg.exchange_period_s,
+                            output_interval=cfg.exchange_period_s, start_values=parameter_values(cfg, 2),
+                            output=list(STATE_FIELDS))
+    plant = WheelsetPlant(cfg)
+    ref = [plant.state] + [plant.step(plant.equilibrium_torque_nm) for _ in range(sc.steps)]
+    assert len(res) == len(ref)
+    assert np.allclose(res["time"], [s.t_s for s in ref], rtol=0, atol=1e-12)
+    for name in STATE_FIELDS:
+        expected = np.array([getattr(s, name) for s in ref])
+        assert np.max(np.abs(res[name] - expected)) <= 1e-9 * max(1.0, np.max(np.abs(expected))), name
+    # the fault did happen inside the run: mu falls by more than a third
+    assert res["mu"][-1] < 0.67 * res["mu"][0]
+
+
+@pytest.mark.parametrize("scenario", ["ffcc_a", "ffcc_b"])
+def test_fmu_plant_tracks_the_casadi_plant_under_a_moving_torque(wheelset_fmu, scenario):
+    sc = load_scenario(SCENARIOS / f"{scenario}.toml")
+    cfg = sc.plant_config()
+    ref = WheelsetPlant(cfg)
+    with FmuPlant(wheelset_fmu, cfg) as fmu:
+        assert np.array_equal(fmu.x0, ref.x0) and fmu.equilibrium_torque_nm == ref.equilibrium_torque_nm
+        worst = dict.fromkeys(STATE_FIELDS, 0.0)
+        for tq in torque_profile(ref.equilibrium_torque_nm, sc.steps):
+            a, b = ref.step(tq), fmu.step(tq)
+            assert (a.t_s, a.fault_active, a.torque_nm) == (b.t_s, b.fault_active, b.torque_nm)
+            for name in STATE_FIELDS:
+                worst[name] = max(worst[name], abs(getattr(a, name) - getattr(b, name)))
+        assert all(v <= 1e-9 for v in worst.values()), worst
+        # reset starts again from the equilibrium
+        s0 = fmu.reset()
+        assert fmu.step_index == 0 and s0.t_s == 0 and s0.motor_speed_rad_s == ref.x0[0]
+
+
+def test_fmu_step_must_be_a_multiple_of_the_integration_step(wheelset_fmu):
+    sc = load_scenario(SCENARIOS / "ffcc_a.toml", {"run.exchange_period_s": 1e-3, "run.integration_step_s": 1e-4})
+    cfg = sc.plant_config()
+    with FmuPlant(wheelset_fmu, cfg, parameters={"integration_step_s": 3e-4}) as fmu:
+        with pytest.raises(FloatingPointError, match="not a whole multiple of integration_step_s"):
+            fmu.step(fmu.equilibrium_torque_nm)
+
+
+def test_identification_identical_with_fmu_and_casadi_plant(wheelset_fmu, tmp_path):
+    sc = load_scenario(SCENARIOS / "ffcc_b.toml")
+    a = run_inprocess(sc, "nlls", 5, tmp_path / "casadi", progress=False)
+    plant = make_plant(sc, f"fmu:{wheelset_fmu}")
+    try:
+        b = run_inprocess(sc, "nlls", 5, tmp_path / "fmu", progress=False, plant=plant)
+    finally:
+        plant.close()
+    assert a["corrections"] > 0
+    for key in set(a) | set(b):
+        if key not in ("wall_s", "mcap"):
+            assert a[key] == b[key], key
+    log = read_log(b["mcap"])
+    meta = log.metadata["plant"]
+    assert meta["path"] == str(wheelset_fmu) and json.loads(meta["mapping"])["torque_nm"] == "torque_nm"
+
+
+# -- bad FMUs and bad mappings ---------------------------------------------------------------------------
+def _rezip(src: Path, dst: Path, drop_prefix: str | None = None, edit_md=None) -> Path:
+    with zipfile.ZipFile(src) as zin, zipfile.ZipFile(dst, "w") as zout:
+        for item in zin.infolist():
+            if drop_prefix and item.filename.startswith(drop_prefix):
+                continue
+            data = zin.read(item)
+            if item.filename == "modelDescription.xml" and edit_md:
+                data = edit_md(data.decode()).encode()
+            zout.writestr(item, data)
+    return dst
+
+
+def test_bad_fmus_give_one_clear_error(wheelset_fmu, tmp_path):
+    cfg = load_scenario(SCENARIOS / "ffcc_a.toml").plant_config()
+    text = tmp_path / "text.fmu"
+    text.write_text("not a zip")
+    with pytest.raises(FmuError, match=r"text.fmu: not an FMU \(not a zip archive\)"):
+        FmuPlant(text, cfg)
+    with pytest.raises(FmuError, match="no such FMU file"):
+        FmuPlant(tmp_path / "missing.fmu", cfg)
+    no_bin = _rezip(wheelset_fmu, tmp_path / "nobin.fmu", drop_prefix=f"binaries/{fmpy.platform}/")
+    with pytest.raises(FmuError, match=f"no binary for this platform {fmpy.platform} .*C sources"):
+        FmuPlant(no_bin, cfg)
+    me_only = _rezip(wheelset_fmu, tmp_path / "me.fmu", edit_md=lambda md: md.replace(
+        "<CoSimulation ", '<ModelExchange ').replace("</CoSimulation>", "</ModelExchange>"))
+    with pytest.raises(FmuError, match="Model Exchange only; the loop needs a Co-Simulation FMU"):
+        FmuPlant(me_only, cfg)
+
+
+def test_missing_and_mistyped_mapping_named_with_what_the_fmu_offers(wheelset_fmu):
+    cfg = load_scenario(SCENARIOS / "ffcc_a.toml").plant_config()
+    with pytest.raises(FmuError) as e:
+        FmuPlant(wheelset_fmu, cfg, mapping={"torque_nm": "mu", "train_speed_ms": "v_train"})
+    msg = str(e.value)
+    assert "\n" not in msg
+    assert "torque_nm -> 'mu' (is Real output, need Real input)" in msg
+    assert "train_speed_ms -> 'v_train' (no such variable)" in msg
+    assert "Real inputs: torque_nm; Real outputs: motor_speed_rad_s, train_speed_ms" in msg
+    with pytest.raises(FmuError, match="unknown mapping key"):
+        FmuPlant(wheelset_fmu, cfg, mapping={"speed": "x"})
+    with pytest.raises(FmuError, match="cannot set parameter 'no_such'"):
+        FmuPlant(wheelset_fmu, cfg, parameters={"no_such": 1.0})
+
+
+def test_hil_run_with_a_bad_fmu_is_one_line_exit_2(tmp_path):
+    bad = tmp_path / "bad.fmu"
+    bad.write_bytes(b"PK\x03\x04 broken")
+    r = subprocess.run(hil_command() + ["run", "scenarios/ffcc_a.toml", "--bus", "inprocess", "--plant", f"fmu:{bad}",
+                                        "--out", str(tmp_path)], capture_output=True, text=True,
+                       env=subprocess_env(), timeout=120)
+    assert r.returncode == 2
+    assert r.stderr.strip().count("\n") == 0 and "bad.fmu: not an FMU" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_hil_fmu_export_command_writes_a_valid_fmu(tmp_path):
+    out = tmp_path / "b.fmu"
+    r = subprocess.run(hil_command() + ["fmu", "export", "scenarios/ffcc_b.toml", "-o", str(out)],
+                       capture_output=True, text=True, env=subprocess_env(), timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert validate_fmu(str(out)) == []
+    md = fmpy.read_model_description(str(out))
+    starts = {v.name: v.start for v in md.modelVariables}
+    assert float(starts["fault_curve_lambda0"]) == load_scenario(SCENARIOS / "ffcc_b.toml").fault_curve.lambda0
+
+
+# -- FMUs we did not build ------------------------------------------------------------------------------------
+def test_third_party_openmodelica_fmu_runs_through_the_loop_with_a_mapping(tmp_path):
+    """Mass_Damper (OpenModelica 1.19, FMI 2.0 ME+CS): force input f, mass speed and position as the 'speeds'.
+    The identification is meaningless here; the loop must run, record, and map the variables."""
+    fmu_path = gemseo_fmu("Mass_Damper.fmu")
+    scenario = tmp_path / "mass_damper.toml"
+    scenario.write_text((SCENARIOS / "ffcc_a.toml").read_text() + f"""
+[plant]
+fmu = "{fmu_path}"
+[plant.mapping]
+torque_nm = "f"
+motor_speed_rad_s = "mass.v"
+train_speed_ms = "y"
+[plant.parameters]
+"damper.d" = 20.0
+""")
+    sc = load_scenario(scenario)
+    plant = make_plant(sc)
+    try:
+        summary = run_inprocess(sc, "nlls", 1, tmp_path, progress=False, plant=plant)
+    finally:
+        plant.close()
+    assert summary["sim_s"] == pytest.approx(sc.run.duration_s)
+    log = read_log(summary["mcap"])
+    meta = log.metadata["plant"]
+    assert json.loads(meta["mapping"]) == {"torque_nm": "f", "motor_speed_rad_s": "mass.v", "train_speed_ms": "y"}
+    assert json.loads(meta["parameters"]) == {"damper.d": 20.0}
+    states = log.topic("/plant/state")
+    assert len(states) == sc.steps
+    assert all(math.isnan(s.mu) for s in states)      # no true mu mapped
+    # replay the recorded torques into the FMU with fmpy directly: the log must hold the FMU's own values
+    md = fmpy.read_model_description(str(fmu_path))
+    vr = {v.name: v.valueReference for v in md.modelVariables}
+    unzipped = fmpy.extract(str(fmu_path))
+    try:
+        fmu = FMU2Slave(guid=md.guid, unzipDirectory=unzipped, modelIdentifier=md.coSimulation.modelIdentifier,
+                        instanceName="replay")
+        fmu.instantiate()
+        fmu.setupExperiment(startTime=0.0)
+        fmu.setReal([vr["damper.d"], vr["f"]], [20.0, states[0].torque_nm])
+        fmu.enterInitializationMode()
+        fmu.exitInitializationMode()
+        period = sc.run.exchange_period_s
+        for k, s in enumerate(states):
+            v, y = fmu.getReal([vr["mass.v"], vr["y"]])
+            assert (s.motor_speed_rad_s, s.train_speed_ms) == (v, y), k
+            if k + 1 < len(states):     # state k+1 records the torque applied from k to k+1
+                fmu.setReal([vr["f"]], [states[k + 1].torque_nm])
+                fmu.doStep(k * period, period)
+        fmu.terminate()
+        fmu.freeInstance()
+    finally:
+        shutil.rmtree(unzipped, ignore_errors=True)
+    moved = np.ptp([s.train_speed_ms for s in states])
+    assert moved > 1e-3       # the mass did move under the commanded force
+
+
+def test_third_party_fmi3_cosimulation_fmu(tmp_path):
+    """FMU3Model (PythonFMU3, FMI 3.0 CS): output = 3 + increment*input at initialisation, then +increment per step."""
+    fmu_path = gemseo_fmu("FMU3Model.fmu")
+    cfg = load_scenario(SCENARIOS / "ffcc_a.toml").plant_config()
+    with FmuPlant(fmu_path, cfg, mapping={"torque_nm": "input", "motor_speed_rad_s": "output",
+                                          "train_speed_ms": "output"}, parameters={"increment": 0.5}) as p:
+        assert p.fmi_version == "3"
+        start = 3 + 0.5 * p.equilibrium_torque_nm
+        assert p.state.motor_speed_rad_s == pytest.approx(start)
+        for k in range(1, 6):
+            s = p.step(10.0)
+            assert s.motor_speed_rad_s == pytest.approx(start + 0.5 * k) and s.t_s == pytest.approx(k * 1e-3)
