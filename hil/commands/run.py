@@ -44,6 +44,9 @@ def register(sub) -> None:
     p.add_argument("--reality", action="append", metavar="EFFECT[:PARAM=VALUE,...]",
                    help="switch on an effect the nominal model lacks, for a 'real' run (repeatable; "
                    "see plant/reality.py, e.g. load_transfer:bogie_height_m=1.5, can:delay_ms=3)")
+    p.add_argument("--plant", default=None, metavar="casadi|fmu:PATH",
+                   help="plant model: the CasADi model or an FMI 2.0/3.0 Co-Simulation FMU (default: the "
+                   "scenario's [plant] table, else casadi). Loading an FMU runs its native code")
     p.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
     p.set_defaults(func=cmd_run)
 
@@ -57,13 +60,19 @@ def cmd_run(args) -> int:
     from ..canloop import run_can
     from ..tcu_process import EXIT_SILENT, PeerSilent
 
+    from ..plant_factory import make_plant
+
+    plant = make_plant(scenario, args.plant)   # None: the CasADi model
     try:
         summary = run_can(scenario, args.strategy, args.seed, bus=args.bus, mode=args.mode, out_dir=args.out,
-                          set_args=args.set)
+                          set_args=args.set, plant=plant)
     except BusError as e:
         raise UserError(str(e)) from None
     except PeerSilent as e:
         raise UserError(f"{e}; fault recorded, log closed", exit_code=EXIT_SILENT) from None
+    finally:
+        if plant is not None:
+            plant.close()
     if args.json:
         print(json.dumps(summary))
     else:
