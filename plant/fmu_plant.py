@@ -76,7 +76,7 @@ def read_fmu(path) -> "fmpy.model_description.ModelDescription":  # noqa: F821
     platforms = fmpy.supported_platforms(str(path))
     if fmpy.platform not in platforms:
         offered = ", ".join(p for p in platforms if p != "c-code") or "none"
-        hint = " (it ships C sources: fmpy.util.compile_platform_binary can build one)" if "c-code" in platforms \
+        hint = " (it ships C sources: fmpy.build.build_platform_binary on its unzipped folder can build one)" if "c-code" in platforms \
             else ""
         raise FmuError(f"{path}: no binary for this platform {fmpy.platform} (binaries for: {offered}){hint}")
     return md
