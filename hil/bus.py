@@ -29,6 +29,7 @@ from pathlib import Path
 import can
 
 HUB_START_TIMEOUT_S = 15.0
+HUB_SWITCH_INTERVAL_S = 1e-4
 
 
 class BusError(ValueError):
@@ -119,9 +120,13 @@ class Hub:
     def __init__(self, port: int | None = None):
         self.port = port or free_port()
         self.url = f"ws://127.0.0.1:{self.port}/"
-        self.proc = subprocess.Popen([sys.executable, "-m", "can_remote", "--interface", "virtual",
-                                      "--channel", f"hil-hub-{self.port}", "--host", "127.0.0.1",
-                                      "--port", str(self.port), "-v"],
+        # python-can-remote relays each client in its own threads: a short GIL switch interval keeps
+        # a frame from waiting up to 5 ms (the default) for another thread
+        argv = ["can_remote", "--interface", "virtual", "--channel", f"hil-hub-{self.port}", "--host", "127.0.0.1",
+                "--port", str(self.port)]
+        code = (f"import runpy, sys; sys.setswitchinterval({HUB_SWITCH_INTERVAL_S!r}); sys.argv = {argv!r}; "
+                "runpy.run_module('can_remote', run_name='__main__')")
+        self.proc = subprocess.Popen([sys.executable, "-c", code],
                                      stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         deadline = time.monotonic() + HUB_START_TIMEOUT_S
         while True:

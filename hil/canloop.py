@@ -43,7 +43,7 @@ from .loop import LAG_WINDOW_S, PlantSide, log_path, start_recording
 from .progress import Progress
 from .scenario import ScenarioError
 from .summary import clean, observer_lag_ms, summarise
-from .tcu_process import MAX_STEP_GAP, PeerSilent, Sender, TcuNode, silence_limit_s
+from .tcu_process import PeerSilent, Sender, TcuNode, silence_limit_s
 
 LOAD_WARN_PERCENT = 70.0
 CHILD_EXIT_TIMEOUT_S = 20.0
@@ -56,10 +56,11 @@ class BusSettings:
     bitrate: int = 1_000_000              # arbitration bit rate, bit/s (for the bus-load figure)
     data_bitrate: int = 5_000_000         # CAN FD data-phase bit rate, bit/s
     heartbeat_period_s: float = 0.002     # wall-clock period of the heartbeats, both ways
-    silence_periods: int = 3              # realtime: peer silent after this many exchange periods
+    silence_periods: int = 3              # realtime: peer silent after this many heartbeat periods
     lockstep_silence_s: float = 1.0       # lockstep: peer silent after this many wall seconds
     startup_timeout_s: float = 60.0       # wait for the other side's first frame
     deadline_fraction: float = 0.75       # realtime: the command is due this far into the period
+    rt_priority: int = 0                  # realtime: SCHED_FIFO priority for plant, hub and TCU (0: off)
 
 
 def bus_settings(scenario) -> BusSettings:
@@ -72,8 +73,10 @@ def bus_settings(scenario) -> BusSettings:
         if key not in fields:
             raise ScenarioError(f"{scenario.path}: [bus] {key}: unknown key (known: {', '.join(fields)})")
         want = fields[key].type
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
-            raise ScenarioError(f"{scenario.path}: [bus] {key}: must be a positive number, got {value!r}")
+        floor_ok = value >= 0 if key == "rt_priority" else value > 0
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or not floor_ok:
+            raise ScenarioError(f"{scenario.path}: [bus] {key}: must be a {'non-negative' if key == 'rt_priority' else 'positive'} "
+                                f"number, got {value!r}")
         if want == "int" and not isinstance(value, int):
             raise ScenarioError(f"{scenario.path}: [bus] {key}: must be an integer, got {value!r}")
         values[key] = value
@@ -92,12 +95,12 @@ class PlantNode:
     """The plant on a bus: sends sensor frames and heartbeats, receives everything, records it."""
 
     def __init__(self, scenario, seed: int, bus, recorder, mode: str, settings: BusSettings, *,
-                 strategy: str, child: subprocess.Popen | None = None, watch_silence: bool = True):
+                 strategy: str, child: subprocess.Popen | None = None, watch_silence: bool = True, plant=None):
         self.scenario = scenario
         self.period_s = scenario.run.exchange_period_s
         from .reality_bus import Reality   # [reality] table / --reality: a "real" run, on the plant side only
         self.reality = Reality(scenario, seed)
-        self.plant_side = PlantSide(scenario, seed, recorder, plant=self.reality.plant)
+        self.plant_side = PlantSide(scenario, seed, recorder, plant=plant if plant is not None else self.reality.plant)
         self.plant_side.sensors = self.reality.wrap_sensors(self.plant_side.sensors)
         self.codec = FrameCodec(self.period_s)
         self.bus = bus
@@ -201,7 +204,7 @@ class PlantNode:
             return "ok"
         if name == "TcuResult":
             e = v
-            if not (max(self.last_result_step, current - MAX_STEP_GAP) <= e.step <= current):
+            if not (self.last_result_step <= e.step <= current):
                 return "bad_sequence"
             self.last_result_step = e.step
             self.events.append(e)
@@ -249,7 +252,7 @@ class PlantNode:
             self._poll(deadline)
         return self.commands.pop(k)
 
-    def idle_until(self, t: float, spin_s: float = 3e-4) -> None:
+    def idle_until(self, t: float, spin_s: float = 0.0) -> None:
         """Handle frames until ``t`` (perf_counter); the last ``spin_s`` is a busy wait for accuracy."""
         while time.perf_counter() < t - spin_s:
             self._poll(t - spin_s)
@@ -333,6 +336,14 @@ class PlantNode:
             except Exception:  # noqa: BLE001 - the bus may be gone on an abort
                 return
 
+    def drain(self) -> None:
+        """Record what is still queued."""
+        while True:
+            msg = self.bus.recv(timeout=0.0)
+            if msg is None:
+                return
+            self.on_rx(msg)
+
     def drain_until_child_exits(self, timeout_s: float) -> None:
         """Record the TCU's last frames while its process ends."""
         if self.child is None:
@@ -342,11 +353,7 @@ class PlantNode:
             msg = self.bus.recv(timeout=0.01)
             if msg is not None:
                 self.on_rx(msg)
-        while True:          # what is still queued
-            msg = self.bus.recv(timeout=0.0)
-            if msg is None:
-                break
-            self.on_rx(msg)
+        self.drain()
 
     def timing_summary(self) -> dict:
         t = self.timing
@@ -400,11 +407,13 @@ class _SigtermAsInterrupt:
 
 
 def run_can(scenario, strategy: str = "nlls", seed: int | None = None, bus: str = "auto", mode: str = "lockstep",
-            out_dir=None, record: bool = True, progress: bool | None = None, set_args=None, log=None) -> dict:
+            out_dir=None, record: bool = True, progress: bool | None = None, set_args=None, log=None,
+            plant=None) -> dict:
     """One HIL run over a bus: the TCU in its own process (in this thread for ``inprocess``).
 
     ``set_args``: the ``--set`` overrides that produced ``scenario`` (the TCU process loads the
-    scenario again with them).  Raises ``BusError`` for a bus that cannot be used, ``PeerSilent``
+    scenario again with them).  ``plant``: a plant object instead of the CasADi model (as
+    ``run_inprocess``; see hil/plant_factory.py), closed by the caller.  Raises ``BusError`` for a bus that cannot be used, ``PeerSilent``
     when the TCU falls silent (the MCAP then holds the fault and is closed).
     """
     if mode not in MODES:
@@ -420,11 +429,13 @@ def run_can(scenario, strategy: str = "nlls", seed: int | None = None, bus: str 
         log(f"warning: bus load {load['load_percent']:.1f} % is above {LOAD_WARN_PERCENT:g} % "
             f"(raise [bus] bitrate/data_bitrate or the exchange period)")
 
+    plant_obj, plant = plant, None
+    if mode == "realtime" and settings.rt_priority > 0:
+        _set_rt_priority(settings.rt_priority, log)
     child = None
     handle = None
     rec = None
     summary = None
-    plant = None
     path = None
     with _SigtermAsInterrupt():
         try:
@@ -447,8 +458,10 @@ def run_can(scenario, strategy: str = "nlls", seed: int | None = None, bus: str 
                 rec.metadata("bus", {"spec": bus, "name": handle.name, "dbc": DBC_PATH.name,
                                      **{k: repr(v) for k, v in dataclasses.asdict(settings).items()},
                                      "load_percent": f"{load['load_percent']:.2f}"})
+            if rec and hasattr(plant_obj, "metadata"):
+                rec.metadata("plant", plant_obj.metadata())
             plant = PlantNode(scenario, seed, handle.bus, rec, mode, settings, strategy=strategy, child=child,
-                              watch_silence=tcu is None)
+                              watch_silence=tcu is None, plant=plant_obj)
             if tcu is None:
                 plant.wait_for_tcu()
             bar = Progress(scenario.steps, f"{scenario.name} {strategy} {handle.name} {mode}", progress)
@@ -460,6 +473,7 @@ def run_can(scenario, strategy: str = "nlls", seed: int | None = None, bus: str 
             wall = time.perf_counter() - wall0
             plant.finish(STATE_FINISHED)
             if tcu is not None:
+                plant.drain()
                 report = tcu.report()
             else:
                 plant.drain_until_child_exits(CHILD_EXIT_TIMEOUT_S)
@@ -493,6 +507,15 @@ def run_can(scenario, strategy: str = "nlls", seed: int | None = None, bus: str 
             if handle is not None:
                 handle.close()
     return summary
+
+
+def _set_rt_priority(priority: int, log) -> None:
+    """SCHED_FIFO for this process; the hub and TCU processes started after it inherit it."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+        log(f"realtime: SCHED_FIFO priority {priority}")
+    except (AttributeError, PermissionError, OSError) as e:
+        log(f"warning: cannot set SCHED_FIFO priority {priority} ({e}); running at normal priority")
 
 
 def _child_report(child) -> dict:

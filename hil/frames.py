@@ -5,8 +5,8 @@ frame goes through ``FrameCodec.classify``: it either yields a decoded ``Frame``
 reason (unknown id, wrong length, error/remote frame, undecodable, non-finite or out-of-range
 signal).  Rejected frames are counted by reason (``RejectCounter``) and never reach the identifier.
 
-Frame schedule per exchange period: PlantSensor (plant -> TCU), then TcuResult (0..n, only on an
-identification event), TcuStatus and TorqueCommand (TCU -> plant, in this order), heartbeats both
+Frame schedule per exchange period: PlantSensor (plant -> TCU), then TorqueCommand, TcuResult (0..n,
+only on an identification event) and TcuStatus (TCU -> plant, in this order), heartbeats both
 ways every ``heartbeat_period_s`` of wall time.
 """
 from __future__ import annotations

@@ -35,7 +35,7 @@ class PeerSilent(RuntimeError):
 
 
 class TcuNode:
-    """Frames in, frames out: PlantSensor -> identifier -> TcuResult*, TcuStatus, TorqueCommand."""
+    """Frames in, frames out: PlantSensor -> identifier -> TorqueCommand, TcuResult*, TcuStatus."""
 
     def __init__(self, scenario, strategy: str, seed: int, codec: FrameCodec | None = None):
         self.settings = scenario.identifier_settings()
@@ -63,7 +63,8 @@ class TcuNode:
             out = self.identifier.on_sensor(reading)
             self.events += len(out.events)
             c = self.codec
-            return [c.result(e) for e in out.events] + [c.status(out.status, out.observer), c.command(out.command)]
+            # the command first: the plant waits for it; results and status follow
+            return [c.command(out.command)] + [c.result(e) for e in out.events] + [c.status(out.status, out.observer)]
         if frame.name == "PlantHeartbeat":
             self.plant_state = frame.value.state
             if frame.value.state in (STATE_FINISHED, STATE_FAULT):
@@ -166,9 +167,14 @@ def serve(bus: can.BusABC, node: TcuNode, *, silence_s: float, heartbeat_period_
 
 
 def silence_limit_s(settings, mode: str, period_s: float) -> float:
-    """Realtime: ``silence_periods`` exchange periods of wall time.  Lockstep: ``lockstep_silence_s``
-    (a lockstep period has no wall-clock length; a TCU busy fitting is not silent)."""
-    return settings.silence_periods * period_s if mode == "realtime" else settings.lockstep_silence_s
+    """How long the peer may send nothing before it counts as silent (wall seconds).
+
+    Realtime: ``silence_periods`` periods of the heartbeat, the one frame a node sends however busy
+    it is (``max(heartbeat_period_s, period_s)``; defaults 3 x 2 ms).  Lockstep: ``lockstep_silence_s``
+    (a lockstep period has no wall-clock length, and a TCU busy fitting is not silent)."""
+    if mode == "realtime":
+        return settings.silence_periods * max(settings.heartbeat_period_s, period_s)
+    return settings.lockstep_silence_s
 
 
 def build_parser(prog="python -m hil.tcu_process") -> argparse.ArgumentParser:
