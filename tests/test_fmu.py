@@ -276,3 +276,33 @@ def test_third_party_fmi3_cosimulation_fmu(tmp_path):
         for k in range(1, 6):
             s = p.step(10.0)
             assert s.motor_speed_rad_s == pytest.approx(start + 0.5 * k) and s.t_s == pytest.approx(k * 1e-3)
+
+
+# -- choosing the plant: --plant and the [plant] table ------------------------------------------------------------
+def _scenario_with(tmp_path, extra: str):
+    path = tmp_path / "s.toml"
+    path.write_text((SCENARIOS / "ffcc_a.toml").read_text() + extra)
+    return load_scenario(path)
+
+
+def test_plant_table_relative_fmu_path_and_plant_spec(wheelset_fmu, tmp_path):
+    from hil.cli import UserError
+    from hil.scenario import ScenarioError
+
+    shutil.copy(wheelset_fmu, tmp_path / "wheelset.fmu")
+    sc = _scenario_with(tmp_path, '\n[plant]\nfmu = "wheelset.fmu"\n')
+    plant = make_plant(sc)
+    try:
+        assert isinstance(plant, FmuPlant) and plant.path == tmp_path / "wheelset.fmu"
+    finally:
+        plant.close()
+    assert make_plant(sc, "casadi") is None                      # --plant casadi wins over the table
+    assert make_plant(load_scenario(SCENARIOS / "ffcc_a.toml")) is None
+    with pytest.raises(UserError, match="expected 'casadi' or 'fmu:PATH'"):
+        make_plant(sc, "modelica")
+    with pytest.raises(ScenarioError, match=r"s.toml: \[plant\] fmux: unknown key"):
+        make_plant(_scenario_with(tmp_path, '\n[plant]\nfmux = "a.fmu"\n'))
+    with pytest.raises(ScenarioError, match=r"\[plant.mapping\] torque_nm: must be an FMU variable name"):
+        make_plant(_scenario_with(tmp_path, '\n[plant]\nfmu = "wheelset.fmu"\n[plant.mapping]\ntorque_nm = 3\n'))
+    with pytest.raises(UserError, match=r"\[reality\] plant effects \(torque_lag\).*cannot be combined"):
+        make_plant(_scenario_with(tmp_path, '\n[plant]\nfmu = "wheelset.fmu"\n[reality]\ntorque_lag = true\n'))
