@@ -127,7 +127,7 @@ def resample(weights: np.ndarray, rng, scheme: str = "systematic") -> np.ndarray
 
 def project_to_box(particles: np.ndarray, lo: np.ndarray, hi: np.ndarray, base_theta: np.ndarray,
                    creep_speed_kmh: float, mu_sample: float, prior_std: np.ndarray, noise_std: float,
-                   method: str = "map", iterations: int = 3) -> np.ndarray:
+                   method: str = "map", iterations: int = 2) -> np.ndarray:
     """Move the edge particles (outside [lo, hi]) into the box (eq. 24); inside ones are untouched.
 
     ``map``: minimise 0.5 |(chi~ - chi_out)/B|^2 + 0.5 (Z - M_cor(v_s; chi~))^2 / G over the box by
@@ -136,35 +136,38 @@ def project_to_box(particles: np.ndarray, lo: np.ndarray, hi: np.ndarray, base_t
     iterate is clipped, so the result is always inside.  ``clip``: the Euclidean projection.
     A non-finite coordinate is replaced by the point of the box nearest to zero first.
     """
-    x = np.where(np.isfinite(particles), particles, np.clip(0.0, lo, hi))
-    edge = np.any((x < lo) | (x > hi), axis=1)
-    out = x.copy()
+    finite = np.isfinite(particles)
+    x = particles if finite.all() else np.where(finite, particles, np.clip(0.0, lo, hi))
+    edge = ((x < lo) | (x > hi)).any(axis=1)
     if not edge.any():
-        return out
+        return x.copy() if x is particles else x
+    out = x.copy()
     raw = x[edge]
     z = np.clip(raw, lo, hi)
     if method == "map" and np.isfinite(mu_sample) and np.isfinite(creep_speed_kmh):
         p_var = np.asarray(prior_std, float) ** 2
+        g_var = noise_std ** 2
         n = (particles.shape[1] - 1) // 2
         v = float(creep_speed_kmh)
+        jac = np.empty_like(z)
+        jac[:, 0] = 1.0
         for _ in range(iterations):
             th = base_theta + z
-            lams, taus = th[:, 1:1 + n], th[:, 1 + n:]
-            e = np.exp(taus * v)
-            m = th[:, 0] + np.sum(lams * e, axis=1)
-            jac = np.hstack([np.ones((z.shape[0], 1)), e, lams * e * v])      # (E, P)
+            e = np.exp(th[:, 1 + n:] * v)
+            jac[:, 1:1 + n] = e
+            jac[:, 1 + n:] = th[:, 1:1 + n] * e * v
+            r = mu_sample - th[:, 0] - np.einsum("ij,ij->i", th[:, 1:1 + n], e)
             # linearise M about z and minimise over delta = chi~ - z (prior centred at raw):
             # (P^-1 + J^T J / G) delta = -P^-1 (z - raw) + J^T r / G, solved by Sherman-Morrison.
             # Coordinates on a bound that the step would push outwards are frozen (active set:
             # their variance is set to 0), so the clipped step still fits the measurement.
-            r = mu_sample - m
-            free = np.ones_like(z)
+            pull = raw - z
+            pv = np.broadcast_to(p_var, z.shape)
             for _ in range(2):
-                pv = p_var * free
-                pg = -(z - raw) * free + pv * jac * (r / noise_std ** 2)[:, None]
                 pj = pv * jac
-                delta = pg - pj * (np.sum(jac * pg, axis=1) / (noise_std ** 2 + np.sum(jac * pj, axis=1)))[:, None]
-                free = free * ~(((z <= lo) & (delta < 0)) | ((z >= hi) & (delta > 0)))
+                pg = pull * (pv > 0) + pj * (r / g_var)[:, None]
+                delta = pg - pj * (np.einsum("ij,ij->i", jac, pg) / (g_var + np.einsum("ij,ij->i", jac, pj)))[:, None]
+                pv = np.where(((z <= lo) & (delta < 0)) | ((z >= hi) & (delta > 0)), 0.0, pv)
             step = np.clip(z + delta, lo, hi)
             z = np.where(np.isfinite(step), step, z)
     elif method not in PROJECTORS:

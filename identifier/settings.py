@@ -28,7 +28,7 @@ class IdentifierSettings:
     detection_creep_rise_kmh: float = 0.03        # creep above its pre-fault mean that flags a slip
     baseline_samples: int = 50                    # samples averaged for the pre-fault creep mean
     settle_time_s: float = 0.010                  # samples skipped after detection (observer transient; see hil bench identify)
-    window_samples: int = 8                       # L, samples per correction window
+    window_samples: int = 6                       # L, samples per correction window (the least above 2n+1 = 5)
     k_pe: float = 1e-4                            # K_PE, preliminary-evaluation threshold on J_EF
     c_lw: float = 3.0                             # lower confidence coefficient
     c_up: float = 3.0                             # upper confidence coefficient

@@ -1,6 +1,7 @@
 """Identification strategies on synthetic samples: recovery, projection, evaluation, robustness, seeding."""
 import math
 
+
 import numpy as np
 import pytest
 

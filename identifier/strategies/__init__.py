@@ -2,10 +2,10 @@
 from .base import Sample, Strategy
 from .mdipf import MdipfStrategy
 from .nlls import NllsStrategy, fit_curve
-from .proposed import ProposedMu0Strategy, ProposedStrategy
+from .proposed import ProposedFastStrategy, ProposedMu0Strategy, ProposedStrategy
 
 STRATEGIES: dict[str, type[Strategy]] = {cls.name: cls for cls in (
-    NllsStrategy, MdipfStrategy, ProposedStrategy, ProposedMu0Strategy)}
+    NllsStrategy, MdipfStrategy, ProposedStrategy, ProposedMu0Strategy, ProposedFastStrategy)}
 
 
 def make_strategy(name: str, settings, seed: int = 0) -> Strategy:
@@ -16,4 +16,5 @@ def make_strategy(name: str, settings, seed: int = 0) -> Strategy:
     return cls(settings, seed)
 
 
-__all__ = ["Sample", "Strategy", "NllsStrategy", "MdipfStrategy", "ProposedStrategy", "ProposedMu0Strategy", "fit_curve", "STRATEGIES", "make_strategy"]
+__all__ = ["Sample", "Strategy", "NllsStrategy", "MdipfStrategy", "ProposedStrategy", "ProposedMu0Strategy",
+           "ProposedFastStrategy", "fit_curve", "STRATEGIES", "make_strategy"]

@@ -37,7 +37,8 @@ DEFAULTS = {
     "j_ef_from_prelim": True,
     "reset_cloud": False,
     "noise_block": 32,
-    "prelim_radius": None,                    # None: free prelim; else (lambda0, lambda_i, tau_i) around the prior                        # transition-noise draws made ahead, in blocks of this many samples
+    "prelim_radius": [0.01, 0.6, 0.05],       # prelim kept within the prior curve +- this (None: unbounded)
+    "filter_prelim_window": False,            # True: correction 1 filters the prelim's own window (beyond the paper)                        # transition-noise draws made ahead, in blocks of this many samples
 }
 
 
@@ -82,6 +83,7 @@ class MdipfStrategy(Strategy):
     def _draw_cloud(self) -> None:
         self.particles = self.rng.standard_normal(self.particles.shape) * self.init_std
         self.weights = np.full(self.n_particles, 1.0 / self.n_particles)
+        self._log_weights = np.zeros(self.n_particles)
         self._constrain()
 
     def _constrain(self) -> None:
@@ -104,12 +106,14 @@ class MdipfStrategy(Strategy):
         self._constrain()
         self._project(creep_speed_kmh, mu_hat)
         ll = pf.log_likelihood(self.particles, self.base, creep_speed_kmh, mu_hat, self.noise_std)
+        self.weights = pf.normalise(self._log_weights + ll)
         with np.errstate(divide="ignore"):
-            self.weights = pf.normalise(np.log(self.weights) + ll)
+            self._log_weights = np.log(self.weights)
         if pf.ess(self.weights) < o["ess_fraction"] * self.n_particles:
             idx = pf.resample(self.weights, self.rng, o["resampler"])
             self.particles = self.particles[idx]
             self.weights = np.full(self.n_particles, 1.0 / self.n_particles)
+            self._log_weights = np.zeros(self.n_particles)
 
     def _project(self, creep_speed_kmh: float, mu_hat: float) -> None:
         """The projection domain (proposed strategy); MDIPF has none."""
@@ -134,6 +138,16 @@ class MdipfStrategy(Strategy):
             self._draw_cloud()
             self._after_prelim()
             estimate = np.zeros_like(self.base)            # chi^_0: the prelim corrects nothing
+            if self.opts["filter_prelim_window"]:
+                # correction 1 on the same window: J_EF(1) = |chi^_1 - chi^_0|^2 is known one window early
+                for v_k, mu_k in zip(window_v, window_mu):
+                    self.on_sample(float(v_k), float(mu_k))
+                estimate = self.weights @ self.particles
+                if not np.all(np.isfinite(estimate)):
+                    estimate = np.zeros_like(self.base)
+                self._last_estimate = np.zeros_like(self.base)
+                self._estimate_for_theta = estimate
+                return estimate
             self._estimate_for_theta = estimate
             return estimate if self.opts["j_ef_from_prelim"] else np.full_like(self.base, np.nan)
         estimate = self.weights @ self.particles

@@ -1,0 +1,53 @@
+"""``hil bench identify`` end to end through the real CLI (real plant, real strategies)."""
+import json
+import subprocess
+
+from .conftest import hil_command, subprocess_env
+
+
+def run(args, tmp_path):
+    return subprocess.run(hil_command() + ["bench", "identify", *args], capture_output=True, text=True,
+                          env=subprocess_env(), cwd=tmp_path, timeout=600)
+
+
+def test_json_results_shape_same_data_for_every_strategy_and_plots(tmp_path):
+    plots = tmp_path / "figs"
+    p = run(["--cases", "ffcc_a", "--seeds", "2", "--strategies", "nlls,proposed", "--particles", "200",
+             "--json", "--plots", str(plots)], tmp_path)
+    assert p.returncode == 0, p.stderr
+    out = json.loads(p.stdout)                 # exactly one JSON object on stdout
+    assert set(out) == {"results"} and set(out["results"]) == {"nlls", "proposed"}
+    per_seed = {}
+    for strat, cases in out["results"].items():
+        r = cases["ffcc_a"]
+        for key in ("rt_percent", "r2", "peak_mu_err_percent", "peak_creep_err_percent", "mse", "rmse", "mae",
+                    "corrections", "identified", "cost_median_us", "cost_p99_us", "cost_p99_percent_of_period"):
+            assert key in r, key
+        assert len(r["seeds"]) == 2 and [s["seed"] for s in r["seeds"]] == [1, 2]
+        for s in r["seeds"]:
+            assert s["strategy"] == strat and s["cost_p99_us"] > 0
+            if s["identified"]:
+                assert s["rt_percent"] > 0
+        per_seed[strat] = r["seeds"]
+    # the same measured data: the same detection instant and the same plant stages for every strategy
+    for a, b in zip(per_seed["nlls"], per_seed["proposed"]):
+        assert a["t_detected_s"] == b["t_detected_s"] and a["t_det_s"] == b["t_det_s"]
+        assert a["r2_true_curve"] is not None
+    pngs = sorted(x.name for x in plots.glob("*.png"))
+    assert pngs == ["ffcc_a-metrics.png", "ffcc_a-nlls-curves.png", "ffcc_a-proposed-curves.png"]
+    assert all((plots / n).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for n in pngs)
+
+
+def test_markdown_table_and_bad_input(tmp_path):
+    p = run(["--cases", "ffcc_b", "--seeds", "1", "--strategies", "proposed_fast", "--particles", "100"], tmp_path)
+    assert p.returncode == 0, p.stderr
+    header = p.stdout.splitlines()[0]
+    for col in ("MSE", "RMSE", "MAE", "R²", "RT %", "corrections", "peak μ err %", "peak creep err %", "ok",
+                "cost p99 µs"):
+        assert col in header
+    assert "| proposed_fast | ffcc_b |" in p.stdout
+    for args, word in ((["--cases", "nosuch"], "nosuch"), (["--strategies", "magic"], "magic"),
+                       (["--seeds", "0"], "--seeds")):
+        bad = run(args, tmp_path)
+        assert bad.returncode != 0 and "Traceback" not in bad.stderr
+        assert len(bad.stderr.strip().splitlines()) == 1 and word in bad.stderr
