@@ -1,0 +1,44 @@
+"""``hil gap REAL_LOG --model SCENARIO``: diagnose the sim-to-real gap of a recorded run."""
+from __future__ import annotations
+
+import json
+
+from ..cli import UserError
+from ..scenario import load_scenario
+
+
+def register(sub) -> None:
+    p = sub.add_parser("gap", help="sim-to-real gap: where it lies, which effect explains it, how far it shrinks")
+    p.add_argument("real_log", help="MCAP log of the real run (hil run output; python-can CAN logs: not yet)")
+    p.add_argument("--model", required=True, help="scenario TOML of the nominal model, e.g. scenarios/ffcc_a.toml")
+    p.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
+    p.add_argument("--report", metavar="DIR", help="write report.md, PNG plots and gap.json into DIR")
+    p.add_argument("--block", type=int, default=20, help="periods per fit/held-out block (default 20)")
+    p.add_argument("--max-creep-kmh", type=float, default=8.0,
+                   help="analyse until the measured creep first exceeds this (default 8 km/h)")
+    p.add_argument("--no-identify", action="store_true", help="skip the identification replays")
+    p.set_defaults(func=cmd_gap)
+
+
+def cmd_gap(args) -> int:
+    from ..gap import diagnose, read_real_log
+    from ..gap.report import text_summary, write_report
+
+    if args.block < 2:
+        raise UserError(f"--block {args.block}: must be >= 2")
+    if args.max_creep_kmh <= 0:
+        raise UserError(f"--max-creep-kmh {args.max_creep_kmh}: must be > 0")
+    scenario = load_scenario(args.model)
+    data = read_real_log(args.real_log)
+    out, dg = diagnose(data, scenario, block=args.block, max_creep_kmh=args.max_creep_kmh,
+                       identify=not args.no_identify, progress=True)
+    if args.report:
+        path = write_report(out, dg, args.report)
+        out["report"] = str(path)
+    if args.json:
+        print(json.dumps(out))
+    else:
+        print(text_summary(out))
+        if args.report:
+            print(f"  report: {out['report']}")
+    return 0

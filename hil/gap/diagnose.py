@@ -1,0 +1,387 @@
+"""Sim-to-real gap diagnosis: where the gap lies, which effect explains it, how far it shrinks.
+
+1. The nominal model (the scenario) is driven by the real log's torque commands from the initial
+   state measured in the log (straight-line fit over the first 20 ms).  Its mu^ is the TCU's observer
+   applied to the model's speeds.  Residual = measured - model on three signals: motor speed, train
+   speed (sensor frames) and the TCU's mu^.  Each is divided by its noise floor (the scenario's sensor
+   noise and quantum; for mu^ that noise through the observer), so 1 means "as good as the sensors".
+2. WHERE: residual RMS per signal, per stage (normal / early / serious, from the measured creep and the
+   fault curve's peak creep, and the same for the model), per measured-creep band and per frequency
+   band (FFT, against the sensor noise's own share of that band); Ljung-Box whiteness; cross-correlation
+   of the residual with the input (torque command) and with the model's creep.
+3. WHICH: the run is cut into alternating blocks of ``block`` samples: even blocks fit each candidate,
+   odd blocks judge it.  Score on held-out blocks = Gaussian negative log-likelihood with the noise
+   floor the candidate expects, plus k log(n) (BIC penalty, k fitted parameters).  A candidate is named
+   only if it beats the nominal model by ``MIN_SCORE_GAIN`` AND removes at least ``MIN_SHRINK`` of the
+   held-out gap; otherwise the answer is "none of the candidates".
+4. HOW FAR: held-out RMSE per signal before/after; "gap RMSE" = sqrt(max(RMSE^2 - noise floor^2, 0)),
+   the part a model can remove; shrink = 1 - gap_after / gap_before.  Identification outcome (RT, peak
+   errors, identified curve) on the real run vs the TCU run on the nominal and augmented models' replays.
+"""
+from __future__ import annotations
+
+import math
+import sys
+
+import numpy as np
+from scipy import stats
+
+from identifier import SensorReading, TractionIdentifier
+from identifier.metrics import peak_errors, rt_percent
+from plant import SensorModel
+from plant.reality import RealityModel
+
+from ..summary import clean
+from .candidates import SIGNALS, UNITS, Context, DelayCandidate, Fit, PlantCandidate, QuantisationCandidate, \
+    candidates
+from .model import ObserverReplica, Simulator, initial_line
+
+NONE = "none"
+MIN_SHRINK = 0.75          # fraction of the held-out gap the named effect must remove
+MIN_SCORE_GAIN = 25.0      # held-out NLL + BIC penalty improvement over the nominal model
+MIN_GAP = 0.25             # combined gap (noise units) below which there is no gap to explain
+CREEP_BANDS_KMH = (0.0, 0.5, 1.0, 1.5, 3.0, 10.0, math.inf)
+FREQ_BANDS_HZ = (0.0, 2.0, 10.0, 30.0, 100.0, math.inf)
+
+
+def _log(progress, msg):
+    if progress:
+        print(f"hil gap: {msg}", file=sys.stderr, flush=True)
+
+
+def stages(t_s, creep_kmh, fault_time_s, peak_creep_kmh) -> np.ndarray:
+    """0 normal, 1 early, 2 serious per sample (serious from the first creep >= peak after t_f)."""
+    out = np.zeros(len(t_s), int)
+    after = t_s >= fault_time_s - 1e-12
+    out[after] = 1
+    over = np.flatnonzero(after & (creep_kmh >= peak_creep_kmh))
+    if over.size:
+        out[over[0]:] = 2
+    return out
+
+
+def ljung_box(x, lags: int = 20) -> tuple[float, float]:
+    x = np.asarray(x, float)
+    x = x[np.isfinite(x)]
+    n = x.size
+    if n <= lags + 2 or np.std(x) == 0:
+        return math.nan, math.nan
+    x = x - x.mean()
+    den = float(np.dot(x, x))
+    rho = np.array([np.dot(x[k:], x[:-k]) / den for k in range(1, lags + 1)])
+    q = n * (n + 2) * float(np.sum(rho ** 2 / (n - np.arange(1, lags + 1))))
+    return q, float(stats.chi2.sf(q, lags))
+
+
+def max_xcorr(resid, reg, max_lag: int = 20) -> float | None:
+    """max |normalised cross-correlation| of residual with a regressor over lags 0..max_lag (regressor
+    leading); None if the regressor does not vary."""
+    r = np.asarray(resid, float)
+    x = np.asarray(reg, float)
+    ok = np.isfinite(r) & np.isfinite(x)
+    r, x = r[ok], x[ok]
+    if r.size < max_lag + 10 or np.std(x) < 1e-12 or np.std(r) == 0:
+        return None
+    r = (r - r.mean()) / r.std()
+    x = (x - x.mean()) / x.std()
+    n = r.size
+    return float(max(abs(np.dot(r[k:], x[:n - k]) / n) for k in range(max_lag + 1)))
+
+
+def band_rms(x, period_s, bands) -> list[float]:
+    """RMS of x inside each frequency band (Parseval on the one-sided FFT)."""
+    x = np.asarray(x, float)
+    x = x - x.mean()
+    n = x.size
+    spec = np.fft.rfft(x)
+    f = np.fft.rfftfreq(n, period_s)
+    power = np.abs(spec) ** 2 / n ** 2
+    if n % 2 == 0:
+        power[1:-1] *= 2
+    else:
+        power[1:] *= 2
+    out = []
+    for lo, hi in zip(bands[:-1], bands[1:]):
+        sel = (f >= lo) & (f < hi)
+        out.append(float(math.sqrt(power[sel].sum())))
+    return out
+
+
+# -- the diagnosis --------------------------------------------------------------------------------------
+class Diagnosis:
+    def __init__(self, data, scenario, *, block: int = 20, max_creep_kmh: float = 8.0, identify: bool = True,
+                 progress: bool = False):
+        self.data = data
+        self.scenario = scenario
+        self.block = block
+        self.max_creep_kmh = max_creep_kmh
+        self.identify = identify
+        self.progress = progress
+
+    def run(self) -> dict:
+        d, sc = self.data, self.scenario
+        if abs(d.period_s - sc.run.exchange_period_s) > 1e-9:
+            from ..cli import UserError
+            raise UserError(f"{d.path}: exchange period {d.period_s} s differs from the model scenario's "
+                            f"{sc.run.exchange_period_s} s ({sc.path})")
+        settings = sc.identifier_settings()
+        obs = ObserverReplica(settings)
+        sens = sc.sensors
+        s_m = math.sqrt(sens.motor_speed_noise_rad_s ** 2 + sens.motor_speed_quantum_rad_s ** 2 / 12) or 1e-4
+        s_t = math.sqrt(sens.train_speed_noise_ms ** 2 + sens.train_speed_quantum_ms ** 2 / 12) or 1e-5
+        sigma = {"motor": s_m, "train": s_t, "mu_hat": obs.noise_gain() * s_m}
+        x0, x0_slope = initial_line(d.t_s, d.motor_speed_rad_s, d.train_speed_ms)
+        creep_meas = obs.creep_kmh(d.motor_speed_rad_s, d.train_speed_ms)
+        # analysis window: until the measured creep first exceeds max_creep_kmh (free spinning after)
+        over = np.flatnonzero(creep_meas > self.max_creep_kmh)
+        end = int(over[0]) if over.size else d.n
+        end = max(end, min(d.n, 100))
+        window = np.zeros(d.n, bool)
+        window[:end] = True
+        blocks = (np.arange(d.n) // self.block) % 2
+        train_mask, held_mask = window & (blocks == 0), window & (blocks == 1)
+        ctx = Context(d, sc, obs, x0, window, train_mask, held_mask, sigma, x0_slope)
+
+        _log(self.progress, f"replaying the nominal model over {d.n} periods")
+        nom_sim = ctx.simulator(None, (), {})
+        motor0, train0 = nom_sim.run([], x0, d.torque_cmd_nm)
+        nominal = ctx.predict(motor0, train0)
+        nominal.update(plant_motor=motor0, plant_train=train0)
+        nom_fit = Fit("nominal", {}, 0, {k: nominal[k] for k in SIGNALS}, dict(sigma))
+
+        where = self.where(ctx, nominal, motor0, train0, creep_meas)
+
+        fits = []
+        for cand in candidates(sc):
+            _log(self.progress, f"fitting candidate {cand.name}")
+            try:
+                fit = cand.fit(ctx) if isinstance(cand, PlantCandidate) else cand.fit(ctx, nominal)
+            except Exception as e:  # noqa: BLE001 - a candidate that cannot be fitted is reported, not fatal
+                fit = Fit(cand.name, {}, 1, {k: nominal[k] for k in SIGNALS}, dict(sigma), note=f"fit failed: {e}")
+            fits.append(fit)
+        base = self.score(ctx, nom_fit)
+        ranking = []
+        for fit in fits:
+            s = self.score(ctx, fit)
+            gain = base["score"] - s["score"]
+            shrink = 1 - s["gap"] / base["gap"] if base["gap"] > 0 else 0.0
+            ranking.append({"effect": fit.name, "params": fit.params, "k": fit.k, "score_gain": gain,
+                            "held_out_shrink": shrink, "held_out_gap": s["gap"], "note": fit.note,
+                            "per_signal": s["per_signal"]})
+        ranking.sort(key=lambda r: -r["score_gain"])
+        best = ranking[0]
+        gap_present = base["gap"] >= MIN_GAP
+        named = best["effect"] if (gap_present and best["score_gain"] > MIN_SCORE_GAIN
+                                   and best["held_out_shrink"] >= MIN_SHRINK) else NONE
+        if not gap_present:
+            verdict = (f"no significant gap: held-out residuals are within {base['gap']:.2f} noise units of the "
+                       f"sensor noise floor")
+        elif named == NONE:
+            verdict = (f"none of the candidates: the best ({best['effect']}) removes "
+                       f"{best['held_out_shrink'] * 100:.0f} % of the held-out gap (needs {MIN_SHRINK * 100:.0f} %) "
+                       f"with score gain {best['score_gain']:.1f} (needs {MIN_SCORE_GAIN})")
+        else:
+            verdict = (f"{named} explains the gap: held-out gap shrinks {best['held_out_shrink'] * 100:.0f} %, "
+                       f"fitted " + ", ".join(f"{k}={v:.4g}" for k, v in best["params"].items()))
+        best_fit = next(f for f in fits if f.name == best["effect"])
+        shrink_table = {s: {"rmse_before": base["per_signal"][s]["rmse"], "rmse_after": best["per_signal"][s]["rmse"],
+                            "gap_before": base["per_signal"][s]["gap"], "gap_after": best["per_signal"][s]["gap"],
+                            "noise_floor": sigma[s], "unit": UNITS[s]} for s in SIGNALS}
+        out = {
+            "real_log": d.path, "model": sc.path, "periods": d.n, "analysis_periods": int(window.sum()),
+            "held_out_periods": int(held_mask.sum()), "block_periods": self.block,
+            "noise_floor": sigma, "initial_state": {"motor_speed_rad_s": x0[0], "train_speed_ms": x0[1]},
+            "where": where,
+            "which": {"named": named, "verdict": verdict, "gap_present": gap_present,
+                      "nominal_held_out_gap": base["gap"], "ranking": ranking,
+                      "rule": {"min_shrink": MIN_SHRINK, "min_score_gain": MIN_SCORE_GAIN, "min_gap": MIN_GAP}},
+            "shrink": {"effect": best["effect"], "named": named, "held_out_gap_shrink_percent":
+                       best["held_out_shrink"] * 100, "per_signal": shrink_table},
+        }
+        if self.identify:
+            _log(self.progress, "identification on the real run and on the model replays")
+            out["identification"] = self.identification(ctx, nominal, best_fit if named != NONE else None, creep_meas)
+        self.arrays = {"t": d.t_s, "meas": ctx.meas, "nominal": nominal, "best": best_fit.pred, "best_name":
+                       best_fit.name, "creep": creep_meas, "window": window, "sigma": sigma,
+                       "held": held_mask}
+        self.ctx, self.fits, self.nominal = ctx, fits, nominal
+        return clean(out)
+
+    # -- scores ---------------------------------------------------------------------------------------
+    def score(self, ctx: Context, fit: Fit) -> dict:
+        nll, n, gap2 = 0.0, 0, 0.0
+        per = {}
+        for s in SIGNALS:
+            sel = ctx.held & ctx.valid[s]
+            r = ctx.meas[s][sel] - fit.pred[s][sel]
+            sg = fit.sigma[s]
+            nll += float(np.sum((r / sg) ** 2) + r.size * 2 * math.log(sg / ctx.sigma_nom[s]))
+            n += r.size
+            ms = float(np.mean(r ** 2)) if r.size else math.nan
+            g2 = max(ms - sg ** 2, 0.0)
+            gap2 += g2 / ctx.sigma_nom[s] ** 2
+            per[s] = {"rmse": math.sqrt(ms), "gap": math.sqrt(g2)}
+        return {"score": nll + fit.k * math.log(max(n, 2)), "gap": math.sqrt(gap2 / len(SIGNALS)), "per_signal": per}
+
+    # -- where ----------------------------------------------------------------------------------------
+    def where(self, ctx: Context, nominal, motor0, train0, creep_meas) -> dict:
+        d, sc = self.data, self.scenario
+        w = ctx.window
+        peak_creep = sc.fault_curve.peak()[0]
+        creep_model = ctx.observer.creep_kmh(nominal["motor"], nominal["train"])
+        st_meas = stages(d.t_s, creep_meas, sc.run.fault_time_s, peak_creep)
+        st_model = stages(d.t_s, creep_model, sc.run.fault_time_s, peak_creep)
+        resid = {s: ctx.meas[s] - nominal[s] for s in SIGNALS}
+        resid["creep"] = creep_meas - creep_model
+        sig = dict(ctx.sigma_nom)
+        sig["creep"] = 3.6 * math.hypot(sc.vehicle.wheel_radius_m / sc.vehicle.gear_ratio * sig["motor"], sig["train"])
+
+        def rms(x, sel):
+            x = x[sel & np.isfinite(x)]
+            return float(np.sqrt(np.mean(x ** 2))) if x.size else None
+
+        per_signal = {s: {"rmse": rms(resid[s], w), "noise_floor": sig[s], "unit": UNITS.get(s, ""),
+                          "rmse_in_noise_units": (rms(resid[s], w) or 0) / sig[s]} for s in resid}
+        names = ("normal", "early", "serious")
+        per_stage = {}
+        for i, nm in enumerate(names):
+            sel = w & (st_meas == i)
+            per_stage[nm] = {"periods": int(sel.sum()),
+                             **{s: (None if rms(resid[s], sel) is None else rms(resid[s], sel) / sig[s])
+                                for s in resid}}
+
+        def t_det(stg):
+            idx = np.flatnonzero(stg == 2)
+            return float(d.t_s[idx[0]] - sc.run.fault_time_s) if idx.size else None
+
+        per_band = []
+        for lo, hi in zip(CREEP_BANDS_KMH[:-1], CREEP_BANDS_KMH[1:]):
+            sel = w & (creep_meas >= lo) & (creep_meas < hi)
+            per_band.append({"creep_kmh": [lo, None if math.isinf(hi) else hi], "periods": int(sel.sum()),
+                             **{s: (None if rms(resid[s], sel) is None else rms(resid[s], sel) / sig[s])
+                                for s in resid}})
+        # frequency bands: residual RMS per band against the noise's own RMS in that band
+        rng = np.random.default_rng(7)
+        nw = int(w.sum())
+        e = rng.standard_normal(nw)
+        noise = {"motor": sig["motor"] * e, "train": sig["train"] * rng.standard_normal(nw),
+                 "mu_hat": sig["motor"] * (ctx.observer.mu_hat(64.0 + e, np.full(nw, ctx.observer.torque_demand))
+                                           - ctx.observer.torque_demand / ctx.observer.torque_per_mu)}
+        per_freq = []
+        band_res = {s: band_rms(np.nan_to_num(resid[s][w]), d.period_s, FREQ_BANDS_HZ) for s in SIGNALS}
+        band_noise = {s: band_rms(noise[s], d.period_s, FREQ_BANDS_HZ) for s in SIGNALS}
+        for i, (lo, hi) in enumerate(zip(FREQ_BANDS_HZ[:-1], FREQ_BANDS_HZ[1:])):
+            per_freq.append({"hz": [lo, None if math.isinf(hi) else hi],
+                             **{s: {"rms": band_res[s][i], "noise_rms": band_noise[s][i],
+                                    "ratio": band_res[s][i] / band_noise[s][i] if band_noise[s][i] > 0 else None}
+                                for s in SIGNALS}})
+        tests = {}
+        torque = d.torque_cmd_nm
+        for s in SIGNALS:
+            q, p = ljung_box(resid[s][w] / sig[s])
+            tests[s] = {"ljung_box_q": q, "ljung_box_p": p, "white": bool(p > 0.01) if p == p else None,
+                        "xcorr_input": max_xcorr(resid[s][w], torque[w]),
+                        "xcorr_model_creep": max_xcorr(resid[s][w], creep_model[w]),
+                        "xcorr_bound_95": 1.96 / math.sqrt(max(int(w.sum()), 1))}
+        worst_stage = max(per_stage, key=lambda k: max((v or 0) for kk, v in per_stage[k].items()
+                                                        if kk in SIGNALS) if per_stage[k]["periods"] else -1)
+        worst_band = max(per_band, key=lambda b: max((b[s] or 0) for s in SIGNALS) if b["periods"] else -1)
+        worst_freq = max(per_freq, key=lambda b: max((b[s]["ratio"] or 0) for s in SIGNALS))
+        worst_signal = max(SIGNALS, key=lambda s: per_signal[s]["rmse_in_noise_units"])
+        summary = (f"largest on {worst_signal} ({per_signal[worst_signal]['rmse_in_noise_units']:.1f}x noise), "
+                   f"in the {worst_stage} stage, at measured creep {worst_band['creep_kmh'][0]}-"
+                   f"{worst_band['creep_kmh'][1] or 'inf'} km/h, in the {worst_freq['hz'][0]}-"
+                   f"{worst_freq['hz'][1] or 'Nyquist'} Hz band")
+        return {"summary": summary, "per_signal": per_signal, "per_stage": per_stage,
+                "t_det_measured_s": t_det(st_meas), "t_det_model_s": t_det(st_model),
+                "per_creep_band": per_band, "per_frequency_band": per_freq, "tests": tests,
+                "input_constant": bool(np.std(torque) < 1e-9)}
+
+    # -- identification -----------------------------------------------------------------------------
+    def identification(self, ctx: Context, nominal, best: Fit | None, creep_meas) -> dict:
+        d, sc = self.data, self.scenario
+        true_theta = sc.fault_curve.params
+        peak_creep = sc.fault_curve.peak()[0]
+        t_f = sc.run.fault_time_s
+
+        def outcome(events, creep, label):
+            st = stages(d.t_s, creep, t_f, peak_creep)
+            idx = np.flatnonzero(st == 2)
+            tdet = float(d.t_s[idx[0]] - t_f) if idx.size else math.nan
+            conf = next((e for e in events if e["kind"] == "confirmed"), None)
+            last = conf or (events[-1] if events else None)
+            out = {"source": label, "identified": conf is not None, "t_det_s": tdet,
+                   "t_identified_s": conf["t_s"] if conf else None,
+                   "rt_percent": rt_percent(conf["t_s"] if conf else None, t_f, tdet),
+                   "params": last["params"] if last else None}
+            if last:
+                out.update(peak_errors(np.asarray(last["params"]), true_theta))
+            return out
+
+        strategy = d.strategy or "nlls"
+        real = outcome(d.identification, creep_meas, "real run (log)")
+        nom = self.replay(ctx, nominal["plant_motor"], nominal["plant_train"], {}, strategy, "nominal model replay")
+        out = {"strategy": strategy, "real": real, "nominal_replay": nom}
+        if best is not None:
+            motor, train = nominal["plant_motor"], nominal["plant_train"]
+            if "x0" in best.extra:
+                motor, train = ctx.simulator(None, (), {}).run([], np.array(best.extra["x0"]), d.torque_cmd_nm)
+            if "plant" in best.extra:
+                name, params = best.extra["plant"]
+                sim = Simulator(ctx.cfg, name, (), params, d.n)
+                motor, train = sim.run([], ctx.x0, d.torque_cmd_nm)
+            out["augmented_replay"] = self.replay(ctx, motor, train, best.extra, strategy,
+                                                  f"nominal + {best.name} replay")
+        # how the gap moves the identified curve
+        moves = {}
+        for key in ("peak_mu", "peak_creep_kmh"):
+            if real.get(key) is not None and nom.get(key) is not None:
+                moves[f"real_vs_nominal_{key}_percent"] = (real[key] - nom[key]) / abs(nom[key]) * 100
+            aug = out.get("augmented_replay", {})
+            if real.get(key) is not None and aug.get(key) is not None:
+                moves[f"real_vs_augmented_{key}_percent"] = (real[key] - aug[key]) / abs(aug[key]) * 100
+        out["curve_shift"] = moves
+        return out
+
+    def replay(self, ctx: Context, motor, train, extra: dict, strategy: str, label: str) -> dict:
+        """The TCU run on a model's speeds with the scenario's sensor noise (fixed seed) + candidate delays."""
+        d, sc = self.data, self.scenario
+        from .model import shift
+        sens = SensorModel(sc.sensors, 424242)
+        m = shift(motor, extra.get("sensor_delay", 0.0))
+        v = shift(train, extra.get("sensor_delay", 0.0))
+        meas = np.array([sens.measure(a, b) for a, b in zip(m, v)])
+        q = extra.get("quanta", {})
+        if q.get("motor_quantum_rad_s"):
+            meas[:, 0] = np.round(meas[:, 0] / q["motor_quantum_rad_s"]) * q["motor_quantum_rad_s"]
+        if q.get("train_quantum_ms"):
+            meas[:, 1] = np.round(meas[:, 1] / q["train_quantum_ms"]) * q["train_quantum_ms"]
+        cd = extra.get("can_delay", 0.0)
+        tcu_m, tcu_v = shift(meas[:, 0], cd), shift(meas[:, 1], cd)
+        ident = TractionIdentifier(sc.identifier_settings(), strategy, sc.run.seed)
+        events = []
+        for k in range(d.n):
+            out = ident.on_sensor(SensorReading(int(d.step[k]), float(tcu_m[k]), float(tcu_v[k])))
+            events.extend({"t_s": e.t_s, "kind": e.kind, "params": list(e.params)} for e in out.events)
+        creep = ctx.observer.creep_kmh(meas[:, 0], meas[:, 1])
+        t_f = sc.run.fault_time_s
+        st = stages(d.t_s, creep, t_f, sc.fault_curve.peak()[0])
+        idx = np.flatnonzero(st == 2)
+        tdet = float(d.t_s[idx[0]] - t_f) if idx.size else math.nan
+        conf = next((e for e in events if e["kind"] == "confirmed"), None)
+        last = conf or (events[-1] if events else None)
+        out = {"source": label, "identified": conf is not None, "t_det_s": tdet,
+               "t_identified_s": conf["t_s"] if conf else None,
+               "rt_percent": rt_percent(conf["t_s"] if conf else None, t_f, tdet),
+               "params": last["params"] if last else None}
+        if last:
+            out.update(peak_errors(np.asarray(last["params"]), sc.fault_curve.params))
+        return out
+
+
+def diagnose(data, scenario, **kw) -> tuple[dict, Diagnosis]:
+    dg = Diagnosis(data, scenario, **kw)
+    return dg.run(), dg
+
+
+__all__ = ["diagnose", "Diagnosis", "NONE", "RealityModel", "DelayCandidate", "QuantisationCandidate"]

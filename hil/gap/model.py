@@ -1,0 +1,150 @@
+"""The nominal model (and the nominal model plus one candidate effect) replayed on a real log's inputs.
+
+* ``Simulator``: the CasADi period step of ``plant.reality.RealityModel`` rolled over the whole run
+  with ``mapaccum`` (one call simulates every period; about 10 ms for 1000 periods), the fitted
+  effect parameters as a vector input.
+* ``observer_mu_hat``: the TCU's load-torque observer (identifier/observer.py, eq. 4-5) as a linear
+  filter over whole arrays (scipy ``lfilter``), so the model's mu^ is computed exactly the way the
+  TCU computes it, without a Python loop per sample.
+* ``shift``: a fractional delay of a sampled signal (linear interpolation, held at the start).
+"""
+from __future__ import annotations
+
+import math
+
+import casadi as ca
+import numpy as np
+from scipy import signal
+
+from plant.params import KMH_PER_MS
+from plant.reality import RealityModel
+
+
+def initial_line(t_s, motor, train, n_fit: int = 20) -> tuple[np.ndarray, np.ndarray]:
+    """(value at t_s[0], slope per second) of (omega_m, v_t) from a straight-line fit to the first
+    ``n_fit`` measured samples."""
+    t = t_s[:n_fit] - t_s[0]
+    values, slopes = [], []
+    for y in (motor[:n_fit], train[:n_fit]):
+        a, b = np.polyfit(t, y, 1)
+        values.append(b)
+        slopes.append(a)
+    return np.array(values), np.array(slopes)
+
+
+def initial_state(t_s, motor, train, n_fit: int = 20) -> np.ndarray:
+    """(omega_m, v_t) at t_s[0] from a straight-line fit to the first ``n_fit`` measured samples."""
+    return initial_line(t_s, motor, train, n_fit)[0]
+
+
+class Simulator:
+    """``run(theta, x0, torque) -> (motor_rad_s, train_ms)`` at every step k (state at t_k)."""
+
+    def __init__(self, cfg, effect: str | None, fit_params: tuple[str, ...], fixed: dict, n: int):
+        """``effect``: a plant-level effect name or None (nominal); ``fit_params``: its parameters that
+        ``theta`` gives; ``fixed``: its other parameters."""
+        self.cfg = cfg
+        self.n = n
+        self.theta = ca.SX.sym("theta", max(len(fit_params), 1))
+        effects = {}
+        if effect is not None:
+            params = dict(fixed)
+            for i, name in enumerate(fit_params):
+                params[name] = self.theta[i]
+            effects[effect] = params
+        self.model = RealityModel(cfg, effects)
+        self._fixed_effects = effects
+        step = self.model.period_step(self.theta)
+        self._sim = step.mapaccum("gap_sim", n - 1)
+        self.fit_params = fit_params
+        self.effect = effect
+
+    def initial(self, theta, x0, torque0):
+        """Full initial state (extra states consistent with the nominal ones) for parameters theta."""
+        if self.effect is None:
+            return np.asarray(x0, float)
+        params = {k: (float(theta[self.fit_params.index(k)]) if k in self.fit_params else v)
+                  for k, v in self._fixed_effects[self.effect].items()}
+        m = RealityModel(self.cfg, {self.effect: params})
+        return m.initial_state(x0, torque0)
+
+    def run(self, theta, x0, torque, t0: float = 0.0):
+        theta = np.atleast_1d(np.asarray(theta, float)) if len(self.fit_params) else np.zeros(1)
+        xi = self.initial(theta, x0, float(torque[0]))
+        period = self.cfg.exchange_period_s
+        times = t0 + np.arange(self.n - 1) * period
+        x = np.asarray(self._sim(xi, torque[None, :self.n - 1], times[None, :], theta)[0])
+        motor = np.concatenate([[xi[0]], x[0]])
+        train = np.concatenate([[xi[1]], x[1]])
+        if not (np.all(np.isfinite(motor)) and np.all(np.isfinite(train))):
+            raise FloatingPointError("model diverged")
+        return motor, train
+
+
+class ObserverReplica:
+    """mu^(k) exactly as TractionIdentifier computes it from measured speeds and commands."""
+
+    def __init__(self, settings):
+        v = settings.vehicle
+        T = settings.period_s
+        p = settings.observer_pole_rad_s
+        J = v.equivalent_inertia_kgm2
+        h_w, h_tl = 2.0 * p, -J * p * p
+        A = np.array([[1 - T * h_w, -T / J], [-T * h_tl, 1.0]])
+        B = np.array([[T / J, T * h_w], [0.0, T * h_tl]])       # inputs (T_e', y')
+        C = np.array([[0.0, 1.0]])
+        self.tf = [signal.ss2tf(A, B, C, np.zeros((1, 2)), input=i) for i in (0, 1)]
+        self.torque_per_mu = v.torque_per_mu_nm
+        self.torque_demand = settings.torque_demand_nm
+        self.vehicle = v
+
+    def mu_hat(self, motor, torque_cmd) -> np.ndarray:
+        """``motor``: the speeds the TCU received; ``torque_cmd[k]`` answers reading k, so the observer
+        at k uses ``torque_cmd[k-1]`` (the demand at k = 0)."""
+        te = np.concatenate([[self.torque_demand], torque_cmd[:-1]])
+        y0, te0 = motor[0], te[0]
+        out = np.full(len(motor), te0)
+        for (num, den), u in zip(self.tf, (te - te0, motor - y0)):
+            out = out + signal.lfilter(num[0], den, u)
+        return out / self.torque_per_mu
+
+    def creep_kmh(self, motor, train):
+        v = self.vehicle
+        return KMH_PER_MS * (motor / v.gear_ratio * v.wheel_radius_m - train)
+
+    def noise_gain(self, n: int = 20000) -> float:
+        """std of mu^ per unit std of white noise on the motor speed (a fixed, seeded draw)."""
+        e = np.random.default_rng(12345).standard_normal(n)
+        mu = self.mu_hat(e, np.full(n, self.torque_demand))
+        return float(np.std(mu[200:]))
+
+
+def shift(x: np.ndarray, delay_periods: float) -> np.ndarray:
+    """x delayed by a (fractional) number of periods; values before the start hold x[0]."""
+    if delay_periods <= 0:
+        return x
+    k = np.arange(len(x), dtype=float) - delay_periods
+    return np.interp(k, np.arange(len(x), dtype=float), x)
+
+
+def lattice_quantum(values: np.ndarray, q_min: float, q_max: float, n_grid: int = 1500) -> tuple[float, float]:
+    """(quantum, coherence): the spacing q in [q_min, q_max] on whose lattice the values lie best.
+
+    Coherence |mean exp(2 pi i x / q)| is 1 for values exactly on a lattice of spacing q (or of any
+    q/m), near 0 for continuous values.  The largest q with coherence above 0.9 is taken (a lattice of
+    spacing q also fits q/2, q/3, ...).
+    """
+    x = np.asarray(values, float)
+    x = x - np.median(x)
+    qs = np.geomspace(q_min, q_max, n_grid)
+    coh = np.abs(np.exp(2j * math.pi * x[None, :] / qs[:, None]).mean(axis=1))
+    good = np.flatnonzero(coh > 0.9)
+    if good.size == 0:
+        i = int(np.argmax(coh))
+        return float(qs[i]), float(coh[i])
+    i = int(good[-1])
+    # refine around the grid point
+    fine = np.linspace(qs[max(i - 1, 0)], qs[min(i + 1, n_grid - 1)], 201)
+    cf = np.abs(np.exp(2j * math.pi * x[None, :] / fine[:, None]).mean(axis=1))
+    j = int(np.argmax(cf))
+    return float(fine[j]), float(cf[j])

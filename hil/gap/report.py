@@ -1,0 +1,184 @@
+"""The gap report: a markdown page with PNG plots (matplotlib, headless), and the text summary."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from .candidates import SIGNALS, UNITS
+
+STAGES = ("normal", "early", "serious")
+
+
+def _f(x, spec=".3g"):
+    return "n/a" if x is None else format(x, spec)
+
+
+def text_summary(out: dict) -> str:
+    w, which, sh = out["where"], out["which"], out["shrink"]
+    lines = [f"gap diagnosis of {out['real_log']} against model {out['model']}",
+             f"  analysed {out['analysis_periods']} of {out['periods']} periods "
+             f"({out['held_out_periods']} held out, blocks of {out['block_periods']})",
+             f"  WHERE: {w['summary']}",
+             "    per signal (RMSE / noise floor): " + ", ".join(
+                 f"{s} {w['per_signal'][s]['rmse_in_noise_units']:.2f}" for s in w["per_signal"]),
+             "    per stage: " + "; ".join(
+                 f"{st} ({w['per_stage'][st]['periods']}): " + " ".join(
+                     f"{s}={_f(w['per_stage'][st][s], '.2f')}" for s in SIGNALS) for st in STAGES),
+             f"    T_det measured {_f(w['t_det_measured_s'])} s vs model {_f(w['t_det_model_s'])} s",
+             "    whiteness (Ljung-Box p): " + ", ".join(
+                 f"{s} {_f(w['tests'][s]['ljung_box_p'], '.2g')}" for s in SIGNALS)
+             + ("; input constant: no input cross-correlation test" if w["input_constant"] else ""),
+             f"  WHICH: {which['verdict']}"]
+    for r in which["ranking"]:
+        lines.append(f"    {r['effect']:20s} score gain {r['score_gain']:12.1f}  held-out gap shrink "
+                     f"{r['held_out_shrink'] * 100:7.1f} %  " + ", ".join(f"{k}={v:.4g}" for k, v in r["params"].items()))
+    lines.append(f"  HOW FAR ({sh['effect']}{'' if sh['named'] != 'none' else ', not named'}): held-out gap "
+                 f"shrink {sh['held_out_gap_shrink_percent']:.1f} %")
+    for s, v in sh["per_signal"].items():
+        lines.append(f"    {s:7s} RMSE {v['rmse_before']:.4g} -> {v['rmse_after']:.4g} {v['unit']}  (gap "
+                     f"{v['gap_before']:.3g} -> {v['gap_after']:.3g}, noise floor {v['noise_floor']:.3g})")
+    ident = out.get("identification")
+    if ident:
+        lines.append(f"  IDENTIFICATION ({ident['strategy']}):")
+        for key in ("real", "nominal_replay", "augmented_replay"):
+            if key in ident:
+                r = ident[key]
+                lines.append(f"    {r['source']:32s} RT {_f(r.get('rt_percent'), '.1f')} %  peak mu "
+                             f"{_f(r.get('peak_mu'), '.4f')} (err {_f(r.get('peak_mu_err_percent'), '.2f')} %)  "
+                             f"peak creep {_f(r.get('peak_creep_kmh'), '.3f')} km/h "
+                             f"(err {_f(r.get('peak_creep_err_percent'), '.2f')} %)")
+        for k, v in ident["curve_shift"].items():
+            lines.append(f"    {k}: {v:+.2f} %")
+    return "\n".join(lines)
+
+
+def write_report(out: dict, dg, directory) -> Path:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from identifier.curve import mu_model
+
+    d = Path(directory)
+    d.mkdir(parents=True, exist_ok=True)
+    a = dg.arrays
+    t = a["t"]
+    w = a["window"]
+    pngs = []
+
+    # 1. signals: measured, nominal, best candidate
+    fig, axes = plt.subplots(3, 1, figsize=(10, 8), sharex=True)
+    for ax, s in zip(axes, SIGNALS):
+        ax.plot(t, a["meas"][s], ".", ms=1.5, color="0.5", label="measured")
+        ax.plot(t, a["nominal"][s], "-", lw=1, color="tab:red", label="nominal model")
+        ax.plot(t, a["best"][s], "--", lw=1, color="tab:blue", label=f"nominal + {a['best_name']}")
+        ax.set_ylabel(f"{s} [{UNITS[s]}]")
+        ax.axvspan(t[w][-1], t[-1], color="0.9", lw=0)
+    axes[0].legend(loc="upper left", fontsize=8)
+    axes[-1].set_xlabel("t [s] (grey: outside the analysis window)")
+    fig.tight_layout()
+    fig.savefig(d / "signals.png", dpi=110)
+    plt.close(fig)
+    pngs.append("signals.png")
+
+    # 2. residuals over time in noise units
+    fig, axes = plt.subplots(3, 1, figsize=(10, 7), sharex=True)
+    for ax, s in zip(axes, SIGNALS):
+        ax.plot(t[w], ((a["meas"][s] - a["nominal"][s]) / a["sigma"][s])[w], lw=0.7, color="tab:red", label="nominal")
+        ax.plot(t[w], ((a["meas"][s] - a["best"][s]) / a["sigma"][s])[w], lw=0.7, color="tab:blue",
+                label=f"+ {a['best_name']}")
+        ax.set_ylabel(f"{s} residual / noise")
+        ax.set_yscale("symlog", linthresh=3)
+    axes[0].legend(loc="upper left", fontsize=8)
+    axes[-1].set_xlabel("t [s]")
+    fig.tight_layout()
+    fig.savefig(d / "residuals.png", dpi=110)
+    plt.close(fig)
+    pngs.append("residuals.png")
+
+    # 3. where: per creep band and per frequency band
+    where = out["where"]
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4))
+    labels = [f"{b['creep_kmh'][0]}-{b['creep_kmh'][1] or 'inf'}" for b in where["per_creep_band"]]
+    x = np.arange(len(labels))
+    for i, s in enumerate(SIGNALS):
+        ax1.bar(x + (i - 1) * 0.27, [b[s] or 0 for b in where["per_creep_band"]], 0.27, label=s)
+    ax1.set_xticks(x, labels)
+    ax1.set_yscale("log")
+    ax1.axhline(1, color="k", lw=0.8)
+    ax1.set_xlabel("measured creep band [km/h]")
+    ax1.set_ylabel("residual RMS / noise floor")
+    ax1.legend(fontsize=8)
+    labels = [f"{b['hz'][0]:g}-{b['hz'][1] or 'Nyq'}" for b in where["per_frequency_band"]]
+    x = np.arange(len(labels))
+    for i, s in enumerate(SIGNALS):
+        ax2.bar(x + (i - 1) * 0.27, [b[s]["ratio"] or 0 for b in where["per_frequency_band"]], 0.27, label=s)
+    ax2.set_xticks(x, labels)
+    ax2.set_yscale("log")
+    ax2.axhline(1, color="k", lw=0.8)
+    ax2.set_xlabel("frequency band [Hz]")
+    ax2.set_ylabel("residual RMS / noise RMS in band")
+    fig.tight_layout()
+    fig.savefig(d / "where.png", dpi=110)
+    plt.close(fig)
+    pngs.append("where.png")
+
+    # 4. which: ranking
+    rk = out["which"]["ranking"]
+    fig, ax = plt.subplots(figsize=(8, 3.5))
+    ax.barh([r["effect"] for r in rk][::-1], [r["held_out_shrink"] * 100 for r in rk][::-1],
+            color=["tab:green" if r["effect"] == out["which"]["named"] else "0.6" for r in rk][::-1])
+    ax.axvline(out["which"]["rule"]["min_shrink"] * 100, color="k", ls="--", lw=0.8)
+    ax.set_xlabel("held-out gap shrink [%] (dashed: needed to name an effect)")
+    ax.set_xlim(-20, 105)
+    fig.tight_layout()
+    fig.savefig(d / "which.png", dpi=110)
+    plt.close(fig)
+    pngs.append("which.png")
+
+    # 5. identified curves
+    ident = out.get("identification")
+    if ident:
+        sc = dg.scenario
+        grid = np.linspace(0, 3 * sc.fault_curve.peak()[0], 300)
+        fig, ax = plt.subplots(figsize=(7, 4))
+        ax.plot(grid, sc.fault_curve.mu(grid), "k-", lw=1.5, label="model's fault curve")
+        for key, style in (("real", "tab:red"), ("nominal_replay", "tab:orange"), ("augmented_replay", "tab:blue")):
+            r = ident.get(key)
+            if r and r.get("params"):
+                ax.plot(grid, mu_model(grid, np.asarray(r["params"])), color=style, ls="--", label=r["source"])
+        ax.set_xlabel("creep speed [km/h]")
+        ax.set_ylabel("mu")
+        ax.legend(fontsize=8)
+        fig.tight_layout()
+        fig.savefig(d / "curves.png", dpi=110)
+        plt.close(fig)
+        pngs.append("curves.png")
+
+    md = ["# Sim-to-real gap report", "", f"Real log: `{out['real_log']}`  ", f"Model: `{out['model']}`", "",
+          "```", text_summary(out), "```", ""]
+    md += ["## Where", "", where["summary"], "", "![signals](signals.png)", "", "![residuals](residuals.png)", "",
+           "![where](where.png)", "",
+           "| stage | periods | " + " | ".join(SIGNALS) + " |", "|---|---|" + "---|" * len(SIGNALS)]
+    for st in STAGES:
+        v = where["per_stage"][st]
+        md.append(f"| {st} | {v['periods']} | " + " | ".join(_f(v[s], ".2f") for s in SIGNALS) + " |")
+    md += ["", "(residual RMS in noise-floor units; 1 = as good as the sensors)", "",
+           "## Which effect", "", out["which"]["verdict"], "", "![which](which.png)", "",
+           "| effect | fitted parameters | score gain | held-out gap shrink |", "|---|---|---|---|"]
+    for r in rk:
+        md.append(f"| {r['effect']} | " + ", ".join(f"{k}={v:.4g}" for k, v in r["params"].items())
+                  + f" | {r['score_gain']:.1f} | {r['held_out_shrink'] * 100:.1f} % |")
+    md += ["", "## How far it shrinks (held-out blocks)", "",
+           "| signal | RMSE before | RMSE after | gap before | gap after | noise floor |", "|---|---|---|---|---|---|"]
+    for s, v in out["shrink"]["per_signal"].items():
+        md.append(f"| {s} [{v['unit']}] | {v['rmse_before']:.4g} | {v['rmse_after']:.4g} | {v['gap_before']:.3g} | "
+                  f"{v['gap_after']:.3g} | {v['noise_floor']:.3g} |")
+    if ident:
+        md += ["", "## Identification: real run vs model replays", "", "![curves](curves.png)", ""]
+    md += ["", "Full figures: `gap.json`.", ""]
+    (d / "report.md").write_text("\n".join(md))
+    (d / "gap.json").write_text(json.dumps(out, indent=1))
+    return d / "report.md"
