@@ -55,7 +55,7 @@ class TcuNode:
             return []
         if frame.name == "PlantSensor":
             reading = frame.value
-            if self.last_step >= 0 and not (self.last_step < reading.step <= self.last_step + MAX_STEP_GAP):
+            if not (self.last_step < reading.step <= self.last_step + MAX_STEP_GAP):    # a run starts at step 0
                 self.rejected["bad_sequence"] += 1
                 return []
             self.last_step = reading.step

@@ -1,0 +1,174 @@
+"""The DBC frames: exact round trips through cantools, validation of malformed frames, bus load."""
+import math
+import struct
+
+import can
+import cantools
+import numpy as np
+import pytest
+
+from hil.frames import (COMMAND_ID, DBC_PATH, PLANT_HEARTBEAT_ID, RESULT_ID, SENSOR_ID, STATUS_ID, TCU_HEARTBEAT_ID,
+                        FrameCodec, bus_load, fd_frame_time_s, load_dbc)
+from hil.scenario import load_scenario
+from hil.tcu_process import TcuNode
+from identifier.messages import IdentificationEvent, ObserverSample, SensorReading, TcuStatus, TorqueCommand
+
+PERIOD = 1e-3
+
+
+@pytest.fixture(scope="module")
+def codec():
+    return FrameCodec(PERIOD)
+
+
+def fd(fid, data, **kw):
+    return can.Message(arbitration_id=fid, data=bytes(data), is_extended_id=False, is_fd=True, **kw)
+
+
+def test_dbc_declares_can_fd_frames_with_fixed_ids():
+    db = cantools.database.load_file(str(DBC_PATH))
+    by_name = {m.name: m for m in db.messages}
+    assert by_name["PlantSensor"].frame_id == 0x100 and by_name["PlantSensor"].length == 24
+    assert by_name["TorqueCommand"].frame_id == 0x110 and by_name["TorqueCommand"].length == 12
+    assert by_name["TcuStatus"].length == 32 and by_name["TcuResult"].length == 64
+    assert all(m.is_fd for m in db.messages)
+    # measured speeds travel as IEEE doubles: the bus adds no quantisation
+    assert by_name["PlantSensor"].get_signal_by_name("MotorSpeed").is_float
+    assert by_name["PlantSensor"].get_signal_by_name("MotorSpeed").length == 64
+
+
+def test_sensor_frame_layout_is_little_endian_step_then_doubles(codec):
+    msg = codec.sensor(SensorReading(513, 63.75, 10.125))
+    assert msg.is_fd and msg.bitrate_switch and not msg.is_extended_id and msg.arbitration_id == 0x100
+    assert bytes(msg.data[:4]) == struct.pack("<I", 513)
+    assert struct.unpack("<dd", bytes(msg.data[4:20])) == (63.75, 10.125)
+
+
+def test_every_message_round_trips_exactly(codec):
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        k = int(rng.integers(0, 2**31))
+        r = SensorReading(k, float(rng.uniform(-1000, 1000)), float(rng.uniform(-100, 100)))
+        f, status = codec.classify(codec.sensor(r))
+        assert status == "ok" and f.value == r
+        c = TorqueCommand(k, float(rng.uniform(-1e5, 1e5)))
+        assert codec.classify(codec.command(c))[0].value == c
+        st = TcuStatus(k, int(rng.integers(0, 4)), int(rng.integers(0, 65536)))
+        obs = ObserverSample(k, k * PERIOD, float(rng.normal()), float(rng.normal()), float(rng.normal() * 1e4))
+        f, _ = codec.classify(codec.status(st, obs))
+        assert f.value == (st, obs)
+        assert codec.classify(codec.status(st, None))[0].value == (st, None)
+        params = tuple(float(x) for x in rng.normal(size=5))
+        e = IdentificationEvent(k, k * PERIOD, "correction", 7, params, 0.25, 300)
+        assert codec.classify(codec.result(e))[0].value == e
+
+
+def test_result_frame_carries_inf_and_nan_scores(codec):
+    e = IdentificationEvent(9, 9 * PERIOD, "confirmed", 3, (0.1, 0.2, 0.3, -0.4, -0.5), math.nan, 40)
+    got = codec.classify(codec.result(e))[0].value
+    assert math.isnan(got.j_ef) and got.params == e.params and got.kind == "confirmed"
+    e2 = IdentificationEvent(9, 9 * PERIOD, "correction", 0, (0.1,), math.inf, 8)
+    assert codec.classify(codec.result(e2))[0].value.j_ef == math.inf
+
+
+def _sensor_bytes(step, omega, v):
+    return struct.pack("<Idd", step, omega, v) + bytes(4)
+
+
+@pytest.mark.parametrize("msg, reason", [
+    (fd(0x123, b"\xde\xad\xbe\xef"), "unknown_id"),
+    (can.Message(arbitration_id=0x100, data=_sensor_bytes(1, 60.0, 10.0), is_extended_id=True, is_fd=True),
+     "unknown_id"),
+    (can.Message(arbitration_id=0x100, data=bytes(8), is_extended_id=False), "bad_length"),
+    (fd(0x100, _sensor_bytes(1, 60.0, 10.0)[:20]), "bad_length"),
+    (fd(0x100, _sensor_bytes(1, math.nan, 10.0)), "non_finite:MotorSpeed"),
+    (fd(0x100, _sensor_bytes(1, 60.0, math.inf)), "non_finite:TrainSpeed"),
+    (fd(0x100, _sensor_bytes(1, 60.0, -math.inf)), "non_finite:TrainSpeed"),
+    (fd(0x100, _sensor_bytes(1, 1e6, 10.0)), "out_of_range:MotorSpeed"),
+    (fd(0x110, struct.pack("<Id", 1, 1e9)), "out_of_range:TorqueCmd"),
+    (fd(0x120, struct.pack("<IBBHddd", 1, 9, 1, 0, 0.1, 1.0, 10.0)), "out_of_range:Stage"),
+    (can.Message(arbitration_id=0x701, is_remote_frame=True, dlc=8, is_extended_id=False), "remote_frame"),
+    (can.Message(arbitration_id=0x702, is_error_frame=True, is_extended_id=False), "error_frame"),
+])
+def test_malformed_frames_are_rejected_with_a_reason(codec, msg, reason):
+    frame, status = codec.classify(msg)
+    assert frame is None and status == reason
+
+
+def test_random_frames_never_raise(codec):
+    rng = np.random.default_rng(1)
+    ids = [SENSOR_ID, COMMAND_ID, STATUS_ID, RESULT_ID, PLANT_HEARTBEAT_ID, TCU_HEARTBEAT_ID, 0x7FF, 0x0]
+    ok = 0
+    for i in range(3000):
+        n = int(rng.choice([0, 1, 8, 12, 20, 24, 32, 48, 64]))
+        msg = can.Message(arbitration_id=int(rng.choice(ids)), data=rng.bytes(n), is_fd=n > 8,
+                          is_extended_id=bool(i % 7 == 0))
+        frame, status = codec.classify(msg)
+        assert (frame is None) == (status != "ok")
+        ok += status == "ok"
+    assert ok < 3000
+
+
+@pytest.fixture(scope="module")
+def ffcc_a():
+    return load_scenario("scenarios/ffcc_a.toml", {"run.duration_s": 0.62})
+
+
+def _drive(node, scenario, garbage_every=None):
+    """Feed the node the sensor frames of a deterministic trajectory (a synthetic slip after the fault),
+    optionally with garbage frames in between; returns every reply frame's (id, data)."""
+    from plant import SensorModel, WheelsetPlant
+    plant = WheelsetPlant(scenario.plant_config())
+    sensors = SensorModel(scenario.sensors, 5)
+    codec = node.codec
+    rng = np.random.default_rng(2)
+    replies = []
+    for k in range(scenario.steps):
+        s = plant.state
+        omega, v = sensors.measure(s.motor_speed_rad_s, s.train_speed_ms)
+        if garbage_every and k % garbage_every == 0:
+            for bad in (fd(0x100, _sensor_bytes(k + 1, math.nan, v)), fd(0x100, _sensor_bytes(k + 1, omega, 1e9)),
+                        fd(0x100, _sensor_bytes(k + 1, omega, v)[:12]), fd(0x555, rng.bytes(8)),
+                        fd(0x100, _sensor_bytes(k + 5000, omega, v))):      # a step from nowhere
+                assert node.handle(bad) == []
+        out = node.handle(codec.sensor(SensorReading(k, omega, v)))
+        replies += [(m.arbitration_id, bytes(m.data)) for m in out]
+        cmd = codec.classify(out[0])[0].value
+        assert cmd.step == k
+        plant.step(cmd.torque_nm)
+    return replies
+
+
+def test_garbage_never_reaches_the_identifier(ffcc_a):
+    clean = TcuNode(ffcc_a, "nlls", 1)
+    dirty = TcuNode(ffcc_a, "nlls", 1)
+    replies_clean = _drive(clean, ffcc_a)
+    replies_dirty = _drive(dirty, ffcc_a, garbage_every=10)
+    assert replies_dirty == replies_clean
+    assert clean.events > 0                           # the trajectory did produce identification events
+    n = len(range(0, ffcc_a.steps, 10))
+    assert dirty.rejected == {"non_finite:MotorSpeed": n, "out_of_range:TrainSpeed": n, "bad_length": n,
+                              "unknown_id": n, "bad_sequence": n}
+    assert dirty.identifier.rejected_readings == 0 and dirty.sensor_frames == ffcc_a.steps
+
+
+def test_fd_frame_time_matches_a_hand_count():
+    # 8 data bytes, 1 Mbit/s arbitration, 5 Mbit/s data.  Arbitration phase: SOF + 11 id + RRS, IDE, FDF,
+    # res, BRS = 17 bits + 4 worst-case stuff bits; tail: CRC delimiter, ACK, ACK delimiter, 7 EOF, 3 IFS = 13.
+    # Data phase: ESI + 4 DLC + 64 data = 69 bits + 17 stuff bits, 4-bit stuff count, CRC-17 and 6 fixed
+    # stuff bits = 113 bits.
+    expected = (17 + 4 + 13) / 1e6 + (69 + 17 + 4 + 17 + 6) / 5e6
+    assert fd_frame_time_s(8, 1_000_000, 5_000_000) == pytest.approx(expected)
+    # without bit-rate switch the data phase runs at the arbitration rate
+    assert fd_frame_time_s(8, 1_000_000, 5_000_000, brs=False) == pytest.approx((17 + 4 + 13 + 113) / 1e6)
+
+
+def test_bus_load_of_the_schedule():
+    db = load_dbc()
+    lengths = {m.frame_id: m.length for m in db.messages}
+    load = bus_load(db, 1e-3, 2e-3, 1_000_000, 5_000_000)
+    per_period = sum(fd_frame_time_s(lengths[i], 1_000_000, 5_000_000) for i in (0x100, 0x110, 0x120))
+    per_hb = sum(fd_frame_time_s(8, 1_000_000, 5_000_000) for _ in range(2))
+    assert load["load_percent"] == pytest.approx(100 * (per_period / 1e-3 + per_hb / 2e-3))
+    slow = bus_load(db, 1e-3, 2e-3, 250_000, 1_000_000)
+    assert slow["load_percent"] > 70 > load["load_percent"]
