@@ -41,6 +41,14 @@ def wheelset_fmu(tmp_path_factory) -> Path:
                       stop_time_s=sc.run.duration_s)
 
 
+@pytest.fixture(scope="session")
+def wheelset_fmu3(tmp_path_factory) -> Path:
+    """The same plant as an FMI 3.0 Co-Simulation FMU."""
+    sc = load_scenario(SCENARIOS / "ffcc_a.toml")
+    return export_fmu(sc.plant_config(), tmp_path_factory.mktemp("fmu3") / "wheelset3.fmu",
+                      stop_time_s=sc.run.duration_s, fmi_version=3)
+
+
 def gemseo_fmu(name: str) -> Path:
     try:
         dist = metadata.distribution("gemseo-fmu")
@@ -97,12 +105,21 @@ def test_simulate_fmu_matches_the_casadi_plant(wheelset_fmu, scenario):
     assert res["mu"][-1] < 0.67 * res["mu"][0]
 
 
+def test_fmi3_export_passes_validation(wheelset_fmu3):
+    assert validate_fmu(str(wheelset_fmu3)) == []
+    md = fmpy.read_model_description(str(wheelset_fmu3))
+    assert md.fmiVersion == "3.0" and md.coSimulation is not None and md.modelExchange is None
+    assert fmpy.platform in fmpy.supported_platforms(str(wheelset_fmu3))
+
+
+@pytest.mark.parametrize("fmi", ["2", "3"])
 @pytest.mark.parametrize("scenario", ["ffcc_a", "ffcc_b"])
-def test_fmu_plant_tracks_the_casadi_plant_under_a_moving_torque(wheelset_fmu, scenario):
+def test_fmu_plant_tracks_the_casadi_plant_under_a_moving_torque(wheelset_fmu, wheelset_fmu3, scenario, fmi):
     sc = load_scenario(SCENARIOS / f"{scenario}.toml")
     cfg = sc.plant_config()
     ref = WheelsetPlant(cfg)
-    with FmuPlant(wheelset_fmu, cfg) as fmu:
+    with FmuPlant(wheelset_fmu if fmi == "2" else wheelset_fmu3, cfg) as fmu:
+        assert fmu.fmi_version == fmi
         assert np.array_equal(fmu.x0, ref.x0) and fmu.equilibrium_torque_nm == ref.equilibrium_torque_nm
         worst = dict.fromkeys(STATE_FIELDS, 0.0)
         for tq in torque_profile(ref.equilibrium_torque_nm, sc.steps):

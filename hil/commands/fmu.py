@@ -12,11 +12,12 @@ def register(sub) -> None:
     fsub = p.add_subparsers(dest="fmu_command", metavar="ACTION")
     fsub.required = True
 
-    e = fsub.add_parser("export", help="the scenario's plant as an FMI 2.0 Co-Simulation FMU (needs gcc)")
+    e = fsub.add_parser("export", help="the scenario's plant as an FMI 2.0 (or 3.0) Co-Simulation FMU (needs gcc)")
     e.add_argument("scenario", help="scenario TOML whose values become the FMU's parameter start values")
     e.add_argument("-o", "--output", required=True, help="FMU file to write, e.g. plant.fmu")
     e.add_argument("--terms", type=int, default=None,
                    help="exponential terms per friction curve the FMU holds (default: the scenario's)")
+    e.add_argument("--fmi", choices=("2", "3"), default="2", help="FMI version: 2 (2.0, default) or 3 (3.0)")
     e.add_argument("--set", action="append", metavar="TABLE.KEY=VALUE", help="override a scenario field")
     e.set_defaults(func=cmd_export)
 
@@ -38,10 +39,10 @@ def cmd_export(args) -> int:
     try:
         path = export_fmu(scenario.plant_config(), args.output, n_terms=args.terms,
                           description=f"railway-hil wheelset-rail plant, start values from {scenario.name}",
-                          stop_time_s=scenario.run.duration_s)
+                          stop_time_s=scenario.run.duration_s, fmi_version=args.fmi)
     except (FmuExportError, OSError) as e:
         raise UserError(f"{args.output}: {e}") from None
-    print(f"wrote {path} (FMI 2.0 Co-Simulation, parameters from {args.scenario})", file=sys.stderr)
+    print(f"wrote {path} (FMI {args.fmi}.0 Co-Simulation, parameters from {args.scenario})", file=sys.stderr)
     return 0
 
 
@@ -69,5 +70,5 @@ def cmd_info(args) -> int:
     print(f"  {info['variables']}")
     print("  fmpy.validation: " + ("no problems" if not problems else f"{len(problems)} problem(s)"))
     for p in problems:
-        print(f"    {p}")
+        print("    " + str(p).replace("\n", "\n    "))
     return 0

@@ -35,7 +35,7 @@ from ..params import WheelsetParams
 
 MODEL_IDENTIFIER = "wheelset"
 GENERATION_TOOL = "railway-hil"
-WRAPPER_C = Path(__file__).with_name("fmi2_cs.c")
+WRAPPERS = {"2": Path(__file__).with_name("fmi2_cs.c"), "3": Path(__file__).with_name("fmi3_cs.c")}
 
 #: units of the WheelsetParams fields (for modelDescription.xml); the names carry them too
 _PARAM_UNITS = {"kg": "kg", "kgm2": "kg.m2", "m": "m", "ms2": "m/s2", "n": "N", "n_per_ms": "N.s/m",
@@ -217,6 +217,63 @@ def _model_description(variables, guid, description, stop_time_s, step_s, source
     return "\n".join(lines)
 
 
+def _model_description3(variables, guid, description, stop_time_s, step_s) -> str:
+    """FMI 3.0: one value-reference space (fault_active and time follow the reals)."""
+    n_real = sum(1 for v in variables if v.type == "Real")
+    units = sorted({v.unit for v in variables if v.unit})
+    lines = ['<?xml version="1.0" encoding="UTF-8"?>',
+             f'<fmiModelDescription fmiVersion="3.0" modelName="{MODEL_IDENTIFIER}" instantiationToken="{guid}"'
+             f' description={quoteattr(description)}'
+             f' generationTool="{GENERATION_TOOL} (CasADi {ca.__version__})"'
+             f' generationDateAndTime="{datetime.datetime.now(datetime.timezone.utc):%Y-%m-%dT%H:%M:%SZ}"'
+             ' variableNamingConvention="flat">',
+             f'  <CoSimulation modelIdentifier="{MODEL_IDENTIFIER}" canHandleVariableCommunicationStepSize="true"'
+             ' canGetAndSetFMUState="false" canSerializeFMUState="false" providesDirectionalDerivatives="false"'
+             ' providesAdjointDerivatives="false" hasEventMode="false" providesIntermediateUpdate="false"/>',
+             '  <UnitDefinitions>']
+    lines += [f'    <Unit name={quoteattr(u)}/>' for u in units]
+    lines += ['  </UnitDefinitions>', '  <LogCategories>', '    <Category name="logStatusError"/>',
+              '    <Category name="logAll"/>', '  </LogCategories>',
+              f'  <DefaultExperiment startTime="0" stopTime="{stop_time_s!r}" stepSize="{step_s!r}"/>',
+              '  <ModelVariables>',
+              f'    <Float64 name="time" valueReference="{n_real + 1}" causality="independent"'
+              ' variability="continuous" unit="s" description="simulation time"/>']
+    outputs = []
+    for v in variables:
+        d = f'description={quoteattr(v.description)}'
+        if v.type == "Boolean":
+            vr = n_real
+            lines.append(f'    <Boolean name="{v.name}" valueReference="{vr}" causality="output" variability="discrete"'
+                         f' initial="calculated" {d}/>')
+        else:
+            vr = v.vr
+            attrs = {"parameter": f'variability="fixed" initial="exact" start="{v.start!r}"',
+                     "input": f'variability="continuous" start="{v.start!r}"',
+                     "output": 'variability="continuous" initial="calculated"'}[v.causality]
+            lines.append(f'    <Float64 name="{v.name}" valueReference="{vr}" causality="{v.causality}" {attrs}'
+                         f' unit={quoteattr(v.unit)} {d}/>')
+        if v.causality == "output":
+            outputs.append(vr)
+    lines += ['  </ModelVariables>', '  <ModelStructure>']
+    lines += [f'    <Output valueReference="{vr}" dependencies=""/>' for vr in outputs]
+    lines += [f'    <InitialUnknown valueReference="{vr}"/>' for vr in outputs]
+    lines += ['  </ModelStructure>', '</fmiModelDescription>', '']
+    return "\n".join(lines)
+
+
+def _build_description3(sources) -> str:
+    files = "\n".join(f'      <SourceFile name="{s}"/>' for s in sources)
+    return f"""<?xml version="1.0" encoding="UTF-8"?>
+<fmiBuildDescription fmiVersion="3.0">
+  <BuildConfiguration modelIdentifier="{MODEL_IDENTIFIER}">
+    <SourceFileSet language="C99">
+{files}
+    </SourceFileSet>
+  </BuildConfiguration>
+</fmiBuildDescription>
+"""
+
+
 def _spec_header(variables, guid, n_model_params) -> str:
     reals = [v for v in variables if v.type == "Real"]
     vr = {v.name: v.vr for v in variables}
@@ -255,24 +312,29 @@ def _compiler() -> str:
     return cc
 
 
-def _platform() -> tuple[str, str]:
+def _platform(fmi_version: str) -> tuple[str, str]:
+    """(binaries/ folder name, shared library extension) for this machine and FMI version."""
     import fmpy
 
     ext = {"linux64": ".so", "linux32": ".so", "darwin64": ".dylib", "win64": ".dll", "win32": ".dll"}
     if fmpy.platform not in ext:
         raise FmuExportError(f"cannot build an FMU binary for platform {fmpy.platform!r}")
-    return fmpy.platform, ext[fmpy.platform]
+    return (fmpy.platform if fmi_version == "2" else fmpy.platform_tuple), ext[fmpy.platform]
 
 
 def export_fmu(cfg: PlantConfig, path, *, n_terms: int | None = None, description: str = "",
-               stop_time_s: float = 1.0) -> Path:
-    """Write an FMI 2.0 Co-Simulation FMU of the plant to ``path``; start values are ``cfg``'s.
+               stop_time_s: float = 1.0, fmi_version: str = "2") -> Path:
+    """Write an FMI 2.0 (or, ``fmi_version="3"``, 3.0) Co-Simulation FMU of the plant to ``path``;
+    start values are ``cfg``'s.
 
     ``n_terms``: exponential terms per curve the FMU holds (default: as many as ``cfg``'s curves).
     Returns the path.  Raises FmuExportError with one line if it cannot be built.
     """
     import fmpy
 
+    fmi_version = str(fmi_version)[0]
+    if fmi_version not in WRAPPERS:
+        raise FmuExportError(f"FMI version {fmi_version!r}: only 2 and 3 can be exported")
     path = Path(path)
     n_terms = n_terms or max(cfg.normal_curve.n_terms, cfg.fault_curve.n_terms)
     values = parameter_values(cfg, n_terms)
@@ -280,7 +342,7 @@ def export_fmu(cfg: PlantConfig, path, *, n_terms: int | None = None, descriptio
     variables = _variables(values, torque0, n_terms)
     step, out = build_functions(n_terms)
     cc = _compiler()
-    platform, ext = _platform()
+    platform, ext = _platform(fmi_version)
     c_code_dir = Path(fmpy.__file__).parent / "c-code"
 
     with tempfile.TemporaryDirectory(prefix="wheelset-fmu-") as tmp:
@@ -291,15 +353,19 @@ def export_fmu(cfg: PlantConfig, path, *, n_terms: int | None = None, descriptio
         gen.add(step)
         gen.add(out)
         gen.generate(str(src) + os.sep)
-        shutil.copy(WRAPPER_C, src / "fmi2_cs.c")
-        for header in ("fmi2Functions.h", "fmi2FunctionTypes.h", "fmi2TypesPlatform.h"):
+        wrapper = WRAPPERS[fmi_version].name
+        shutil.copy(WRAPPERS[fmi_version], src / wrapper)
+        headers = ("fmi2Functions.h", "fmi2FunctionTypes.h", "fmi2TypesPlatform.h") if fmi_version == "2" else \
+            ("fmi3Functions.h", "fmi3FunctionTypes.h", "fmi3PlatformTypes.h")
+        for header in headers:
             shutil.copy(c_code_dir / header, src / header)
         # the GUID ties modelDescription.xml to the binary: a hash of the generated code and start values
         digest = hashlib.sha256((src / "wheelset_model.c").read_bytes()
-                                + repr(sorted(values.items())).encode() + repr(torque0).encode()).hexdigest()
+                                + repr(sorted(values.items())).encode() + repr(torque0).encode()
+                                + fmi_version.encode()).hexdigest()
         guid = "{" + str(uuid.UUID(digest[:32])) + "}"
         (src / "model_spec.h").write_text(_spec_header(variables, guid, len(model_param_names(n_terms))))
-        sources = ["fmi2_cs.c", "wheelset_model.c"]
+        sources = [wrapper, "wheelset_model.c"]
         binary_dir = tmp / "binaries" / platform
         binary_dir.mkdir(parents=True)
         cmd = [cc, "-shared", "-fPIC", "-O2", "-ffp-contract=off", "-fvisibility=hidden", "-I", str(src),
@@ -308,8 +374,12 @@ def export_fmu(cfg: PlantConfig, path, *, n_terms: int | None = None, descriptio
         if proc.returncode != 0:
             first = (proc.stderr.strip().splitlines() or ["(no output)"])[0]
             raise FmuExportError(f"C compiler failed building the FMU ({' '.join(cmd[:2])} ...): {first}")
-        md = _model_description(variables, guid, description or "railway-hil wheelset-rail plant",
-                                stop_time_s, cfg.exchange_period_s, sources)
+        description = description or "railway-hil wheelset-rail plant"
+        if fmi_version == "2":
+            md = _model_description(variables, guid, description, stop_time_s, cfg.exchange_period_s, sources)
+        else:
+            md = _model_description3(variables, guid, description, stop_time_s, cfg.exchange_period_s)
+            (src / "buildDescription.xml").write_text(_build_description3(sources))
         (tmp / "modelDescription.xml").write_text(md)
         path.parent.mkdir(parents=True, exist_ok=True)
         partial = path.with_name(path.name + ".partial")
