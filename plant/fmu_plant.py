@@ -195,6 +195,9 @@ class FmuPlant:
         self._val_in = (ctypes.c_double * 1)()
         self._vr_out = (ctypes.c_uint * n)(*(self.vars[r].valueReference for r in out_roles))
         self._val_out = (ctypes.c_double * n)()
+        # fmi3DoStep's results (eventHandlingNeeded, terminateSimulation, earlyReturn, lastSuccessfulTime)
+        self._step3_flags = (ctypes.c_bool(), ctypes.c_bool(), ctypes.c_bool(), ctypes.c_double())
+        self._step3_out = tuple(ctypes.byref(x) for x in self._step3_flags)
         self._instantiate(instance_name)
         self.reset()
 
@@ -290,7 +293,9 @@ class FmuPlant:
                 f.fmi2DoStep(f.component, t0, self.cfg.exchange_period_s, 1)
             else:
                 f.fmi3SetFloat64(f.component, self._vr_in, 1, self._val_in, 1)
-                f.doStep(t0, self.cfg.exchange_period_s)
+                f.fmi3DoStep(f.component, t0, self.cfg.exchange_period_s, True, *self._step3_out)
+                if self._step3_flags[1].value or self._step3_flags[2].value:
+                    raise RuntimeError("the FMU asked to terminate or returned early")
         except Exception as e:
             raise FloatingPointError(f"{self.path}: FMU step failed at t={t0:.4f} s (torque {torque_nm} N·m): "
                                      f"{e}{self._last_log()}") from None

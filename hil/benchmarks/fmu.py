@@ -100,6 +100,12 @@ def cmd_fmu(args) -> int:
         steps = int(round(args.sim_seconds / long.run.exchange_period_s))
         with FmuPlant(fmu_path, long.plant_config()) as fmu:
             out["fmu_us_per_step"] = _step_cost_us(fmu, steps)
+        fmu3_path = export_fmu(first.plant_config(), Path(tmp) / "wheelset3.fmu", fmi_version=3)
+        out["fmi3_validation_problems"] = validate_fmu(str(fmu3_path))
+        out["fmi3_max_abs_deviation"] = {sc_path: max(_deviation(load_scenario(sc_path), fmu3_path).values())
+                                         for sc_path in args.scenarios}
+        with FmuPlant(fmu3_path, long.plant_config()) as fmu:
+            out["fmu3_us_per_step"] = _step_cost_us(fmu, steps)
         out["casadi_us_per_step"] = _step_cost_us(WheelsetPlant(long.plant_config()), steps)
         out["steps_measured"] = steps
     if args.json:
@@ -109,7 +115,9 @@ def cmd_fmu(args) -> int:
     print(f"export (CasADi codegen + gcc + zip): {out['export_s']:.2f} s; fmpy.validation: "
           f"{out['validation_problems'] or 'no problems'}", file=f)
     print(f"cost per plant step ({steps} steps, 1 exchange period each): FMU {out['fmu_us_per_step']:.1f} us, "
-          f"CasADi {out['casadi_us_per_step']:.1f} us", file=f)
+          f"CasADi {out['casadi_us_per_step']:.1f} us, FMI 3.0 FMU {out['fmu3_us_per_step']:.1f} us", file=f)
+    print(f"FMI 3.0 export: fmpy.validation {out['fmi3_validation_problems'] or 'no problems'}; max |FMU - CasADi| "
+          + ", ".join(f"{k} {v:.3g}" for k, v in out["fmi3_max_abs_deviation"].items()), file=f)
     for name, r in out["scenarios"].items():
         dev = max(r["max_abs_deviation"].values())
         dev_sim = max(r["simulate_fmu_max_abs_deviation"].values())
