@@ -228,6 +228,9 @@ def open_bus(spec: str, inprocess_node=None) -> BusHandle:
     if ":" not in name:
         raise BusError(f"unknown bus {spec!r}; available here: {available_here()}")
     interface, channel = name.split(":", 1)
+    if interface == "udp_multicast":
+        raise BusError(f"bus {name}: udp_multicast sends through the real network interface; use hub or vcan "
+                       f"(available here: {available_here()})")
     if interface == "virtual":
         bus = open_python_can(interface, channel)
         return BusHandle(spec, name, bus, None)

@@ -424,14 +424,10 @@ def run_can(scenario, strategy: str = "nlls", seed: int | None = None, bus: str 
     period = scenario.run.exchange_period_s
     codec = FrameCodec(period)
     load = bus_load(codec.db, period, settings.heartbeat_period_s, settings.bitrate, settings.data_bitrate)
-    log(format_bus_load(load))
-    if load["load_percent"] > LOAD_WARN_PERCENT:
-        log(f"warning: bus load {load['load_percent']:.1f} % is above {LOAD_WARN_PERCENT:g} % "
-            f"(raise [bus] bitrate/data_bitrate or the exchange period)")
 
     plant_obj, plant = plant, None
-    if mode == "realtime" and settings.rt_priority > 0:
-        _set_rt_priority(settings.rt_priority, log)
+    old_sched = _set_rt_priority(settings.rt_priority, log) if mode == "realtime" and settings.rt_priority > 0 \
+        else None
     child = None
     handle = None
     rec = None
@@ -451,6 +447,10 @@ def run_can(scenario, strategy: str = "nlls", seed: int | None = None, bus: str 
                 child = subprocess.Popen(_child_command(scenario, strategy, seed, handle.peer_spec, mode, set_args),
                                          stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, text=True,
                                          start_new_session=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+            log(format_bus_load(load) + f" on {handle.name}")
+            if load["load_percent"] > LOAD_WARN_PERCENT:
+                log(f"warning: bus load {load['load_percent']:.1f} % is above {LOAD_WARN_PERCENT:g} % "
+                    f"(raise [bus] bitrate/data_bitrate or the exchange period)")
             path = log_path(scenario, strategy, seed, out_dir) if record else None
             if record:
                 rec = start_recording(scenario, strategy, seed, handle.name, mode, path)
@@ -506,16 +506,21 @@ def run_can(scenario, strategy: str = "nlls", seed: int | None = None, bus: str 
                 child.stdout.close()
             if handle is not None:
                 handle.close()
+            if old_sched is not None:
+                os.sched_setscheduler(0, *old_sched)
     return summary
 
 
 def _set_rt_priority(priority: int, log) -> None:
     """SCHED_FIFO for this process; the hub and TCU processes started after it inherit it."""
     try:
+        old = (os.sched_getscheduler(0), os.sched_getparam(0))
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
         log(f"realtime: SCHED_FIFO priority {priority}")
+        return old
     except (AttributeError, PermissionError, OSError) as e:
         log(f"warning: cannot set SCHED_FIFO priority {priority} ({e}); running at normal priority")
+        return None
 
 
 def _child_report(child) -> dict:

@@ -1,0 +1,389 @@
+"""HIL over a real bus between two processes: the python-can-remote hub here (vcan tests: test_vcan.py).
+
+Every run is ``hil run`` as a user runs it; the TCU is its own process.  Helpers at the top are
+shared with test_vcan.py.
+"""
+import json
+import math
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import can
+import pytest
+from mcap.reader import make_reader
+
+from hil.bus import BusError, Hub, open_bus
+from hil.frames import PLANT_HEARTBEAT_ID, TCU_HEARTBEAT_ID, FrameCodec, load_dbc
+from hil.logread import read_log
+from identifier.messages import SensorReading
+
+from .conftest import ROOT, hil_command, subprocess_env
+
+HEARTBEATS = {PLANT_HEARTBEAT_ID, TCU_HEARTBEAT_ID}
+IDENT_KEYS = ("identified", "t_identified_s", "t_detected_s", "t_serious_s", "corrections", "params", "samples",
+              "mse", "rmse", "mae", "r2", "peak_mu_err_percent", "peak_creep_err_percent", "observer_lag_ms")
+
+
+# -- helpers (also used by test_vcan.py) ------------------------------------------------------------
+def hil_run(args, timeout=600, check=True):
+    r = subprocess.run(hil_command() + ["run", *args], capture_output=True, text=True, env=subprocess_env(),
+                       timeout=timeout, cwd=ROOT)
+    if check:
+        assert r.returncode == 0, r.stderr
+    return r
+
+
+def run_json(scenario_args, bus, out, *extra, timeout=600):
+    r = hil_run([*scenario_args, "--bus", bus, "--out", str(out), "--json", *extra], timeout=timeout)
+    return json.loads(r.stdout), r.stderr
+
+
+def data_streams(mcap_path):
+    """(tx, rx): the (id, payload) of every valid non-heartbeat frame the plant sent / received, in order."""
+    frames = read_log(mcap_path, {"/can/frames"}).topic("/can/frames")
+    tx = [(f.arbitration_id, f.data) for f in frames if f.direction == "tx" and f.arbitration_id not in HEARTBEATS]
+    rx = [(f.arbitration_id, f.data) for f in frames
+          if f.direction == "rx" and f.status == "ok" and f.arbitration_id not in HEARTBEATS]
+    return tx, rx
+
+
+def identification(summary):
+    return {k: summary[k] for k in IDENT_KEYS}
+
+
+def children_of(pid):
+    out = []
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        try:
+            out += [int(x) for x in (task / "children").read_text().split()]
+        except OSError:
+            pass
+    return out
+
+
+def cmdline(pid):
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()
+    except OSError:
+        return ""
+
+
+def alive(pid):
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+def wait_for(pred, timeout, what):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if pred():
+            return
+        time.sleep(0.02)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+FFCC_A = ["scenarios/ffcc_a.toml", "--seed", "1"]
+
+
+@pytest.fixture(scope="module")
+def inprocess_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("inprocess")
+    s, _ = run_json(FFCC_A, "inprocess", out)
+    return s, out / "ffcc_a-nlls-1.mcap"
+
+
+@pytest.fixture(scope="module")
+def hub_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("hub")
+    s, err = run_json(FFCC_A, "hub", out)
+    return s, out / "ffcc_a-nlls-1.mcap", err
+
+
+# -- the bus factory ------------------------------------------------------------------------------
+def test_unknown_bus_is_one_clear_line():
+    r = hil_run(["scenarios/ffcc_a.toml", "--bus", "nonsense"], check=False)
+    assert r.returncode == 2
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "nonsense" in lines[0] and "available here: auto, hub, inprocess" in lines[0]
+
+
+def test_unavailable_socketcan_channel_names_it_and_why():
+    r = hil_run(["scenarios/ffcc_a.toml", "--bus", "socketcan:nocan7"], check=False)
+    assert r.returncode == 2
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "socketcan:nocan7" in lines[0] and "available here" in lines[0]
+    assert "no SocketCAN" in lines[0] or "no CAN interface 'nocan7'" in lines[0]
+
+
+def test_udp_multicast_is_refused():
+    with pytest.raises(BusError, match="udp_multicast"):
+        open_bus("udp_multicast:239.0.0.1")
+
+
+def test_hub_listens_on_localhost_relays_fd_frames_and_stops():
+    handle = open_bus("hub")
+    port = handle.hub.port
+    pid = handle.hub.proc.pid
+    try:
+        assert handle.peer_spec == f"remote:ws://127.0.0.1:{port}/"
+        peer = open_bus(handle.peer_spec)
+        try:
+            msg = can.Message(arbitration_id=0x100, data=bytes(range(24)), is_fd=True, bitrate_switch=True,
+                              is_extended_id=False)
+            handle.bus.send(msg)
+            got = peer.bus.recv(5)
+            assert got is not None and bytes(got.data) == bytes(range(24)) and got.is_fd and got.bitrate_switch
+            assert handle.bus.recv(0.2) is None           # no echo of its own frames
+        finally:
+            peer.close()
+    finally:
+        handle.close()
+    assert not alive(pid)
+    with pytest.raises(OSError):
+        socket.create_connection(("127.0.0.1", port), timeout=0.5)
+
+
+# -- the same run over two transports ------------------------------------------------------------
+def test_inprocess_and_hub_give_identical_frames_and_identification(inprocess_run, hub_run):
+    s_in, path_in = inprocess_run
+    s_hub, path_hub, _ = hub_run
+    assert s_in["bus"] == "inprocess" and s_hub["bus"] == "hub"
+    assert s_in["identified"]
+    assert identification(s_hub) == identification(s_in)
+    tx_in, rx_in = data_streams(path_in)
+    tx_hub, rx_hub = data_streams(path_hub)
+    assert len(tx_in) == 1000 and len(rx_in) >= 2000
+    assert tx_hub == tx_in and rx_hub == rx_in
+
+
+def test_inprocess_bus_reproduces_the_reference_loop(inprocess_run):
+    from hil.loop import run_inprocess
+    from hil.scenario import load_scenario
+
+    ref = run_inprocess(load_scenario(ROOT / "scenarios/ffcc_a.toml"), seed=1, record=False)
+    s, _ = inprocess_run
+    assert identification(s) == identification(ref)
+
+
+def test_json_keys_and_mcap_holds_every_frame_raw(hub_run):
+    s, path, err = hub_run
+    for key in ("scenario", "strategy", "seed", "bus", "identified", "t_fault_s", "t_serious_s", "t_identified_s",
+                "rt_percent", "params", "mse", "rmse", "mae", "r2", "peak_mu_err_percent", "peak_creep_err_percent",
+                "corrections", "mcap", "observer_lag_ms", "mode", "wall_s", "sim_s"):
+        assert key in s, key
+    assert s["mode"] == "lockstep" and s["sim_s"] == pytest.approx(1.0) and s["wall_s"] > 0
+    assert "bus load" in err and "%" in err
+    log = read_log(path)
+    assert log.complete
+    frames = log.topic("/can/frames")
+    assert sum(f.direction == "tx" for f in frames) == s["frames_tx"]
+    assert sum(f.direction == "rx" for f in frames) == s["frames_rx"]
+    assert all(f.wall_time_ns > 0 and f.send_time_ns > 0 and f.is_fd for f in frames)
+    # a replay can decode from the raw frames alone: they give the decoded topics back
+    db = load_dbc()
+    sensor = [db.decode_message(f.arbitration_id, f.data) for f in frames if f.arbitration_id == 0x100]
+    assert [d["MotorSpeed"] for d in sensor] == [m.motor_speed_rad_s for m in log.topic("/plant/sensor")]
+    status = [db.decode_message(f.arbitration_id, f.data) for f in frames
+              if f.arbitration_id == 0x120 and f.direction == "rx"]
+    observer = log.topic("/tcu/observer")
+    assert [d["MuHat"] for d in status if d["ObserverValid"]] == [m.mu_hat for m in observer]
+    assert len(observer) == 1000
+    assert "hil.dbc" in log.metadata["dbc"]["name"] and "BO_ 256 PlantSensor" in log.metadata["dbc"]["text"]
+
+
+def test_garbage_on_the_hub_is_counted_on_both_sides_and_changes_nothing(tmp_path, inprocess_run):
+    """A third node floods the bus with malformed frames during a lockstep run."""
+    hub = Hub()
+    url = f"remote:ws://127.0.0.1:{hub.port}/"
+    proc = None
+    try:
+        spy = open_bus(url)
+        proc = subprocess.Popen(hil_command() + ["run", *FFCC_A, "--bus", url, "--out", str(tmp_path), "--json"],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=subprocess_env(),
+                                cwd=ROOT)
+        # wait for the first sensor frame: both nodes are up from then on
+        end = time.monotonic() + 60
+        while True:
+            m = spy.bus.recv(0.5)
+            if m is not None and m.arbitration_id == 0x100:
+                break
+            assert time.monotonic() < end and proc.poll() is None, "the run never started"
+        nan = math.nan
+        import struct
+        garbage = [
+            can.Message(arbitration_id=0x123, data=b"\xde\xad\xbe\xef", is_extended_id=False),
+            can.Message(arbitration_id=0x1FFFFFFF, data=b"\x00", is_extended_id=True),
+            can.Message(arbitration_id=0x100, data=bytes(8), is_extended_id=False),
+            can.Message(arbitration_id=0x100, data=struct.pack("<Idd", 3, nan, 10.0) + bytes(4), is_fd=True,
+                        is_extended_id=False),
+            can.Message(arbitration_id=0x100, data=struct.pack("<Idd", 3, 60.0, math.inf) + bytes(4), is_fd=True,
+                        is_extended_id=False),
+            can.Message(arbitration_id=0x110, data=struct.pack("<Id", 3, 1e12), is_fd=True, is_extended_id=False),
+            can.Message(arbitration_id=0x702, data=bytes(3), is_extended_id=False),
+        ]
+        sent = 0
+        for _ in range(10):
+            for g in garbage:
+                spy.bus.send(g)
+                sent += 1
+        out, err = proc.communicate(timeout=600)
+        spy.close()
+    finally:
+        if proc is not None and proc.poll() is None:
+            proc.kill()
+        hub.stop()
+    assert proc.returncode == 0, err
+    s = json.loads(out)
+    assert sum(s["rejected_frames"].values()) == sent
+    assert sum(s["tcu_rejected_frames"].values()) == sent
+    assert s["rejected_frames"]["non_finite:MotorSpeed"] == 10 and s["tcu_rejected_frames"]["bad_length"] == 20
+    assert s["tcu_rejected_readings"] == 0
+    ref, ref_path = inprocess_run
+    assert identification(s) == identification(ref)
+    assert data_streams(tmp_path / "ffcc_a-nlls-1.mcap") == data_streams(ref_path)
+    rejected = [f for f in read_log(tmp_path / "ffcc_a-nlls-1.mcap", {"/can/frames"}).topic("/can/frames")
+                if f.status not in ("ok", "late")]
+    assert len(rejected) == sent
+
+
+# -- faults and stopping ---------------------------------------------------------------------------
+def _start_long_run(tmp_path, *extra):
+    cmd = hil_command() + ["run", "scenarios/ffcc_a.toml", "--bus", "hub", "--out", str(tmp_path),
+                           "--set", "run.duration_s=60", "--set", "run.fault_time_s=55", *extra]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=subprocess_env(),
+                            cwd=ROOT)
+    path = tmp_path / "ffcc_a-nlls-1.mcap"
+    wait_for(lambda: path.exists() and path.stat().st_size > 60_000 or proc.poll() is not None, 120, "the run")
+    assert proc.poll() is None, proc.communicate()[1]
+    return proc, path
+
+
+def test_silent_tcu_is_a_recorded_fault_and_exit_3(tmp_path):
+    proc, path = _start_long_run(tmp_path)
+    tcu = [p for p in children_of(proc.pid) if "hil.tcu_process" in cmdline(p)]
+    assert len(tcu) == 1
+    try:
+        os.kill(tcu[0], signal.SIGSTOP)
+        t0 = time.monotonic()
+        out, err = proc.communicate(timeout=60)
+        took = time.monotonic() - t0
+    finally:
+        if alive(tcu[0]):
+            os.kill(tcu[0], signal.SIGKILL)
+    assert proc.returncode == 3
+    assert "TCU silent" in err and "fault recorded" in err and "Traceback" not in err
+    assert took < 10
+    with open(path, "rb") as f:                       # a finished MCAP (footer and summary section)
+        reader = make_reader(f)
+        meta = {m.name: m.metadata for m in reader.iter_metadata()}
+    assert "TCU silent" in meta["fault"]["reason"]
+    events = read_log(path, {"/run/events"}).topic("/run/events")
+    assert any(e.level == "ERROR" and "TCU silent" in e.text for e in events)
+
+
+def test_ctrl_c_stops_plant_tcu_and_hub_and_closes_the_mcap(tmp_path):
+    proc, path = _start_long_run(tmp_path)
+    kids = children_of(proc.pid)
+    assert len(kids) == 2                            # the hub and the TCU
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130 and "interrupted" in err and "Traceback" not in err
+    wait_for(lambda: not any(alive(k) for k in kids), 10, "the hub and TCU to end")
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None and summary.statistics.message_count > 1000
+    events = read_log(path, {"/run/events"}).topic("/run/events")
+    assert any("interrupted" in e.text for e in events)
+
+
+def test_sigterm_ends_a_run_like_ctrl_c(tmp_path):
+    proc, path = _start_long_run(tmp_path)
+    kids = children_of(proc.pid)
+    proc.send_signal(signal.SIGTERM)
+    proc.communicate(timeout=60)
+    assert proc.returncode == 130
+    wait_for(lambda: not any(alive(k) for k in kids), 10, "the hub and TCU to end")
+    with open(path, "rb") as f:
+        assert make_reader(f).get_summary() is not None
+
+
+def test_silent_plant_ends_a_standalone_tcu(tmp_path):
+    hub = Hub()
+    url = f"remote:ws://127.0.0.1:{hub.port}/"
+    proc = None
+    try:
+        plant = open_bus(url)
+        proc = subprocess.Popen(hil_command() + ["tcu", "scenarios/ffcc_a.toml", "--bus", url, "--json"],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=subprocess_env(),
+                                cwd=ROOT)
+        codec = FrameCodec(1e-3)
+        end = time.monotonic() + 60
+        while True:                                  # the TCU says it is there
+            m = plant.bus.recv(0.5)
+            if m is not None and m.arbitration_id == TCU_HEARTBEAT_ID:
+                break
+            assert time.monotonic() < end and proc.poll() is None, "the TCU never started"
+        commands = 0
+        for k in range(20):
+            plant.bus.send(codec.sensor(SensorReading(k, 63.7, 10.0)))
+            while True:
+                m = plant.bus.recv(5)
+                assert m is not None
+                if m.arbitration_id == 0x110:
+                    commands += 1
+                    break
+        t0 = time.monotonic()
+        out, err = proc.communicate(timeout=60)
+        took = time.monotonic() - t0
+        plant.close()
+    finally:
+        if proc is not None and proc.poll() is None:
+            proc.kill()
+        hub.stop()
+    assert commands == 20
+    assert proc.returncode == 3 and "plant silent" in err and "Traceback" not in err
+    assert took < 10
+    report = json.loads(out)
+    assert report["sensor_frames"] == 20 and report["last_step"] == 19
+
+
+def test_standalone_tcu_needs_a_shared_bus():
+    r = subprocess.run(hil_command() + ["tcu", "scenarios/ffcc_a.toml", "--bus", "inprocess"], capture_output=True,
+                       text=True, env=subprocess_env(), cwd=ROOT, timeout=60)
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "inprocess" in r.stderr
+
+
+# -- real time and bus load ------------------------------------------------------------------------
+def test_realtime_over_the_hub_records_timing(tmp_path):
+    s, err = run_json(["scenarios/ffcc_a.toml", "--set", "run.duration_s=0.4", "--set", "run.fault_time_s=0.3",
+                       "--set", "bus.silence_periods=100"], "hub", tmp_path, "--mode", "realtime")
+    assert s["mode"] == "realtime" and s["sim_s"] == pytest.approx(0.4)
+    assert isinstance(s["missed_deadlines"], int) and 0 <= s["missed_deadlines"] <= 400
+    assert s["jitter_p99_us"] >= 0 and s["wall_s"] >= 0.39      # paced by the wall clock
+    timing = read_log(tmp_path / "ffcc_a-nlls-1.mcap", {"/loop/timing"}).topic("/loop/timing")
+    assert [t.step for t in timing] == list(range(400))
+    assert sum(t.missed_deadline for t in timing) == s["missed_deadlines"]
+    print(f"\nrealtime 0.4 s over the hub: missed {s['missed_deadlines']}, jitter p99 {s['jitter_p99_us']:.0f} us, "
+          f"round trip p50 {s['round_trip_p50_us']:.0f} us")
+
+
+def test_bus_load_above_70_percent_warns(tmp_path):
+    short = ["scenarios/ffcc_a.toml", "--set", "run.duration_s=0.02", "--set", "run.fault_time_s=0.01"]
+    _, err = run_json(short + ["--set", "bus.bitrate=250000", "--set", "bus.data_bitrate=1000000"], "inprocess",
+                      tmp_path)
+    assert "warning: bus load" in err and "above 70 %" in err
+    _, err = run_json(short, "inprocess", tmp_path)
+    assert "bus load" in err and "warning" not in err
+
+
+def test_bad_bus_table_names_the_field(tmp_path):
+    r = hil_run(["scenarios/ffcc_a.toml", "--bus", "inprocess", "--set", "bus.bitrate=-5"], check=False)
+    assert r.returncode == 2 and "[bus] bitrate" in r.stderr and len(r.stderr.strip().splitlines()) == 1
