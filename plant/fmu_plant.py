@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import ctypes
 import math
+import os
 import shutil
 import weakref
 import zipfile
@@ -213,6 +214,7 @@ class FmuPlant:
 
         md = self.md
         ident = md.coSimulation.modelIdentifier
+        cwd = os.getcwd()   # fmpy chdirs into binaries/ to load and does not come back if loading fails
         try:
             if self.fmi_version == "2":
                 self._fmu = FMU2Slave(guid=md.guid, unzipDirectory=self._unzipdir, modelIdentifier=ident,
@@ -239,6 +241,8 @@ class FmuPlant:
         except Exception as e:
             raise FmuError(f"{self.path}: cannot load or instantiate the FMU's binary: {e}"
                            + self._last_log()) from None
+        finally:
+            os.chdir(cwd)
 
     def _last_log(self) -> str:
         return f" (FMU says: {self._log[-1]})" if self._log else ""

@@ -191,6 +191,16 @@ def test_bad_fmus_give_one_clear_error(wheelset_fmu, tmp_path):
         "<CoSimulation ", '<ModelExchange ').replace("</CoSimulation>", "</ModelExchange>"))
     with pytest.raises(FmuError, match="Model Exchange only; the loop needs a Co-Simulation FMU"):
         FmuPlant(me_only, cfg)
+    # a binary that is not a shared library, and a binary from another export (GUID mismatch)
+    garbage = tmp_path / "garbage.fmu"
+    with zipfile.ZipFile(wheelset_fmu) as zin, zipfile.ZipFile(garbage, "w") as zout:
+        for item in zin.infolist():
+            zout.writestr(item, b"\x7fELF garbage" if item.filename.startswith("binaries/") else zin.read(item))
+    with pytest.raises(FmuError, match="garbage.fmu: cannot load or instantiate the FMU's binary"):
+        FmuPlant(garbage, cfg)
+    other_guid = _rezip(wheelset_fmu, tmp_path / "guid.fmu", edit_md=lambda md: md.replace('guid="{', 'guid="{0'))
+    with pytest.raises(FmuError, match="GUID mismatch"):
+        FmuPlant(other_guid, cfg)
 
 
 def test_missing_and_mistyped_mapping_named_with_what_the_fmu_offers(wheelset_fmu):
