@@ -1,4 +1,4 @@
-"""Export the CasADi wheelset plant as an FMI 2.0 Co-Simulation FMU.
+"""Export the CasADi wheelset plant as an FMI 2.0 (or 3.0) Co-Simulation FMU.
 
 The model is *not* re-written for the FMU: :func:`plant.model.dynamics` and :func:`plant.model.rk4_step`
 (the very functions the loop's ``WheelsetPlant`` integrates) are called on a configuration whose
