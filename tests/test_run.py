@@ -84,7 +84,7 @@ def test_sigkill_leaves_a_readable_prefix(tmp_path):
     log = read_log(path)
     assert not log.complete
     states = log.topic("/plant/state")
-    assert len(states) > 1000
+    assert len(states) > 200          # 400 kB of a run hold several hundred periods
     # what was read back is a gap-free prefix of the run
     assert [m.step for m in states] == list(range(len(states)))
     assert "scenario" in log.metadata
