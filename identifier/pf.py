@@ -85,6 +85,8 @@ def log_likelihood(particles: np.ndarray, base_theta: np.ndarray, creep_speed_km
     if np.ndim(creep_speed_kmh) == 0:
         resid = float(mu_samples) - curve_at(particles, base_theta, float(creep_speed_kmh))
         ll = resid * resid * (-0.5 / noise_std ** 2)
+        if np.isfinite(ll.sum()):
+            return ll
     else:
         v = np.asarray(creep_speed_kmh, float)
         y = np.asarray(mu_samples, float)
@@ -96,6 +98,10 @@ def log_likelihood(particles: np.ndarray, base_theta: np.ndarray, creep_speed_km
 
 def normalise(log_weights: np.ndarray) -> np.ndarray:
     """Normalised weights from log weights; all-degenerate (every entry -inf or NaN) -> uniform."""
+    top = log_weights.max()
+    if np.isfinite(top):              # no NaN (max propagates NaN) and at least one finite entry
+        w = np.exp(log_weights - top)
+        return w / w.sum()
     lw = np.where(np.isnan(log_weights), -np.inf, log_weights)
     top = np.max(lw)
     if not np.isfinite(top):

@@ -1,7 +1,6 @@
 """Identification strategies on synthetic samples: recovery, projection, evaluation, robustness, seeding."""
 import math
 
-
 import numpy as np
 import pytest
 
@@ -48,6 +47,8 @@ def test_each_strategy_recovers_a_known_curve(name):
     assert abs(v_id - v_true) / v_true < 0.10
     grid = np.linspace(0.2, 2.6, 50)
     assert np.max(np.abs(mu_model(grid, strat.theta) - mu_model(grid, FFCC_A))) < 0.005
+    if name == "proposed_mu0":
+        assert abs(strat.theta[0] + strat.theta[1] + strat.theta[2]) < 1e-9     # mu(0) = 0 kept exactly
 
 
 def test_projection_puts_every_particle_inside_the_box():

@@ -1,11 +1,12 @@
 """Identification strategies by name."""
 from .base import Sample, Strategy
-from .mdipf import MdipfStrategy
+from .mdipf import MdipfRawStrategy, MdipfStrategy
 from .nlls import NllsStrategy, fit_curve
-from .proposed import ProposedFastStrategy, ProposedMu0Strategy, ProposedStrategy
+from .proposed import ProposedFastStrategy, ProposedMu0Strategy, ProposedRawStrategy, ProposedStrategy
 
 STRATEGIES: dict[str, type[Strategy]] = {cls.name: cls for cls in (
-    NllsStrategy, MdipfStrategy, ProposedStrategy, ProposedMu0Strategy, ProposedFastStrategy)}
+    NllsStrategy, MdipfStrategy, ProposedStrategy, MdipfRawStrategy, ProposedRawStrategy, ProposedMu0Strategy,
+    ProposedFastStrategy)}
 
 
 def make_strategy(name: str, settings, seed: int = 0) -> Strategy:
@@ -17,4 +18,4 @@ def make_strategy(name: str, settings, seed: int = 0) -> Strategy:
 
 
 __all__ = ["Sample", "Strategy", "NllsStrategy", "MdipfStrategy", "ProposedStrategy", "ProposedMu0Strategy",
-           "ProposedFastStrategy", "fit_curve", "STRATEGIES", "make_strategy"]
+           "ProposedFastStrategy", "MdipfRawStrategy", "ProposedRawStrategy", "fit_curve", "STRATEGIES", "make_strategy"]

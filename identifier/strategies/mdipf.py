@@ -6,9 +6,24 @@ parameters theta_{Q-1}; at the end of each window the weighted mean chi^_Q gives
 theta_Q = theta_{Q-1} + chi^_Q (correction Q), and the multi-level evaluation of ``Strategy``
 compares chi^_Q with chi^_{Q-1}.  ``ProposedStrategy`` (proposed.py) adds the dynamic projection box.
 
-Tuning (``settings.options["mdipf"]`` etc.; each default measured with ``hil bench identify``, see
-``DEFAULTS``): per-dimension standard deviations are given as three numbers, for lambda0, for
-every lambda_i and for every tau_i.
+Tuning: ``settings.options[NAME]`` (scenario ``[identifier.options.NAME]``) overrides any key of
+``DEFAULTS`` and the shared ``window_samples`` (L), ``k_pe``, ``c_lw``, ``c_up``.  Per-dimension
+standard deviations are three numbers (lambda0, every lambda_i, every tau_i) or 2n+1 numbers.
+Defaults, measured with ``hil bench identify`` / 20 seeds on FFCC-a and FFCC-b (see the lead's
+README): L = 6 (the least the SE of eq. 29 allows; fewer samples per window is the largest RT lever,
+NLLS is unharmed); K_PE = 1e-4, c_lw = c_up = 3 (K_PE = 1e-5 adds two corrections, RT 38 -> 54 % on
+FFCC-a, with no better peak errors; c = 2 changed nothing measurable); N = 1000 (N = 300 gives the
+same medians on 10 seeds, N = 1000 is the issue's reference size); B, G, initial spread: RT and
+peak errors moved less than their seed-to-seed spread over a 4x range, so the values are the
+physical scales (G ~ 2x the mu^ noise of ~7e-4 measured as the NLLS residual; B ~ 1/6 of the
+initial spread so the cloud can move one initial sigma per window).
+
+The preliminary fit (``prelim_radius``): the paper's trust-region NLLS bounds each step by rho;
+we also keep the solution within the TCU's prior curve (NFCC-0, ``initial_guess``) +- the radius.
+Six early-stage samples cannot fix five parameters: unbounded, the prelim's peak creep is off by
+200-700 % and the particle filter, which only corrects around it, confirms that wrong curve
+(``prelim_radius = None`` keeps the unbounded reading).  The default radius lets lambda_i move by
+0.6 (the fault curves halve NFCC-0's lambdas) and tau_i by 0.05.
 
 Choices the paper leaves open (alternatives behind options):
 - Theta's stability: ``stabiliser`` (pf.STABILISERS), default row-normalised correlation.
@@ -17,6 +32,8 @@ Choices the paper leaves open (alternatives behind options):
   (``j_ef_from_prelim``); with False the first J_EF is at Q = 2 (one window later).
 - between corrections the cloud is re-centred on the new theta (chi <- chi - chi^_Q), so it keeps
   its learnt spread and weights; ``reset_cloud`` re-draws it from the initial spread instead.
+- the transition noise is drawn ahead in blocks of ``noise_block`` samples (one large draw costs
+  far less than many small ones); the first block is drawn when the strategy is built.
 """
 from __future__ import annotations
 
@@ -31,14 +48,14 @@ DEFAULTS = {
     "init_std": [0.003, 0.02, 0.03],          # initial cloud spread (lambda0, lambda_i, tau_i)
     "transition_std": [0.0005, 0.003, 0.005], # B: sqrt of the diagonal of the transition noise
     "noise_std": 0.002,                       # G: sqrt of the measurement-noise variance (mu units)
-    "stabiliser": "rownorm",
-    "resampler": "systematic",
-    "ess_fraction": 0.5,
-    "j_ef_from_prelim": True,
-    "reset_cloud": False,
-    "noise_block": 32,
+    "stabiliser": "rownorm",                  # Theta: pf.STABILISERS
+    "resampler": "systematic",                # pf.RESAMPLERS
+    "ess_fraction": 0.5,                      # resample when ESS < this * N
+    "j_ef_from_prelim": True,                 # chi^_0 = 0 counts for J_EF(1)
+    "reset_cloud": False,                     # re-draw (True) or re-centre (False) the cloud after a correction
+    "noise_block": 32,                        # transition-noise draws made ahead, in blocks of this many samples
     "prelim_radius": [0.01, 0.6, 0.05],       # prelim kept within the prior curve +- this (None: unbounded)
-    "filter_prelim_window": False,            # True: correction 1 filters the prelim's own window (beyond the paper)                        # transition-noise draws made ahead, in blocks of this many samples
+    "filter_prelim_window": False,            # True: correction 1 filters the prelim's own window (beyond the paper)
 }
 
 
@@ -88,9 +105,10 @@ class MdipfStrategy(Strategy):
 
     def _constrain(self) -> None:
         """Hook for variants that restrict the cloud (e.g. mu(0) = 0); also keeps it finite."""
+        if np.isfinite(self.particles.sum()):
+            return
         bad = ~np.all(np.isfinite(self.particles), axis=1)
-        if bad.any():
-            self.particles[bad] = 0.0
+        self.particles[bad] = 0.0
 
     def on_sample(self, creep_speed_kmh: float, mu_hat: float) -> None:
         if not self.prelim_done:
@@ -177,3 +195,11 @@ class MdipfStrategy(Strategy):
 
     def _after_recentre(self) -> None:
         """Hook: the proposed strategy puts the re-centred cloud back into its new box."""
+
+
+class MdipfRawStrategy(MdipfStrategy):
+    """MDIPF with the literal Theta (the raw correlation matrix, spectral radius up to P): reported
+    beside ``mdipf`` to show what the stabilisation changes."""
+
+    name = "mdipf_raw"
+    defaults = {**DEFAULTS, "stabiliser": "raw"}
