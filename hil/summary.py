@@ -14,7 +14,9 @@ def observer_lag_ms(t_s, mu_true, mu_hat, t_from: float, t_to: float, period_s: 
     sel = np.flatnonzero((t >= t_from) & (t <= t_to))
     if sel.size < 5:
         return math.nan
-    mu_true, mu_hat = np.asarray(mu_true), np.asarray(mu_hat)
+    mu_true, mu_hat = np.asarray(mu_true, float), np.asarray(mu_hat, float)
+    if not (np.all(np.isfinite(mu_true[sel])) and np.all(np.isfinite(mu_hat[sel]))):
+        return math.nan     # a plant that does not report its true mu (e.g. a foreign FMU)
     best, best_err = 0, math.inf
     for lag in range(0, int(round(max_lag_s / period_s)) + 1):
         idx = sel[sel - lag >= 0]

@@ -14,12 +14,15 @@ fi
 echo "== installing the package and test dependencies" >&2
 .venv/bin/python -m pip install -q --disable-pip-version-check --upgrade pip >/dev/null
 .venv/bin/python -m pip install -q --disable-pip-version-check -e ".[test]"
+# third-party FMUs for tests/test_fmu.py; --no-deps: gemseo-fmu pins fmpy<=0.3.19 and pulls gemseo[all]
+.venv/bin/python -m pip install -q --disable-pip-version-check --no-deps "gemseo-fmu==3.1.1"
 
 # Debian packages: UML + can-utils for the vcan tests, Vulkan for Rerun's headless viewer.
 NEED_DEB=()
 command -v linux >/dev/null 2>&1 || [ -x /usr/bin/linux ] || NEED_DEB+=(user-mode-linux)
 command -v insmod >/dev/null 2>&1 || [ -x /usr/sbin/insmod ] || [ -x /sbin/insmod ] || NEED_DEB+=(kmod)
 command -v candump >/dev/null 2>&1 || NEED_DEB+=(can-utils)
+command -v gcc >/dev/null 2>&1 || NEED_DEB+=(gcc)          # building our FMU
 dpkg -s mesa-vulkan-drivers >/dev/null 2>&1 || NEED_DEB+=(mesa-vulkan-drivers)
 dpkg -s libvulkan1 >/dev/null 2>&1 || NEED_DEB+=(libvulkan1)
 if [ ${#NEED_DEB[@]} -gt 0 ]; then
