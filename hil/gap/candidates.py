@@ -81,6 +81,43 @@ class Context:
 
 
 # -- candidates --------------------------------------------------------------------------------------
+#: the measured initial state is a nuisance pair fitted with every model (nominal included), within
+#: these bounds around the straight-line estimate (rad/s, m/s), scaled by these typical sizes
+X0_BOUND = np.array([0.1, 0.02])
+X0_SCALE = np.array([0.005, 0.002])
+
+
+def _fit_ls(resid, u0, lo, hi, scale, starts=None):
+    """least_squares over u = (parameters, dx0) from each start; the best result."""
+    lo = np.concatenate([lo, -X0_BOUND])
+    hi = np.concatenate([hi, X0_BOUND])
+    scale = np.concatenate([scale, X0_SCALE])
+    best = None
+    for u in (starts if starts is not None else [u0]):
+        u = np.clip(np.concatenate([u, np.zeros(2)]) if len(u) == len(lo) - 2 else u, lo, hi)
+        r = least_squares(resid, u, bounds=(lo, hi), x_scale=scale, diff_step=1e-4, max_nfev=80, method="trf")
+        if best is None or r.cost < best.cost:
+            best = r
+    return best
+
+
+def fit_nominal(ctx: Context) -> Fit:
+    """The nominal model with its initial state fitted on the training blocks."""
+    sim = ctx.simulator(None, (), {})
+    torque = ctx.data.torque_cmd_nm
+
+    def resid(u):
+        motor, train = sim.run([], ctx.x0 + u, torque)
+        return ctx.residuals(ctx.predict(motor, train), ctx.sigma_nom, ctx.train)
+
+    r = _fit_ls(resid, np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0), [np.zeros(2)])
+    x0 = ctx.x0 + r.x
+    motor, train = sim.run([], x0, torque)
+    pred = ctx.predict(motor, train)
+    return Fit("nominal", {}, 0, pred, dict(ctx.sigma_nom), 2 * float(r.cost),
+               extra={"x0": x0.tolist(), "plant_motor": motor, "plant_train": train})
+
+
 @dataclass(frozen=True)
 class PlantCandidate:
     """A plant-level effect; parameters fitted in log space when ``log`` (positive scale parameters)."""
@@ -92,98 +129,146 @@ class PlantCandidate:
     log: tuple
     scan: int = 9
 
-    def fit(self, ctx: Context) -> Fit:
+    def fit(self, ctx: Context, nominal: Fit) -> Fit:
         fixed = fill_defaults({self.name: dict(EFFECTS[self.name].params)}, ctx.cfg)[self.name]
         sim = ctx.simulator(self.name, self.fit_params, fixed)
         torque = ctx.data.torque_cmd_nm
+        np_ = len(self.fit_params)
         lo = np.array([math.log(v) if lg else v for v, lg in zip(self.lo, self.log)])
         hi = np.array([math.log(v) if lg else v for v, lg in zip(self.hi, self.log)])
+        x0_nom = np.array(nominal.extra["x0"])
 
         def theta_of(u):
-            return np.array([math.exp(v) if lg else v for v, lg in zip(u, self.log)])
+            return np.array([math.exp(v) if lg else v for v, lg in zip(u[:np_], self.log)])
 
         def resid(u):
+            x0 = x0_nom + (u[np_:] if len(u) > np_ else 0.0)
             try:
-                motor, train = sim.run(theta_of(u), ctx.x0, torque)
+                motor, train = sim.run(theta_of(u), x0, torque)
             except (FloatingPointError, RuntimeError):
                 return np.full(n_res, 1e3)
             return ctx.residuals(ctx.predict(motor, train), ctx.sigma_nom, ctx.train)
 
-        n_res = len(ctx.residuals(ctx.predict(ctx.data.motor_speed_rad_s, ctx.data.train_speed_ms),
-                                  ctx.sigma_nom, ctx.train))
+        n_res = len(ctx.residuals(nominal.pred, ctx.sigma_nom, ctx.train))
         # coarse scan (a grid per parameter, all combinations) to start in the right basin
-        grids = [np.linspace(a, b, self.scan if len(self.fit_params) == 1 else 5) for a, b in zip(lo, hi)]
-        mesh = np.array(np.meshgrid(*grids, indexing="ij")).reshape(len(grids), -1).T
+        grids = [np.linspace(a, b, self.scan if np_ == 1 else 5) for a, b in zip(lo, hi)]
+        mesh = np.array(np.meshgrid(*grids, indexing="ij")).reshape(np_, -1).T
         costs = [float(np.sum(resid(u) ** 2)) for u in mesh]
         order = np.argsort(costs)
-        best = None
-        for i in order[:2]:
-            r = least_squares(resid, mesh[i], bounds=(lo, hi), x_scale=np.maximum(hi - lo, 1e-9) / 10,
-                              diff_step=1e-3, max_nfev=60, method="trf", loss="linear")
-            if best is None or r.cost < best.cost:
-                best = r
+        starts = [np.concatenate([mesh[i], np.zeros(2)]) for i in order[:2]]
+        best = _fit_ls(resid, None, lo, hi, np.maximum(hi - lo, 1e-9) / 10, starts)
         theta = theta_of(best.x)
-        motor, train = sim.run(theta, ctx.x0, torque)
-        return Fit(self.name, dict(zip(self.fit_params, map(float, theta))), len(self.fit_params),
-                   ctx.predict(motor, train), dict(ctx.sigma_nom), 2 * float(best.cost),
-                   extra={"plant": (self.name, dict(fixed, **dict(zip(self.fit_params, map(float, theta)))))})
+        x0 = x0_nom + best.x[np_:]
+        motor, train = sim.run(theta, x0, torque)
+        params = dict(zip(self.fit_params, map(float, theta)))
+        return Fit(self.name, params, np_, ctx.predict(motor, train), dict(ctx.sigma_nom), 2 * float(best.cost),
+                   extra={"plant": (self.name, dict(fixed, **params)), "x0": x0.tolist()})
 
 
 @dataclass(frozen=True)
-class DelayCandidate:
-    """``sensor_delay`` (both sensor signals and the TCU late) or ``can`` (only the TCU's inputs late)."""
+class SensorDelayCandidate:
+    """Both sensor signals (and so the TCU) see the plant ``delay`` late; the measured start is then
+    the state ``delay`` earlier, so the initial state is refitted with the delay."""
 
-    name: str
+    name: str = "sensor_delay"
     max_periods: float = 20.0
 
-    def fit(self, ctx: Context, nominal: dict) -> Fit:
-        key = "sensor_delay" if self.name == "sensor_delay" else "can_delay"
+    def fit(self, ctx: Context, nominal: Fit) -> Fit:
         sim = ctx.simulator(None, (), {})
-        cache = {}
+        torque = ctx.data.torque_cmd_nm
+        x0_nom = np.array(nominal.extra["x0"])
+        T = ctx.data.period_s
 
-        def plant(d):
-            """The plant trajectory: for a sensor delay, the measured start is the state d periods
-            earlier, so the model starts from the measured line at t = +d."""
-            if key != "sensor_delay" or d == 0:
-                return nominal["plant_motor"], nominal["plant_train"]
-            if d not in cache:
-                x0 = ctx.x0 + ctx.x0_slope * d * ctx.data.period_s
-                cache.clear()
-                cache[d] = sim.run([], x0, ctx.data.torque_cmd_nm)
-            return cache[d]
+        def pred_of(u):
+            motor, train = sim.run([], x0_nom + ctx.x0_slope * u[0] * T + u[1:], torque)
+            return ctx.predict(motor, train, sensor_delay=u[0]), (motor, train)
 
-        def cost(d):
-            pred = ctx.predict(*plant(d), **{key: d})
-            return float(np.sum(ctx.residuals(pred, ctx.sigma_nom, ctx.train) ** 2))
+        def resid(u):
+            return ctx.residuals(pred_of(u)[0], ctx.sigma_nom, ctx.train)
 
         grid = np.arange(0.0, self.max_periods + 1e-9, 0.5)
-        costs = [cost(d) for d in grid]
-        i = int(np.argmin(costs))
-        a, b = grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)]
-        r = minimize_scalar(cost, bounds=(a, b), method="bounded", options={"xatol": 1e-3})
-        d = float(r.x) if r.fun < costs[i] else float(grid[i])
-        period_ms = ctx.data.period_s * 1e3
-        extra = {key: d}
-        motor, train = plant(d)
-        pred = ctx.predict(motor, train, **extra)
-        if key == "sensor_delay":
-            extra["x0"] = (ctx.x0 + ctx.x0_slope * d * ctx.data.period_s).tolist()
-        note = ""
-        if self.name == "can":
-            # readings the TCU used twice: frames lost or overtaken (exact repeats of the creep value)
-            c = ctx.data.tcu_creep_kmh
-            ok = np.isfinite(c[1:]) & np.isfinite(c[:-1])
-            repeats = float(np.mean(c[1:][ok] == c[:-1][ok])) if ok.any() else 0.0
-            note = f"{repeats * 100:.1f} % of TCU readings repeat the previous one (lost or late frames)"
-            extra["repeat_fraction"] = repeats
-        return Fit(self.name, {"delay_ms": d * period_ms}, 1, pred, dict(ctx.sigma_nom), cost(d), note, extra)
+        costs = [float(np.sum(resid(np.array([d, 0.0, 0.0])) ** 2)) for d in grid]
+        d0 = grid[int(np.argmin(costs))]
+        best = _fit_ls(resid, None, np.array([0.0]), np.array([self.max_periods]), np.array([1.0]),
+                       [np.array([d0, 0.0, 0.0])])
+        pred, (motor, train) = pred_of(best.x)
+        d = float(best.x[0])
+        x0 = x0_nom + ctx.x0_slope * d * T + best.x[1:]
+        return Fit(self.name, {"delay_ms": d * T * 1e3}, 1, pred, dict(ctx.sigma_nom), 2 * float(best.cost),
+                   extra={"sensor_delay": d, "x0": x0.tolist()})
+
+
+def match_frames(tcu_creep, sensor_creep, max_back: int = 40) -> tuple[np.ndarray, float]:
+    """For each TCU period k, the sensor frame j(k) <= k whose creep the TCU used (the newest exact
+    copy in the last ``max_back`` frames), and the fraction of periods with an exact copy."""
+    n = len(sensor_creep)
+    idx = np.arange(n)[:, None] - np.arange(max_back + 1)[None, :]      # k, k-1, ..., k-max_back
+    valid = idx >= 0
+    cand = sensor_creep[np.clip(idx, 0, n - 1)]
+    diff = np.abs(cand - tcu_creep[:, None])
+    diff[~valid] = np.inf
+    exact = diff <= 1e-12 * np.maximum(1.0, np.abs(tcu_creep[:, None]))
+    has = exact.any(axis=1) & np.isfinite(tcu_creep)
+    back = np.where(has, np.argmax(exact, axis=1), np.argmin(np.nan_to_num(diff, nan=np.inf), axis=1))
+    j = np.arange(n) - back
+    return j, float(has.mean())
+
+
+@dataclass(frozen=True)
+class CanCandidate:
+    """The TCU's inputs are the sensor frames, late (CAN delay, jitter) or repeated (loss).
+
+    The TCU's logged creep is computed from the frame it used, so where it is an exact copy of a
+    sensor frame's creep, that frame is known: the fit is the frame map j(k), summarised as the mean
+    delay, its spread, and the fraction of repeated frames.  Without exact copies (frames re-scaled
+    on a real bus), a single fractional delay is fitted instead.
+    """
+
+    name: str = "can"
+    max_periods: float = 20.0
+
+    def fit(self, ctx: Context, nominal: Fit) -> Fit:
+        d = ctx.data
+        T = d.period_s
+        motor, train = nominal.extra["plant_motor"], nominal.extra["plant_train"]
+        sensor_creep = ctx.observer.creep_kmh(d.motor_speed_rad_s, d.train_speed_ms)
+        j, exact = match_frames(np.asarray(d.tcu_creep_kmh, float), sensor_creep)
+        ok = np.isfinite(d.tcu_creep_kmh[1:]) & np.isfinite(d.tcu_creep_kmh[:-1])
+        repeats = float(np.mean(d.tcu_creep_kmh[1:][ok] == d.tcu_creep_kmh[:-1][ok])) if ok.any() else 0.0
+        if exact >= 0.9:
+            lag = (np.arange(d.n) - j)[ctx.window]
+            pred = {"motor": motor, "train": train,
+                    "mu_hat": ctx.observer.mu_hat(motor[j], d.torque_cmd_nm)}
+            params = {"delay_ms": float(lag.mean() * T * 1e3),
+                      "delay_spread_ms": float((np.quantile(lag, 0.95) - np.quantile(lag, 0.05)) * T * 1e3),
+                      "repeat_fraction": repeats}
+            note = (f"{exact * 100:.1f} % of TCU readings are exact copies of sensor frames; {repeats * 100:.1f} % "
+                    f"repeat the previous one (lost or late frames)")
+            extra = {"can_frames": j}
+        else:
+            def cost(dl):
+                pr = ctx.predict(motor, train, can_delay=dl)
+                return float(np.sum(ctx.residuals(pr, ctx.sigma_nom, ctx.train) ** 2))
+
+            grid = np.arange(0.0, self.max_periods + 1e-9, 0.5)
+            costs = [cost(g) for g in grid]
+            i = int(np.argmin(costs))
+            r = minimize_scalar(cost, bounds=(grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)]),
+                                method="bounded", options={"xatol": 1e-3})
+            dl = float(r.x) if r.fun < costs[i] else float(grid[i])
+            pred = ctx.predict(motor, train, can_delay=dl)
+            params = {"delay_ms": dl * T * 1e3, "delay_spread_ms": 0.0, "repeat_fraction": repeats}
+            note = "TCU readings are not exact copies of sensor frames: one fractional delay fitted"
+            extra = {"can_delay": dl}
+        extra["x0"] = nominal.extra["x0"]
+        return Fit(self.name, params, 3, pred, dict(ctx.sigma_nom), math.nan, note, extra)
 
 
 @dataclass(frozen=True)
 class QuantisationCandidate:
     name: str = "sensor_quantisation"
 
-    def fit(self, ctx: Context, nominal: dict) -> Fit:
+    def fit(self, ctx: Context, nominal: Fit) -> Fit:
         sig = dict(ctx.sigma_nom)
         params = {}
         notes = []
@@ -203,13 +288,12 @@ class QuantisationCandidate:
             # a quantiser's error is not white (a slow signal keeps it for many samples): measure what it
             # does to mu^ by quantising the model's own speed plus seeded sensor noise
             rng = np.random.default_rng(99)
-            m = nominal["motor"]
+            m = nominal.pred["motor"]
             noisy = m + ctx.sigma_nom["motor"] * rng.standard_normal(m.size)
             mu_q = ctx.observer.mu_hat(np.round(noisy / q) * q, ctx.data.torque_cmd_nm)
-            sel = ctx.window
-            sig["mu_hat"] = float(np.sqrt(np.mean((mu_q - nominal["mu_hat"])[sel] ** 2)))
-        return Fit(self.name, params, 1, {k: nominal[k] for k in SIGNALS}, sig, math.nan, "; ".join(notes),
-                   {"quanta": params})
+            sig["mu_hat"] = float(np.sqrt(np.mean((mu_q - nominal.pred["mu_hat"])[ctx.window] ** 2)))
+        return Fit(self.name, params, 1, dict(nominal.pred), sig, math.nan, "; ".join(notes),
+                   {"quanta": params, "x0": nominal.extra["x0"]})
 
 
 def candidates(scenario) -> list:
@@ -220,9 +304,9 @@ def candidates(scenario) -> list:
         PlantCandidate("compliance", ("stiffness_nm_rad", "damping_ratio"), (2e4, 0.005), (5e6, 1.0), (True, True)),
         PlantCandidate("adhesion_lag", ("tau_s",), (2e-4,), (0.2,), (True,)),
         PlantCandidate("resistance", ("factor",), (0.0,), (5.0,), (False,)),
-        DelayCandidate("sensor_delay"),
+        SensorDelayCandidate(),
         QuantisationCandidate(),
-        DelayCandidate("can"),
+        CanCandidate(),
     ]
     assert {c.name for c in out} == {n for n, s in EFFECTS.items() if s.candidate}
     return out

@@ -29,11 +29,9 @@ from scipy import stats
 from identifier import SensorReading, TractionIdentifier
 from identifier.metrics import peak_errors, rt_percent
 from plant import SensorModel
-from plant.reality import RealityModel
 
 from ..summary import clean
-from .candidates import SIGNALS, UNITS, Context, DelayCandidate, Fit, PlantCandidate, QuantisationCandidate, \
-    candidates
+from .candidates import SIGNALS, UNITS, Context, Fit, candidates, fit_nominal
 from .model import ObserverReplica, Simulator, initial_line
 
 NONE = "none"
@@ -143,11 +141,9 @@ class Diagnosis:
         ctx = Context(d, sc, obs, x0, window, train_mask, held_mask, sigma, x0_slope)
 
         _log(self.progress, f"replaying the nominal model over {d.n} periods")
-        nom_sim = ctx.simulator(None, (), {})
-        motor0, train0 = nom_sim.run([], x0, d.torque_cmd_nm)
-        nominal = ctx.predict(motor0, train0)
-        nominal.update(plant_motor=motor0, plant_train=train0)
-        nom_fit = Fit("nominal", {}, 0, {k: nominal[k] for k in SIGNALS}, dict(sigma))
+        nom_fit = fit_nominal(ctx)
+        motor0, train0 = nom_fit.extra["plant_motor"], nom_fit.extra["plant_train"]
+        nominal = dict(nom_fit.pred, plant_motor=motor0, plant_train=train0)
 
         where = self.where(ctx, nominal, motor0, train0, creep_meas)
 
@@ -155,7 +151,7 @@ class Diagnosis:
         for cand in candidates(sc):
             _log(self.progress, f"fitting candidate {cand.name}")
             try:
-                fit = cand.fit(ctx) if isinstance(cand, PlantCandidate) else cand.fit(ctx, nominal)
+                fit = cand.fit(ctx, nom_fit)
             except Exception as e:  # noqa: BLE001 - a candidate that cannot be fitted is reported, not fatal
                 fit = Fit(cand.name, {}, 1, {k: nominal[k] for k in SIGNALS}, dict(sigma), note=f"fit failed: {e}")
             fits.append(fit)
@@ -190,7 +186,8 @@ class Diagnosis:
         out = {
             "real_log": d.path, "model": sc.path, "periods": d.n, "analysis_periods": int(window.sum()),
             "held_out_periods": int(held_mask.sum()), "block_periods": self.block,
-            "noise_floor": sigma, "initial_state": {"motor_speed_rad_s": x0[0], "train_speed_ms": x0[1]},
+            "noise_floor": sigma, "initial_state": {"motor_speed_rad_s": nom_fit.extra["x0"][0],
+                                                    "train_speed_ms": nom_fit.extra["x0"][1]},
             "where": where,
             "which": {"named": named, "verdict": verdict, "gap_present": gap_present,
                       "nominal_held_out_gap": base["gap"], "ranking": ranking,
@@ -200,7 +197,8 @@ class Diagnosis:
         }
         if self.identify:
             _log(self.progress, "identification on the real run and on the model replays")
-            out["identification"] = self.identification(ctx, nominal, best_fit if named != NONE else None, creep_meas)
+            out["identification"] = self.identification(ctx, nom_fit, best_fit if named != NONE else None,
+                                                        creep_meas)
         self.arrays = {"t": d.t_s, "meas": ctx.meas, "nominal": nominal, "best": best_fit.pred, "best_name":
                        best_fit.name, "creep": creep_meas, "window": window, "sigma": sigma,
                        "held": held_mask}
@@ -320,16 +318,16 @@ class Diagnosis:
 
         strategy = d.strategy or "nlls"
         real = outcome(d.identification, creep_meas, "real run (log)")
-        nom = self.replay(ctx, nominal["plant_motor"], nominal["plant_train"], {}, strategy, "nominal model replay")
+        nom = self.replay(ctx, nominal.extra["plant_motor"], nominal.extra["plant_train"], {}, strategy,
+                          "nominal model replay")
         out = {"strategy": strategy, "real": real, "nominal_replay": nom}
         if best is not None:
-            motor, train = nominal["plant_motor"], nominal["plant_train"]
-            if "x0" in best.extra:
-                motor, train = ctx.simulator(None, (), {}).run([], np.array(best.extra["x0"]), d.torque_cmd_nm)
+            x0 = np.array(best.extra["x0"])
             if "plant" in best.extra:
                 name, params = best.extra["plant"]
-                sim = Simulator(ctx.cfg, name, (), params, d.n)
-                motor, train = sim.run([], ctx.x0, d.torque_cmd_nm)
+                motor, train = Simulator(ctx.cfg, name, (), params, d.n).run([], x0, d.torque_cmd_nm)
+            else:
+                motor, train = ctx.simulator(None, (), {}).run([], x0, d.torque_cmd_nm)
             out["augmented_replay"] = self.replay(ctx, motor, train, best.extra, strategy,
                                                   f"nominal + {best.name} replay")
         # how the gap moves the identified curve
@@ -358,6 +356,8 @@ class Diagnosis:
             meas[:, 1] = np.round(meas[:, 1] / q["train_quantum_ms"]) * q["train_quantum_ms"]
         cd = extra.get("can_delay", 0.0)
         tcu_m, tcu_v = shift(meas[:, 0], cd), shift(meas[:, 1], cd)
+        if "can_frames" in extra:
+            tcu_m, tcu_v = meas[extra["can_frames"], 0], meas[extra["can_frames"], 1]
         ident = TractionIdentifier(sc.identifier_settings(), strategy, sc.run.seed)
         events = []
         for k in range(d.n):
@@ -384,4 +384,4 @@ def diagnose(data, scenario, **kw) -> tuple[dict, Diagnosis]:
     return dg.run(), dg
 
 
-__all__ = ["diagnose", "Diagnosis", "NONE", "RealityModel", "DelayCandidate", "QuantisationCandidate"]
+__all__ = ["diagnose", "Diagnosis", "NONE"]

@@ -1,0 +1,175 @@
+"""The reality emulator: each effect does what its physics says, and only when switched on."""
+import json
+import math
+import subprocess
+
+import numpy as np
+import pytest
+
+from hil.logread import read_log
+from hil.loop import run_inprocess
+from hil.reality_bus import TRUTH_KEY, CanReality, with_reality
+from hil.scenario import load_scenario
+from identifier import SensorReading
+from plant import SensorConfig, SensorModel, WheelsetPlant
+from plant.reality import RealityPlant, RealitySensors, parse_effect
+
+from .conftest import hil_command, subprocess_env
+
+
+@pytest.fixture(scope="module")
+def scenario():
+    from .conftest import SCENARIOS
+    return load_scenario(SCENARIOS / "ffcc_a.toml")
+
+
+def trajectory(plant, torque, steps):
+    return np.array([[s.motor_speed_rad_s, s.train_speed_ms, s.creep_speed_kmh, s.mu, s.load_torque_nm]
+                     for s in (plant.step(torque) for _ in range(steps))])
+
+
+def test_no_effect_is_the_nominal_plant(scenario):
+    cfg = scenario.plant_config()
+    nom, real = WheelsetPlant(cfg), RealityPlant(cfg, {})
+    a = trajectory(nom, nom.equilibrium_torque_nm, 700)
+    b = trajectory(real, real.equilibrium_torque_nm, 700)
+    assert np.allclose(a, b, rtol=0, atol=1e-9)
+
+
+def test_load_transfer_normal_force_matches_hand_formula(scenario):
+    cfg = scenario.plant_config()
+    _, params = parse_effect("load_transfer:bogie_height_m=2.6")
+    plant = RealityPlant(cfg, {"load_transfer": params})
+    states = trajectory(plant, plant.equilibrium_torque_nm, 300)
+    mu, load = states[-1, 3], states[-1, 4]
+    normal = load * 0.97 * 2.788 / (mu * 0.4375)
+    # by hand, Table 1: a = z/(2 L_b) + Z/(4 L), b = mu_req N0 (z/(2 L_b) + 3 Z/(4 L))
+    n0 = 13500 * 9.8
+    a = 2.6 / 5.0 + 0.88 / 76.0
+    b = 0.16 * n0 * (2.6 / 5.0 + 3 * 0.88 / 76.0)
+    assert normal == pytest.approx((n0 - b) / (1 + a * mu), rel=1e-9)
+    # the unloaded axle needs more mu for the same torque: it settles at a higher creep than nominal
+    nom = trajectory(WheelsetPlant(cfg), plant.equilibrium_torque_nm, 300)
+    assert states[-1, 2] > nom[-1, 2] + 0.01
+
+
+def test_resistance_factor_slows_the_train_by_the_davis_force(scenario):
+    cfg = scenario.plant_config()
+    nom = WheelsetPlant(cfg)
+    real = RealityPlant(cfg, {"resistance": {"factor": 2.0}})
+    a = trajectory(nom, nom.equilibrium_torque_nm, 400)
+    b = trajectory(real, real.equilibrium_torque_nm, 400)
+    # an extra Davis force R(v) ~ R(10 m/s) = 2600 + 3500 + 7000 N over 0.4 s on 408 t
+    expected = -(2600 + 350 * 10.2 + 70 * 10.2 ** 2) * 0.4 / 408000
+    assert b[-1, 1] - a[-1, 1] == pytest.approx(expected, rel=0.03)
+
+
+def test_torque_lag_delays_a_torque_step(scenario):
+    cfg = scenario.plant_config()
+    nom, lag = WheelsetPlant(cfg), RealityPlant(cfg, {"torque_lag": {"tau_s": 0.02}})
+    t0 = nom.equilibrium_torque_nm
+    step = t0 + 500.0
+    d_nom = nom.step(step).motor_speed_rad_s - nom.x0[0]
+    d_lag = lag.step(step).motor_speed_rad_s - lag.x0[0]
+    # first period: nominal gains ~500/J_eq * 1 ms; with a 20 ms lag the extra torque has barely started
+    base = WheelsetPlant(cfg)
+    d_base = base.step(t0).motor_speed_rad_s - base.x0[0]
+    assert (d_lag - d_base) < 0.1 * (d_nom - d_base)
+    # and a constant command is not affected at all
+    lag2 = RealityPlant(cfg, {"torque_lag": {"tau_s": 0.02}})
+    assert np.allclose(trajectory(lag2, t0, 200), trajectory(WheelsetPlant(cfg), t0, 200), atol=1e-9)
+
+
+def test_compliance_rings_after_the_fault_only(scenario):
+    cfg = scenario.plant_config()
+    nom = WheelsetPlant(cfg)
+    comp = RealityPlant(cfg, {"compliance": {"stiffness_nm_rad": 3e5, "damping_ratio": 0.03, "backlash_rad": 0.001}})
+    a = trajectory(nom, nom.equilibrium_torque_nm, 650)
+    b = trajectory(comp, comp.equilibrium_torque_nm, 650)
+    pre = slice(0, 490)
+    assert np.max(np.abs(a[pre, 0] - b[pre, 0])) < 1e-6     # initial twist consistent: no transient
+    post = b[500:650, 0] - a[500:650, 0]
+    assert np.max(np.abs(post)) > 0.02
+    # the ring is at the two-inertia natural frequency sqrt(k (1/J_m + 1/J_w)) / (2 pi)
+    j_w = 80 / (0.97 * 2.788 ** 2)
+    f_n = math.sqrt(3e5 * (1 / 6 + 1 / j_w)) / (2 * math.pi)
+    x = np.diff(b[500:650, 0])   # motor acceleration-like signal
+    spec = np.abs(np.fft.rfft((x - x.mean()) * np.hanning(x.size)))
+    f = np.fft.rfftfreq(x.size, cfg.exchange_period_s)
+    assert f[np.argmax(spec[1:]) + 1] == pytest.approx(f_n, rel=0.2)
+
+
+def test_adhesion_lag_slows_the_fault_switch(scenario):
+    cfg = scenario.plant_config()
+    tau = 0.02
+    nom, lag = WheelsetPlant(cfg), RealityPlant(cfg, {"adhesion_lag": {"tau_s": tau}})
+    k_f = int(round(cfg.fault_time_s / cfg.exchange_period_s))
+    a = trajectory(nom, nom.equilibrium_torque_nm, k_f + 1)
+    b = trajectory(lag, lag.equilibrium_torque_nm, k_f + 1)
+    mu_before, mu_nom_after, mu_lag_after = a[k_f - 2, 3], a[k_f, 3], b[k_f, 3]
+    # nominal mu jumps to the fault curve; the lagged one has moved by about 1 - exp(-1 ms / tau)
+    moved = (mu_before - mu_lag_after) / (mu_before - mu_nom_after)
+    assert moved == pytest.approx(1 - math.exp(-cfg.exchange_period_s / tau), abs=0.02)
+
+
+def test_sensor_delay_and_quantisation():
+    inner = SensorModel(SensorConfig(), seed=1)
+    s = RealitySensors(inner, {"sensor_delay": {"delay_ms": 2.5}}, 1e-3)
+    out = [s.measure(float(k), 10.0 + k)[0] for k in range(10)]
+    assert out[5:] == pytest.approx([k - 2.5 for k in range(5, 10)])
+    q = RealitySensors(SensorModel(SensorConfig(motor_speed_noise_rad_s=0.01), seed=2),
+                       {"sensor_quantisation": {"motor_quantum_rad_s": 0.05, "train_quantum_ms": 0.0}}, 1e-3)
+    vals = np.array([q.measure(64.0 + 0.003 * k, 10.0)[0] for k in range(200)])
+    assert np.allclose(vals / 0.05, np.round(vals / 0.05), atol=1e-9)
+    assert len(np.unique(vals)) > 5
+
+
+def test_can_delay_jitter_loss():
+    can = CanReality(delay_ms=3.0, jitter_ms=0.0, loss=0.0, period_s=1e-3, seed=1)
+    got = [can.deliver(SensorReading(k, float(k), 0.0)) for k in range(20)]
+    assert [g.step for g in got] == list(range(20))                 # re-stamped with the TCU's step
+    assert [g.motor_speed_rad_s for g in got[3:]] == [float(k - 3) for k in range(3, 20)]
+    # the first three periods reuse the initial frame (delays 0, 1, 2), then 3 periods each
+    assert can.realised()["mean_delay_ms"] == pytest.approx((0 + 1 + 2 + 3 * 17) / 20)
+    lossy = CanReality(delay_ms=1.0, jitter_ms=0.0, loss=0.3, period_s=1e-3, seed=5)
+    vals = [lossy.deliver(SensorReading(k, float(k), 0.0)).motor_speed_rad_s for k in range(2000)]
+    repeats = np.mean(np.diff(vals) == 0)
+    assert repeats == pytest.approx(0.3, abs=0.04)
+    assert lossy.realised()["lost_frames"] == pytest.approx(600, abs=80)
+    assert np.all(np.diff(vals) >= 0)                               # never goes back to an older frame
+
+
+def test_parse_effect_errors():
+    assert parse_effect("can:delay_ms=4")[1] == {"delay_ms": 4.0, "jitter_ms": 0.0, "loss": 0.0}
+    for bad, word in (("bogus", "unknown effect"), ("can:nope=1", "unknown parameter"),
+                      ("can:delay_ms=x", "expected a number"), ("can:delay_ms", "PARAM=VALUE"),
+                      ("adhesion_lag:tau_s=0", "must be > 0"), ("can:loss=1", "must be < 1")):
+        with pytest.raises(ValueError, match=word):
+            parse_effect(bad)
+
+
+def test_run_records_truth_under_one_key(scenario, tmp_path):
+    real = with_reality(scenario, {"resistance": {"factor": 1.7}, "can": {"delay_ms": 2.0}})
+    summary = run_inprocess(real, "nlls", 3, tmp_path, progress=False)
+    log = read_log(summary["mcap"])
+    truth = log.metadata[TRUTH_KEY]
+    assert json.loads(truth["effects"]) == {"resistance": {"factor": 1.7},
+                                            "can": {"delay_ms": 2.0, "jitter_ms": 0.0, "loss": 0.0}}
+    others = json.dumps({k: v for k, v in log.metadata.items() if k != TRUTH_KEY})
+    assert "resistance" not in others and "factor" not in others and "delay_ms" not in others
+    nominal = run_inprocess(scenario, "nlls", 3, tmp_path / "nom", progress=False)
+    assert TRUTH_KEY not in read_log(nominal["mcap"]).metadata
+
+
+def test_cli_reality_flag(tmp_path, ffcc_a_path):
+    r = subprocess.run(hil_command() + ["run", str(ffcc_a_path), "--reality", "bogus:x=1", "--out", str(tmp_path)],
+                       capture_output=True, text=True, env=subprocess_env(), timeout=120)
+    assert r.returncode == 2
+    assert r.stderr.strip().count("\n") == 0 and "unknown effect 'bogus'" in r.stderr
+    r = subprocess.run(hil_command() + ["run", str(ffcc_a_path), "--reality", "adhesion_lag:tau_s=0.01",
+                                        "--out", str(tmp_path), "--json"],
+                       capture_output=True, text=True, env=subprocess_env(), timeout=120)
+    assert r.returncode == 0, r.stderr
+    s = json.loads(r.stdout)
+    truth = read_log(s["mcap"]).metadata[TRUTH_KEY]
+    assert json.loads(truth["effects"]) == {"adhesion_lag": {"tau_s": 0.01}}
