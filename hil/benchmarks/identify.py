@@ -158,11 +158,12 @@ def aggregate(per_seed: list[dict]) -> dict:
     out["ok_peaks"] = float(np.mean([s["ok_peaks"] for s in per_seed]))
     costs = [s for s in per_seed if s["cost_p99_us"] is not None]
     out["cost_median_us"] = _median([s["cost_median_us"] for s in costs])
-    out["cost_p99_us"] = float(np.max([s["cost_p99_us"] for s in costs])) if costs else None
-    out["cost_p99_percent_of_period"] = float(np.max([s["cost_p99_percent_of_period"] for s in costs])) \
-        if costs else None
-    between = [s["cost_p99_between_windows_us"] for s in per_seed if s["cost_p99_between_windows_us"] is not None]
-    out["cost_p99_between_windows_us"] = float(np.max(between)) if between else None
+    # per-seed p99s, then their median (one busy moment on a shared machine does not set the figure);
+    # the worst seed's p99 is kept beside it
+    out["cost_p99_us"] = _median([s["cost_p99_us"] for s in costs])
+    out["cost_p99_percent_of_period"] = _median([s["cost_p99_percent_of_period"] for s in costs])
+    out["cost_p99_worst_us"] = float(np.max([s["cost_p99_us"] for s in costs])) if costs else None
+    out["cost_p99_between_windows_us"] = _median([s["cost_p99_between_windows_us"] for s in per_seed])
     out["seeds"] = per_seed
     return out
 
@@ -188,7 +189,7 @@ def table(results: dict, cases: list[str], n_seeds: int) -> str:
                 f"{r['ok_peaks'] * 100:.0f}% | {_f(r['cost_median_us'], '.1f')} | {_f(r['cost_p99_us'], '.1f')} | "
                 f"{_f(r['cost_p99_percent_of_period'], '.1f')} | {_f(r['cost_p99_between_windows_us'], '.1f')} |")
     notes = (f"\nMedians over {n_seeds} seeds (RT, fit and peak errors over the seeds' final curves; cost p99 is the "
-             f"worst seed's p99 over the identifying phase). ok = confirmed and R² >= {OK_R2} and peak μ err <= "
+             f"median over seeds of each seed's p99). ok = confirmed and R² >= {OK_R2} and peak μ err <= "
              f"{OK_PEAK_MU_PERCENT:g} % and peak creep err <= {OK_PEAK_CREEP_PERCENT:g} %, as % of seeds. "
              "ok peaks: the same without the R² condition. R² true curve: the true fault curve against the same μ̂ samples "
              "(the R² the samples allow). Cost: wall time of TractionIdentifier.on_sensor per reading that fed a "
