@@ -225,7 +225,24 @@ def parse_scenario(text: str, path: str = "<scenario>", overrides: dict | None =
         LoadTorqueObserver(1.0, run.exchange_period_s, scenario.identifier_settings().observer_pole_rad_s)
     except ValueError as e:
         raise _fail(path, "[identifier]", str(e)) from None
+    _check_strategy_options(path, scenario)
     return scenario
+
+
+def _check_strategy_options(path, scenario) -> None:
+    """Build each strategy named in [identifier.options.NAME] once, so a bad option fails at load."""
+    from identifier import STRATEGIES
+
+    options = scenario.identifier.get("options", {})
+    for name, opts in options.items():
+        if name not in STRATEGIES:
+            raise _fail(path, f"[identifier.options.{name}]", f"unknown strategy (known: {', '.join(STRATEGIES)})")
+        if not isinstance(opts, dict):
+            raise _fail(path, f"[identifier.options.{name}]", "must be a table")
+        try:
+            STRATEGIES[name](scenario.identifier_settings(), 0)
+        except (ValueError, TypeError) as e:
+            raise _fail(path, f"[identifier.options.{name}]", str(e)) from None
 
 
 def load_scenario(path, overrides: dict | None = None) -> Scenario:

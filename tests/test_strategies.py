@@ -183,3 +183,26 @@ def test_correlation_transition_does_not_amplify(stabiliser):
     assert np.max(np.abs(np.linalg.eigvals(raw))) > 4.0          # the literal matrix would amplify ~5x
     theta = pf.correlation_transition(cloud, w, stabiliser)
     assert np.max(np.abs(np.linalg.eigvals(theta))) <= 1.0 + 1e-9
+
+
+@pytest.mark.parametrize("table, word", [("[identifier.options.proposed]\nbogus = 1\n", "bogus"),
+                                         ("[identifier.options.proposed]\nparticles = \"many\"\n", "many"),
+                                         ("[identifier.options.magic]\nparticles = 10\n", "magic")])
+def test_bad_strategy_options_fail_at_scenario_load(ffcc_a_path, table, word):
+    from hil.scenario import ScenarioError, parse_scenario
+
+    text = ffcc_a_path.read_text() + "\n" + table
+    with pytest.raises(ScenarioError) as e:
+        parse_scenario(text, "x.toml")
+    msg = str(e.value)
+    assert "\n" not in msg and "x.toml" in msg and "[identifier.options." in msg and word in msg
+
+
+def test_strategy_options_from_a_scenario_reach_the_strategy(ffcc_a_path):
+    from hil.scenario import parse_scenario
+
+    text = ffcc_a_path.read_text() + "\n[identifier.options.proposed]\nparticles = 123\nwindow_samples = 7\n"
+    s = parse_scenario(text, "x.toml").identifier_settings()
+    strat = make_strategy("proposed", s)
+    assert strat.n_particles == 123 and strat.particles.shape == (123, 5) and strat.window_samples == 7
+    assert make_strategy("mdipf", s).n_particles == 1000          # other strategies keep their defaults
