@@ -1,0 +1,146 @@
+"""hil gap: blind to the truth, right on runs whose effect it is not told.
+
+Cases are drawn with a seed chosen when the test runs (printed, for reproduction:
+``hil bench gap --seed S``), so the diagnosis cannot have been tuned to them.
+"""
+import json
+import os
+import subprocess
+import time
+
+import pytest
+
+from hil.benchmarks.gap import LIBRARY, draw_case, run_case
+from hil.gap import diagnose, read_real_log
+from hil.gap.data import describe
+from hil.logread import read_log
+from hil.loop import run_inprocess
+from hil.reality_bus import TRUTH_KEY
+from hil.scenario import load_scenario
+
+from .conftest import SCENARIOS, hil_command, subprocess_env
+
+FFCC_A = SCENARIOS / "ffcc_a.toml"
+
+
+def fresh_seed() -> int:
+    seed = int.from_bytes(os.urandom(4), "little") ^ time.time_ns() % (1 << 31)
+    print(f"gap test seed {seed}")
+    return seed
+
+
+@pytest.fixture(scope="module")
+def scenario():
+    return load_scenario(FFCC_A)
+
+
+def test_reader_drops_the_truth_even_from_the_scenario_text(tmp_path, scenario):
+    # the truth sits in the scenario file itself: its text is recorded in the log's metadata
+    text = FFCC_A.read_text() + "\n[reality.load_transfer]\nbogie_height_m = 1.234\n"
+    path = tmp_path / "real.toml"
+    path.write_text(text)
+    real = load_scenario(path)
+    summary = run_inprocess(real, "nlls", 5, tmp_path, progress=False)
+    raw = read_log(summary["mcap"])
+    assert TRUTH_KEY in raw.metadata and "1.234" in json.dumps(raw.metadata)   # it is in the file ...
+    data = read_real_log(summary["mcap"])
+    seen = describe(data)
+    assert "1.234" not in seen and "load_transfer" not in seen and TRUTH_KEY not in seen   # ... not in what gap sees
+    assert set(data.metadata) <= {"run"}
+    # and the diagnosis still finds it, from the measurements alone
+    out, _ = diagnose(data, scenario, identify=False)
+    assert out["which"]["named"] == "load_transfer"
+    assert out["which"]["ranking"][0]["params"]["bogie_height_m"] == pytest.approx(1.234, rel=0.05)
+
+
+def test_nominal_run_has_no_gap(tmp_path, scenario):
+    seed = fresh_seed() % 100000
+    summary = run_inprocess(scenario, "nlls", seed, tmp_path, progress=False)
+    out, _ = diagnose(read_real_log(summary["mcap"]), scenario, identify=False)
+    assert out["which"]["named"] == "none"
+    assert out["which"]["gap_present"] is False
+    for s, v in out["where"]["per_signal"].items():
+        assert v["rmse_in_noise_units"] < 1.3, s
+
+
+def test_blind_cases_with_a_seed_chosen_now(tmp_path, scenario):
+    """Four library effects with random parameters plus one effect outside the library."""
+    seed = fresh_seed()
+    effects = sorted(LIBRARY)
+    import numpy as np
+    g = np.random.default_rng(seed)
+    picks = list(g.choice(effects, size=4, replace=False))
+    records = []
+    i = 0
+    while len(records) < 5:
+        effect, params, run_seed = draw_case(seed, i, 0.25)
+        i += 1
+        want = picks[len(records)] if len(records) < 4 else "outside"
+        if (want == "outside") != (effect not in LIBRARY) or (want != "outside" and effect != want):
+            continue
+        records.append(run_case(scenario, effect, params, run_seed, tmp_path, i))
+    for r in records:
+        print(r["effect"], r["params"], "->", r["named"], r.get("param_err_percent"), r["shrink_percent"])
+    lib = records[:4]
+    correct = sum(r["correct"] for r in lib)
+    assert correct >= 3, records
+    for r in lib:
+        if r["correct"]:
+            assert r["param_err_percent"] <= 20, r
+            assert r["shrink_percent"] >= 75, r
+    assert records[4]["named"] == "none", records[4]
+
+
+def test_cli_gap_json_and_report(tmp_path, scenario):
+    from hil.reality_bus import with_reality
+    real = run_inprocess(with_reality(scenario, {"adhesion_lag": {"tau_s": 0.008}}), "nlls", 12, tmp_path / "r",
+                         progress=False)
+    rep = tmp_path / "report"
+    r = subprocess.run(hil_command() + ["gap", real["mcap"], "--model", str(FFCC_A), "--json", "--report", str(rep)],
+                       capture_output=True, text=True, env=subprocess_env(), timeout=600)
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert out["which"]["named"] == "adhesion_lag"
+    assert out["shrink"]["held_out_gap_shrink_percent"] >= 80
+    for s in ("motor", "train", "mu_hat"):
+        assert s in out["where"]["per_signal"] and s in out["shrink"]["per_signal"]
+    assert set(out["where"]["per_stage"]) == {"normal", "early", "serious"}
+    ident = out["identification"]
+    assert {"real", "nominal_replay", "augmented_replay"} <= set(ident)
+    # the augmented replay reproduces the real run's identified peak better than the nominal one
+    assert abs(ident["curve_shift"]["real_vs_augmented_peak_mu_percent"]) <= \
+        abs(ident["curve_shift"]["real_vs_nominal_peak_mu_percent"]) + 0.5
+    md = (rep / "report.md").read_text()
+    assert "adhesion_lag" in md
+    for png in ("signals.png", "residuals.png", "where.png", "which.png", "curves.png"):
+        assert (rep / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert json.loads((rep / "gap.json").read_text())["which"]["named"] == "adhesion_lag"
+    assert "hil gap:" in r.stderr   # progress on stderr
+
+
+def test_cli_gap_bad_inputs(tmp_path):
+    bad = tmp_path / "x.mcap"
+    bad.write_text("not mcap")
+    asc = tmp_path / "rig.asc"
+    asc.write_text("date Mon Jan 1\n")
+    for args, word in (([str(tmp_path / "missing.mcap")], "cannot read"), ([str(bad)], "not an MCAP file"),
+                       ([str(asc)], "python-can CAN logs are not read")):
+        r = subprocess.run(hil_command() + ["gap", *args, "--model", str(FFCC_A)], capture_output=True, text=True,
+                           env=subprocess_env(), timeout=120)
+        assert r.returncode == 2 and word in r.stderr and r.stderr.strip().count("\n") == 0, r.stderr
+
+
+def test_bench_gap_json_keys(tmp_path):
+    seed = fresh_seed()
+    r = subprocess.run(hil_command() + ["bench", "gap", str(FFCC_A), "--cases", "2", "--seed", str(seed), "--json"],
+                       capture_output=True, text=True, env=subprocess_env(), timeout=600, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    for k in ("cases", "top1_accuracy", "none_accuracy", "median_shrink_percent", "median_param_err_percent",
+              "confusion"):
+        assert k in out
+    assert out["cases"] == 2
+    for k in ("top1_accuracy", "none_accuracy"):
+        assert out[k] is None or 0 <= out[k] <= 1
+    assert sum(sum(row.values()) for row in out["confusion"].values()) == 2
+    assert "case 2/2" in r.stderr
