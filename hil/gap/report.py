@@ -49,8 +49,11 @@ def text_summary(out: dict) -> str:
                              f"{_f(r.get('peak_mu'), '.4f')} (err {_f(r.get('peak_mu_err_percent'), '.2f')} %)  "
                              f"peak creep {_f(r.get('peak_creep_kmh'), '.3f')} km/h "
                              f"(err {_f(r.get('peak_creep_err_percent'), '.2f')} %)")
+        lines.append(f"    (replays: median over {len(ident['nominal_replay']['seeds'])} sensor-noise draws; "
+                     f"nominal replay peak mu range {_f((ident['nominal_replay'].get('peak_mu_range') or [None])[0], '.4f')}"
+                     f"-{_f((ident['nominal_replay'].get('peak_mu_range') or [None, None])[1], '.4f')})")
         for k, v in ident["curve_shift"].items():
-            lines.append(f"    {k}: {v:+.2f} %")
+            lines.append(f"    {k}: {v:+.2f} %" if not isinstance(v, bool) else f"    {k}: {v}")
     return "\n".join(lines)
 
 
