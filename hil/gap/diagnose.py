@@ -12,9 +12,11 @@
 3. WHICH: the run is cut into alternating blocks of ``block`` samples: even blocks fit each candidate,
    odd blocks judge it.  Score on held-out blocks = Gaussian negative log-likelihood with the noise
    floor the candidate expects, plus k log(n) (BIC penalty, k fitted parameters).  A candidate is named
-   only if it beats the nominal model by ``MIN_SCORE_GAIN`` AND either removes at least ``MIN_SHRINK`` of
-   the held-out gap or leaves no more than ``NOISE_GAP`` noise units of it; otherwise the answer is
-   "none of the candidates" (never the least bad one).
+   only if it beats the nominal model by ``MIN_SCORE_GAIN``, removes at least ``MIN_SHRINK`` of the
+   held-out gap AND leaves the residual near the noise floor (at most ``MAX_LEFT`` noise units of gap,
+   or ``MAX_LEFT_FRACTION`` of a huge nominal gap); otherwise the answer is "none of the candidates",
+   never the least bad one.  (A candidate that only imitates the gap -- load transfer standing in for a
+   lower friction curve -- removes most of it but leaves a remainder far above the noise.)
 4. HOW FAR: held-out RMSE per signal before/after; "gap RMSE" = sqrt(max(RMSE^2 - noise floor^2, 0)),
    the part a model can remove; shrink = 1 - gap_after / gap_before.  Identification outcome (RT, peak
    errors, identified curve) on the real run vs the TCU run on the nominal and augmented models' replays.
@@ -36,8 +38,9 @@ from .candidates import SIGNALS, UNITS, Context, Fit, candidates, fit_nominal
 from .model import ObserverReplica, Simulator, initial_line
 
 NONE = "none"
-MIN_SHRINK = 0.85          # fraction of the held-out gap the named effect must remove, unless ...
-NOISE_GAP = 0.6            # ... what it leaves is this close to the noise floor (noise units)
+MIN_SHRINK = 0.5           # fraction of the held-out gap the named effect must remove, and ...
+MAX_LEFT = 1.0             # ... what it leaves must be this close to the noise floor (noise units), or
+MAX_LEFT_FRACTION = 0.005  # ... this fraction of the nominal gap when that is huge (fit tolerance)
 MIN_SCORE_GAIN = 25.0      # held-out NLL + BIC penalty improvement over the nominal model
 MIN_GAP = 0.25             # combined gap (noise units) below which there is no gap to explain
 CREEP_BANDS_KMH = (0.0, 0.5, 1.0, 1.5, 3.0, 10.0, math.inf)
@@ -170,7 +173,8 @@ class Diagnosis:
         ranking.sort(key=lambda r: -r["score_gain"])
         best = ranking[0]
         gap_present = base["gap"] >= MIN_GAP
-        explains = best["held_out_shrink"] >= MIN_SHRINK or best["held_out_gap"] <= NOISE_GAP
+        max_left = max(MAX_LEFT, MAX_LEFT_FRACTION * base["gap"])
+        explains = best["held_out_shrink"] >= MIN_SHRINK and best["held_out_gap"] <= max_left
         named = best["effect"] if (gap_present and best["score_gain"] > MIN_SCORE_GAIN and explains) else NONE
         if not gap_present:
             verdict = (f"no significant gap: held-out residuals are within {base['gap']:.2f} noise units of the "
@@ -178,7 +182,7 @@ class Diagnosis:
         elif named == NONE:
             verdict = (f"none of the candidates: the best ({best['effect']}) removes "
                        f"{best['held_out_shrink'] * 100:.0f} % of the held-out gap and leaves {best['held_out_gap']:.2f} "
-                       f"noise units (needs {MIN_SHRINK * 100:.0f} % or <= {NOISE_GAP}) with score gain "
+                       f"noise units (needs >= {MIN_SHRINK * 100:.0f} % and <= {max_left:.2f}) with score gain "
                        f"{best['score_gain']:.1f} (needs {MIN_SCORE_GAIN})")
         else:
             verdict = (f"{named} explains the gap: held-out gap shrinks {best['held_out_shrink'] * 100:.0f} %, "
@@ -195,7 +199,7 @@ class Diagnosis:
             "where": where,
             "which": {"named": named, "verdict": verdict, "gap_present": gap_present,
                       "nominal_held_out_gap": base["gap"], "ranking": ranking,
-                      "rule": {"min_shrink": MIN_SHRINK, "noise_gap": NOISE_GAP, "min_score_gain": MIN_SCORE_GAIN,
+                      "rule": {"min_shrink": MIN_SHRINK, "max_left": max_left, "min_score_gain": MIN_SCORE_GAIN,
                                "min_gap": MIN_GAP}},
             "shrink": {"effect": best["effect"], "named": named, "held_out_gap_shrink_percent":
                        best["held_out_shrink"] * 100, "per_signal": shrink_table},

@@ -134,7 +134,8 @@ def write_report(out: dict, dg, directory) -> Path:
     ax.barh([r["effect"] for r in rk][::-1], [r["held_out_shrink"] * 100 for r in rk][::-1],
             color=["tab:green" if r["effect"] == out["which"]["named"] else "0.6" for r in rk][::-1])
     ax.axvline(out["which"]["rule"]["min_shrink"] * 100, color="k", ls="--", lw=0.8)
-    ax.set_xlabel("held-out gap shrink [%] (dashed: needed to name an effect)")
+    ax.set_xlabel("held-out gap shrink [%] (dashed: minimum to name an effect; the remainder must also "
+                  "be near the noise floor)", fontsize=8)
     ax.set_xlim(-20, 105)
     fig.tight_layout()
     fig.savefig(d / "which.png", dpi=110)
