@@ -26,9 +26,13 @@ PROJECTORS = ("map", "clip")
 
 def weighted_correlation(particles: np.ndarray, weights: np.ndarray) -> np.ndarray:
     """Weighted Pearson correlation matrix (P, P) of the cloud; a dimension with no spread
-    correlates only with itself (1 on the diagonal, 0 elsewhere)."""
-    d = particles - weights @ particles
-    cov = (d.T * weights) @ d
+    correlates only with itself (1 on the diagonal, 0 elsewhere).
+
+    Works on ``particles.T`` (a contiguous (P, N) view when the strategy keeps its (N, P) cloud in
+    Fortran order), so every pass over the cloud is over contiguous rows."""
+    x = particles.T
+    d = x - (x @ weights)[:, None]
+    cov = (d * weights) @ d.T
     sd = np.sqrt(np.maximum(cov.diagonal(), 0.0))
     inv = np.divide(1.0, sd, out=np.zeros_like(sd), where=sd > 1e-300)
     corr = cov * inv[:, None] * inv[None, :]
@@ -64,18 +68,26 @@ def propagate(particles: np.ndarray, transition: np.ndarray, noise_std: np.ndarr
     """chi(k) = Theta chi(k-1) + beta, beta ~ N(0, diag(noise_std^2))  (eq. 12).
 
     ``noise``: standard normal draws of the particles' shape, if already drawn (a strategy draws
-    them in blocks ahead of time: one large draw is much cheaper than many small ones)."""
+    them ahead of time: one large draw is much cheaper than many small ones).  The result is a
+    Fortran-ordered (N, P) array (its transpose is contiguous: the fast layout of this module)."""
     if noise is None:
         noise = rng.standard_normal(particles.shape)
-    return particles @ transition.T + noise * noise_std
+    out = transition @ particles.T
+    out += noise.T * noise_std[:, None]
+    return out.T
 
 
 def curve_at(particles: np.ndarray, base_theta: np.ndarray, creep_speed_kmh: float) -> np.ndarray:
     """M_cor(v_s) per particle (N,) at one creep speed: the hot path's model evaluation."""
     n = (particles.shape[1] - 1) // 2
-    th = particles + base_theta
+    th = particles.T + base_theta[:, None]
     with np.errstate(over="ignore", invalid="ignore"):
-        return th[:, 0] + np.einsum("ij,ij->i", th[:, 1:1 + n], np.exp(th[:, 1 + n:] * creep_speed_kmh))
+        e = np.exp(th[1 + n:] * creep_speed_kmh)
+        out = th[1] * e[0]
+        for i in range(1, n):
+            out += th[1 + i] * e[i]
+        out += th[0]
+    return out
 
 
 def log_likelihood(particles: np.ndarray, base_theta: np.ndarray, creep_speed_kmh, mu_samples,
@@ -142,41 +154,49 @@ def project_to_box(particles: np.ndarray, lo: np.ndarray, hi: np.ndarray, base_t
     iterate is clipped, so the result is always inside.  ``clip``: the Euclidean projection.
     A non-finite coordinate is replaced by the point of the box nearest to zero first.
     """
-    finite = np.isfinite(particles)
-    x = particles if finite.all() else np.where(finite, particles, np.clip(0.0, lo, hi))
-    edge = ((x < lo) | (x > hi)).any(axis=1)
+    lo_c, hi_c = np.asarray(lo, float)[:, None], np.asarray(hi, float)[:, None]
+    xt = particles.T                                   # (P, N): contiguous rows for an F-ordered cloud
+    with np.errstate(invalid="ignore"):
+        if np.all(xt.min(axis=1) >= lo) and np.all(xt.max(axis=1) <= hi):
+            return particles                           # all finite and inside: nothing to do (the common case)
+    finite = np.isfinite(xt)
+    if not finite.all():
+        xt = np.where(finite, xt, np.clip(0.0, lo_c, hi_c))
+    edge = ((xt < lo_c) | (xt > hi_c)).any(axis=0)
+    out = np.array(xt, order="C", copy=True)
     if not edge.any():
-        return x.copy() if x is particles else x
-    out = x.copy()
-    raw = x[edge]
-    z = np.clip(raw, lo, hi)
+        return out.T
+    raw = xt[:, edge]                                  # (P, m)
+    z = np.clip(raw, lo_c, hi_c)
     if method == "map" and np.isfinite(mu_sample) and np.isfinite(creep_speed_kmh):
-        p_var = np.asarray(prior_std, float) ** 2
+        p_var = (np.asarray(prior_std, float) ** 2)[:, None]
         g_var = noise_std ** 2
         n = (particles.shape[1] - 1) // 2
         v = float(creep_speed_kmh)
+        base = np.asarray(base_theta, float)[:, None]
         jac = np.empty_like(z)
-        jac[:, 0] = 1.0
+        jac[0] = 1.0
         for _ in range(iterations):
-            th = base_theta + z
-            e = np.exp(th[:, 1 + n:] * v)
-            jac[:, 1:1 + n] = e
-            jac[:, 1 + n:] = th[:, 1:1 + n] * e * v
-            r = mu_sample - th[:, 0] - np.einsum("ij,ij->i", th[:, 1:1 + n], e)
-            # linearise M about z and minimise over delta = chi~ - z (prior centred at raw):
-            # (P^-1 + J^T J / G) delta = -P^-1 (z - raw) + J^T r / G, solved by Sherman-Morrison.
-            # Coordinates on a bound that the step would push outwards are frozen (active set:
-            # their variance is set to 0), so the clipped step still fits the measurement.
-            pull = raw - z
-            pv = np.broadcast_to(p_var, z.shape)
-            for _ in range(2):
-                pj = pv * jac
-                pg = pull * (pv > 0) + pj * (r / g_var)[:, None]
-                delta = pg - pj * (np.einsum("ij,ij->i", jac, pg) / (g_var + np.einsum("ij,ij->i", jac, pj)))[:, None]
-                pv = np.where(((z <= lo) & (delta < 0)) | ((z >= hi) & (delta > 0)), 0.0, pv)
-            step = np.clip(z + delta, lo, hi)
+            th = base + z
+            with np.errstate(over="ignore", invalid="ignore"):
+                e = np.exp(th[1 + n:] * v)
+                jac[1:1 + n] = e
+                jac[1 + n:] = th[1:1 + n] * e * v
+                r = mu_sample - th[0] - np.sum(th[1:1 + n] * e, axis=0)
+                # linearise M about z and minimise over delta = chi~ - z (prior centred at raw):
+                # (P^-1 + J^T J / G) delta = -P^-1 (z - raw) + J^T r / G, solved by Sherman-Morrison.
+                # Coordinates on a bound that the step would push outwards are frozen (active set:
+                # their variance is set to 0), so the clipped step still fits the measurement.
+                pull = raw - z
+                pv = np.broadcast_to(p_var, z.shape)
+                for _ in range(2):
+                    pj = pv * jac
+                    pg = pull * (pv > 0) + pj * (r / g_var)
+                    delta = pg - pj * (np.sum(jac * pg, axis=0) / (g_var + np.sum(jac * pj, axis=0)))
+                    pv = np.where(((z <= lo_c) & (delta < 0)) | ((z >= hi_c) & (delta > 0)), 0.0, pv)
+                step = np.clip(z + delta, lo_c, hi_c)
             z = np.where(np.isfinite(step), step, z)
     elif method not in PROJECTORS:
         raise ValueError(f"unknown projection {method!r} (known: {', '.join(PROJECTORS)})")
-    out[edge] = z
-    return out
+    out[:, edge] = z
+    return out.T

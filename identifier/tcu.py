@@ -2,7 +2,9 @@
 identification results out.  The same object runs in the TCU process, in replay and in benchmarks.
 
 Pipeline per reading: observer -> mu^ and creep speed -> slip detector -> (after the observer
-settles) samples to the strategy.
+settles) samples to the strategy.  An observer-aware strategy (``Strategy.observer_aware``) gets
+every sample from the detected slip start on instead, each with the creep of the same instant and
+the observer's speed innovation (it models the observer's transient rather than waiting it out).
 """
 from __future__ import annotations
 
@@ -69,6 +71,9 @@ class TractionIdentifier:
         lag_steps = round(self.observer.lag_s / settings.period_s) if settings.lag_compensation else 0
         self._creep_history: deque[float] = deque(maxlen=lag_steps + 1)
         self._settle_steps = round(settings.settle_time_s / settings.period_s)
+        self._observer_aware = bool(getattr(self.strategy, "observer_aware", False))
+        # the readings between the slip's first step and its detection (consecutive - 1 of them)
+        self._recent: deque[Sample] = deque(maxlen=self.detector.consecutive + 1)
         self.rejected_readings = 0
         self._last_torque = settings.torque_demand_nm
 
@@ -87,6 +92,7 @@ class TractionIdentifier:
             return TcuOutput(TorqueCommand(reading.step, torque), self._status(reading.step))
         v = self.settings.vehicle
         t_s = reading.step * self.settings.period_s
+        innovation = reading.motor_speed_rad_s - self.observer.speed_rad_s   # y(k) - omega^(k), before the update
         load_torque = self.observer.update(reading.motor_speed_rad_s, self._last_torque)
         self._last_torque = torque
         mu_hat = load_torque / v.torque_per_mu_nm
@@ -95,7 +101,18 @@ class TractionIdentifier:
         paired_creep = self._creep_history[0]   # v_s(k - lag): the creep mu^(k) really belongs to
         observer = ObserverSample(reading.step, t_s, creep, mu_hat, load_torque)
         events = []
-        if self.detector.update(reading.step, creep):
+        if self._observer_aware:
+            sample = Sample(reading.step, t_s, creep, mu_hat, innovation)
+            detected_before = self.detector.detected_step is not None
+            if self.detector.update(reading.step, creep):
+                if not detected_before:     # just detected: the buffered readings since the slip's start first
+                    for s in self._recent:
+                        if s.step >= self.detector.detected_step:
+                            events.extend(self.strategy.add_sample(s))
+                events.extend(self.strategy.add_sample(sample))
+            else:
+                self._recent.append(sample)
+        elif self.detector.update(reading.step, creep):
             if reading.step - self.detector.detected_step >= self._settle_steps:
                 events = self.strategy.add_sample(Sample(reading.step, t_s, paired_creep, mu_hat))
         return TcuOutput(TorqueCommand(reading.step, torque), self._status(reading.step), observer, events)

@@ -11,7 +11,10 @@ from identifier.strategies import Sample, Strategy
 
 FFCC_A = np.array([-0.005, 0.585, -0.580, -0.525, -1.100])
 NFCC_0 = (0.0, 1.0, -1.0, -0.54, -1.2)
-PF_STRATEGIES = [s for s in STRATEGIES if s != "nlls"]
+PF_STRATEGIES = [s for s in STRATEGIES if not s.startswith("nlls")]
+# observer-aware strategies model the observer's transient: fed with static (v, mu) pairs in random order
+# they are fitting the wrong model; tests/test_observer_aware.py feeds them a simulated plant + observer
+STATIC_STRATEGIES = [s for s in STRATEGIES if not STRATEGIES[s].observer_aware]
 
 
 def settings(**kw) -> IdentifierSettings:
@@ -35,7 +38,7 @@ def feed(strategy: Strategy, samples):
     return events
 
 
-@pytest.mark.parametrize("name", sorted(STRATEGIES))
+@pytest.mark.parametrize("name", sorted(STATIC_STRATEGIES))
 def test_each_strategy_recovers_a_known_curve(name):
     strat = make_strategy(name, settings(), seed=3)
     events = feed(strat, samples_spanning_peak(600))

@@ -24,12 +24,16 @@ class Sample:
     t_s: float
     creep_speed_kmh: float
     mu_hat: float
+    speed_innovation_rad_s: float = math.nan   # y(k) - omega^(k) before the observer update (observer-aware strategies)
 
 
 class Strategy(ABC):
     """Feed samples with ``add_sample``; read ``theta``, ``confirmed``, ``corrections``."""
 
     name: str = ""
+    #: True: the TCU feeds every sample from the detected slip start on, creep of the same instant
+    #: (no settle time, no lag pairing): for strategies that model the observer's transient
+    observer_aware: bool = False
 
     def __init__(self, settings: IdentifierSettings, seed: int = 0):
         self.settings = settings
@@ -81,7 +85,7 @@ class Strategy(ABC):
         if self._candidate is not None:
             theta, se = self._candidate
             self._candidate = None
-            if inside_confidence_band(v, mu, theta, se, self.c_lw, self.c_up):
+            if self._inside_band(v, mu, theta, se):
                 self.confirmed = True
                 return [self._event(sample, "confirmed", math.nan)]
             # the window did not fit: it feeds the next correction instead
@@ -94,7 +98,7 @@ class Strategy(ABC):
         events = [self._event(sample, "correction", score)]
         self.corrections += 1
         if score <= self.k_pe:
-            self._candidate = (self.theta.copy(), standard_error(v, mu, self.theta))
+            self._candidate = (self.theta.copy(), self._standard_error(v, mu, self.theta))
         elif self.corrections >= s.max_corrections:
             self.gave_up = True
         return events
@@ -102,6 +106,13 @@ class Strategy(ABC):
     def _event(self, sample: Sample, kind: str, score: float) -> IdentificationEvent:
         return IdentificationEvent(sample.step, sample.t_s, kind, self.corrections,
                                    tuple(float(x) for x in self.theta), float(score), len(self._v))
+
+    # the multi-level evaluation's SE (eq. 29) and band (eq. 28-31); observer-aware strategies override
+    def _standard_error(self, v, mu, theta) -> float:
+        return standard_error(v, mu, theta)
+
+    def _inside_band(self, v, mu, theta, se) -> bool:
+        return inside_confidence_band(v, mu, theta, se, self.c_lw, self.c_up)
 
     # -- what a strategy defines --------------------------------------------------------------
     def on_sample(self, creep_speed_kmh: float, mu_hat: float) -> None:

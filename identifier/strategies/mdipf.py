@@ -41,7 +41,7 @@ import numpy as np
 
 from .. import pf
 from .base import Strategy
-from .nlls import fit_curve
+from .nlls import fit_curve, fit_curve_lm
 
 DEFAULTS = {
     "particles": 1000,                        # N
@@ -56,6 +56,8 @@ DEFAULTS = {
     "noise_block": 32,                        # transition-noise draws made ahead, in blocks of this many samples
     "prelim_radius": [0.01, 0.6, 0.05],       # prelim kept within the prior curve +- this (None: unbounded)
     "filter_prelim_window": False,            # True: correction 1 filters the prelim's own window (beyond the paper)
+    "prelim_solver": "trf",                   # "trf": scipy trust-region-reflective; "lm": nlls.bounded_lm in numpy
+    "prelim_iterations": 10,                  # iteration cap of the "lm" prelim
 }
 
 
@@ -87,18 +89,26 @@ class MdipfStrategy(Strategy):
         self.init_std = per_dimension(opts["init_std"], n)
         self.transition_std = per_dimension(opts["transition_std"], n)
         self.noise_std = float(opts["noise_std"])
-        self.particles = np.zeros((self.n_particles, p))
+        self.particles = np.zeros((p, self.n_particles)).T   # (N, P), Fortran order: see pf
         self.weights = np.full(self.n_particles, 1.0 / self.n_particles)
+        self._log_weights = np.zeros(self.n_particles)
+        # Random numbers are drawn before the fault, when the TCU is idle: the first block of
+        # transition noise (kept transposed and scaled, as the filter step adds it) and the initial
+        # cloud, in that order from the one generator (the order the filter would draw them).
         self._noise_block = max(1, int(opts["noise_block"]))
-        self._noise = self.rng.standard_normal((self._noise_block, self.n_particles, p))   # drawn before the fault
+        block = self.rng.standard_normal((self._noise_block, self.n_particles, p))
+        self._noise = block.transpose(0, 2, 1) * self.transition_std[None, :, None]   # (B, P, N)
         self._noise_next = 0
+        self._next_cloud = self.rng.standard_normal((self.n_particles, p))
         self.base = self.theta.copy()        # theta_{Q-1}: the curve the errors are relative to
         self.prelim_done = False
         self.history: list[np.ndarray] = []  # theta after each correction (for plots)
 
     # -- the filter -------------------------------------------------------------------------
     def _draw_cloud(self) -> None:
-        self.particles = self.rng.standard_normal(self.particles.shape) * self.init_std
+        draw = self._next_cloud if self._next_cloud is not None else self.rng.standard_normal(self.particles.shape)
+        self._next_cloud = None
+        self.particles = np.asfortranarray(draw * self.init_std)
         self.weights = np.full(self.n_particles, 1.0 / self.n_particles)
         self._log_weights = np.zeros(self.n_particles)
         self._constrain()
@@ -115,23 +125,33 @@ class MdipfStrategy(Strategy):
             return
         o = self.opts
         transition = pf.correlation_transition(self.particles, self.weights, o["stabiliser"])
-        if self._noise_next >= self._noise_block:
-            self._noise = self.rng.standard_normal(self._noise.shape)
-            self._noise_next = 0
-        noise = self._noise[self._noise_next]
-        self._noise_next += 1
-        self.particles = pf.propagate(self.particles, transition, self.transition_std, noise=noise)
+        if self._noise_next < self._noise_block:
+            noise = self._noise[self._noise_next]              # (P, N), already scaled by B
+            self._noise_next += 1
+        else:   # past the pre-drawn block: one draw per step (no burst of a whole block on one sample)
+            noise = self.rng.standard_normal(self.particles.shape).T * self.transition_std[:, None]
+        xt = transition @ self.particles.T                     # chi(k) = Theta chi(k-1) + beta (eq. 12)
+        xt += noise
+        self.particles = xt.T
         self._constrain()
         self._project(creep_speed_kmh, mu_hat)
-        ll = pf.log_likelihood(self.particles, self.base, creep_speed_kmh, mu_hat, self.noise_std)
+        self._weigh(pf.log_likelihood(self.particles, self.base, creep_speed_kmh, mu_hat, self.noise_std))
+
+    def _weigh(self, ll: np.ndarray) -> None:
+        """w <- w_prev p(Z | chi), normalised; resample when the ESS is low."""
+        o = self.opts
         self.weights = pf.normalise(self._log_weights + ll)
         with np.errstate(divide="ignore"):
             self._log_weights = np.log(self.weights)
         if pf.ess(self.weights) < o["ess_fraction"] * self.n_particles:
             idx = pf.resample(self.weights, self.rng, o["resampler"])
-            self.particles = self.particles[idx]
+            self._take(idx)
             self.weights = np.full(self.n_particles, 1.0 / self.n_particles)
             self._log_weights = np.zeros(self.n_particles)
+
+    def _take(self, idx: np.ndarray) -> None:
+        """Keep the particles ``idx`` (resampling); variants with per-particle state extend this."""
+        self.particles = self.particles.T[:, idx].T
 
     def _project(self, creep_speed_kmh: float, mu_hat: float) -> None:
         """The projection domain (proposed strategy); MDIPF has none."""
@@ -145,6 +165,10 @@ class MdipfStrategy(Strategy):
         return None if r is None else per_dimension(r, (self.theta.size - 1) // 2)
 
     def preliminary_fit(self, window_v, window_mu) -> np.ndarray:
+        if self.opts["prelim_solver"] == "lm":
+            return fit_curve_lm(window_v, window_mu, self.theta, self.prelim_radius(), int(self.opts["prelim_iterations"]))
+        if self.opts["prelim_solver"] != "trf":
+            raise ValueError(f"{self.name}: prelim_solver must be 'trf' or 'lm'")
         return fit_curve(window_v, window_mu, self.theta, self.prelim_radius())
 
     def correct(self, window_v, window_mu):
