@@ -48,7 +48,7 @@ from scipy.optimize import least_squares
 
 from .. import pf
 from ..curve import jacobian, mu_model
-from .nlls import NllsStrategy, parameter_bounds
+from .nlls import NllsStrategy, bounded_lm, parameter_bounds
 from .proposed import PROPOSED_DEFAULTS, ProposedStrategy
 
 
@@ -105,9 +105,10 @@ class ObserverAwareModel:
         return self.predict(mu_model(np.asarray(v, float), theta), rho0, eta0)
 
 
-def fit_curve_oa(model: ObserverAwareModel, v, mu, rho0: float, eta0: float, theta0, radius=None) -> np.ndarray:
-    """Trust-region NLLS of mu^ against mu^_pred(theta) (``nlls.fit_curve`` with the observer-aware
-    residual; same bounds)."""
+def fit_curve_oa(model: ObserverAwareModel, v, mu, rho0: float, eta0: float, theta0, radius=None,
+                 solver: str = "trf", iterations: int = 10) -> np.ndarray:
+    """NLLS of mu^ against mu^_pred(theta) (``nlls.fit_curve`` with the observer-aware residual;
+    same bounds).  ``solver``: "trf" (scipy) or "lm" (``nlls.bounded_lm``, ``iterations`` at most)."""
     v = np.asarray(v, float)
     y = np.asarray(mu, float)
     theta0 = np.asarray(theta0, float)
@@ -117,6 +118,8 @@ def fit_curve_oa(model: ObserverAwareModel, v, mu, rho0: float, eta0: float, the
     lin, fr, fe = model.matrices(v.size)
     free = rho0 * fr + eta0 * fe - y
     start = np.clip(theta0, lo + 1e-9, hi - 1e-9)
+    if solver == "lm":
+        return bounded_lm(lambda th: (lin @ mu_model(v, th) + free, lin @ jacobian(v, th)), start, lo, hi, iterations)
     res = least_squares(lambda th: lin @ mu_model(v, th) + free, start, jac=lambda th: lin @ jacobian(v, th),
                         method="trf", bounds=(lo, hi), x_scale="jac", max_nfev=200)
     return res.x
@@ -188,6 +191,10 @@ class NllsOaStrategy(ObserverAwareMixin, NllsStrategy):
 
 
 OA_DEFAULTS = {**PROPOSED_DEFAULTS, "projector": "clip"}
+#: L of proposed_oa, measured on seeds 100-119 (hil bench identify's seeds 1-20 are for reporting):
+#: L = 6 / 7 / 8 / 10 gave median RT 28.7 / 33.3 / 32.0 / 40.0 % (FFCC-a) and peak errors within
+#: 3 % / 10 % in 30 / 45 / 65 / 70 % of seeds; 8 is the shortest L whose accuracy is near the plateau.
+OA_WINDOW_SAMPLES = 8
 
 
 class ProposedOaStrategy(ObserverAwareMixin, ProposedStrategy):
@@ -199,6 +206,8 @@ class ProposedOaStrategy(ObserverAwareMixin, ProposedStrategy):
     def __init__(self, settings, seed: int = 0):
         super().__init__(settings, seed)
         self._init_oa()
+        if "window_samples" not in self.options:
+            self.window_samples = OA_WINDOW_SAMPLES
         n = self.n_particles
         self._eta = np.zeros(n)
         self._rho = np.zeros(n)
@@ -209,7 +218,7 @@ class ProposedOaStrategy(ObserverAwareMixin, ProposedStrategy):
 
     def preliminary_fit(self, window_v, window_mu):
         return fit_curve_oa(self.oa_model, window_v, window_mu, self._rho0, self._eta0, self.theta,
-                            self.prelim_radius())
+                            self.prelim_radius(), self.opts["prelim_solver"], int(self.opts["prelim_iterations"]))
 
     def _after_prelim(self) -> None:
         super()._after_prelim()
