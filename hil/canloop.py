@@ -43,7 +43,7 @@ from .loop import LAG_WINDOW_S, PlantSide, log_path, start_recording
 from .progress import Progress
 from .scenario import ScenarioError
 from .summary import clean, observer_lag_ms, summarise
-from .tcu_process import PeerSilent, Sender, TcuNode, silence_limit_s
+from .tcu_process import PeerSilent, Sender, TcuNode, heartbeat_period_s, silence_limit_s
 
 LOAD_WARN_PERCENT = 70.0
 CHILD_EXIT_TIMEOUT_S = 20.0
@@ -112,6 +112,7 @@ class PlantNode:
         self.child = child
         self.watch_silence = watch_silence
         self.silence_s = silence_limit_s(settings, mode, self.period_s)
+        self.heartbeat_s = heartbeat_period_s(settings, mode)
         self.rejected = RejectCounter()
         self.commands: dict[int, TorqueCommand] = {}
         self.awaited = -1
@@ -156,7 +157,9 @@ class PlantNode:
     def _heartbeat_if_due(self, now: float) -> None:
         if now >= self.next_hb:
             self.heartbeat(STATE_RUNNING)
-            self.next_hb = max(self.next_hb + self.settings.heartbeat_period_s, now)
+            self.next_hb += self.heartbeat_s
+            if self.next_hb <= now:           # fell behind (or the first one): restart the schedule
+                self.next_hb = now + self.heartbeat_s
 
     def on_rx(self, msg) -> None:
         wall_ns = time.time_ns()
@@ -268,8 +271,8 @@ class PlantNode:
             now = time.perf_counter()
             if now >= self.next_hb:
                 self.heartbeat(STATE_STARTING)
-                self.next_hb = now + self.settings.heartbeat_period_s
-            msg = self.bus.recv(timeout=self.settings.heartbeat_period_s)
+                self.next_hb = now + min(self.heartbeat_s, 0.05)
+            msg = self.bus.recv(timeout=min(self.heartbeat_s, 0.05))
             if msg is not None:
                 self.on_rx(msg)
             self.check_alive()

@@ -177,6 +177,12 @@ def silence_limit_s(settings, mode: str, period_s: float) -> float:
     return settings.lockstep_silence_s
 
 
+def heartbeat_period_s(settings, mode: str) -> float:
+    """Realtime: ``[bus] heartbeat_period_s``.  Lockstep: a quarter of the silence limit (the peers wait
+    for each other by design; frequent heartbeats would only cost syscalls, which are dear in UML)."""
+    return settings.heartbeat_period_s if mode == "realtime" else settings.lockstep_silence_s / 4
+
+
 def build_parser(prog="python -m hil.tcu_process") -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog=prog, description="The identifier (TCU) alone on a bus.")
     add_arguments(p)
@@ -220,7 +226,7 @@ def run_tcu(args) -> int:
     code = EXIT_OK
     try:
         serve(handle.bus, node, silence_s=silence_limit_s(settings, args.mode, period),
-              heartbeat_period_s=settings.heartbeat_period_s,
+              heartbeat_period_s=heartbeat_period_s(settings, args.mode),
               startup_timeout_s=settings.startup_timeout_s if args.wait is None else args.wait)
         if node.plant_state == STATE_FAULT:
             print(f"hil tcu: the plant reported a fault after step {node.last_step}", file=sys.stderr)

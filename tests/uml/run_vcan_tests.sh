@@ -68,11 +68,15 @@ mkdir -p "$DIR/tmp"
 # the job: pytest -m vcan with the host's virtualenv Python, arguments quoted for sh
 args=""
 for a in "$@"; do args="$args '$(printf %s "$a" | sed "s/'/'\\\\''/g")'"; done
-echo "exec '$PY' -m pytest -m vcan -p no:cacheprovider $args" > "$DIR/job.sh"
+if [ -n "${HIL_UML_JOB:-}" ]; then      # debugging: run this shell script inside UML instead of pytest
+  cp "$HIL_UML_JOB" "$DIR/job.sh"
+else
+  echo "exec '$PY' -m pytest -m vcan -p no:cacheprovider $args" > "$DIR/job.sh"
+fi
 
 echo "== vcan tests inside User-Mode Linux $KVER (this kernel has no vcan0)" >&2
 start=$(date +%s)
-timeout "$UML_TIMEOUT_S" "$LINUX" mem=1G rootfstype=hostfs rootflags=/ rw \
+timeout -k 10 "$UML_TIMEOUT_S" "$LINUX" mem=1G rootfstype=hostfs rootflags=/ rw \
   init="$ROOT/tests/uml/uml_init.sh" HIL_UML_DIR="$DIR" con=null con0=fd:0,fd:1 \
   < /dev/null > "$DIR/console.log" 2>&1
 uml_rc=$?

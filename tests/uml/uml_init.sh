@@ -8,7 +8,7 @@ LOG=$DIR/init.log
 {
   mount -t proc proc /proc
   mount -t sysfs sysfs /sys
-  mount -t tmpfs -o size=256m tmpfs /dev/shm     # multiprocessing needs a writable /dev/shm
+  [ -d /dev/shm ] && mount -t tmpfs -o size=256m tmpfs /dev/shm   # multiprocessing needs a writable /dev/shm
   ip link set lo up
   M=/usr/lib/uml/modules/$(uname -r)/kernel
   for mod in drivers/net/can/dev/can-dev.ko net/can/can.ko net/can/can-raw.ko drivers/net/can/vcan.ko; do

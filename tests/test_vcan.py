@@ -1,0 +1,182 @@
+"""The HIL on real SocketCAN vcan0, with can-utils as a real third node on the bus.
+
+Run with ``tests/uml/run_vcan_tests.sh`` (natively where the kernel has vcan0, otherwise inside
+User-Mode Linux).  Under CI=true these tests fail instead of skipping when vcan0 or can-utils are
+missing; elsewhere the skip says exactly why.
+"""
+import json
+import math
+import os
+import shutil
+import signal
+import struct
+import subprocess
+import time
+
+import can
+import pytest
+
+from hil.bus import open_bus, vcan_available
+from hil.frames import load_dbc
+from hil.logread import read_log
+
+from .conftest import ROOT, hil_command, subprocess_env
+from .test_bus import FFCC_A, data_streams, identification, run_json
+
+pytestmark = pytest.mark.vcan
+
+
+@pytest.fixture(scope="module", autouse=True)
+def vcan0():
+    ok, why = vcan_available("vcan0")
+    missing = [t for t in ("candump", "cansend") if shutil.which(t) is None]
+    if ok and not missing:
+        return
+    reason = (f"needs SocketCAN vcan0 ({why})" if not ok else f"needs can-utils ({', '.join(missing)} not found)") \
+        + "; tests/uml/run_vcan_tests.sh runs these inside User-Mode Linux"
+    if os.environ.get("CI") == "true":
+        pytest.fail(f"CI=true: the vcan tests must run, but this machine {reason}")
+    pytest.skip(reason)
+
+
+def parse_candump(text):
+    """``candump -L`` lines -> [(id, extended, fd, remote, data)]."""
+    out = []
+    for line in text.splitlines():
+        parts = line.split()
+        if len(parts) != 3:
+            continue
+        frame = parts[2]
+        if "##" in frame:
+            ident, rest = frame.split("##", 1)
+            data, fd = bytes.fromhex(rest[1:]), True
+        else:
+            ident, rest = frame.split("#", 1)
+            fd = False
+            data = b"" if rest.startswith("R") else bytes.fromhex(rest)
+        out.append((int(ident, 16), len(ident) == 8, fd, rest.startswith("R"), data))
+    return out
+
+
+def test_inprocess_hub_and_vcan_give_identical_frames_and_identification(tmp_path):
+    runs = {}
+    for bus in ("inprocess", "hub", "auto"):
+        out = tmp_path / bus
+        s, err = run_json(FFCC_A, bus, out)
+        runs[bus] = (s, out / "ffcc_a-nlls-1.mcap")
+    s_vcan, path_vcan = runs["auto"]
+    assert s_vcan["bus"] == "socketcan:vcan0"           # auto picks vcan0 where the kernel has it
+    s_in, path_in = runs["inprocess"]
+    assert s_in["identified"]
+    streams = data_streams(path_in)
+    assert len(streams[0]) == 1000
+    for bus in ("hub", "auto"):
+        s, path = runs[bus]
+        assert identification(s) == identification(s_in), bus
+        assert data_streams(path) == streams, bus
+    print("\nlockstep FFCC-a, sim s per wall s: " + ", ".join(
+        f"{runs[b][0]['bus']} {runs[b][0]['sim_s'] / runs[b][0]['wall_s']:.2f}" for b in runs))
+
+
+def test_candump_records_the_run_and_the_dbc_decodes_it_to_the_mcap_values(tmp_path):
+    # candump writes to a file: a pipe nobody reads would block it and the socket would drop frames
+    with open(tmp_path / "candump.log", "w") as f:
+        dump = subprocess.Popen(["candump", "-L", "vcan0"], stdout=f)
+        try:
+            time.sleep(0.3)
+            s, _ = run_json(FFCC_A, "socketcan:vcan0", tmp_path)
+            time.sleep(0.3)
+        finally:
+            dump.send_signal(signal.SIGINT)
+            dump.wait(timeout=10)
+    dumped = parse_candump((tmp_path / "candump.log").read_text())
+    log = read_log(tmp_path / "ffcc_a-nlls-1.mcap")
+    frames = log.topic("/can/frames")
+    # every frame the plant sent or received is on the wire, and nothing else is (per id, in order)
+    by_id_mcap, by_id_dump = {}, {}
+    for f in frames:
+        by_id_mcap.setdefault(f.arbitration_id, []).append(f.data)
+    for ident, ext, fd, remote, data in dumped:
+        assert fd and not ext and not remote
+        by_id_dump.setdefault(ident, []).append(data)
+    for ident in sorted(set(by_id_dump) | set(by_id_mcap)):
+        a, b = by_id_dump.get(ident, []), by_id_mcap.get(ident, [])
+        first = next((i for i, (x, y) in enumerate(zip(a, b)) if x != y), None)
+        assert a == b, f"id 0x{ident:X}: candump {len(a)} frames, MCAP {len(b)}, first difference at {first}"
+    assert len(by_id_dump[0x100]) == 1000 and len(by_id_dump[0x110]) == 1000
+    # the DBC decodes the wire frames to the values the MCAP holds
+    db = load_dbc()
+    sensors = [db.decode_message(0x100, d) for d in by_id_dump[0x100]]
+    recorded = log.topic("/plant/sensor")
+    assert [d["MotorSpeed"] for d in sensors] == [m.motor_speed_rad_s for m in recorded]
+    assert [d["TrainSpeed"] for d in sensors] == [m.train_speed_ms for m in recorded]
+    assert [d["SensorStep"] for d in sensors] == [m.step for m in recorded]
+    status = [db.decode_message(0x120, d) for d in by_id_dump[0x120]]
+    observer = log.topic("/tcu/observer")
+    assert [d["MuHat"] for d in status if d["ObserverValid"]] == [m.mu_hat for m in observer]
+    assert [d["CreepSpeed"] for d in status if d["ObserverValid"]] == [m.creep_speed_kmh for m in observer]
+    results = [db.decode_message(0x130, d, decode_choices=False) for d in by_id_dump[0x130]]
+    events = log.topic("/tcu/identification")
+    assert len(results) == len(events) > 0
+    assert [[r[f"Param{i}"] for i in range(r["ParamCount"])] for r in results] == [list(e.params) for e in events]
+    assert sum(r["ResultKind"] == 0 for r in results) == s["corrections"]
+
+
+def _fd_hex(data: bytes) -> str:
+    return data.hex().upper()
+
+
+GARBAGE = [
+    "123#DEADBEEF",                                                          # unknown id
+    "1FFFFFFF#00",                                                           # extended id
+    "100#0011223344556677",                                                  # sensor id, classic 8 bytes
+    "100##1" + _fd_hex(struct.pack("<Idd", 7, math.nan, 10.0) + bytes(4)),   # NaN motor speed
+    "100##1" + _fd_hex(struct.pack("<Idd", 7, 60.0, math.inf) + bytes(4)),   # inf train speed
+    "100##1" + _fd_hex(struct.pack("<Idd", 7, 1e7, 10.0) + bytes(4)),        # out of range
+    "110##1" + _fd_hex(struct.pack("<Id", 7, 1e12)),                         # torque out of range
+    "120##1" + _fd_hex(struct.pack("<IBBHddd", 7, 9, 1, 0, 0.1, 1.0, 0.0)),  # stage 9
+    "701#R",                                                                 # remote frame
+    "702##1" + "00" * 12,                                                    # heartbeat, wrong length
+]
+
+
+def test_cansend_garbage_during_a_run_is_counted_and_the_run_still_identifies(tmp_path):
+    # a 2 s run (fault at 1.5 s): long enough for 30 cansend calls while both nodes are on the bus
+    args = [*FFCC_A, "--set", "run.duration_s=2.0", "--set", "run.fault_time_s=1.5"]
+    ref, _ = run_json(args, "inprocess", tmp_path / "ref")
+    watch = open_bus("socketcan:vcan0")
+    proc = subprocess.Popen(hil_command() + ["run", *args, "--bus", "socketcan:vcan0", "--out", str(tmp_path),
+                                             "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=subprocess_env(), cwd=ROOT)
+    try:
+        end = time.monotonic() + 120
+        while True:                 # the first sensor frame: plant and TCU are both on the bus
+            m = watch.bus.recv(0.5)
+            if m is not None and m.arbitration_id == 0x100:
+                break
+            assert time.monotonic() < end and proc.poll() is None, "the run never started"
+        sent = 0
+        for _ in range(3):
+            for frame in GARBAGE:
+                subprocess.run(["cansend", "vcan0", frame], check=True, timeout=30)
+                sent += 1
+        still_running = proc.poll() is None
+        out, err = proc.communicate(timeout=600)
+    finally:
+        watch.close()
+        if proc.poll() is None:
+            proc.kill()
+    assert still_running, "the run ended before all garbage was sent: the test proves nothing"
+    assert proc.returncode == 0, err
+    s = json.loads(out)
+    assert s["identified"]
+    assert identification(s) == identification(ref)
+    assert sum(s["rejected_frames"].values()) == sent == 3 * len(GARBAGE)
+    assert sum(s["tcu_rejected_frames"].values()) == sent
+    assert s["tcu_rejected_readings"] == 0
+    assert s["rejected_frames"]["non_finite:MotorSpeed"] == 3 and s["rejected_frames"]["remote_frame"] == 3
+    rejected = [f for f in read_log(tmp_path / "ffcc_a-nlls-1.mcap", {"/can/frames"}).topic("/can/frames")
+                if f.status not in ("ok", "late")]
+    assert len(rejected) == sent
+    print(f"\ncansend garbage: {sent} frames sent, plant counted {sum(s['rejected_frames'].values())}, "
+          f"TCU counted {sum(s['tcu_rejected_frames'].values())}, exit {proc.returncode}")
