@@ -45,7 +45,9 @@ def text_summary(out: dict) -> str:
         for key in ("real", "nominal_replay", "augmented_replay"):
             if key in ident:
                 r = ident[key]
-                lines.append(f"    {r['source']:32s} RT {_f(r.get('rt_percent'), '.1f')} %  peak mu "
+                rng = r.get("rt_percent_range")
+                rt_rng = f" [{_f(rng[0], '.0f')}-{_f(rng[1], '.0f')}]" if rng else ""
+                lines.append(f"    {r['source']:32s} RT {_f(r.get('rt_percent'), '.1f')} %{rt_rng}  peak mu "
                              f"{_f(r.get('peak_mu'), '.4f')} (err {_f(r.get('peak_mu_err_percent'), '.2f')} %)  "
                              f"peak creep {_f(r.get('peak_creep_kmh'), '.3f')} km/h "
                              f"(err {_f(r.get('peak_creep_err_percent'), '.2f')} %)")
