@@ -155,6 +155,7 @@ def write_report(out: dict, dg, directory) -> Path:
             r = ident.get(key)
             if r and r.get("params"):
                 ax.plot(grid, mu_model(grid, np.asarray(r["params"])), color=style, ls="--", label=r["source"])
+        ax.set_ylim(-0.02, 1.6 * sc.fault_curve.peak()[1])   # an identified curve can dive near 0 creep
         ax.set_xlabel("creep speed [km/h]")
         ax.set_ylabel("mu")
         ax.legend(fontsize=8)
