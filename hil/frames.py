@@ -182,11 +182,12 @@ def fd_frame_time_s(data_len: int, bitrate: int, data_bitrate: int, brs: bool = 
     """Worst-case duration (s) of one CAN FD base-format (11-bit id) data frame with ``data_len`` bytes.
 
     Arbitration phase at ``bitrate``: SOF, 11-bit id, RRS, IDE, FDF, res, BRS (17 bits) plus the
-    closing CRC delimiter, ACK slot, ACK delimiter, 7-bit EOF and 3-bit intermission (13 bits);
-    dynamic bit stuffing (1 in 5 worst case... here 1 per 4 bits) applies to the arbitration header.
+    closing CRC delimiter, ACK slot, ACK delimiter, 7-bit EOF and 3-bit intermission (13 bits).
     Data phase at ``data_bitrate`` (``bitrate`` without BRS): ESI, 4-bit DLC, data, 4-bit stuff
-    count with parity, CRC-17 (<= 16 bytes) or CRC-21, fixed stuff bits every 4 bits of the CRC
-    field, and dynamic stuffing of ESI+DLC+data (worst case 1 per 4 bits).
+    count with parity, CRC-17 (<= 16 bytes) or CRC-21, and a fixed stuff bit every 4 bits of the
+    stuff-count + CRC field.  Dynamic stuffing is taken at its worst case, one stuff bit per 4 bits
+    after the first (as in the classic ``(34 + 8n - 1) / 4`` bound), on the arbitration header and
+    on ESI + DLC + data.
     """
     arb = 17 + (17 - 1) // 4
     crc = 17 if data_len <= 16 else 21

@@ -261,6 +261,8 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("hil tcu: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)   # a SIGTERM while exiting just ends the process
 
 
 if __name__ == "__main__":
