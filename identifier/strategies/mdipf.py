@@ -32,8 +32,17 @@ Choices the paper leaves open (alternatives behind options):
   (``j_ef_from_prelim``); with False the first J_EF is at Q = 2 (one window later).
 - between corrections the cloud is re-centred on the new theta (chi <- chi - chi^_Q), so it keeps
   its learnt spread and weights; ``reset_cloud`` re-draws it from the initial spread instead.
-- the transition noise is drawn ahead in blocks of ``noise_block`` samples (one large draw costs
-  far less than many small ones); the first block is drawn when the strategy is built.
+- random numbers are drawn when the strategy is built (before the fault, when the TCU is idle):
+  the first ``noise_block`` samples' transition noise and the initial cloud, in the order the
+  filter would have drawn them (so results are unchanged); past the block, one draw per sample
+  (no burst of a whole block on one sample; runs that long now draw a different stream).
+- the cloud is kept in Fortran order, so ``particles.T`` (P, N) has contiguous rows and every
+  pass over it in identifier/pf.py is contiguous (same results to the last bit on the bench).
+- ``prelim_solver``: "trf" (scipy trust-region-reflective, default) or "lm" (``nlls.bounded_lm``,
+  numpy, <= ``prelim_iterations``).  Measured on seeds 100-119 for ``proposed``: LM(10) cuts the
+  window-end p99 from ~9 ms to ~1.7 ms but the 6-sample problem is a flat valley and LM stops
+  elsewhere in it: peak errors within 3 %/10 % fell from 30/60 % of seeds to 10/10 %, so the
+  default stays "trf".
 """
 from __future__ import annotations
 
