@@ -59,7 +59,7 @@ class BusSettings:
     silence_periods: int = 3              # realtime: peer silent after this many heartbeat periods
     lockstep_silence_s: float = 1.0       # lockstep: peer silent after this many wall seconds
     startup_timeout_s: float = 60.0       # wait for the other side's first frame
-    deadline_fraction: float = 0.75       # realtime: the command is due this far into the period
+    deadline_fraction: float = 0.9        # realtime: the command is due this far into the period
     rt_priority: int = 0                  # realtime: SCHED_FIFO priority for plant, hub and TCU (0: off)
 
 

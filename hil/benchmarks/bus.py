@@ -1,0 +1,96 @@
+"""``hil bench bus``: the same lockstep run over several buses (identical frames? identical
+identification? simulated seconds per wall second), and optionally a real-time run's timing."""
+from __future__ import annotations
+
+import hashlib
+import json
+import sys
+import tempfile
+
+from ..scenario import load_scenario
+
+IDENT_KEYS = ("identified", "t_identified_s", "corrections", "params", "samples", "mse", "r2", "observer_lag_ms")
+HEARTBEAT_IDS = (0x701, 0x702)
+
+
+def register(sub) -> None:
+    p = sub.add_parser("bus", help="lockstep over several buses: identical frames and identification, speed; "
+                       "optionally real time")
+    p.add_argument("scenario", nargs="?", default="scenarios/ffcc_a.toml")
+    p.add_argument("--buses", default="inprocess,hub,auto", help="comma-separated bus specs (default "
+                   "inprocess,hub,auto)")
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--strategy", default="nlls")
+    p.add_argument("--realtime-seconds", type=float, default=0.0,
+                   help="also run this many seconds in real time over --realtime-bus (fault 0.5 s before the end)")
+    p.add_argument("--realtime-bus", default="hub")
+    p.add_argument("--set", action="append", metavar="TABLE.KEY=VALUE", help="scenario override (all runs)")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_bus)
+
+
+def stream_digest(mcap_path) -> dict:
+    """sha256 of the (id, payload) sequence of valid non-heartbeat frames, sent and received."""
+    from ..logread import read_log
+
+    frames = read_log(mcap_path, {"/can/frames"}).topic("/can/frames")
+    out = {}
+    for direction in ("tx", "rx"):
+        h = hashlib.sha256()
+        n = 0
+        for f in frames:
+            if f.direction == direction and f.status == "ok" and f.arbitration_id not in HEARTBEAT_IDS:
+                h.update(f.arbitration_id.to_bytes(4, "little") + len(f.data).to_bytes(1, "little") + f.data)
+                n += 1
+        out[direction] = {"frames": n, "sha256": h.hexdigest()[:16]}
+    return out
+
+
+def cmd_bus(args) -> int:
+    from ..canloop import run_can
+    from ..commands.run import parse_set
+
+    sets = list(args.set or [])
+    scenario = load_scenario(args.scenario, parse_set(sets))
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for i, bus in enumerate(b.strip() for b in args.buses.split(",") if b.strip()):
+            s = run_can(scenario, args.strategy, args.seed, bus=bus, out_dir=f"{tmp}/{i}", progress=False,
+                        set_args=sets, log=lambda text: None)
+            rows.append({"bus": s["bus"], "sim_s_per_wall_s": s["sim_s"] / s["wall_s"], "wall_s": s["wall_s"],
+                         "round_trip_p50_us": s["round_trip_p50_us"], "round_trip_p99_us": s["round_trip_p99_us"],
+                         "streams": stream_digest(s["mcap"]), "identification": {k: s[k] for k in IDENT_KEYS}})
+        rt = None
+        if args.realtime_seconds > 0:
+            d = args.realtime_seconds
+            rt_sets = sets + [f"run.duration_s={d}", f"run.fault_time_s={max(d - 0.5, 0.1)}"]
+            s = run_can(load_scenario(args.scenario, parse_set(rt_sets)), args.strategy, args.seed,
+                        bus=args.realtime_bus, mode="realtime", out_dir=f"{tmp}/rt", progress=False,
+                        set_args=rt_sets, log=lambda text: print(text, file=sys.stderr))
+            rt = {k: s.get(k) for k in ("bus", "sim_s", "wall_s", "missed_deadlines", "jitter_p99_us", "jitter_max_us",
+                                        "lateness_p99_us", "round_trip_p50_us", "round_trip_p99_us", "late_commands",
+                                        "identified")}
+    first = rows[0]
+    for r in rows:
+        r["same_frames_as_first"] = r["streams"] == first["streams"]
+        r["same_identification_as_first"] = r["identification"] == first["identification"]
+    result = {"scenario": scenario.name, "seed": args.seed, "lockstep": rows, "realtime": rt}
+    if args.json:
+        print(json.dumps(result))
+        return 0
+    print(f"{scenario.name} seed {args.seed}, lockstep:")
+    for r in rows:
+        st = r["streams"]
+        print(f"  {r['bus']:<18} {r['sim_s_per_wall_s']:6.2f} sim s/wall s  round trip p50 "
+              f"{r['round_trip_p50_us']:7.0f} us  tx {st['tx']['frames']} frames {st['tx']['sha256']}  "
+              f"rx {st['rx']['frames']} frames {st['rx']['sha256']}  same frames: "
+              f"{'yes' if r['same_frames_as_first'] else 'NO'}  same identification: "
+              f"{'yes' if r['same_identification_as_first'] else 'NO'}")
+    ident = first["identification"]
+    print(f"  identification ({first['bus']}): identified {ident['identified']} at {ident['t_identified_s']} s "
+          f"after {ident['corrections']} corrections")
+    if rt:
+        print(f"realtime {rt['sim_s']:.1f} s over {rt['bus']}: missed deadlines {rt['missed_deadlines']}, jitter p99 "
+              f"{rt['jitter_p99_us']:.0f} us (max {rt['jitter_max_us']:.0f}), round trip p50 "
+              f"{rt['round_trip_p50_us']:.0f} us p99 {rt['round_trip_p99_us']:.0f} us")
+    return 0
