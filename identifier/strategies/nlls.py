@@ -105,6 +105,66 @@ def fit_curve_lm(creep_speed_kmh, mu_samples, theta0, radius=None, iterations: i
     return bounded_lm(fun, theta0, lo, hi, iterations)
 
 
+def fit_curve_grid(creep_speed_kmh, mu_samples, theta0, radius, grid: int = 5, polish: int = 3,
+                   transform=None, offset=None) -> np.ndarray:
+    """The bounded fit of ``fit_curve`` by variable projection on a grid, then a short LM polish.
+
+    For fixed tau the model is linear in lambda, so on a ``grid`` x ``grid`` lattice of tau inside
+    the box (theta0 +- radius) each lambda is one batched 3x3 solve (coordinates that land outside
+    their bounds are clipped and the others re-solved once: an active-set pass).  The best lattice
+    point starts ``polish`` iterations of ``bounded_lm`` on all parameters.  A few hundred
+    microseconds in numpy and no worse a minimum than scipy's solver on the bench's first windows
+    (the problem is a flat valley: many thetas fit six samples equally well).
+
+    ``transform`` (S, S) and ``offset`` (S,): fit ``transform @ M(v; theta) + offset`` instead of
+    M (the observer-aware model's linear map)."""
+    v = np.asarray(creep_speed_kmh, float)
+    y = np.asarray(mu_samples, float)
+    theta0 = np.asarray(theta0, float)
+    n = (theta0.size - 1) // 2
+    lo, hi = parameter_bounds(n)
+    if radius is not None:
+        lo, hi = np.maximum(lo, theta0 - radius), np.minimum(hi, theta0 + radius)
+    K = np.eye(v.size) if transform is None else np.asarray(transform, float)
+    f = np.zeros(v.size) if offset is None else np.asarray(offset, float)
+    target = y - f
+    axes = [np.linspace(lo[1 + n + i], hi[1 + n + i], grid) for i in range(n)]
+    taus = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, n)       # (G, n)
+    phi = np.concatenate([np.ones((taus.shape[0], v.size, 1)),
+                          np.exp(taus[:, None, :] * v[None, :, None])], axis=2)      # (G, S, 1+n)
+    kphi = np.einsum("st,gtj->gsj", K, phi)                                          # (G, S, 1+n)
+    a = np.einsum("gsi,gsj->gij", kphi, kphi)
+    b = np.einsum("gsi,s->gi", kphi, target)
+    ridge = 1e-12 * np.trace(a, axis1=1, axis2=2)[:, None, None] * np.eye(1 + n)
+    lam = np.linalg.solve(a + ridge, b[..., None])[..., 0]                           # (G, 1+n)
+    llo, lhi = lo[:1 + n], hi[:1 + n]
+    out = (lam < llo) | (lam > lhi)
+    if out.any():                                  # one active-set pass: clip, re-solve the free ones
+        fixed = np.clip(lam, llo, lhi)
+        free = ~out
+        bb = b - np.einsum("gij,gj->gi", a, np.where(free, 0.0, fixed))
+        aa = np.where(free[:, :, None] & free[:, None, :], a, 0.0) + np.eye(1 + n) * (~free)[:, :, None] + ridge
+        lam = np.where(free, np.linalg.solve(aa, np.where(free, bb, 0.0)[..., None])[..., 0], fixed)
+        lam = np.clip(lam, llo, lhi)
+    resid = np.einsum("gsj,gj->gs", kphi, lam) - target[None, :]
+    cost = np.einsum("gs,gs->g", resid, resid)
+    cost[~np.isfinite(cost)] = np.inf
+    best = int(np.argmin(cost))
+    start = np.r_[lam[best], taus[best]]
+    if polish <= 0:
+        return start
+    jac = np.empty((v.size, theta0.size))
+    jac[:, 0] = 1.0
+
+    def fun(th):
+        e = np.exp(np.outer(v, th[1 + n:]))
+        jac[:, 1:1 + n] = e
+        jac[:, 1 + n:] = e * th[1:1 + n] * v[:, None]
+        return K @ (th[0] + e @ th[1:1 + n]) - target, K @ jac
+
+    return bounded_lm(fun, start, lo, hi, polish)
+
+
 class NllsStrategy(Strategy):
     """Refit on every sample so far, at the end of every window (the paper's NLLS baseline)."""
 

@@ -48,7 +48,7 @@ from scipy.optimize import least_squares
 
 from .. import pf
 from ..curve import jacobian, mu_model
-from .nlls import NllsStrategy, bounded_lm, parameter_bounds
+from .nlls import NllsStrategy, bounded_lm, fit_curve_grid, parameter_bounds
 from .proposed import PROPOSED_DEFAULTS, ProposedStrategy
 
 
@@ -106,9 +106,10 @@ class ObserverAwareModel:
 
 
 def fit_curve_oa(model: ObserverAwareModel, v, mu, rho0: float, eta0: float, theta0, radius=None,
-                 solver: str = "trf", iterations: int = 10) -> np.ndarray:
+                 solver: str = "trf", iterations: int = 8, grid: int = 5) -> np.ndarray:
     """NLLS of mu^ against mu^_pred(theta) (``nlls.fit_curve`` with the observer-aware residual;
-    same bounds).  ``solver``: "trf" (scipy) or "lm" (``nlls.bounded_lm``, ``iterations`` at most)."""
+    same bounds).  ``solver``: "trf" (scipy), "grid" (``nlls.fit_curve_grid``: variable projection
+    on a tau lattice + ``iterations`` LM steps; needs ``radius``) or "lm" (``nlls.bounded_lm``)."""
     v = np.asarray(v, float)
     y = np.asarray(mu, float)
     theta0 = np.asarray(theta0, float)
@@ -118,6 +119,8 @@ def fit_curve_oa(model: ObserverAwareModel, v, mu, rho0: float, eta0: float, the
     lin, fr, fe = model.matrices(v.size)
     free = rho0 * fr + eta0 * fe - y
     start = np.clip(theta0, lo + 1e-9, hi - 1e-9)
+    if solver == "grid" and radius is not None:
+        return fit_curve_grid(v, y, theta0, radius, grid, iterations, transform=lin, offset=rho0 * fr + eta0 * fe)
     if solver == "lm":
         return bounded_lm(lambda th: (lin @ mu_model(v, th) + free, lin @ jacobian(v, th)), start, lo, hi, iterations)
     res = least_squares(lambda th: lin @ mu_model(v, th) + free, start, jac=lambda th: lin @ jacobian(v, th),
@@ -218,7 +221,8 @@ class ProposedOaStrategy(ObserverAwareMixin, ProposedStrategy):
 
     def preliminary_fit(self, window_v, window_mu):
         return fit_curve_oa(self.oa_model, window_v, window_mu, self._rho0, self._eta0, self.theta,
-                            self.prelim_radius(), self.opts["prelim_solver"], int(self.opts["prelim_iterations"]))
+                            self.prelim_radius(), self.opts["prelim_solver"], int(self.opts["prelim_iterations"]),
+                            int(self.opts["prelim_grid"]))
 
     def _after_prelim(self) -> None:
         super()._after_prelim()

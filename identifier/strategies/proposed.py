@@ -106,7 +106,7 @@ class ProposedRawStrategy(ProposedStrategy):
     corrections and the best RT of the half-widths tried)."""
 
     name = "proposed_raw"
-    defaults = {**PROPOSED_DEFAULTS, "stabiliser": "raw", "box_halfwidth": [0.002, 0.01, 0.015]}
+    defaults = {**PROPOSED_DEFAULTS, "stabiliser": "raw", "box_halfwidth": [0.002, 0.01, 0.015], "prelim_solver": "trf"}
 
 
 class ProposedFastStrategy(ProposedStrategy):
