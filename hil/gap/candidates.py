@@ -82,16 +82,17 @@ class Context:
 
 # -- candidates --------------------------------------------------------------------------------------
 #: the measured initial state is a nuisance pair fitted with every model (nominal included), within
-#: these bounds around the straight-line estimate (rad/s, m/s), scaled by these typical sizes
-X0_BOUND = np.array([0.1, 0.02])
-X0_SCALE = np.array([0.005, 0.002])
+#: X0_BOUND sensor-noise standard deviations of the straight-line estimate over the first 20 ms (whose
+#: own error is about half a standard deviation)
+X0_BOUND = 5.0
 
 
-def _fit_ls(resid, u0, lo, hi, scale, starts=None):
+def _fit_ls(resid, u0, lo, hi, scale, starts=None, sigma=None):
     """least_squares over u = (parameters, dx0) from each start; the best result."""
-    lo = np.concatenate([lo, -X0_BOUND])
-    hi = np.concatenate([hi, X0_BOUND])
-    scale = np.concatenate([scale, X0_SCALE])
+    s = np.array([sigma["motor"], sigma["train"]])
+    lo = np.concatenate([lo, -X0_BOUND * s])
+    hi = np.concatenate([hi, X0_BOUND * s])
+    scale = np.concatenate([scale, s])
     best = None
     for u in (starts if starts is not None else [u0]):
         u = np.clip(np.concatenate([u, np.zeros(2)]) if len(u) == len(lo) - 2 else u, lo, hi)
@@ -110,7 +111,7 @@ def fit_nominal(ctx: Context) -> Fit:
         motor, train = sim.run([], ctx.x0 + u, torque)
         return ctx.residuals(ctx.predict(motor, train), ctx.sigma_nom, ctx.train)
 
-    r = _fit_ls(resid, np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0), [np.zeros(2)])
+    r = _fit_ls(resid, np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0), [np.zeros(2)], ctx.sigma_nom)
     x0 = ctx.x0 + r.x
     motor, train = sim.run([], x0, torque)
     pred = ctx.predict(motor, train)
@@ -136,7 +137,7 @@ class PlantCandidate:
         np_ = len(self.fit_params)
         lo = np.array([math.log(v) if lg else v for v, lg in zip(self.lo, self.log)])
         hi = np.array([math.log(v) if lg else v for v, lg in zip(self.hi, self.log)])
-        x0_nom = np.array(nominal.extra["x0"])
+        x0_nom = ctx.x0   # the measured line, not the nominal fit's (which may bend to hide the gap)
 
         def theta_of(u):
             return np.array([math.exp(v) if lg else v for v, lg in zip(u[:np_], self.log)])
@@ -156,7 +157,7 @@ class PlantCandidate:
         costs = [float(np.sum(resid(u) ** 2)) for u in mesh]
         order = np.argsort(costs)
         starts = [np.concatenate([mesh[i], np.zeros(2)]) for i in order[:2]]
-        best = _fit_ls(resid, None, lo, hi, np.maximum(hi - lo, 1e-9) / 10, starts)
+        best = _fit_ls(resid, None, lo, hi, np.maximum(hi - lo, 1e-9) / 10, starts, ctx.sigma_nom)
         theta = theta_of(best.x)
         x0 = x0_nom + best.x[np_:]
         motor, train = sim.run(theta, x0, torque)
@@ -176,7 +177,7 @@ class SensorDelayCandidate:
     def fit(self, ctx: Context, nominal: Fit) -> Fit:
         sim = ctx.simulator(None, (), {})
         torque = ctx.data.torque_cmd_nm
-        x0_nom = np.array(nominal.extra["x0"])
+        x0_nom = ctx.x0
         T = ctx.data.period_s
 
         def pred_of(u):
@@ -190,7 +191,7 @@ class SensorDelayCandidate:
         costs = [float(np.sum(resid(np.array([d, 0.0, 0.0])) ** 2)) for d in grid]
         d0 = grid[int(np.argmin(costs))]
         best = _fit_ls(resid, None, np.array([0.0]), np.array([self.max_periods]), np.array([1.0]),
-                       [np.array([d0, 0.0, 0.0])])
+                       [np.array([d0, 0.0, 0.0])], ctx.sigma_nom)
         pred, (motor, train) = pred_of(best.x)
         d = float(best.x[0])
         x0 = x0_nom + ctx.x0_slope * d * T + best.x[1:]
@@ -264,36 +265,85 @@ class CanCandidate:
         return Fit(self.name, params, 3, pred, dict(ctx.sigma_nom), math.nan, note, extra)
 
 
+def quantised_expectation(m, q: float, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """(E, Var) of round((m + n) / q) * q with n ~ N(0, sigma^2), elementwise: a smoothed staircase."""
+    from scipy.special import ndtr
+
+    s = max(sigma, 1e-12)
+    k0 = np.round(m / q)
+    ks = k0[:, None] + np.arange(-4, 5)[None, :]
+    p = ndtr(((ks + 0.5) * q - m[:, None]) / s) - ndtr(((ks - 0.5) * q - m[:, None]) / s)
+    e = q * np.sum(p * ks, axis=1)
+    v = np.maximum(q * q * np.sum(p * ks * ks, axis=1) - e * e, 0.0)
+    return e, v
+
+
 @dataclass(frozen=True)
 class QuantisationCandidate:
+    """Speed sensors quantised.  The quantum comes from the lattice the measured values sit on; the
+    prediction is the expected quantised value of the nominal model's speed plus the sensor noise
+    (a staircase, smoothed by the noise), and the noise floor the quantiser's variance around it."""
+
     name: str = "sensor_quantisation"
 
     def fit(self, ctx: Context, nominal: Fit) -> Fit:
         sig = dict(ctx.sigma_nom)
+        pred = dict(nominal.pred)
         params = {}
         notes = []
+        plant = {"motor": nominal.extra["plant_motor"], "train": nominal.extra["plant_train"]}
+        quanta = {}
         for s, key, floor in (("motor", "motor_quantum_rad_s", 1e-3), ("train", "train_quantum_ms", 1e-4)):
             base = ctx.sigma_nom[s]
             y = ctx.meas[s][ctx.train & ctx.valid[s]]
-            q, coh = lattice_quantum(y, max(4 * base, floor), max(400 * base, 100 * floor))
+            q, coh = lattice_quantum(y, max(2 * base, floor), max(400 * base, 100 * floor))
+            params[key] = q if coh > 0.9 else 0.0
             if coh > 0.9:
-                params[key] = q
-                sig[s] = math.sqrt(base ** 2 + q ** 2 / 12)
+                quanta[s] = q
                 notes.append(f"{s} values on a {q:.4g} lattice (coherence {coh:.3f})")
-            else:
-                params[key] = 0.0
-        sig["mu_hat"] = ctx.mu_gain * sig["motor"]
+        x0 = np.array(nominal.extra["x0"])
+        if quanta:
+            # the staircase needs the trajectory to a fraction of a quantum: refit the initial state on it
+            sim = ctx.simulator(None, (), {})
+            torque = ctx.data.torque_cmd_nm
+
+            def stair(u):
+                motor, train = sim.run([], ctx.x0 + u, torque)
+                out = {"motor": motor, "train": train}
+                for sg, q in quanta.items():
+                    out[sg] = quantised_expectation(out[sg], q, ctx.sigma_nom[sg])[0]
+                return out, (motor, train)
+
+            def resid(u):
+                out = stair(u)[0]
+                return np.concatenate([(ctx.meas[sg] - out[sg])[ctx.train] / ctx.sigma_nom[sg]
+                                       for sg in ("motor", "train")])
+
+            r = _fit_ls(resid, None, np.zeros(0), np.zeros(0), np.zeros(0), [np.array(nominal.extra["x0"]) - ctx.x0],
+                        ctx.sigma_nom)
+            x0 = ctx.x0 + r.x
+            _, (pm, pt) = stair(r.x)
+            plant = {"motor": pm, "train": pt}
+            pred.update(motor=pm, train=pt, mu_hat=ctx.observer.mu_hat(pm, torque))
+        for sg, q in quanta.items():
+            e, v = quantised_expectation(plant[sg], q, ctx.sigma_nom[sg])
+            pred[sg] = e
+            sig[sg] = float(np.sqrt(np.mean(v[ctx.window])))
         q = params.get("motor_quantum_rad_s", 0.0)
         if q > 0:
-            # a quantiser's error is not white (a slow signal keeps it for many samples): measure what it
-            # does to mu^ by quantising the model's own speed plus seeded sensor noise
+            # mu^ of the expected staircase; its floor from seeded draws of quantised noisy speeds
+            torque = ctx.data.torque_cmd_nm
+            pred["mu_hat"] = ctx.observer.mu_hat(pred["motor"], torque)
             rng = np.random.default_rng(99)
-            m = nominal.pred["motor"]
-            noisy = m + ctx.sigma_nom["motor"] * rng.standard_normal(m.size)
-            mu_q = ctx.observer.mu_hat(np.round(noisy / q) * q, ctx.data.torque_cmd_nm)
-            sig["mu_hat"] = float(np.sqrt(np.mean((mu_q - nominal.pred["mu_hat"])[ctx.window] ** 2)))
-        return Fit(self.name, params, 1, dict(nominal.pred), sig, math.nan, "; ".join(notes),
-                   {"quanta": params, "x0": nominal.extra["x0"]})
+            m = plant["motor"]
+            sq = []
+            for _ in range(4):
+                noisy = m + ctx.sigma_nom["motor"] * rng.standard_normal(m.size)
+                mu_q = ctx.observer.mu_hat(np.round(noisy / q) * q, torque)
+                sq.append(np.mean((mu_q - pred["mu_hat"])[ctx.window] ** 2))
+            sig["mu_hat"] = float(np.sqrt(np.mean(sq)))
+        return Fit(self.name, params, 1, pred, sig, math.nan, "; ".join(notes),
+                   {"quanta": params, "x0": x0.tolist()})
 
 
 def candidates(scenario) -> list:

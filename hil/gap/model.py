@@ -127,24 +127,29 @@ def shift(x: np.ndarray, delay_periods: float) -> np.ndarray:
     return np.interp(k, np.arange(len(x), dtype=float), x)
 
 
-def lattice_quantum(values: np.ndarray, q_min: float, q_max: float, n_grid: int = 1500) -> tuple[float, float]:
-    """(quantum, coherence): the spacing q in [q_min, q_max] on whose lattice the values lie best.
+def lattice_quantum(values: np.ndarray, q_min: float, q_max: float) -> tuple[float, float]:
+    """(quantum, coherence): the spacing q of the lattice the values sit on, and how well they do.
 
-    Coherence |mean exp(2 pi i x / q)| is 1 for values exactly on a lattice of spacing q (or of any
-    q/m), near 0 for continuous values.  The largest q with coherence above 0.9 is taken (a lattice of
-    spacing q also fits q/2, q/3, ...).
+    Quantised readings move in whole steps, so the smallest non-zero steps between consecutive values
+    give q; it is then refined on the values themselves (k = round(y/q), q = sum(y k) / sum(k^2)).
+    Coherence |mean exp(2 pi i x / q)| is 1 for values exactly on the lattice and near 0 for continuous
+    ones; the smaller of the steps' and the values' coherence is returned.  (0, 0) when nothing fits
+    in [q_min, q_max].
     """
-    x = np.asarray(values, float)
-    x = x - np.median(x)
-    qs = np.geomspace(q_min, q_max, n_grid)
-    coh = np.abs(np.exp(2j * math.pi * x[None, :] / qs[:, None]).mean(axis=1))
-    good = np.flatnonzero(coh > 0.9)
-    if good.size == 0:
-        i = int(np.argmax(coh))
-        return float(qs[i]), float(coh[i])
-    i = int(good[-1])
-    # refine around the grid point
-    fine = np.linspace(qs[max(i - 1, 0)], qs[min(i + 1, n_grid - 1)], 201)
-    cf = np.abs(np.exp(2j * math.pi * x[None, :] / fine[:, None]).mean(axis=1))
-    j = int(np.argmax(cf))
-    return float(fine[j]), float(cf[j])
+    y = np.asarray(values, float)
+    y = y[np.isfinite(y)]
+    d = np.abs(np.diff(y))
+    d = d[d > 1e-12 * max(1.0, float(np.max(np.abs(y))) if y.size else 1.0)]
+    if d.size < 10:
+        return 0.0, 0.0
+    q = float(np.quantile(d, 0.02))
+    if not (q_min <= q <= q_max):
+        return 0.0, 0.0
+    k = np.maximum(np.round(d / q), 1)
+    q = float(np.sum(d * k) / np.sum(k * k))
+    coh_d = float(np.abs(np.exp(2j * math.pi * d / q).mean()))
+    for _ in range(3):
+        k = np.round(y / q)
+        q = float(np.sum(y * k) / np.sum(k * k))
+    coh_y = float(np.abs(np.exp(2j * math.pi * y / q).mean()))
+    return q, min(coh_d, coh_y)
