@@ -108,6 +108,17 @@ class InprocessTcuBus(can.BusABC):
 
 
 # -- the hub -------------------------------------------------------------------------------------
+def die_with_parent() -> None:
+    """``preexec_fn`` for helper processes: SIGTERM when the process that started them dies (Linux),
+    so a plant killed with SIGKILL leaves no hub or TCU behind."""
+    try:
+        import ctypes
+        import signal
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)   # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
 def free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
@@ -126,7 +137,7 @@ class Hub:
                 "--port", str(self.port)]
         code = (f"import runpy, sys; sys.setswitchinterval({HUB_SWITCH_INTERVAL_S!r}); sys.argv = {argv!r}; "
                 "runpy.run_module('can_remote', run_name='__main__')")
-        self.proc = subprocess.Popen([sys.executable, "-c", code],
+        self.proc = subprocess.Popen([sys.executable, "-c", code], preexec_fn=die_with_parent,
                                      stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         deadline = time.monotonic() + HUB_START_TIMEOUT_S
         while True:

@@ -36,7 +36,7 @@ import numpy as np
 
 from identifier.messages import STAGE_NAMES, TorqueCommand
 
-from .bus import BusError, open_bus
+from .bus import BusError, die_with_parent, open_bus
 from .frames import (DBC_PATH, STATE_FAULT, STATE_FINISHED, STATE_RUNNING, STATE_STARTING, TCU_IDS, FrameCodec,
                      RejectCounter, bus_load, format_bus_load)
 from .loop import LAG_WINDOW_S, PlantSide, log_path, start_recording
@@ -449,7 +449,8 @@ def run_can(scenario, strategy: str = "nlls", seed: int | None = None, bus: str 
                                    "join it (use inprocess, hub or socketcan:<ch>)")
                 child = subprocess.Popen(_child_command(scenario, strategy, seed, handle.peer_spec, mode, set_args),
                                          stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, text=True,
-                                         start_new_session=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+                                         start_new_session=True, preexec_fn=die_with_parent,
+                                         env={**os.environ, "PYTHONUNBUFFERED": "1"})
             log(format_bus_load(load) + f" on {handle.name}")
             if load["load_percent"] > LOAD_WARN_PERCENT:
                 log(f"warning: bus load {load['load_percent']:.1f} % is above {LOAD_WARN_PERCENT:g} % "

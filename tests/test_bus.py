@@ -315,6 +315,15 @@ def test_sigterm_ends_a_run_like_ctrl_c(tmp_path):
         assert make_reader(f).get_summary() is not None
 
 
+def test_a_killed_plant_leaves_no_hub_or_tcu_behind(tmp_path):
+    proc, path = _start_long_run(tmp_path)
+    kids = children_of(proc.pid)
+    assert len(kids) == 2
+    proc.kill()
+    proc.communicate(timeout=30)
+    wait_for(lambda: not any(alive(k) for k in kids), 10, "the hub and TCU to end")
+
+
 def test_silent_plant_ends_a_standalone_tcu(tmp_path):
     hub = Hub()
     url = f"remote:ws://127.0.0.1:{hub.port}/"
