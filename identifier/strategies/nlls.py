@@ -54,16 +54,20 @@ def bounded_lm(fun, x0, lo, hi, iterations: int = 40, rtol: float = 1e-10):
     if not np.isfinite(cost):
         return x
     lam = 1e-3
+    diag = np.diag_indices(x.size)
     for _ in range(iterations):
         g = jac.T @ r
-        free = ~(((x <= lo) & (g > 0)) | ((x >= hi) & (g < 0)))
         a = jac.T @ jac
-        d = a.diagonal().copy()
-        d[d <= 0] = 1e-12
-        a[np.diag_indices_from(a)] += lam * d
-        step = np.zeros_like(x)
+        d = a[diag]
+        a[diag] += lam * np.where(d > 0, d, 1e-12)
+        at_lo, at_hi = x <= lo, x >= hi
         try:
-            step[free] = np.linalg.solve(a[np.ix_(free, free)], -g[free])
+            if at_lo.any() or at_hi.any():      # active set: hold bound coordinates the gradient pushes out
+                free = ~((at_lo & (g > 0)) | (at_hi & (g < 0)))
+                step = np.zeros_like(x)
+                step[free] = np.linalg.solve(a[np.ix_(free, free)], -g[free])
+            else:
+                step = np.linalg.solve(a, -g)
         except np.linalg.LinAlgError:
             lam *= 4.0
             continue
@@ -125,14 +129,13 @@ def fit_curve_grid(creep_speed_kmh, mu_samples, theta0, radius, grid: int = 5, p
     lo, hi = parameter_bounds(n)
     if radius is not None:
         lo, hi = np.maximum(lo, theta0 - radius), np.minimum(hi, theta0 + radius)
-    K = np.eye(v.size) if transform is None else np.asarray(transform, float)
-    f = np.zeros(v.size) if offset is None else np.asarray(offset, float)
-    target = y - f
+    K = None if transform is None else np.asarray(transform, float)
+    target = y if offset is None else y - np.asarray(offset, float)
     axes = [np.linspace(lo[1 + n + i], hi[1 + n + i], grid) for i in range(n)]
     taus = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, n)       # (G, n)
     phi = np.concatenate([np.ones((taus.shape[0], v.size, 1)),
                           np.exp(taus[:, None, :] * v[None, :, None])], axis=2)      # (G, S, 1+n)
-    kphi = np.einsum("st,gtj->gsj", K, phi)                                          # (G, S, 1+n)
+    kphi = phi if K is None else np.einsum("st,gtj->gsj", K, phi)                    # (G, S, 1+n)
     a = np.einsum("gsi,gsj->gij", kphi, kphi)
     b = np.einsum("gsi,s->gi", kphi, target)
     ridge = 1e-12 * np.trace(a, axis1=1, axis2=2)[:, None, None] * np.eye(1 + n)
@@ -156,11 +159,16 @@ def fit_curve_grid(creep_speed_kmh, mu_samples, theta0, radius, grid: int = 5, p
     jac = np.empty((v.size, theta0.size))
     jac[:, 0] = 1.0
 
+    vcol = v[:, None]
+
     def fun(th):
-        e = np.exp(np.outer(v, th[1 + n:]))
+        e = np.exp(vcol * th[1 + n:])
         jac[:, 1:1 + n] = e
-        jac[:, 1 + n:] = e * th[1:1 + n] * v[:, None]
-        return K @ (th[0] + e @ th[1:1 + n]) - target, K @ jac
+        jac[:, 1 + n:] = e * th[1:1 + n] * vcol
+        m = e @ th[1:1 + n] + th[0]
+        if K is None:
+            return m - target, jac.copy()
+        return K @ m - target, K @ jac
 
     return bounded_lm(fun, start, lo, hi, polish)
 
