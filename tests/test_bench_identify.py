@@ -51,3 +51,20 @@ def test_markdown_table_and_bad_input(tmp_path):
         bad = run(args, tmp_path)
         assert bad.returncode != 0 and "Traceback" not in bad.stderr
         assert len(bad.stderr.strip().splitlines()) == 1 and word in bad.stderr
+
+
+def test_observer_aware_strategy_reports_its_own_fit_beside_the_papers(tmp_path):
+    p = run(["--cases", "ffcc_a", "--seeds", "1", "--strategies", "proposed,proposed_oa", "--particles", "100",
+             "--json"], tmp_path)
+    assert p.returncode == 0, p.stderr
+    res = json.loads(p.stdout)["results"]
+    paper, oa = res["proposed"]["ffcc_a"]["seeds"][0], res["proposed_oa"]["ffcc_a"]["seeds"][0]
+    assert paper["r2_observer_model"] is None and paper["r2_true_curve_observer_model"] is None
+    # the real plant's true curve, seen through the model of the TCU's observer, explains the raw mu^
+    # samples taken from the slip detection on (observer transient included) ...
+    assert oa["r2_true_curve_observer_model"] > 0.99
+    # ... which the static curve does not: the paper's R² of the true curve on those same samples is poor
+    assert oa["r2_true_curve"] < 0.9
+    # the observer-aware strategy gets its samples earlier than the paper's settle-and-pair feed
+    assert oa["t_detected_s"] == paper["t_detected_s"] and oa["samples"] > 0
+    assert oa["r2_observer_model"] is not None and oa["cost_p99_us"] > 0

@@ -5,6 +5,11 @@ Per case and seed the plant, the sensors and the TCU's torque demand run once; t
 are recorded and then replayed, reading by reading, into a fresh ``TractionIdentifier`` per
 strategy, so every strategy sees the identical data.  Each ``on_sensor`` call of the identifying
 phase (slip detected -> confirmed or end of run) is timed: that is the cost per sample.
+
+Observer-aware strategies (``*_oa``, identifier/strategies/observer_aware.py) fit the observer's
+predicted output mu^_pred(theta) rather than M(v_s; theta): their ``r2`` is still the paper's (the
+static curve against the raw mu^ samples, which they take from the slip detection on, through the
+observer's transient), and ``r2_observer_model`` is mu^ against mu^_pred(theta).
 """
 from __future__ import annotations
 
@@ -298,6 +303,10 @@ def write_plots(out_dir: Path, first_runs: dict, strategies: list[str]) -> list[
                 ax.plot(grid, mu_model(grid, np.asarray(e.params)), "--", lw=1.1,
                         color=cmap(i / max(1, len(shown) - 1)),
                         label=f"Q={e.correction} ({e.samples} samples, t-t_f={1e3 * (e.t_s - sc.run.fault_time_s):.0f} ms)")
+            if hasattr(ident.strategy, "predicted_observer_output") and len(v) and summary.get("params"):
+                # observer-aware strategies fit the observer's predicted output, not the curve itself
+                ax.plot(v, ident.strategy.predicted_observer_output(np.asarray(summary["params"])), "x-",
+                        color="tab:orange", ms=3, lw=0.8, label="μ̂_pred(θ identified): what the strategy fits")
             ax.axvline(v_peak, color="tab:red", lw=1.2, ls=":")
             ax.text(v_peak, 0.02, "  serious stage →", color="tab:red", fontsize=8)
             ax.text(v_peak, 0.02, "← early stage  ", color="tab:red", fontsize=8, ha="right")
