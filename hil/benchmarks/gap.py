@@ -93,7 +93,8 @@ def run_case(scenario, effect: str, params: dict, run_seed: int, out_dir: Path, 
     rec = {"case": i, "effect": effect, "params": params, "expected": expected, "named": named,
            "correct": named == expected, "shrink_percent": out["shrink"]["held_out_gap_shrink_percent"],
            "nominal_gap": out["which"]["nominal_held_out_gap"], "best": out["which"]["ranking"][0]["effect"],
-           "best_gap": out["which"]["ranking"][0]["held_out_gap"], "diagnosis_s": wall, "log": path}
+           "best_gap": out["which"]["ranking"][0]["held_out_gap"],
+           "best_gap_own_floor": out["which"]["ranking"][0]["held_out_gap_own_floor"], "diagnosis_s": wall, "log": path}
     if effect in LIBRARY:
         true_v = truth_value(effect, truth)
         rec["true_value"] = true_v

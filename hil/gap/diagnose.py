@@ -13,8 +13,8 @@
    odd blocks judge it.  Score on held-out blocks = Gaussian negative log-likelihood with the noise
    floor the candidate expects, plus k log(n) (BIC penalty, k fitted parameters).  A candidate is named
    only if it beats the nominal model by ``MIN_SCORE_GAIN``, removes at least ``MIN_SHRINK`` of the
-   held-out gap AND leaves the residual near the noise floor (at most ``MAX_LEFT`` noise units of gap,
-   or ``MAX_LEFT_FRACTION`` of a huge nominal gap); otherwise the answer is "none of the candidates",
+   held-out gap AND leaves the residual near the noise floor it expects (at most ``MAX_LEFT`` units of
+   that floor -- a quantiser raises it -- or ``MAX_LEFT_FRACTION`` of a huge nominal gap); otherwise the answer is "none of the candidates",
    never the least bad one.  (A candidate that only imitates the gap -- load transfer standing in for a
    lower friction curve -- removes most of it but leaves a remainder far above the noise.)
 4. HOW FAR: held-out RMSE per signal before/after; "gap RMSE" = sqrt(max(RMSE^2 - noise floor^2, 0)),
@@ -168,20 +168,22 @@ class Diagnosis:
             gain = base["score"] - s["score"]
             shrink = 1 - s["gap"] / base["gap"] if base["gap"] > 0 else 0.0
             ranking.append({"effect": fit.name, "params": fit.params, "k": fit.k, "score_gain": gain,
-                            "held_out_shrink": shrink, "held_out_gap": s["gap"], "note": fit.note,
+                            "held_out_shrink": shrink, "held_out_gap": s["gap"],
+                            "held_out_gap_own_floor": s["gap_own_floor"], "note": fit.note,
                             "per_signal": s["per_signal"]})
         ranking.sort(key=lambda r: -r["score_gain"])
         best = ranking[0]
         gap_present = base["gap"] >= MIN_GAP
         max_left = max(MAX_LEFT, MAX_LEFT_FRACTION * base["gap"])
-        explains = best["held_out_shrink"] >= MIN_SHRINK and best["held_out_gap"] <= max_left
+        explains = best["held_out_shrink"] >= MIN_SHRINK and best["held_out_gap_own_floor"] <= max_left
         named = best["effect"] if (gap_present and best["score_gain"] > MIN_SCORE_GAIN and explains) else NONE
         if not gap_present:
             verdict = (f"no significant gap: held-out residuals are within {base['gap']:.2f} noise units of the "
                        f"sensor noise floor")
         elif named == NONE:
             verdict = (f"none of the candidates: the best ({best['effect']}) removes "
-                       f"{best['held_out_shrink'] * 100:.0f} % of the held-out gap and leaves {best['held_out_gap']:.2f} "
+                       f"{best['held_out_shrink'] * 100:.0f} % of the held-out gap and leaves "
+                       f"{best['held_out_gap_own_floor']:.2f} "
                        f"noise units (needs >= {MIN_SHRINK * 100:.0f} % and <= {max_left:.2f}) with score gain "
                        f"{best['score_gain']:.1f} (needs {MIN_SCORE_GAIN})")
         else:
@@ -216,7 +218,7 @@ class Diagnosis:
 
     # -- scores ---------------------------------------------------------------------------------------
     def score(self, ctx: Context, fit: Fit) -> dict:
-        nll, n, gap2 = 0.0, 0, 0.0
+        nll, n, gap2, own2 = 0.0, 0, 0.0, 0.0
         per = {}
         for s in SIGNALS:
             sel = ctx.held & ctx.valid[s]
@@ -227,8 +229,10 @@ class Diagnosis:
             ms = float(np.mean(r ** 2)) if r.size else math.nan
             g2 = max(ms - sg ** 2, 0.0)
             gap2 += g2 / ctx.sigma_nom[s] ** 2
+            own2 += g2 / sg ** 2
             per[s] = {"rmse": math.sqrt(ms), "gap": math.sqrt(g2)}
-        return {"score": nll + fit.k * math.log(max(n, 2)), "gap": math.sqrt(gap2 / len(SIGNALS)), "per_signal": per}
+        return {"score": nll + fit.k * math.log(max(n, 2)), "gap": math.sqrt(gap2 / len(SIGNALS)),
+                "gap_own_floor": math.sqrt(own2 / len(SIGNALS)), "per_signal": per}
 
     # -- where ----------------------------------------------------------------------------------------
     def where(self, ctx: Context, nominal, motor0, train0, creep_meas) -> dict:
