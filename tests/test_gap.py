@@ -144,3 +144,53 @@ def test_bench_gap_json_keys(tmp_path):
         assert out[k] is None or 0 <= out[k] <= 1
     assert sum(sum(row.values()) for row in out["confusion"].values()) == 2
     assert "case 2/2" in r.stderr
+
+
+def test_torque_lag_found_when_the_command_varies(tmp_path, scenario):
+    """The TCU commands a constant torque, so hil run cannot show a torque lag; a log whose command
+    carries a PRBS dither (written here from the real reality plant and the TCU's observer) can."""
+    import numpy as np
+
+    from hil.gap.model import ObserverReplica
+    from hil.recording import Recorder
+    from plant import SensorModel
+    from plant.reality import RealityPlant
+
+    seed = fresh_seed()
+    g = np.random.default_rng(seed)
+    tau = float(np.exp(g.uniform(np.log(0.003), np.log(0.03))))
+    plant = RealityPlant(scenario.plant_config(), {"torque_lag": {"tau_s": tau}})
+    sens = SensorModel(scenario.sensors, int(g.integers(1 << 30)))
+    n, t0 = scenario.steps, plant.equilibrium_torque_nm
+    cmd = np.empty(n)
+    k, level = 0, 1.0
+    while k < n:
+        span = int(g.integers(10, 40))
+        cmd[k:k + span] = t0 * (1 + 0.03 * level)
+        level, k = -level, k + span
+    path = tmp_path / "dither.mcap"
+    rec = Recorder(path)
+    rec.metadata("run", {"strategy": "nlls", "exchange_period_s": repr(scenario.run.exchange_period_s)})
+    motor, train = [], []
+    for k in range(n):
+        s = plant.state
+        w, v = sens.measure(s.motor_speed_rad_s, s.train_speed_ms)
+        motor.append(w)
+        train.append(v)
+        rec.write("/plant/sensor", s.t_s, step=k, t_s=s.t_s, motor_speed_rad_s=w, train_speed_ms=v)
+        rec.write("/tcu/command", s.t_s, step=k, t_s=s.t_s, torque_nm=float(cmd[k]))
+        plant.step(float(cmd[k]))
+    obs = ObserverReplica(scenario.identifier_settings())
+    mu = obs.mu_hat(np.array(motor), cmd)
+    creep = obs.creep_kmh(np.array(motor), np.array(train))
+    for k in range(n):
+        t = k * scenario.run.exchange_period_s
+        rec.write("/tcu/observer", t, step=k, t_s=t, creep_speed_kmh=float(creep[k]), mu_hat=float(mu[k]),
+                  load_torque_nm=0.0)
+    rec.close({"sim_s": n * scenario.run.exchange_period_s})
+    out, _ = diagnose(read_real_log(path), scenario, identify=False)
+    print(f"tau {tau:.4f} s ->", out["which"]["verdict"])
+    assert out["which"]["named"] == "torque_lag"
+    assert out["which"]["ranking"][0]["params"]["tau_s"] == pytest.approx(tau, rel=0.2)
+    assert out["where"]["input_constant"] is False
+    assert out["where"]["tests"]["motor"]["xcorr_input"] > out["where"]["tests"]["motor"]["xcorr_bound_95"]
