@@ -157,6 +157,7 @@ class PlantCandidate:
         costs = [float(np.sum(resid(u) ** 2)) for u in mesh]
         order = np.argsort(costs)
         starts = [np.concatenate([mesh[i], np.zeros(2)]) for i in order[:2]]
+        starts.append(np.concatenate([mesh[order[0]], np.array(nominal.extra["x0"]) - ctx.x0]))
         best = _fit_ls(resid, None, lo, hi, np.maximum(hi - lo, 1e-9) / 10, starts, ctx.sigma_nom)
         theta = theta_of(best.x)
         x0 = x0_nom + best.x[np_:]
@@ -190,8 +191,9 @@ class SensorDelayCandidate:
         grid = np.arange(0.0, self.max_periods + 1e-9, 0.5)
         costs = [float(np.sum(resid(np.array([d, 0.0, 0.0])) ** 2)) for d in grid]
         d0 = grid[int(np.argmin(costs))]
+        nominal_start = np.concatenate([[0.0], np.array(nominal.extra["x0"]) - ctx.x0])   # never worse than nominal
         best = _fit_ls(resid, None, np.array([0.0]), np.array([self.max_periods]), np.array([1.0]),
-                       [np.array([d0, 0.0, 0.0])], ctx.sigma_nom)
+                       [np.array([d0, 0.0, 0.0]), nominal_start], ctx.sigma_nom)
         pred, (motor, train) = pred_of(best.x)
         d = float(best.x[0])
         x0 = x0_nom + ctx.x0_slope * d * T + best.x[1:]

@@ -151,7 +151,9 @@ class Diagnosis:
         motor0, train0 = nom_fit.extra["plant_motor"], nom_fit.extra["plant_train"]
         nominal = dict(nom_fit.pred, plant_motor=motor0, plant_train=train0)
 
-        where = self.where(ctx, nominal, motor0, train0, creep_meas)
+        # WHERE: the nominal model from the measured initial state as it is (no fit that could bend it)
+        m_line, t_line = ctx.simulator(None, (), {}).run([], x0, d.torque_cmd_nm)
+        where = self.where(ctx, ctx.predict(m_line, t_line), m_line, t_line, creep_meas)
 
         fits = []
         for cand in candidates(sc):
