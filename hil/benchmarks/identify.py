@@ -42,6 +42,8 @@ def register(sub) -> None:
     p.add_argument("--cases", default="ffcc_a,ffcc_b", help="scenario names (scenarios/NAME.toml) or TOML paths")
     p.add_argument("--strategies", default=",".join(STRATEGIES), help="comma-separated (default: all)")
     p.add_argument("--seeds", type=int, default=20, help="seeds 1..N (default 20)")
+    p.add_argument("--first-seed", type=int, default=1, help="first seed (default 1: seeds 1..N are for reporting; "
+                   "tune on others, e.g. --first-seed 100)")
     p.add_argument("--particles", type=int, default=None, help="particles N for the particle-filter strategies")
     p.add_argument("--set", action="append", metavar="TABLE.KEY=VALUE",
                    help="override a scenario field for every case, e.g. --set identifier.settle_time_s=0.006")
@@ -241,7 +243,9 @@ def cmd_identify(args) -> int:
         if not path.exists():
             raise UserError(f"--cases: no scenario file {path}")
         scenarios[c] = load_scenario(path, overrides)
-    seeds = list(range(1, args.seeds + 1))
+    if args.first_seed < 0:
+        raise UserError("--first-seed: must be >= 0")
+    seeds = list(range(args.first_seed, args.first_seed + args.seeds))
     per_seed = {s: {c: [] for c in cases} for s in strategies}
     first_runs = {c: {} for c in cases}
     bar = Progress(len(cases) * len(seeds) * (len(strategies) + 1), "bench identify", None)

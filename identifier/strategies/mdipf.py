@@ -51,6 +51,8 @@ Choices the paper leaves open (alternatives behind options):
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from .. import pf
@@ -105,9 +107,14 @@ class MdipfStrategy(Strategy):
         self.init_std = per_dimension(opts["init_std"], n)
         self.transition_std = per_dimension(opts["transition_std"], n)
         self.noise_std = float(opts["noise_std"])
-        self.particles = np.zeros((p, self.n_particles)).T   # (N, P), Fortran order: see pf
+        self.particles = np.zeros((p, self.n_particles)).T   # (N, P), a view of the (P, N) cloud self._xt
+        # scratch buffers of the filter step (P, N) / (n, N): the step allocates almost nothing
+        self._spare = np.empty((p, self.n_particles))
+        self._d = np.empty((p, self.n_particles))
+        self._dw = np.empty((p, self.n_particles))
+        self._tmp = np.empty((n, self.n_particles))
+        self._arange = np.arange(self.n_particles)
         self.weights = np.full(self.n_particles, 1.0 / self.n_particles)
-        self._log_weights = np.zeros(self.n_particles)
         # Random numbers are drawn before the fault, when the TCU is idle: the first block of
         # transition noise (kept transposed and scaled, as the filter step adds it) and the initial
         # cloud, in that order from the one generator (the order the filter would draw them).
@@ -120,54 +127,117 @@ class MdipfStrategy(Strategy):
         self.prelim_done = False
         self.history: list[np.ndarray] = []  # theta after each correction (for plots)
 
+    # -- the cloud: kept as a (P, N) C-contiguous array; ``particles`` is its (N, P) view --------
+    @property
+    def particles(self) -> np.ndarray:
+        return self._xt.T
+
+    @particles.setter
+    def particles(self, value) -> None:
+        self._xt = np.ascontiguousarray(np.asarray(value, dtype=float).T)
+
     # -- the filter -------------------------------------------------------------------------
     def _draw_cloud(self) -> None:
         draw = self._next_cloud if self._next_cloud is not None else self.rng.standard_normal(self.particles.shape)
         self._next_cloud = None
         self.particles = np.asfortranarray(draw * self.init_std)
         self.weights = np.full(self.n_particles, 1.0 / self.n_particles)
-        self._log_weights = np.zeros(self.n_particles)
         self._constrain()
 
     def _constrain(self) -> None:
         """Hook for variants that restrict the cloud (e.g. mu(0) = 0); also keeps it finite."""
-        if np.isfinite(self.particles.sum()):
+        if math.isfinite(self._xt.sum()):
             return
-        bad = ~np.all(np.isfinite(self.particles), axis=1)
-        self.particles[bad] = 0.0
+        bad = ~np.all(np.isfinite(self._xt), axis=0)
+        self._xt[:, bad] = 0.0
 
     def on_sample(self, creep_speed_kmh: float, mu_hat: float) -> None:
         if not self.prelim_done:
             return
-        o = self.opts
-        transition = pf.correlation_transition(self.particles, self.weights, o["stabiliser"])
+        self._move()
+        self._constrain()
+        self._project(creep_speed_kmh, mu_hat)
+        self._weigh(self._log_likelihood(creep_speed_kmh, mu_hat))
+
+    # The step below is pf.correlation_transition / propagate / log_likelihood / normalise /
+    # resample to the last bit, written on the (P, N) cloud with preallocated buffers and as few
+    # numpy calls as possible (per-call overhead, not arithmetic, is most of a step at N = 1000).
+    def _move(self) -> None:
+        """chi(k) = Theta(k-1) chi(k-1) + beta (eq. 12), into the spare buffer (then swapped)."""
+        st = self.opts["stabiliser"]
+        if st == "rownorm":
+            transition = pf.rownorm_transition(self._xt, self.weights, self._d, self._dw)
+        else:
+            transition = pf.correlation_transition(self._xt.T, self.weights, st)
         if self._noise_next < self._noise_block:
             noise = self._noise[self._noise_next]              # (P, N), already scaled by B
             self._noise_next += 1
         else:   # past the pre-drawn block: one draw per step (no burst of a whole block on one sample)
-            noise = self.rng.standard_normal(self.particles.shape).T * self.transition_std[:, None]
-        xt = transition @ self.particles.T                     # chi(k) = Theta chi(k-1) + beta (eq. 12)
-        xt += noise
-        self.particles = xt.T
-        self._constrain()
-        self._project(creep_speed_kmh, mu_hat)
-        self._weigh(pf.log_likelihood(self.particles, self.base, creep_speed_kmh, mu_hat, self.noise_std))
+            noise = self.rng.standard_normal(self._xt.T.shape).T * self.transition_std[:, None]
+        new = np.matmul(transition, self._xt, out=self._spare)
+        new += noise
+        self._spare, self._xt = self._xt, new
+
+    def _curve_at(self, creep_speed_kmh: float) -> np.ndarray:
+        """M_cor(v_s) per particle (N,), a new array (pf.curve_at to the last bit)."""
+        xt, base, tmp = self._xt, self.base, self._tmp
+        n = tmp.shape[0]
+        with np.errstate(over="ignore", invalid="ignore"):
+            np.add(xt[1 + n:], self._base_col[1 + n:], out=tmp)
+            tmp *= creep_speed_kmh
+            np.exp(tmp, out=tmp)
+            out = (xt[1] + base[1]) * tmp[0]
+            for i in range(1, n):
+                out += (xt[1 + i] + base[1 + i]) * tmp[i]
+            out += xt[0] + base[0]
+        return out
+
+    def _log_likelihood(self, creep_speed_kmh: float, mu_hat: float) -> np.ndarray:
+        """log N(mu^ ; M_cor(v_s), G) per particle; -inf where not finite (pf.log_likelihood)."""
+        resid = self._curve_at(creep_speed_kmh)
+        np.subtract(mu_hat, resid, out=resid)
+        resid *= resid
+        resid *= -0.5 / self.noise_std ** 2
+        if not math.isfinite(resid.sum()):
+            resid[~np.isfinite(resid)] = -np.inf
+        return resid
 
     def _weigh(self, ll: np.ndarray) -> None:
-        """w <- w_prev p(Z | chi), normalised; resample when the ESS is low."""
+        """w <- w_prev p(Z | chi), normalised; resample (``resampler``) when the ESS is low.
+
+        As w_prev exp(ll - max ll) / sum (one max shift, no logarithms); when that underflows
+        (every product 0) or is not finite, by log weights (pf.normalise), which cannot."""
         o = self.opts
-        self.weights = pf.normalise(self._log_weights + ll)
-        with np.errstate(divide="ignore"):
-            self._log_weights = np.log(self.weights)
-        if pf.ess(self.weights) < o["ess_fraction"] * self.n_particles:
-            idx = pf.resample(self.weights, self.rng, o["resampler"])
+        top = ll.max()
+        w = None
+        if math.isfinite(top):
+            w = np.subtract(ll, top, out=ll)
+            np.exp(w, out=w)
+            w *= self.weights
+            total = w.sum()
+            if total > 0.0 and math.isfinite(total):
+                w /= total
+            else:
+                w = None
+        if w is None:
+            with np.errstate(divide="ignore"):
+                w = pf.normalise(np.log(self.weights) + np.where(np.isnan(ll), -np.inf, ll))
+        self.weights = w
+        if 1.0 / np.dot(w, w) < o["ess_fraction"] * self.n_particles:
+            if o["resampler"] == "systematic":
+                idx = pf.systematic_counts_resample(w, self.rng.random(), self._arange)
+            else:
+                idx = pf.resample(w, self.rng, o["resampler"])
             self._take(idx)
             self.weights = np.full(self.n_particles, 1.0 / self.n_particles)
-            self._log_weights = np.zeros(self.n_particles)
+
+    @property
+    def _base_col(self) -> np.ndarray:
+        return self.base[:, None]
 
     def _take(self, idx: np.ndarray) -> None:
         """Keep the particles ``idx`` (resampling); variants with per-particle state extend this."""
-        self.particles = self.particles.T[:, idx].T
+        self._xt = self._xt.take(idx, axis=1)
 
     def _project(self, creep_speed_kmh: float, mu_hat: float) -> None:
         """The projection domain (proposed strategy); MDIPF has none."""

@@ -284,31 +284,25 @@ class ProposedOaStrategy(ObserverAwareMixin, ProposedStrategy):
         md = self.oa_model
         # 1. weigh: mu^_pred(k) = rho_{k-1} + d eta_{k-1}, from each particle's history
         rho = self._rho + md.d * self._eta
-        resid = mu_hat - rho
-        ll = resid * resid * (-0.5 / self.noise_std ** 2)
-        ll[~np.isfinite(ll)] = -np.inf
+        ll = mu_hat - rho
+        ll *= ll
+        ll *= -0.5 / self.noise_std ** 2
+        if not math.isfinite(ll.sum()):
+            ll[~np.isfinite(ll)] = -np.inf
         self._rho_next = rho
         self._weigh(ll)
         # 2. move the parameters (eq. 12) and keep them in the box
-        o = self.opts
-        transition = pf.correlation_transition(self.particles, self.weights, o["stabiliser"])
-        if self._noise_next < self._noise_block:
-            noise = self._noise[self._noise_next]
-            self._noise_next += 1
-        else:
-            noise = self.rng.standard_normal(self.particles.shape).T * self.transition_std[:, None]
-        xt = transition @ self.particles.T
-        xt += noise
-        self.particles = xt.T
+        self._move()
         self._constrain()
         self._project(creep_speed_kmh, mu_hat)
         # 3. advance each particle's observer state with its friction at this sample
-        m = pf.curve_at(self.particles, self.base, creep_speed_kmh)
-        m = np.where(np.isfinite(m), m, self._m)
+        m = self._curve_at(creep_speed_kmh)
+        if not math.isfinite(m.sum()):
+            m = np.where(np.isfinite(m), m, self._m)
         self._eta = md.a * self._eta - md.b * (0.5 * (self._m + m) - self._rho)
         self._rho = self._rho_next
         self._m = m
-        if not np.all(np.isfinite(self._eta)):
+        if not math.isfinite(self._eta.sum()):
             self._eta = np.where(np.isfinite(self._eta), self._eta, 0.0)
 
     def _take(self, idx):

@@ -75,9 +75,20 @@ class ProposedStrategy(MdipfStrategy):
         self._constrain_in_box()
 
     def _project(self, creep_speed_kmh, mu_hat) -> None:
-        self.particles = pf.project_to_box(self.particles, self.lo, self.hi, self.base, creep_speed_kmh, mu_hat,
-                                           self.init_std, self.noise_std, self.opts["projector"],
-                                           int(self.opts["projection_iterations"]))
+        # the cloud is finite here (_constrain ran): "clip" is np.clip in place (pf.project_to_box's
+        # "clip" to the last bit); "map" first checks cheaply whether any particle is outside
+        xt = self._xt
+        lo, hi = self.lo[:, None], self.hi[:, None]
+        if self.opts["projector"] == "clip":
+            np.maximum(xt, lo, out=xt)
+            np.minimum(xt, hi, out=xt)
+        else:
+            inside = np.maximum(xt, lo, out=self._d)
+            np.minimum(inside, hi, out=inside)
+            if not np.array_equal(inside, xt):
+                self.particles = pf.project_to_box(self._xt.T, self.lo, self.hi, self.base, creep_speed_kmh, mu_hat,
+                                                   self.init_std, self.noise_std, self.opts["projector"],
+                                                   int(self.opts["projection_iterations"]))
         self._constrain_in_box()
 
     def _constrain_in_box(self) -> None:
