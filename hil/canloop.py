@@ -302,7 +302,8 @@ class PlantNode:
         realtime = self.mode == "realtime"
         gc_was_enabled = gc.isenabled()
         if realtime:
-            gc.disable()        # a collection in the loop costs whole periods
+            gc.freeze()         # a collection in the loop costs whole periods
+            gc.disable()
         try:
             t0 = time.perf_counter() + 0.005
             prev = None
@@ -329,6 +330,7 @@ class PlantNode:
             self.awaited = steps
         finally:
             if gc_was_enabled:
+                gc.unfreeze()
                 gc.enable()
 
     def finish(self, state: int = STATE_FINISHED) -> None:

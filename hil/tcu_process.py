@@ -10,6 +10,7 @@ the rejected frames by reason.
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import signal
 import sys
@@ -222,6 +223,9 @@ def run_tcu(args) -> int:
                        "(socketcan:<ch>, remote:ws://HOST:PORT/ of a running hub, or a python-can interface)")
     handle = open_bus(args.bus)
     node = TcuNode(scenario, args.strategy, seed)
+    if args.mode == "realtime":     # a full collection over scipy's and casadi's objects stalls both threads
+        gc.freeze()
+        gc.disable()
     period = scenario.run.exchange_period_s
     code = EXIT_OK
     try:
