@@ -12,9 +12,14 @@ the validation status).  Valid TCU frames are also recorded decoded on ``/tcu/co
 ``/tcu/status``, ``/tcu/observer`` and ``/tcu/identification``, so a log has the same topics whatever
 the bus.
 
-Fault handling: the TCU silent for more than ``silence_periods`` exchange periods (realtime) or
-``lockstep_silence_s`` (lockstep) raises ``PeerSilent``; ``run_can`` records the fault, closes the MCAP
-and re-raises.  Malformed, unknown or out-of-range frames are counted by reason and recorded.
+Heartbeats (PlantHeartbeat, TcuHeartbeat) flow both ways: in realtime every ``heartbeat_period_s``
+(default 2 ms, from a thread in the TCU so it keeps beating while it fits), in lockstep every
+``lockstep_silence_s / 4``.  Fault handling: the TCU silent (no valid frame of any kind) for more than
+``silence_periods`` heartbeat periods (realtime; default 3 x 2 ms) or ``lockstep_silence_s`` (lockstep;
+default 1 s) raises ``PeerSilent``; ``run_can`` records the fault (event + ``fault`` metadata), tells the
+TCU, closes the MCAP and re-raises; ``hil run`` exits 3.  The TCU applies the same rule to the plant.
+Malformed, unknown or out-of-range frames, and frames whose step is out of sequence, are counted by
+reason, recorded with that reason as their status, and dropped.
 
 Fit metrics (MSE ...) come from the TCU's own samples: the TCU process prints them in its JSON
 report when the plant says it finished; in process the node hands them over directly.
@@ -418,8 +423,9 @@ def run_can(scenario, strategy: str = "nlls", seed: int | None = None, bus: str 
 
     ``set_args``: the ``--set`` overrides that produced ``scenario`` (the TCU process loads the
     scenario again with them).  ``plant``: a plant object instead of the CasADi model (as
-    ``run_inprocess``; see hil/plant_factory.py), closed by the caller.  Raises ``BusError`` for a bus that cannot be used, ``PeerSilent``
-    when the TCU falls silent (the MCAP then holds the fault and is closed).
+    ``run_inprocess``; see hil/plant_factory.py), closed by the caller.  Raises ``BusError`` for a
+    bus that cannot be used, ``PeerSilent`` when the TCU falls silent (the MCAP then holds the
+    fault and is closed), ``KeyboardInterrupt`` on Ctrl-C or SIGTERM (likewise).
     """
     if mode not in MODES:
         raise BusError(f"unknown mode {mode!r}; available: {', '.join(MODES)}")
