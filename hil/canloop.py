@@ -418,7 +418,7 @@ class _SigtermAsInterrupt:
 
 def run_can(scenario, strategy: str = "nlls", seed: int | None = None, bus: str = "auto", mode: str = "lockstep",
             out_dir=None, record: bool = True, progress: bool | None = None, set_args=None, log=None,
-            plant=None) -> dict:
+            plant=None, external_tcu: bool = False) -> dict:
     """One HIL run over a bus: the TCU in its own process (in this thread for ``inprocess``).
 
     ``set_args``: the ``--set`` overrides that produced ``scenario`` (the TCU process loads the
@@ -426,6 +426,9 @@ def run_can(scenario, strategy: str = "nlls", seed: int | None = None, bus: str 
     ``run_inprocess``; see hil/plant_factory.py), closed by the caller.  Raises ``BusError`` for a
     bus that cannot be used, ``PeerSilent`` when the TCU falls silent (the MCAP then holds the
     fault and is closed), ``KeyboardInterrupt`` on Ctrl-C or SIGTERM (likewise).
+    ``external_tcu``: start no TCU; one already on the bus (``hil tcu``, a real TCU) answers.  The
+    summary then has the events from the result frames but no fit metrics (the samples stay in
+    that TCU: ``hil tcu --json`` prints them).
     """
     if mode not in MODES:
         raise BusError(f"unknown mode {mode!r}; available: {', '.join(MODES)}")
@@ -452,9 +455,13 @@ def run_can(scenario, strategy: str = "nlls", seed: int | None = None, bus: str 
             else:
                 tcu = None
                 handle = open_bus(bus)
-                if handle.peer_spec is None:
+                if external_tcu and handle.hub is not None:
+                    raise BusError("bus hub: a hub started here has no external TCU on it; start one with "
+                                   "python -m can_remote and give both sides --bus remote:ws://127.0.0.1:PORT/")
+                if handle.peer_spec is None and not external_tcu:
                     raise BusError(f"bus {handle.name}: reachable only inside this process; a TCU process cannot "
                                    "join it (use inprocess, hub or socketcan:<ch>)")
+            if tcu is None and not external_tcu:
                 child = subprocess.Popen(_child_command(scenario, strategy, seed, handle.peer_spec, mode, set_args),
                                          stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, text=True,
                                          start_new_session=True, preexec_fn=die_with_parent,
@@ -487,6 +494,9 @@ def run_can(scenario, strategy: str = "nlls", seed: int | None = None, bus: str 
             if tcu is not None:
                 plant.drain()
                 report = tcu.report()
+            elif external_tcu:
+                _drain_for(plant, 0.2)
+                report = {"samples_v": [], "samples_mu": [], "detected_step": None, "external": True}
             else:
                 plant.drain_until_child_exits(CHILD_EXIT_TIMEOUT_S)
                 report = _child_report(child)
@@ -533,6 +543,15 @@ def _set_rt_priority(priority: int, log) -> None:
     except (AttributeError, PermissionError, OSError) as e:
         log(f"warning: cannot set SCHED_FIFO priority {priority} ({e}); running at normal priority")
         return None
+
+
+def _drain_for(plant: PlantNode, seconds: float) -> None:
+    """Record what an external TCU still sends (its last status, its 'finished' heartbeat)."""
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        msg = plant.bus.recv(timeout=0.02)
+        if msg is not None:
+            plant.on_rx(msg)
 
 
 def _child_report(child) -> dict:

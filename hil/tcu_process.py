@@ -197,7 +197,8 @@ def add_arguments(p) -> None:
     p.add_argument("--strategy", default="nlls", help="identification strategy")
     p.add_argument("--seed", type=int, default=None, help="identifier seed (default: the scenario's)")
     p.add_argument("--mode", choices=("lockstep", "realtime"), default="lockstep",
-                   help="sets the plant-silence limit (realtime: 3 exchange periods)")
+                   help="sets the plant-silence limit and heartbeat period (realtime: [bus] silence_periods x "
+                   "heartbeat_period_s, default 3 x 2 ms; lockstep: [bus] lockstep_silence_s, default 1 s)")
     p.add_argument("--set", action="append", metavar="TABLE.KEY=VALUE", help="override a scenario field")
     p.add_argument("--wait", type=float, default=None, help="seconds to wait for the plant's first frame "
                    "(default: [bus] startup_timeout_s)")
@@ -218,10 +219,14 @@ def run_tcu(args) -> int:
     scenario = load_scenario(args.scenario, parse_set(args.set))
     settings = bus_settings(scenario)
     seed = scenario.run.seed if args.seed is None else args.seed
-    if args.bus == "inprocess" or args.bus == "hub":
-        raise BusError(f"bus {args.bus}: the TCU alone needs a bus another process can reach "
-                       "(socketcan:<ch>, remote:ws://HOST:PORT/ of a running hub, or a python-can interface)")
-    handle = open_bus(args.bus)
+    from .bus import resolve
+
+    bus = resolve(args.bus)
+    if bus in ("inprocess", "hub"):
+        raise BusError(f"bus {args.bus}{' (no vcan0 here: hub)' if args.bus == 'auto' else ''}: the TCU alone needs "
+                       "the plant's bus (socketcan:<ch>, remote:ws://HOST:PORT/ of a running hub, or a python-can "
+                       "interface:channel)")
+    handle = open_bus(bus)
     node = TcuNode(scenario, args.strategy, seed)
     if args.mode == "realtime":     # a full collection over scipy's and casadi's objects stalls both threads
         gc.freeze()

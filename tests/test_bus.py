@@ -364,6 +364,30 @@ def test_silent_plant_ends_a_standalone_tcu(tmp_path):
     assert report["sensor_frames"] == 20 and report["last_step"] == 19
 
 
+def test_plant_and_tcu_started_separately(tmp_path, inprocess_run):
+    """``hil tcu`` on a bus, ``hil run --tcu external`` on the same bus: as a rig with its own TCU."""
+    hub = Hub()
+    url = f"remote:ws://127.0.0.1:{hub.port}/"
+    tcu = None
+    try:
+        tcu = subprocess.Popen(hil_command() + ["tcu", *FFCC_A, "--bus", url, "--json"], stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True, env=subprocess_env(), cwd=ROOT)
+        s, _ = run_json(FFCC_A, url, tmp_path, "--tcu", "external")
+        out, err = tcu.communicate(timeout=60)
+    finally:
+        if tcu is not None and tcu.poll() is None:
+            tcu.kill()
+        hub.stop()
+    assert tcu.returncode == 0, err
+    ref, ref_path = inprocess_run
+    for key in ("identified", "t_identified_s", "corrections", "params", "t_serious_s"):
+        assert s[key] == ref[key], key
+    assert s["mse"] is None                          # the samples stay in the TCU; it prints them:
+    report = json.loads(out)
+    assert len(report["samples_v"]) == ref["samples"] and report["plant_state"] == "finished"
+    assert data_streams(tmp_path / "ffcc_a-nlls-1.mcap") == data_streams(ref_path)
+
+
 def test_standalone_tcu_needs_a_shared_bus():
     r = subprocess.run(hil_command() + ["tcu", "scenarios/ffcc_a.toml", "--bus", "inprocess"], capture_output=True,
                        text=True, env=subprocess_env(), cwd=ROOT, timeout=60)

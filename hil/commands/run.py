@@ -32,6 +32,9 @@ def register(sub) -> None:
     p.add_argument("--bus", default="auto", help="bus between plant and TCU: auto (socketcan:vcan0 when the kernel "
                    "has it, else hub), hub (python-can-remote on 127.0.0.1), socketcan:<ch>, inprocess (no second "
                    "process, same frames), or any python-can interface:channel (default: auto)")
+    p.add_argument("--tcu", choices=("process", "external"), default="process",
+                   help="process: start the identifier as a second process (default); external: a TCU already on "
+                   "the bus answers (hil tcu elsewhere, or a real TCU)")
     p.add_argument("--mode", choices=("lockstep", "realtime"), default="lockstep",
                    help="lockstep: the plant waits for the TCU's command each period (deterministic); realtime: "
                    "paced by the wall clock, deadline misses and jitter recorded (default: lockstep)")
@@ -65,7 +68,7 @@ def cmd_run(args) -> int:
     plant = make_plant(scenario, args.plant)   # None: the CasADi model
     try:
         summary = run_can(scenario, args.strategy, args.seed, bus=args.bus, mode=args.mode, out_dir=args.out,
-                          set_args=args.set, plant=plant)
+                          set_args=args.set, plant=plant, external_tcu=args.tcu == "external")
     except BusError as e:
         raise UserError(str(e)) from None
     except PeerSilent as e:
