@@ -128,7 +128,7 @@ class PlantCandidate:
     lo: tuple
     hi: tuple
     log: tuple
-    scan: int = 9
+    scan: tuple = (9,)     # coarse-scan points per parameter (log-spaced when ``log``)
 
     def fit(self, ctx: Context, nominal: Fit) -> Fit:
         fixed = fill_defaults({self.name: dict(EFFECTS[self.name].params)}, ctx.cfg)[self.name]
@@ -152,7 +152,7 @@ class PlantCandidate:
 
         n_res = len(ctx.residuals(nominal.pred, ctx.sigma_nom, ctx.train))
         # coarse scan (a grid per parameter, all combinations) to start in the right basin
-        grids = [np.linspace(a, b, self.scan if np_ == 1 else 5) for a, b in zip(lo, hi)]
+        grids = [np.linspace(a, b, n) for a, b, n in zip(lo, hi, self.scan)]
         mesh = np.array(np.meshgrid(*grids, indexing="ij")).reshape(np_, -1).T
         costs = [float(np.sum(resid(u) ** 2)) for u in mesh]
         order = np.argsort(costs)
@@ -353,7 +353,9 @@ def candidates(scenario) -> list:
     out = [
         PlantCandidate("load_transfer", ("bogie_height_m",), (0.0,), (6.0,), (False,)),
         PlantCandidate("torque_lag", ("tau_s",), (2e-4,), (0.1,), (True,)),
-        PlantCandidate("compliance", ("stiffness_nm_rad", "damping_ratio"), (2e4, 0.005), (5e6, 1.0), (True, True)),
+        # the ring frequency makes the stiffness cost multimodal: a fine scan in stiffness
+        PlantCandidate("compliance", ("stiffness_nm_rad", "damping_ratio"), (2e4, 0.005), (5e6, 1.0), (True, True),
+                       (17, 4)),
         PlantCandidate("adhesion_lag", ("tau_s",), (2e-4,), (0.2,), (True,)),
         PlantCandidate("resistance", ("factor",), (0.0,), (5.0,), (False,)),
         SensorDelayCandidate(),
