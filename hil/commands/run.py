@@ -118,4 +118,13 @@ def print_summary(s: dict, file=sys.stdout) -> None:
               f"{_fmt(s['peak_creep_err_percent'], '.2f')} %", file=file)
     print(f"  observer lag {_fmt(s.get('observer_lag_ms'), '.1f')} ms; "
           f"{_fmt(s.get('sim_s'), '.2f')} s simulated in {_fmt(s.get('wall_s'), '.2f')} s", file=file)
+    if s.get("mode"):
+        line = f"  {s['mode']} over {s['bus']}: round trip p50 {_fmt(s.get('round_trip_p50_us'), '.0f')} us"
+        if s["mode"] == "realtime":
+            line += (f", missed deadlines {s.get('missed_deadlines')}, jitter p99 "
+                     f"{_fmt(s.get('jitter_p99_us'), '.0f')} us")
+        bad, bad_tcu = sum((s.get("rejected_frames") or {}).values()), sum((s.get("tcu_rejected_frames") or {}).values())
+        if bad or bad_tcu:
+            line += f"; rejected frames: plant {bad}, TCU {bad_tcu}"
+        print(line, file=file)
     print(f"  log: {s['mcap']}", file=file)
