@@ -57,6 +57,7 @@ class Strategy(ABC):
         self._window_start = 0          # index of the first sample of the open window
         self._candidate: tuple[np.ndarray, float] | None = None   # (theta, SE) awaiting the check
         self._last_estimate: np.ndarray | None = None
+        self._pending: tuple[np.ndarray, np.ndarray] | None = None   # window of a correction in progress
 
     @property
     def samples(self) -> int:
@@ -73,12 +74,19 @@ class Strategy(ABC):
         self._v.append(sample.creep_speed_kmh)
         self._mu.append(sample.mu_hat)
         self.on_sample(sample.creep_speed_kmh, sample.mu_hat)
+        events = []
+        if self._pending is not None and (self.correction_ready()
+                                          or len(self._v) - self._window_start >= self.window_samples):
+            # a correction whose work was spread over the samples since its window closed
+            v, mu = self._pending
+            self._pending = None
+            events = self._finish_correction(sample, self.correct_pending(), v, mu)
         if len(self._v) - self._window_start < self.window_samples:
-            return []
+            return events
         v = np.asarray(self._v[self._window_start:])
         mu = np.asarray(self._mu[self._window_start:])
         self._window_start = len(self._v)
-        return self._on_window(sample, v, mu)
+        return events + self._on_window(sample, v, mu)
 
     def _on_window(self, sample: Sample, v: np.ndarray, mu: np.ndarray) -> list[IdentificationEvent]:
         s = self.settings
@@ -90,6 +98,13 @@ class Strategy(ABC):
                 return [self._event(sample, "confirmed", math.nan)]
             # the window did not fit: it feeds the next correction instead
         estimate = self.correct(v, mu)
+        if estimate is None:            # spread over the next samples (correction_ready / correct_pending)
+            self._pending = (v, mu)
+            return []
+        return self._finish_correction(sample, estimate, v, mu)
+
+    def _finish_correction(self, sample: Sample, estimate, v, mu) -> list[IdentificationEvent]:
+        s = self.settings
         if not np.all(np.isfinite(estimate)):
             estimate = self._last_estimate if self._last_estimate is not None else self.theta
         self.theta = self.estimate_to_theta(estimate)
@@ -120,8 +135,17 @@ class Strategy(ABC):
         cost is spread over the samples instead of landing on the window's last one)."""
 
     @abstractmethod
-    def correct(self, window_v: np.ndarray, window_mu: np.ndarray) -> np.ndarray:
-        """One correction from the newest window; returns the vector J_EF compares between corrections."""
+    def correct(self, window_v: np.ndarray, window_mu: np.ndarray) -> np.ndarray | None:
+        """One correction from the newest window; returns the vector J_EF compares between corrections,
+        or None when the work is spread over the next samples (then ``correction_ready`` says, after
+        each later sample's ``on_sample``, when ``correct_pending`` can return it; the window
+        bookkeeping goes on meanwhile, and the correction's event carries the sample it finished on)."""
+
+    def correction_ready(self) -> bool:
+        return True
+
+    def correct_pending(self) -> np.ndarray:
+        raise NotImplementedError
 
     def estimate_to_theta(self, estimate: np.ndarray) -> np.ndarray:
         """Curve parameters from what ``correct`` returned (identity for strategies that fit theta)."""

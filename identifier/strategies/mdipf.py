@@ -57,7 +57,7 @@ import numpy as np
 
 from .. import pf
 from .base import Strategy
-from .nlls import fit_curve, fit_curve_grid, fit_curve_lm
+from .nlls import GridAccumulator, fit_curve, fit_curve_grid, fit_curve_lm
 
 DEFAULTS = {
     "particles": 1000,                        # N
@@ -76,6 +76,8 @@ DEFAULTS = {
                                               # "lm": nlls.bounded_lm from the prior curve (both numpy)
     "prelim_iterations": 8,                   # iteration cap of the "lm" prelim / LM polish of "grid"
     "prelim_grid": 5,                         # tau lattice of the "grid" prelim (per tau)
+    "prelim_polish_per_sample": 2,            # "grid" prelim: LM polish iterations per sample, spread over the
+                                              # samples after window 1 (0: the whole prelim on window 1's last sample)
 }
 
 
@@ -122,9 +124,16 @@ class MdipfStrategy(Strategy):
         block = self.rng.standard_normal((self._noise_block, self.n_particles, p))
         self._noise = block.transpose(0, 2, 1) * self.transition_std[None, :, None]   # (B, P, N)
         self._noise_next = 0
-        self._next_cloud = self.rng.standard_normal((self.n_particles, p))
+        # the first cloud, scaled and laid out (P, N) as the filter keeps it
+        self._next_cloud = np.ascontiguousarray((self.rng.standard_normal((self.n_particles, p)) * self.init_std).T)
         self.base = self.theta.copy()        # theta_{Q-1}: the curve the errors are relative to
         self.prelim_done = False
+        self._job = None                     # the prelim's polish in progress (prelim_polish_per_sample)
+        # the "grid" prelim's lattice, built over window 1's samples (set up now, before the fault)
+        self._grid_acc = None
+        if self._spread_prelim():
+            self._grid_acc = GridAccumulator(self.theta, self.prelim_radius(), int(opts["prelim_grid"]),
+                                             int(opts["prelim_iterations"]), max(64, self.window_samples))
         self.history: list[np.ndarray] = []  # theta after each correction (for plots)
 
     # -- the cloud: kept as a (P, N) C-contiguous array; ``particles`` is its (N, P) view --------
@@ -138,9 +147,10 @@ class MdipfStrategy(Strategy):
 
     # -- the filter -------------------------------------------------------------------------
     def _draw_cloud(self) -> None:
-        draw = self._next_cloud if self._next_cloud is not None else self.rng.standard_normal(self.particles.shape)
-        self._next_cloud = None
-        self.particles = np.asfortranarray(draw * self.init_std)
+        if self._next_cloud is not None:
+            self._xt, self._next_cloud = self._next_cloud, None
+        else:
+            self.particles = self.rng.standard_normal(self.particles.shape) * self.init_std
         self.weights = np.full(self.n_particles, 1.0 / self.n_particles)
         self._constrain()
 
@@ -153,6 +163,7 @@ class MdipfStrategy(Strategy):
 
     def on_sample(self, creep_speed_kmh: float, mu_hat: float) -> None:
         if not self.prelim_done:
+            self._before_filter(creep_speed_kmh, mu_hat)
             return
         self._move()
         self._constrain()
@@ -261,14 +272,107 @@ class MdipfStrategy(Strategy):
             raise ValueError(f"{self.name}: prelim_solver must be 'trf', 'grid' or 'lm'")
         return fit_curve(window_v, window_mu, self.theta, self.prelim_radius())
 
+    # -- the preliminary fit spread over samples (prelim_polish_per_sample > 0) ---------------------
+    def _spread_prelim(self) -> bool:
+        o = self.opts
+        return (o["prelim_solver"] == "grid" and int(o["prelim_polish_per_sample"]) > 0
+                and not o["filter_prelim_window"] and o["prelim_radius"] is not None)
+
+    def _before_filter(self, creep_speed_kmh: float, mu_hat: float) -> None:
+        """A sample before the filter runs: window 1 builds the prelim's lattice (when the prelim
+        is spread), the samples after it advance the prelim's polish."""
+        if self._job is not None:
+            self._advance_prelim()
+        elif self._grid_acc is not None and self._grid_acc.count < min(self.window_samples, self._grid_acc.size):
+            self._accumulate(creep_speed_kmh, mu_hat)
+
+    def _accumulate(self, creep_speed_kmh: float, mu_hat: float) -> None:
+        """A window-1 sample into the prelim's lattice (nlls.GridAccumulator)."""
+        self._grid_acc.add(creep_speed_kmh, mu_hat)
+
+    def _start_prelim_job(self, window_v, window_mu):
+        """The "grid" prelim's lattice solved now (its sums were built sample by sample); its LM
+        polish as a job for the next samples."""
+        acc, self._grid_acc = self._grid_acc, None
+        if acc is None or acc.count != len(window_v):
+            return fit_curve_grid(window_v, window_mu, self.theta, self.prelim_radius(), int(self.opts["prelim_grid"]),
+                                  int(self.opts["prelim_iterations"]), job=True)
+        return acc.job(window_v, window_mu)
+
+    def _advance_prelim(self) -> None:
+        """Called by on_sample while the prelim is pending: at most ``prelim_polish_per_sample``
+        polish iterations per sample; on the first sample after the polish ended, the filter
+        starts and catches up on the samples that arrived meanwhile (``_catch_up``)."""
+        job = self._job
+        if not job.done:
+            for _ in range(int(self.opts["prelim_polish_per_sample"])):
+                if job.step():
+                    break
+            return
+        self._finish_prelim()
+
+    def _finish_prelim(self) -> None:
+        job, self._job = self._job, None
+        while not job.done:
+            job.step()
+        self._begin_filter(job.x)
+        v = np.asarray(self._v[self._window_start:])
+        mu = np.asarray(self._mu[self._window_start:])
+        if v.size:
+            self._catch_up(v, mu)
+
+    def _catch_up(self, v: np.ndarray, mu: np.ndarray) -> None:
+        """The samples fed while the prelim was being finished, in one filter step: one move
+        (eq. 12), then all their likelihoods at once (the parameters held over those samples);
+        with one sample this is exactly the ordinary step."""
+        self._move()
+        self._constrain()
+        self._project(float(v[-1]), float(mu[-1]))
+        if v.size == 1:
+            ll = self._log_likelihood(float(v[0]), float(mu[0]))
+        else:
+            resid = mu[None, :] - self._curve_many(v)
+            ll = np.einsum("ij,ij->i", resid, resid)
+            ll *= -0.5 / self.noise_std ** 2
+            if not math.isfinite(ll.sum()):
+                ll[~np.isfinite(ll)] = -np.inf
+        self._weigh(ll)
+
+    def _curve_many(self, v: np.ndarray) -> np.ndarray:
+        """M_cor at several creep speeds per particle: (N, S) (curve.mu_model on the (P, N) cloud)."""
+        xt, base = self._xt, self.base
+        n = (xt.shape[0] - 1) // 2
+        with np.errstate(over="ignore", invalid="ignore"):
+            e = np.exp((xt[1 + n:] + base[1 + n:, None])[:, :, None] * v)         # (n, N, S)
+            e *= (xt[1:1 + n] + base[1:1 + n, None])[:, :, None]
+            m = e.sum(axis=0)
+            m += (xt[0] + base[0])[:, None]
+        return m
+
+    def correction_ready(self) -> bool:
+        return self.prelim_done
+
+    def correct_pending(self):
+        if not self.prelim_done:           # a window closed first: finish now
+            self._finish_prelim()
+        estimate = np.zeros_like(self.base)
+        self._estimate_for_theta = estimate
+        return estimate if self.opts["j_ef_from_prelim"] else np.full_like(self.base, np.nan)
+
+    def _begin_filter(self, theta_pre) -> None:
+        self.base = np.asarray(theta_pre, float)
+        if not np.all(np.isfinite(self.base)):
+            self.base = self.theta.copy()
+        self.prelim_done = True
+        self._draw_cloud()
+        self._after_prelim()
+
     def correct(self, window_v, window_mu):
+        if not self.prelim_done and self._spread_prelim():
+            self._job = self._start_prelim_job(window_v, window_mu)
+            return None
         if not self.prelim_done:
-            self.base = self.preliminary_fit(window_v, window_mu)
-            if not np.all(np.isfinite(self.base)):
-                self.base = self.theta.copy()
-            self.prelim_done = True
-            self._draw_cloud()
-            self._after_prelim()
+            self._begin_filter(self.preliminary_fit(window_v, window_mu))
             estimate = np.zeros_like(self.base)            # chi^_0: the prelim corrects nothing
             if self.opts["filter_prelim_window"]:
                 # correction 1 on the same window: J_EF(1) = |chi^_1 - chi^_0|^2 is known one window early
@@ -301,7 +405,7 @@ class MdipfStrategy(Strategy):
         if self.opts["reset_cloud"]:
             self._draw_cloud()
         else:
-            self.particles = self.particles - chi           # errors now relative to the new theta
+            self._xt -= chi[:, None]                        # errors now relative to the new theta
         self.base = theta.copy()
         self._after_recentre()
         self.history.append(theta.copy())

@@ -5,6 +5,8 @@ particle-filter strategies.
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy.optimize import least_squares
 
@@ -38,28 +40,48 @@ def fit_curve(creep_speed_kmh, mu_samples, theta0, radius=None) -> np.ndarray:
     return result.x
 
 
-def bounded_lm(fun, x0, lo, hi, iterations: int = 40, rtol: float = 1e-10):
-    """Projected Levenberg-Marquardt for small bounded least-squares problems, in plain numpy.
+class BoundedLm:
+    """Projected Levenberg-Marquardt for small bounded least-squares problems, in plain numpy, one
+    iteration per ``step()`` (so a caller can spread the iterations over several samples).
 
     ``fun(x) -> (r, J)`` (residuals (S,), Jacobian (S, P)).  Each iteration solves the damped
     normal equations (J^T J + lam diag(J^T J)) step = -J^T r on the free coordinates (a
     coordinate on a bound whose gradient pushes it outwards is held: the active set), clips the
     step into [lo, hi] and keeps it only if the cost falls (lam / 3), else lam * 4.  Stops when
-    a kept step lowers the cost by less than ``rtol`` relative.  A few tens of microseconds per
-    iteration on the 5-parameter curve, against milliseconds for scipy's trust-region-reflective
-    solver, whose per-call machinery dominates on a problem this small."""
-    x = np.clip(np.asarray(x0, float), lo, hi)
-    r, jac = fun(x)
-    cost = float(r @ r)
-    if not np.isfinite(cost):
-        return x
-    lam = 1e-3
-    diag = np.diag_indices(x.size)
-    for _ in range(iterations):
-        g = jac.T @ r
-        a = jac.T @ jac
-        d = a[diag]
-        a[diag] += lam * np.where(d > 0, d, 1e-12)
+    a kept step lowers the cost by less than ``rtol`` relative, after ``iterations``, or when lam
+    exceeds 1e8.  A few tens of microseconds per iteration on the 5-parameter curve, against
+    milliseconds for scipy's trust-region-reflective solver, whose per-call machinery dominates
+    on a problem this small."""
+
+    def __init__(self, fun, x0, lo, hi, iterations: int = 40, rtol: float = 1e-10):
+        self.fun, self.lo, self.hi, self.rtol = fun, lo, hi, rtol
+        self.x = np.clip(np.asarray(x0, float), lo, hi)
+        self.left = int(iterations)
+        self.lam = 1e-3
+        self.r = None                   # residuals at x: evaluated by the first step (or ``start``)
+        self.done = self.left <= 0
+
+    def start(self) -> bool:
+        """Evaluate the residuals at the starting point (the first ``step`` does it if needed)."""
+        if self.r is None:
+            self.r, self.jac = self.fun(self.x)
+            self.cost = float(self.r @ self.r)
+            self.done = self.done or not math.isfinite(self.cost)
+        return self.done
+
+    def step(self) -> bool:
+        """One iteration; returns ``done``."""
+        if self.r is None and self.start():
+            return True
+        if self.done:
+            return True
+        self.left -= 1
+        x, r, jac, lo, hi = self.x, self.r, self.jac, self.lo, self.hi
+        jt = jac.T
+        g = jt @ r
+        a = jt @ jac
+        d = a.diagonal()
+        a.flat[::a.shape[0] + 1] = d + self.lam * np.where(d > 0, d, 1e-12)
         at_lo, at_hi = x <= lo, x >= hi
         try:
             if at_lo.any() or at_hi.any():      # active set: hold bound coordinates the gradient pushes out
@@ -69,22 +91,31 @@ def bounded_lm(fun, x0, lo, hi, iterations: int = 40, rtol: float = 1e-10):
             else:
                 step = np.linalg.solve(a, -g)
         except np.linalg.LinAlgError:
-            lam *= 4.0
-            continue
-        xn = np.clip(x + step, lo, hi)
-        rn, jn = fun(xn)
+            self.lam *= 4.0
+            self.done = self.left <= 0
+            return self.done
+        xn = np.minimum(np.maximum(x + step, lo), hi)
+        rn, jn = self.fun(xn)
         cn = float(rn @ rn)
-        if np.isfinite(cn) and cn < cost:
-            done = cost - cn <= rtol * cost
-            x, r, jac, cost = xn, rn, jn, cn
-            lam = max(lam / 3.0, 1e-9)
-            if done:
-                break
+        if math.isfinite(cn) and cn < self.cost:
+            converged = self.cost - cn <= self.rtol * self.cost
+            self.x, self.r, self.jac, self.cost = xn, rn, jn, cn
+            self.lam = max(self.lam / 3.0, 1e-9)
+            self.done = converged
         else:
-            lam *= 4.0
-            if lam > 1e8:
-                break
-    return x
+            self.lam *= 4.0
+            self.done = self.lam > 1e8
+        self.done = self.done or self.left <= 0
+        return self.done
+
+
+def bounded_lm(fun, x0, lo, hi, iterations: int = 40, rtol: float = 1e-10):
+    """``BoundedLm`` run to the end; returns x."""
+    lm = BoundedLm(fun, x0, lo, hi, iterations, rtol)
+    lm.start()
+    while not lm.done:
+        lm.step()
+    return lm.x
 
 
 def fit_curve_lm(creep_speed_kmh, mu_samples, theta0, radius=None, iterations: int = 40) -> np.ndarray:
@@ -109,56 +140,44 @@ def fit_curve_lm(creep_speed_kmh, mu_samples, theta0, radius=None, iterations: i
     return bounded_lm(fun, theta0, lo, hi, iterations)
 
 
-def fit_curve_grid(creep_speed_kmh, mu_samples, theta0, radius, grid: int = 5, polish: int = 3,
-                   transform=None, offset=None) -> np.ndarray:
-    """The bounded fit of ``fit_curve`` by variable projection on a grid, then a short LM polish.
-
-    For fixed tau the model is linear in lambda, so on a ``grid`` x ``grid`` lattice of tau inside
-    the box (theta0 +- radius) each lambda is one batched 3x3 solve (coordinates that land outside
-    their bounds are clipped and the others re-solved once: an active-set pass).  The best lattice
-    point starts ``polish`` iterations of ``bounded_lm`` on all parameters.  A few hundred
-    microseconds in numpy and no worse a minimum than scipy's solver on the bench's first windows
-    (the problem is a flat valley: many thetas fit six samples equally well).
-
-    ``transform`` (S, S) and ``offset`` (S,): fit ``transform @ M(v; theta) + offset`` instead of
-    M (the observer-aware model's linear map)."""
-    v = np.asarray(creep_speed_kmh, float)
-    y = np.asarray(mu_samples, float)
+def _grid_lattice(theta0, radius, grid: int):
+    """Bounds (theta0 +- radius within parameter_bounds) and the (G, n) tau lattice of fit_curve_grid."""
     theta0 = np.asarray(theta0, float)
     n = (theta0.size - 1) // 2
     lo, hi = parameter_bounds(n)
     if radius is not None:
         lo, hi = np.maximum(lo, theta0 - radius), np.minimum(hi, theta0 + radius)
-    K = None if transform is None else np.asarray(transform, float)
-    target = y if offset is None else y - np.asarray(offset, float)
     axes = [np.linspace(lo[1 + n + i], hi[1 + n + i], grid) for i in range(n)]
     taus = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, n)       # (G, n)
-    phi = np.concatenate([np.ones((taus.shape[0], v.size, 1)),
-                          np.exp(taus[:, None, :] * v[None, :, None])], axis=2)      # (G, S, 1+n)
-    kphi = phi if K is None else np.einsum("st,gtj->gsj", K, phi)                    # (G, S, 1+n)
-    a = np.einsum("gsi,gsj->gij", kphi, kphi)
-    b = np.einsum("gsi,s->gi", kphi, target)
-    ridge = 1e-12 * np.trace(a, axis1=1, axis2=2)[:, None, None] * np.eye(1 + n)
-    lam = np.linalg.solve(a + ridge, b[..., None])[..., 0]                           # (G, 1+n)
+    return n, lo, hi, taus
+
+
+def _grid_best(a, b, cost_of, taus, lo, hi, n):
+    """Per lattice point the linear lambda from the normal equations a lam = b (+ one active-set
+    pass for the lambda bounds); the lattice point of least ``cost_of(lam)`` -> (lambda, tau)."""
+    eye = np.eye(1 + n)
+    ar = a + (1e-12 * np.trace(a, axis1=1, axis2=2))[:, None, None] * eye          # a + ridge
+    lam = np.linalg.solve(ar, b[..., None])[..., 0]                                 # (G, 1+n)
     llo, lhi = lo[:1 + n], hi[:1 + n]
     out = (lam < llo) | (lam > lhi)
     if out.any():                                  # one active-set pass: clip, re-solve the free ones
-        fixed = np.clip(lam, llo, lhi)
+        fixed = np.minimum(np.maximum(lam, llo), lhi)
         free = ~out
-        bb = b - np.einsum("gij,gj->gi", a, np.where(free, 0.0, fixed))
-        aa = np.where(free[:, :, None] & free[:, None, :], a, 0.0) + np.eye(1 + n) * (~free)[:, :, None] + ridge
-        lam = np.where(free, np.linalg.solve(aa, np.where(free, bb, 0.0)[..., None])[..., 0], fixed)
-        lam = np.clip(lam, llo, lhi)
-    resid = np.einsum("gsj,gj->gs", kphi, lam) - target[None, :]
-    cost = np.einsum("gs,gs->g", resid, resid)
+        held = np.where(out, fixed, 0.0)
+        bb = np.where(free, b - (a @ held[..., None])[..., 0], 0.0)
+        aa = np.where(free[:, :, None] & free[:, None, :], ar, 0.0) + eye * out[:, :, None]
+        lam = np.where(free, np.linalg.solve(aa, bb[..., None])[..., 0], fixed)
+        lam = np.minimum(np.maximum(lam, llo), lhi)
+    cost = cost_of(lam)
     cost[~np.isfinite(cost)] = np.inf
     best = int(np.argmin(cost))
-    start = np.r_[lam[best], taus[best]]
-    if polish <= 0:
-        return start
-    jac = np.empty((v.size, theta0.size))
-    jac[:, 0] = 1.0
+    return np.r_[lam[best], taus[best]]
 
+
+def _polish_fun(v, target, K, n: int):
+    """(r, J) of the LM polish: M(v; theta) (or K @ M) minus the target."""
+    jac = np.empty((v.size, 2 * n + 1))
+    jac[:, 0] = 1.0
     vcol = v[:, None]
 
     def fun(th):
@@ -170,7 +189,104 @@ def fit_curve_grid(creep_speed_kmh, mu_samples, theta0, radius, grid: int = 5, p
             return m - target, jac.copy()
         return K @ m - target, K @ jac
 
+    return fun
+
+
+def fit_curve_grid(creep_speed_kmh, mu_samples, theta0, radius, grid: int = 5, polish: int = 3,
+                   transform=None, offset=None, job: bool = False):
+    """The bounded fit of ``fit_curve`` by variable projection on a grid, then a short LM polish.
+
+    For fixed tau the model is linear in lambda, so on a ``grid`` x ``grid`` lattice of tau inside
+    the box (theta0 +- radius) each lambda is one batched 3x3 solve (coordinates that land outside
+    their bounds are clipped and the others re-solved once: an active-set pass).  The best lattice
+    point starts ``polish`` iterations of ``bounded_lm`` on all parameters.  A few hundred
+    microseconds in numpy and no worse a minimum than scipy's solver on the bench's first windows
+    (the problem is a flat valley: many thetas fit six samples equally well).  ``GridAccumulator``
+    builds the same lattice sample by sample.
+
+    ``transform`` (S, S) and ``offset`` (S,): fit ``transform @ M(v; theta) + offset`` instead of
+    M (the observer-aware model's linear map).
+
+    ``job``: return the lattice's result as a ``BoundedLm`` whose ``step()`` runs one polish
+    iteration (``.x`` when ``.done``), so the polish can be spread over several samples."""
+    v = np.asarray(creep_speed_kmh, float)
+    y = np.asarray(mu_samples, float)
+    n, lo, hi, taus = _grid_lattice(theta0, radius, grid)
+    K = None if transform is None else np.asarray(transform, float)
+    target = y if offset is None else y - np.asarray(offset, float)
+    phi = np.concatenate([np.ones((taus.shape[0], v.size, 1)),
+                          np.exp(taus[:, None, :] * v[None, :, None])], axis=2)      # (G, S, 1+n)
+    kphi = phi if K is None else np.einsum("st,gtj->gsj", K, phi)                    # (G, S, 1+n)
+    a = np.einsum("gsi,gsj->gij", kphi, kphi)
+    b = np.einsum("gsi,s->gi", kphi, target)
+
+    def cost_of(lam):
+        resid = np.einsum("gsj,gj->gs", kphi, lam) - target[None, :]
+        return np.einsum("gs,gs->g", resid, resid)
+
+    start = _grid_best(a, b, cost_of, taus, lo, hi, n)
+    if polish <= 0:
+        return start if job is False else _Done(start)
+    fun = _polish_fun(v, target, K, n)
+    if job:
+        return BoundedLm(fun, start, lo, hi, polish)
     return bounded_lm(fun, start, lo, hi, polish)
+
+
+class GridAccumulator:
+    """``fit_curve_grid``'s lattice built sample by sample: ``add`` one sample's rank-one update
+    of every lattice point's normal equations as it arrives (a few microseconds), ``job`` at the
+    window's end solves them (the least-squares cost from the same sums: |t|^2 - 2 lam.b +
+    lam.A lam) and returns the LM polish as a ``BoundedLm`` to step later.  The same problem as
+    ``fit_curve_grid(..., job=True)``, equal up to rounding.  ``size``: the most samples added."""
+
+    def __init__(self, theta0, radius, grid: int, polish: int, size: int):
+        self.n, self.lo, self.hi, self.taus = _grid_lattice(theta0, radius, grid)
+        g, p1 = self.taus.shape[0], self.n + 1
+        self.phi = np.ones((size, g, p1))
+        self.a = np.zeros((g, p1, p1))
+        self.b = np.zeros((g, p1))
+        self.tt = 0.0
+        self.count = 0
+        self.size = int(size)
+        self.polish = int(polish)
+
+    def add(self, creep_speed_kmh: float, target: float, k_row=None) -> None:
+        """One sample; ``k_row`` (count + 1,): its row of the transform (observer-aware model)."""
+        ph = self.phi[self.count]
+        np.exp(self.taus * creep_speed_kmh, out=ph[:, 1:])
+        if k_row is not None:
+            c = self.count + 1
+            ph = (np.asarray(k_row, float) @ self.phi[:c].reshape(c, -1)).reshape(ph.shape)
+        self.a += ph[:, :, None] * ph[:, None, :]
+        self.b += ph * target
+        self.tt += target * target
+        self.count += 1
+
+    def job(self, creep_speed_kmh, targets, transform=None):
+        """The lattice's best point, then the polish on (v, targets) as a ``BoundedLm``."""
+        def cost_of(lam):
+            q = (self.a @ lam[..., None])[..., 0]
+            return self.tt - 2.0 * np.sum(lam * self.b, axis=1) + np.sum(lam * q, axis=1)
+
+        start = _grid_best(self.a, self.b, cost_of, self.taus, self.lo, self.hi, self.n)
+        if self.polish <= 0:
+            return _Done(start)
+        K = None if transform is None else np.asarray(transform, float)
+        fun = _polish_fun(np.asarray(creep_speed_kmh, float), np.asarray(targets, float), K, self.n)
+        return BoundedLm(fun, start, self.lo, self.hi, self.polish)
+
+
+class _Done:
+    """A finished job (``fit_curve_grid(..., job=True)`` without polish)."""
+
+    done = True
+
+    def __init__(self, x):
+        self.x = x
+
+    def step(self) -> bool:
+        return True
 
 
 class NllsStrategy(Strategy):

@@ -69,23 +69,41 @@ class ObserverAwareModel:
         m = np.vstack([np.eye(size), np.zeros((2, size))]).T        # (size, size + 2) inputs, one per column
         rho0 = np.r_[np.zeros(size), 1.0, 0.0]
         eta0 = np.r_[np.zeros(size), 0.0, 1.0]
-        out = self.run(m, rho0, eta0)                               # (size, size + 2)
+        out, eta = self.run(m, rho0, eta0, return_eta="all")      # (size, size + 2) each
         self.lin = np.ascontiguousarray(out[:, :size])              # (S, S), lower triangular
         self.f_rho = out[:, size].copy()
         self.f_eta = out[:, size + 1].copy()
+        self.eta_lin = np.ascontiguousarray(eta[:, :size])          # eta_k from m_0..m_k
+        self.g_rho = eta[:, size].copy()
+        self.g_eta = eta[:, size + 1].copy()
         self.size = size
 
     def run(self, m: np.ndarray, rho0, eta0, return_eta: bool = False):
         """The recursion itself on m of shape (S, ...) (batch in the trailing dims): rho (S, ...)
         (and eta at the last sample with ``return_eta``)."""
         rho = np.empty_like(m, dtype=float)
+        etas = np.empty_like(m, dtype=float)
         r = np.asarray(rho0, float) * np.ones(m.shape[1:])
         e = np.asarray(eta0, float) * np.ones(m.shape[1:])
         rho[0] = r
+        etas[0] = e
         for k in range(1, m.shape[0]):
             r, e = r + self.d * e, self.a * e - self.b * (0.5 * (m[k - 1] + m[k]) - r)
             rho[k] = r
+            etas[k] = e
+        if return_eta == "all":
+            return rho, etas
         return (rho, e) if return_eta else rho
+
+    def states(self, m: np.ndarray, rho0: float, eta0: float):
+        """``run`` for a batch m (N, S), by the linear maps: rho (N, S) and eta at the last sample (N,)."""
+        s = m.shape[-1]
+        lin, fr, fe = self.matrices(s)
+        rho = m @ lin.T
+        rho += rho0 * fr + eta0 * fe
+        eta = m @ self.eta_lin[s - 1, :s]
+        eta += rho0 * self.g_rho[s - 1] + eta0 * self.g_eta[s - 1]
+        return rho, eta
 
     def step(self, eta, rho, m_prev, m_new):
         """One sample on arrays (per particle): (eta, rho) at k -> at k + 1 given m_k, m_{k+1}."""
@@ -106,7 +124,7 @@ class ObserverAwareModel:
 
 
 def fit_curve_oa(model: ObserverAwareModel, v, mu, rho0: float, eta0: float, theta0, radius=None,
-                 solver: str = "trf", iterations: int = 8, grid: int = 5) -> np.ndarray:
+                 solver: str = "trf", iterations: int = 8, grid: int = 5, job: bool = False):
     """NLLS of mu^ against mu^_pred(theta) (``nlls.fit_curve`` with the observer-aware residual;
     same bounds).  ``solver``: "trf" (scipy), "grid" (``nlls.fit_curve_grid``: variable projection
     on a tau lattice + ``iterations`` LM steps; needs ``radius``) or "lm" (``nlls.bounded_lm``)."""
@@ -120,7 +138,8 @@ def fit_curve_oa(model: ObserverAwareModel, v, mu, rho0: float, eta0: float, the
     free = rho0 * fr + eta0 * fe - y
     start = np.clip(theta0, lo + 1e-9, hi - 1e-9)
     if solver == "grid" and radius is not None:
-        return fit_curve_grid(v, y, theta0, radius, grid, iterations, transform=lin, offset=rho0 * fr + eta0 * fe)
+        return fit_curve_grid(v, y, theta0, radius, grid, iterations, transform=lin, offset=rho0 * fr + eta0 * fe,
+                              job=job)
     if solver == "lm":
         return bounded_lm(lambda th: (lin @ mu_model(v, th) + free, lin @ jacobian(v, th)), start, lo, hi, iterations)
     res = least_squares(lambda th: lin @ mu_model(v, th) + free, start, jac=lambda th: lin @ jacobian(v, th),
@@ -267,19 +286,47 @@ class ProposedOaStrategy(ObserverAwareMixin, ProposedStrategy):
                             self.prelim_radius(), self.opts["prelim_solver"], int(self.opts["prelim_iterations"]),
                             int(self.opts["prelim_grid"]))
 
+    def _accumulate(self, creep_speed_kmh: float, mu_hat: float) -> None:
+        # the sample's row of the observer-aware map: mu^ - offset = lin[k, :k+1] @ M(v_0..k)
+        k = self._grid_acc.count
+        lin, fr, fe = self.oa_model.matrices(k + 1)
+        self._grid_acc.add(creep_speed_kmh, mu_hat - (self._rho0 * fr[k] + self._eta0 * fe[k]), lin[k])
+
+    def _start_prelim_job(self, window_v, window_mu):
+        acc, self._grid_acc = self._grid_acc, None
+        if acc is None or acc.count != len(window_v):
+            return fit_curve_oa(self.oa_model, window_v, window_mu, self._rho0, self._eta0, self.theta,
+                                self.prelim_radius(), "grid", int(self.opts["prelim_iterations"]),
+                                int(self.opts["prelim_grid"]), job=True)
+        lin, fr, fe = self.oa_model.matrices(len(window_v))
+        return acc.job(window_v, window_mu - (self._rho0 * fr + self._eta0 * fe), lin)
+
     def _after_prelim(self) -> None:
         super()._after_prelim()
-        # every particle's observer state at the window's last sample, from its own curve
+        # every particle's observer state at the last sample fed (the prelim's window, and the samples
+        # fed while its polish was spread), from its own curve: the recursion in matrix form
         v, _ = self.data()
-        th = self.base + self.particles                              # (N, P)
-        m = mu_model(v, th).T                                         # (S, N)
-        m = np.where(np.isfinite(m), m, 0.0)
-        rho, eta = self.oa_model.run(m, self._rho0, self._eta0, return_eta=True)
-        self._eta, self._rho, self._m = eta, rho[-1].copy(), m[-1].copy()
+        m = self._curve_many(v)                                       # (N, S)
+        if not math.isfinite(m.sum()):
+            m = np.where(np.isfinite(m), m, 0.0)
+        self._rho_hist, eta = self.oa_model.states(m, self._rho0, self._eta0)
+        self._eta, self._rho, self._m = eta, self._rho_hist[:, -1].copy(), m[:, -1].copy()
         self._rho_next = self._rho
+
+    def _catch_up(self, v, mu) -> None:
+        """The samples fed while the prelim's polish was spread: weighed at once against each
+        particle's mu^_pred over them (its parameters held), no move; the next sample steps as usual."""
+        resid = mu[None, :] - self._rho_hist[:, -v.size:]
+        ll = np.einsum("ij,ij->i", resid, resid)
+        ll *= -0.5 / self.noise_std ** 2
+        if not math.isfinite(ll.sum()):
+            ll[~np.isfinite(ll)] = -np.inf
+        self._rho_next = self._rho
+        self._weigh(ll)
 
     def on_sample(self, creep_speed_kmh: float, mu_hat: float) -> None:
         if not self.prelim_done:
+            self._before_filter(creep_speed_kmh, mu_hat)
             return
         md = self.oa_model
         # 1. weigh: mu^_pred(k) = rho_{k-1} + d eta_{k-1}, from each particle's history
