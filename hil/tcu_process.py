@@ -44,6 +44,8 @@ class TcuNode:
         self.identifier = TractionIdentifier(self.settings, strategy, seed)
         self.rejected = RejectCounter()
         self.last_step = -1
+        self._jump: int | None = None     # step of the last out-of-sequence sensor frame
+        self.resyncs = 0
         self.sensor_frames = 0
         self.events = 0
         self.plant_state: int | None = None
@@ -57,8 +59,14 @@ class TcuNode:
         if frame.name == "PlantSensor":
             reading = frame.value
             if not (self.last_step < reading.step <= self.last_step + MAX_STEP_GAP):    # a run starts at step 0
-                self.rejected["bad_sequence"] += 1
-                return []
+                # out of sequence: garbage, unless the next frame continues it (the TCU lost many frames)
+                resync = self._jump is not None and reading.step == self._jump + 1
+                self._jump = reading.step
+                if not resync:
+                    self.rejected["bad_sequence"] += 1
+                    return []
+                self.resyncs += 1
+            self._jump = None
             self.last_step = reading.step
             self.sensor_frames += 1
             out = self.identifier.on_sensor(reading)
@@ -77,7 +85,7 @@ class TcuNode:
         ident = self.identifier
         return {"samples_v": [float(x) for x in v], "samples_mu": [float(x) for x in mu],
                 "detected_step": ident.detector.detected_step, "events": self.events,
-                "sensor_frames": self.sensor_frames, "last_step": self.last_step,
+                "sensor_frames": self.sensor_frames, "last_step": self.last_step, "resyncs": self.resyncs,
                 "rejected_frames": dict(self.rejected), "rejected_readings": ident.rejected_readings,
                 "plant_state": None if self.plant_state is None else STATE_NAMES.get(self.plant_state),
                 "confirmed": bool(ident.strategy.confirmed)}

@@ -172,3 +172,16 @@ def test_bus_load_of_the_schedule():
     assert load["load_percent"] == pytest.approx(100 * (per_period / 1e-3 + per_hb / 2e-3))
     slow = bus_load(db, 1e-3, 2e-3, 250_000, 1_000_000)
     assert slow["load_percent"] > 70 > load["load_percent"]
+
+
+def test_tcu_resyncs_after_losing_many_frames_but_not_on_single_garbage(ffcc_a):
+    node = TcuNode(ffcc_a, "nlls", 1)
+    c = node.codec
+    for k in range(10):
+        assert node.handle(c.sensor(SensorReading(k, 63.7, 10.0)))
+    assert node.handle(c.sensor(SensorReading(5000, 63.7, 10.0))) == []      # a lone jump: garbage
+    assert node.handle(c.sensor(SensorReading(10, 63.7, 10.0)))
+    assert node.handle(c.sensor(SensorReading(900, 63.7, 10.0))) == []       # 889 frames lost ...
+    assert node.handle(c.sensor(SensorReading(901, 63.7, 10.0)))             # ... and the stream goes on there
+    assert node.handle(c.sensor(SensorReading(902, 63.7, 10.0)))
+    assert node.rejected == {"bad_sequence": 2} and node.resyncs == 1 and node.last_step == 902
