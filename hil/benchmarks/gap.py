@@ -166,10 +166,12 @@ def cmd_gap_bench(args) -> int:
         print(json.dumps(result))
     else:
         print(f"gap bench: {result['cases']} cases (seed {args.seed}), {result['effect_classes']} effect classes")
-        print(f"  top-1 accuracy {result['top1_accuracy']}  'none' accuracy {result['none_accuracy']}")
-        print(f"  median held-out gap shrink {result['median_shrink_percent']} %  "
-              f"median parameter error {result['median_param_err_percent']} %  "
-              f"(within 20 %: {result['param_within_20_percent']})")
+        f = lambda x, spec: "n/a" if x is None else format(x, spec)  # noqa: E731
+        print(f"  top-1 accuracy {f(result['top1_accuracy'], '.3f')} ({result['library_cases']} library cases)  "
+              f"'none' accuracy {f(result['none_accuracy'], '.3f')} ({result['outside_cases']} outside)")
+        print(f"  median held-out gap shrink {f(result['median_shrink_percent'], '.1f')} %  "
+              f"median parameter error {f(result['median_param_err_percent'], '.2f')} %  "
+              f"(within 20 %: {f(result['param_within_20_percent'], '.3f')})")
         print("  confusion (rows: truth, columns: named):")
         cols = sorted({n for row in result["confusion"].values() for n, c in row.items()})
         print("    " + " " * 20 + " ".join(f"{c[:8]:>8s}" for c in cols))
