@@ -225,6 +225,9 @@ class Diagnosis:
         for s in SIGNALS:
             sel = ctx.held & ctx.valid[s]
             r = ctx.meas[s][sel] - fit.pred[s][sel]
+            if r.size == 0:     # a log without this signal (e.g. no TCU observer topic)
+                per[s] = {"rmse": None, "gap": None}
+                continue
             sg = fit.sigma[s]
             nll += float(np.sum((r / sg) ** 2) + r.size * 2 * math.log(sg / ctx.sigma_nom[s]))
             n += r.size
@@ -233,8 +236,9 @@ class Diagnosis:
             gap2 += g2 / ctx.sigma_nom[s] ** 2
             own2 += g2 / sg ** 2
             per[s] = {"rmse": math.sqrt(ms), "gap": math.sqrt(g2)}
-        return {"score": nll + fit.k * math.log(max(n, 2)), "gap": math.sqrt(gap2 / len(SIGNALS)),
-                "gap_own_floor": math.sqrt(own2 / len(SIGNALS)), "per_signal": per}
+        m = max(sum(1 for s in SIGNALS if per[s]["rmse"] is not None), 1)
+        return {"score": nll + fit.k * math.log(max(n, 2)), "gap": math.sqrt(gap2 / m),
+                "gap_own_floor": math.sqrt(own2 / m), "per_signal": per}
 
     # -- where ----------------------------------------------------------------------------------------
     def where(self, ctx: Context, nominal, motor0, train0, creep_meas) -> dict:

@@ -37,8 +37,8 @@ def text_summary(out: dict) -> str:
     lines.append(f"  HOW FAR ({sh['effect']}{'' if sh['named'] != 'none' else ', not named'}): held-out gap "
                  f"shrink {sh['held_out_gap_shrink_percent']:.1f} %")
     for s, v in sh["per_signal"].items():
-        lines.append(f"    {s:7s} RMSE {v['rmse_before']:.4g} -> {v['rmse_after']:.4g} {v['unit']}  (gap "
-                     f"{v['gap_before']:.3g} -> {v['gap_after']:.3g}, noise floor {v['noise_floor']:.3g})")
+        lines.append(f"    {s:7s} RMSE {_f(v['rmse_before'], '.4g')} -> {_f(v['rmse_after'], '.4g')} {v['unit']}  (gap "
+                     f"{_f(v['gap_before'])} -> {_f(v['gap_after'])}, noise floor {v['noise_floor']:.3g})")
     ident = out.get("identification")
     if ident:
         lines.append(f"  IDENTIFICATION ({ident['strategy']}):")
@@ -181,8 +181,8 @@ def write_report(out: dict, dg, directory) -> Path:
     md += ["", "## How far it shrinks (held-out blocks)", "",
            "| signal | RMSE before | RMSE after | gap before | gap after | noise floor |", "|---|---|---|---|---|---|"]
     for s, v in out["shrink"]["per_signal"].items():
-        md.append(f"| {s} [{v['unit']}] | {v['rmse_before']:.4g} | {v['rmse_after']:.4g} | {v['gap_before']:.3g} | "
-                  f"{v['gap_after']:.3g} | {v['noise_floor']:.3g} |")
+        md.append(f"| {s} [{v['unit']}] | {_f(v['rmse_before'], '.4g')} | {_f(v['rmse_after'], '.4g')} | "
+                  f"{_f(v['gap_before'])} | {_f(v['gap_after'])} | {v['noise_floor']:.3g} |")
     if ident:
         md += ["", "## Identification: real run vs model replays", "", "![curves](curves.png)", ""]
     md += ["", "Full figures: `gap.json`.", ""]
