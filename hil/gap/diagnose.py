@@ -267,6 +267,13 @@ class Diagnosis:
                              **{s: (None if rms(resid[s], sel) is None else rms(resid[s], sel) / sig[s])
                                 for s in resid}}
 
+        per_stage_model = {}
+        for i, nm in enumerate(names):
+            sel = w & (st_model == i)
+            per_stage_model[nm] = {"periods": int(sel.sum()),
+                                   **{s: (None if rms(resid[s], sel) is None else rms(resid[s], sel) / sig[s])
+                                      for s in resid}}
+
         def t_det(stg):
             idx = np.flatnonzero(stg == 2)
             return float(d.t_s[idx[0]] - sc.run.fault_time_s) if idx.size else None
@@ -310,6 +317,7 @@ class Diagnosis:
                    f"{worst_band['creep_kmh'][1] or 'inf'} km/h, in the {worst_freq['hz'][0]}-"
                    f"{worst_freq['hz'][1] or 'Nyquist'} Hz band")
         return {"summary": summary, "per_signal": per_signal, "per_stage": per_stage,
+                "per_stage_by_model_creep": per_stage_model,
                 "t_det_measured_s": t_det(st_meas), "t_det_model_s": t_det(st_model),
                 "per_creep_band": per_band, "per_frequency_band": per_freq, "tests": tests,
                 "input_constant": bool(np.std(torque) < 1e-9)}
