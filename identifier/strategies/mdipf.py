@@ -129,6 +129,7 @@ class MdipfStrategy(Strategy):
         self.base = self.theta.copy()        # theta_{Q-1}: the curve the errors are relative to
         self.prelim_done = False
         self._job = None                     # the prelim's polish in progress (prelim_polish_per_sample)
+        self._queued = None                  # (v, mu) fed during the polish, weighed by the next step
         # the "grid" prelim's lattice, built over window 1's samples (set up now, before the fault)
         self._grid_acc = None
         if self._spread_prelim():
@@ -164,6 +165,11 @@ class MdipfStrategy(Strategy):
     def on_sample(self, creep_speed_kmh: float, mu_hat: float) -> None:
         if not self.prelim_done:
             self._before_filter(creep_speed_kmh, mu_hat)
+            return
+        if self._queued is not None:       # the first step after the spread prelim: it catches up
+            v, mu = self._queued
+            self._queued = None
+            self._catch_up(np.append(v, creep_speed_kmh), np.append(mu, mu_hat))
             return
         self._move()
         self._constrain()
@@ -309,9 +315,12 @@ class MdipfStrategy(Strategy):
                 if job.step():
                     break
             return
-        self._finish_prelim()
+        self._finish_prelim(now=False)
 
-    def _finish_prelim(self) -> None:
+    def _finish_prelim(self, now: bool = True) -> None:
+        """The prelim is final: open the filter.  The samples fed since window 1 are caught up now
+        (``now``), or kept for the next sample's step, which weighs them with its own (so the
+        cloud set-up and the catch-up fall on two samples)."""
         job, self._job = self._job, None
         while not job.done:
             job.step()
@@ -319,7 +328,10 @@ class MdipfStrategy(Strategy):
         v = np.asarray(self._v[self._window_start:])
         mu = np.asarray(self._mu[self._window_start:])
         if v.size:
-            self._catch_up(v, mu)
+            if now:
+                self._catch_up(v, mu)
+            else:
+                self._queued = (v, mu)
 
     def _catch_up(self, v: np.ndarray, mu: np.ndarray) -> None:
         """The samples fed while the prelim was being finished, in one filter step: one move
@@ -354,7 +366,7 @@ class MdipfStrategy(Strategy):
 
     def correct_pending(self):
         if not self.prelim_done:           # a window closed first: finish now
-            self._finish_prelim()
+            self._finish_prelim(now=True)
         estimate = np.zeros_like(self.base)
         self._estimate_for_theta = estimate
         return estimate if self.opts["j_ef_from_prelim"] else np.full_like(self.base, np.nan)
@@ -368,6 +380,10 @@ class MdipfStrategy(Strategy):
         self._after_prelim()
 
     def correct(self, window_v, window_mu):
+        if self._queued is not None:       # the window closed on the sample the filter opened: catch up now
+            v, mu = self._queued
+            self._queued = None
+            self._catch_up(v, mu)
         if not self.prelim_done and self._spread_prelim():
             self._job = self._start_prelim_job(window_v, window_mu)
             return None

@@ -313,16 +313,20 @@ class ProposedOaStrategy(ObserverAwareMixin, ProposedStrategy):
         self._eta, self._rho, self._m = eta, self._rho_hist[:, -1].copy(), m[:, -1].copy()
         self._rho_next = self._rho
 
-    def _catch_up(self, v, mu) -> None:
-        """The samples fed while the prelim's polish was spread: weighed at once against each
-        particle's mu^_pred over them (its parameters held), no move; the next sample steps as usual."""
+    def _queued_log_likelihood(self, v, mu) -> np.ndarray:
+        """log p of the samples fed while the prelim's polish was spread, against each particle's
+        mu^_pred over them (its parameters held): they are the last v.size of ``_after_prelim``'s."""
         resid = mu[None, :] - self._rho_hist[:, -v.size:]
         ll = np.einsum("ij,ij->i", resid, resid)
         ll *= -0.5 / self.noise_std ** 2
         if not math.isfinite(ll.sum()):
             ll[~np.isfinite(ll)] = -np.inf
+        return ll
+
+    def _catch_up(self, v, mu) -> None:
+        """Weigh the queued samples at once, no move; the next sample steps as usual."""
         self._rho_next = self._rho
-        self._weigh(ll)
+        self._weigh(self._queued_log_likelihood(v, mu))
 
     def on_sample(self, creep_speed_kmh: float, mu_hat: float) -> None:
         if not self.prelim_done:
@@ -336,6 +340,9 @@ class ProposedOaStrategy(ObserverAwareMixin, ProposedStrategy):
         ll *= -0.5 / self.noise_std ** 2
         if not math.isfinite(ll.sum()):
             ll[~np.isfinite(ll)] = -np.inf
+        if self._queued is not None:       # the first step after the spread prelim: it catches up
+            ll += self._queued_log_likelihood(*self._queued)
+            self._queued = None
         self._rho_next = rho
         self._weigh(ll)
         # 2. move the parameters (eq. 12) and keep them in the box
