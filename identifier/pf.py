@@ -12,6 +12,10 @@ them in Python.  The pieces, in the order a filter step uses them:
 - ``ess``, ``resample``       effective sample size; systematic / multinomial / stratified resampling.
 - ``project_to_box``          the dynamic projection domain: particles outside [lo, hi] moved inside
   by minimising -log p(chi~ - chi_out) - log p(Z - M_cor(chi~)) over the box.
+
+The strategies' hot path (identifier/strategies/mdipf.py) uses ``rownorm_transition`` and
+``systematic_counts_resample``: the same operations as ``correlation_transition(..., "rownorm")``
+and ``resample(..., "systematic")`` up to rounding, in fewer numpy calls.
 """
 from __future__ import annotations
 

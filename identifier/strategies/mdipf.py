@@ -36,8 +36,8 @@ Choices the paper leaves open (alternatives behind options):
   the first ``noise_block`` samples' transition noise and the initial cloud, in the order the
   filter would have drawn them (so results are unchanged); past the block, one draw per sample
   (no burst of a whole block on one sample; runs that long now draw a different stream).
-- the cloud is kept in Fortran order, so ``particles.T`` (P, N) has contiguous rows and every
-  pass over it in identifier/pf.py is contiguous (same results to the last bit on the bench).
+- the cloud is kept as a (P, N) C-contiguous array ``_xt`` (``particles`` is its (N, P) view),
+  so every pass over it is over contiguous rows, also after resampling.
 - ``prelim_solver``: how the bounded prelim problem is solved (the same objective and bounds).
   "grid" (default, ``nlls.fit_curve_grid``): variable projection on a 5 x 5 lattice of tau in
   the box (lambda by one batched linear solve per lattice point), then <= 8 LM steps; "trf":
@@ -48,10 +48,33 @@ Choices the paper leaves open (alternatives behind options):
   (proposed, seeds 100-119): same RT, peak errors within 3 %/10 % in 55/60 % of seeds against
   30/60 % with "trf", window-end p99 1.5-3.6 ms against 9-11 ms.  "lm" from the prior stops
   early in the valley (10/10 %): kept only as a measured alternative.
+
+Cost per sample (the TCU has one sampling period, 1 ms, per sample; ``hil bench identify`` reports
+the cost of every fed sample):
+- the filter step (``_move``, ``_log_likelihood``, ``_weigh``) works on the (P, N) cloud with
+  preallocated buffers and few numpy calls (at N = 1000 a call's overhead, not its arithmetic, is
+  most of the cost): Theta by ``pf.rownorm_transition`` (the row-normalised correlation without
+  forming it), the weights as w_prev exp(ll - max ll) / sum (no logarithms; log weights only if
+  that underflows), systematic resampling by counts (``pf.systematic_counts_resample``) only when
+  ESS < ``ess_fraction`` N.  These equal the reference pieces of identifier/pf.py up to rounding
+  (the runs diverge after a few resamplings, as any last-bit change does; the bench's accuracy
+  figures are unchanged within their seed-to-seed spread).
+- the "grid" prelim is spread (``prelim_polish_per_sample`` > 0, default 3): its tau lattice's
+  normal equations are summed as window 1's samples arrive (``nlls.GridAccumulator``), the
+  lattice is solved on window 1's last sample, the LM polish runs 3 iterations per sample on the
+  next samples, and on the sample after the polish the filter opens (cloud drawn, the prelim's
+  correction event) and steps through the samples fed meanwhile, in order, ``catch_up_at_open``
+  of them on that sample and ``catch_up_per_sample`` per later sample until it has caught up (a
+  window's correction first finishes the queue).  The filter's steps are exactly those it would
+  have made on time (same results as ``prelim_polish_per_sample = 0`` up to rounding), only
+  later; what moves is the prelim's correction event, 4 samples (4 ms) after window 1 ends on
+  the bench's data (the polish takes its 8 iterations there).  RT, J_EF and the confirmation are
+  unchanged.  0 keeps the whole prelim on window 1's last sample (the previous behaviour).
 """
 from __future__ import annotations
 
 import math
+from collections import deque
 
 import numpy as np
 
@@ -76,8 +99,11 @@ DEFAULTS = {
                                               # "lm": nlls.bounded_lm from the prior curve (both numpy)
     "prelim_iterations": 8,                   # iteration cap of the "lm" prelim / LM polish of "grid"
     "prelim_grid": 5,                         # tau lattice of the "grid" prelim (per tau)
-    "prelim_polish_per_sample": 2,            # "grid" prelim: LM polish iterations per sample, spread over the
+    "prelim_polish_per_sample": 3,            # "grid" prelim: LM polish iterations per sample, spread over the
                                               # samples after window 1 (0: the whole prelim on window 1's last sample)
+    "catch_up_per_sample": 2,                 # filter steps per sample while catching up after a spread prelim
+    "catch_up_at_open": 1,                    # ... and on the sample the filter opens on (L = 6 needs it to
+                                              # catch up before window 2 closes)
 }
 
 
@@ -129,7 +155,8 @@ class MdipfStrategy(Strategy):
         self.base = self.theta.copy()        # theta_{Q-1}: the curve the errors are relative to
         self.prelim_done = False
         self._job = None                     # the prelim's polish in progress (prelim_polish_per_sample)
-        self._queued = None                  # (v, mu) fed during the polish, weighed by the next step
+        self._queue: deque = deque()         # (v, mu) fed during the polish, not yet filtered
+        self._prelim_samples = 0             # samples the prelim fitted (window 1)
         # the "grid" prelim's lattice, built over window 1's samples (set up now, before the fault)
         self._grid_acc = None
         if self._spread_prelim():
@@ -166,15 +193,25 @@ class MdipfStrategy(Strategy):
         if not self.prelim_done:
             self._before_filter(creep_speed_kmh, mu_hat)
             return
-        if self._queued is not None:       # the first step after the spread prelim: it catches up
-            v, mu = self._queued
-            self._queued = None
-            self._catch_up(np.append(v, creep_speed_kmh), np.append(mu, mu_hat))
+        if self._queue:                    # still catching up on the samples fed during the prelim's polish
+            self._queue.append((creep_speed_kmh, mu_hat))
+            self._drain(int(self.opts["catch_up_per_sample"]))
             return
+        self._step(creep_speed_kmh, mu_hat)
+
+    def _step(self, creep_speed_kmh: float, mu_hat: float) -> None:
+        """One filter step on one sample."""
         self._move()
         self._constrain()
         self._project(creep_speed_kmh, mu_hat)
         self._weigh(self._log_likelihood(creep_speed_kmh, mu_hat))
+
+    def _drain(self, limit: int | None = None) -> None:
+        """Ordinary filter steps on the oldest queued samples (all of them when ``limit`` is None)."""
+        q = self._queue
+        count = len(q) if limit is None else min(len(q), max(1, limit))
+        for _ in range(count):
+            self._step(*q.popleft())
 
     # The step below is pf.correlation_transition / propagate / log_likelihood / normalise /
     # resample to the last bit, written on the (P, N) cloud with preallocated buffers and as few
@@ -318,37 +355,20 @@ class MdipfStrategy(Strategy):
         self._finish_prelim(now=False)
 
     def _finish_prelim(self, now: bool = True) -> None:
-        """The prelim is final: open the filter.  The samples fed since window 1 are caught up now
-        (``now``), or kept for the next sample's step, which weighs them with its own (so the
-        cloud set-up and the catch-up fall on two samples)."""
+        """The prelim is final: open the filter (cloud drawn around it, the prelim's correction
+        event on this sample) and queue the samples fed since window 1 ended; the filter steps
+        through them in order, ``catch_up_at_open`` on this sample and ``catch_up_per_sample`` per
+        later sample (all at once with ``now``), so it computes exactly the steps it would have made on time,
+        only later (a window's correction first finishes the queue)."""
         job, self._job = self._job, None
         while not job.done:
             job.step()
         self._begin_filter(job.x)
-        v = np.asarray(self._v[self._window_start:])
-        mu = np.asarray(self._mu[self._window_start:])
-        if v.size:
-            if now:
-                self._catch_up(v, mu)
-            else:
-                self._queued = (v, mu)
-
-    def _catch_up(self, v: np.ndarray, mu: np.ndarray) -> None:
-        """The samples fed while the prelim was being finished, in one filter step: one move
-        (eq. 12), then all their likelihoods at once (the parameters held over those samples);
-        with one sample this is exactly the ordinary step."""
-        self._move()
-        self._constrain()
-        self._project(float(v[-1]), float(mu[-1]))
-        if v.size == 1:
-            ll = self._log_likelihood(float(v[0]), float(mu[0]))
-        else:
-            resid = mu[None, :] - self._curve_many(v)
-            ll = np.einsum("ij,ij->i", resid, resid)
-            ll *= -0.5 / self.noise_std ** 2
-            if not math.isfinite(ll.sum()):
-                ll[~np.isfinite(ll)] = -np.inf
-        self._weigh(ll)
+        self._queue.extend(zip(self._v[self._window_start:], self._mu[self._window_start:]))
+        if now:
+            self._drain()
+        elif int(self.opts["catch_up_at_open"]) > 0:
+            self._drain(int(self.opts["catch_up_at_open"]))
 
     def _curve_many(self, v: np.ndarray) -> np.ndarray:
         """M_cor at several creep speeds per particle: (N, S) (curve.mu_model on the (P, N) cloud)."""
@@ -380,10 +400,10 @@ class MdipfStrategy(Strategy):
         self._after_prelim()
 
     def correct(self, window_v, window_mu):
-        if self._queued is not None:       # the window closed on the sample the filter opened: catch up now
-            v, mu = self._queued
-            self._queued = None
-            self._catch_up(v, mu)
+        if self._queue:                    # a window closed before the filter caught up: catch up now
+            self._drain()
+        if not self.prelim_done:
+            self._prelim_samples = len(window_v)
         if not self.prelim_done and self._spread_prelim():
             self._job = self._start_prelim_job(window_v, window_mu)
             return None

@@ -250,7 +250,9 @@ def _fit_oa_from(model, v, mu, rho0, eta0, start, bounds):
     return res.x
 
 
-OA_DEFAULTS = {**PROPOSED_DEFAULTS, "projector": "clip"}
+#: catch_up_at_open 0: the observer-aware filter's opening sample carries the observer states of the
+#: whole prelim window (L = 8 leaves room to catch up over the next samples)
+OA_DEFAULTS = {**PROPOSED_DEFAULTS, "projector": "clip", "catch_up_at_open": 0}
 #: L of proposed_oa, measured on seeds 100-119 (hil bench identify's seeds 1-20 are for reporting).
 #: With the "trf" prelim, L = 6 / 7 / 8 / 10 gave median RT 28.7 / 33.3 / 32.0 / 40.0 % (FFCC-a) and
 #: peak errors within 3 % / 10 % in 30 / 45 / 65 / 70 % of seeds; with the default "grid" prelim,
@@ -303,35 +305,17 @@ class ProposedOaStrategy(ObserverAwareMixin, ProposedStrategy):
 
     def _after_prelim(self) -> None:
         super()._after_prelim()
-        # every particle's observer state at the last sample fed (the prelim's window, and the samples
-        # fed while its polish was spread), from its own curve: the recursion in matrix form
-        v, _ = self.data()
+        # every particle's observer state at the prelim window's last sample, from its own curve
+        # (the recursion in matrix form); the filter steps on from there
+        v = np.asarray(self._v[:self._prelim_samples])
         m = self._curve_many(v)                                       # (N, S)
         if not math.isfinite(m.sum()):
             m = np.where(np.isfinite(m), m, 0.0)
-        self._rho_hist, eta = self.oa_model.states(m, self._rho0, self._eta0)
-        self._eta, self._rho, self._m = eta, self._rho_hist[:, -1].copy(), m[:, -1].copy()
+        rho, eta = self.oa_model.states(m, self._rho0, self._eta0)
+        self._eta, self._rho, self._m = eta, rho[:, -1].copy(), m[:, -1].copy()
         self._rho_next = self._rho
 
-    def _queued_log_likelihood(self, v, mu) -> np.ndarray:
-        """log p of the samples fed while the prelim's polish was spread, against each particle's
-        mu^_pred over them (its parameters held): they are the last v.size of ``_after_prelim``'s."""
-        resid = mu[None, :] - self._rho_hist[:, -v.size:]
-        ll = np.einsum("ij,ij->i", resid, resid)
-        ll *= -0.5 / self.noise_std ** 2
-        if not math.isfinite(ll.sum()):
-            ll[~np.isfinite(ll)] = -np.inf
-        return ll
-
-    def _catch_up(self, v, mu) -> None:
-        """Weigh the queued samples at once, no move; the next sample steps as usual."""
-        self._rho_next = self._rho
-        self._weigh(self._queued_log_likelihood(v, mu))
-
-    def on_sample(self, creep_speed_kmh: float, mu_hat: float) -> None:
-        if not self.prelim_done:
-            self._before_filter(creep_speed_kmh, mu_hat)
-            return
+    def _step(self, creep_speed_kmh: float, mu_hat: float) -> None:
         md = self.oa_model
         # 1. weigh: mu^_pred(k) = rho_{k-1} + d eta_{k-1}, from each particle's history
         rho = self._rho + md.d * self._eta
@@ -340,9 +324,6 @@ class ProposedOaStrategy(ObserverAwareMixin, ProposedStrategy):
         ll *= -0.5 / self.noise_std ** 2
         if not math.isfinite(ll.sum()):
             ll[~np.isfinite(ll)] = -np.inf
-        if self._queued is not None:       # the first step after the spread prelim: it catches up
-            ll += self._queued_log_likelihood(*self._queued)
-            self._queued = None
         self._rho_next = rho
         self._weigh(ll)
         # 2. move the parameters (eq. 12) and keep them in the box
