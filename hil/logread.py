@@ -19,6 +19,7 @@ class LogError(ValueError):
 class LogContents:
     path: str
     messages: list = field(default_factory=list)     # (topic, log_time_ns, decoded protobuf message)
+    message_count: int = 0                           # every message record read, whatever its topic
     metadata: dict = field(default_factory=dict)     # name -> dict
     complete: bool = True
     damage: str = ""
@@ -53,6 +54,7 @@ def read_log(path, topics: set[str] | None = None) -> LogContents:
                 elif isinstance(record, Metadata):
                     out.metadata[record.name] = dict(record.metadata)
                 elif isinstance(record, Message):
+                    out.message_count += 1
                     ch = channels.get(record.channel_id)
                     if ch is None or (topics is not None and ch.topic not in topics):
                         continue

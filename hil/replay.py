@@ -1,0 +1,265 @@
+"""Offline re-identification of a recorded run: ``hil replay``.
+
+The identifier is fed what the TCU received: the plant's sensor frames, decoded through the DBC by
+the same ``TcuNode`` the TCU process runs (same validation and step sequencing), as fast as the
+machine allows.  Sources, in order of preference:
+
+- an MCAP log of ``hil run``: the raw ``/can/frames`` (the plant's transmitted ``PlantSensor``
+  frames); a log with no frames (``run_inprocess``) falls back to ``/plant/sensor``, encoded to
+  frames by the DBC (64-bit floats, so exactly the readings).  The scenario comes from the log's
+  ``scenario`` metadata (or ``--scenario``), strategy and seed from its ``run`` metadata;
+- a CAN log of another tool (``.log`` candump, ``.asc``, ``.blf``, ... anything ``can.LogReader``
+  reads) with ``--scenario``.
+
+The summary is the one ``hil run --json`` prints (``hil.summary.summarise``), with the stages from
+the logged true plant state when present, plus ``matches_log`` (the replayed identification events
+equal the logged ones: count, kind, correction number, step and parameters bit for bit; ``None``
+when the strategy or seed differ from the logged run's, or the log holds no identification record)
+and ``messages_read``.  A damaged log (run killed, file cut) replays up to the damage;
+``damage`` says what was lost.
+"""
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import can
+
+from identifier.messages import IdentificationEvent, SensorReading
+from plant import StageTracker
+
+from .frames import RESULT_ID, SENSOR_ID, FrameCodec
+from .logread import MAGIC, LogError, read_log
+from .loop import LAG_WINDOW_S
+from .scenario import ScenarioError, load_scenario, parse_scenario
+from .summary import clean, observer_lag_ms, summarise
+
+#: file suffixes read with ``can.LogReader`` (python-can's writers/readers)
+CAN_LOG_SUFFIXES = (".log", ".asc", ".blf", ".csv", ".trc", ".mf4")
+#: topics a replay reads from an MCAP log
+REPLAY_TOPICS = {"/can/frames", "/plant/sensor", "/plant/state", "/tcu/identification", "/tcu/status"}
+
+
+@dataclass
+class ReplaySource:
+    """What a replay needs from a log, whatever its format."""
+    path: str
+    kind: str                                   # "mcap-frames" | "mcap-sensor" | "can-log"
+    scenario: object
+    frames: list                                # can.Message, in bus order (sensor frames at least)
+    logged_strategy: str | None = None
+    logged_seed: int | None = None
+    logged_events: list | None = None           # (step, kind, correction, params) or None: nothing to compare
+    logged_last_step: int | None = None         # events up to this step are complete in the log
+    truth: list = field(default_factory=list)   # (t_s, creep_speed_kmh, mu) of the true plant state
+    messages_read: int = 0
+    complete: bool = True
+    damage: str = ""
+
+
+def _scenario_from(path, meta: dict, scenario_file):
+    if scenario_file is not None:
+        return load_scenario(scenario_file)
+    sc = meta.get("scenario") or {}
+    if "toml" not in sc:
+        raise LogError(f"{path}: no scenario metadata (not a 'hil run' log?); give the scenario with --scenario FILE")
+    try:
+        return parse_scenario(sc["toml"], f"{path}: scenario metadata")
+    except ScenarioError as e:
+        raise LogError(str(e)) from None
+
+
+def _msg_from_record(r) -> can.Message:
+    return can.Message(timestamp=r.send_time_ns * 1e-9, arbitration_id=r.arbitration_id,
+                       is_extended_id=r.is_extended_id, is_fd=r.is_fd, bitrate_switch=r.bitrate_switch,
+                       is_error_frame=r.is_error_frame, is_remote_frame=r.is_remote_frame, dlc=r.dlc,
+                       data=bytes(r.data), check=False)
+
+
+def load_mcap(path, scenario_file=None) -> ReplaySource:
+    log = read_log(path, topics=REPLAY_TOPICS)
+    if not log.metadata and not log.messages:
+        raise LogError(f"{path}: nothing readable before the damage ({log.damage or 'empty log'})")
+    scenario = _scenario_from(path, log.metadata, scenario_file)
+    run = log.metadata.get("run") or {}
+    try:
+        seed = int(run["seed"]) if "seed" in run else None
+    except ValueError:
+        seed = None
+    frames, sensor, truth, events, status_steps = [], [], [], [], []
+    has_ident_topic = False
+    for topic, _, m in log.messages:
+        if topic == "/can/frames":
+            if m.direction == "tx" and m.arbitration_id == SENSOR_ID:
+                frames.append(_msg_from_record(m))
+        elif topic == "/plant/sensor":
+            sensor.append(SensorReading(int(m.step), m.motor_speed_rad_s, m.train_speed_ms))
+        elif topic == "/plant/state":
+            truth.append((m.t_s, m.creep_speed_kmh, m.mu))
+        elif topic == "/tcu/identification":
+            has_ident_topic = True
+            events.append((int(m.step), m.kind, int(m.correction), tuple(m.params)))
+        elif topic == "/tcu/status":
+            status_steps.append(int(m.step))
+    kind = "mcap-frames"
+    if not frames:
+        if not sensor:
+            what = f"damaged ({log.damage}) before any" if not log.complete and log.damage else "no"
+            raise LogError(f"{path}: {what} sensor data (no PlantSensor frames on /can/frames, no /plant/sensor)")
+        codec = FrameCodec(scenario.run.exchange_period_s)
+        frames = [codec.sensor(r) for r in sensor]
+        kind = "mcap-sensor"
+    compare = has_ident_topic or bool(status_steps)
+    src = ReplaySource(str(path), kind, scenario, frames, logged_strategy=run.get("strategy"), logged_seed=seed,
+                       logged_events=events if compare else None, truth=truth,
+                       messages_read=log.message_count, complete=log.complete, damage=log.damage)
+    if not log.complete:
+        # a cut log: results and status of the last steps may be missing; compare up to the last status - 1
+        src.logged_last_step = (max(status_steps) - 1) if status_steps else -1
+    return src
+
+
+def load_can_log(path, scenario_file, strategy=None) -> ReplaySource:
+    if scenario_file is None:
+        raise LogError(f"{path}: a CAN log has no scenario; give it with --scenario FILE")
+    scenario = load_scenario(scenario_file)
+    codec = FrameCodec(scenario.run.exchange_period_s)
+    frames, events, n = [], [], 0
+    damage = ""
+    try:
+        with can.LogReader(str(path)) as reader:
+            for msg in reader:
+                n += 1
+                if msg.arbitration_id == SENSOR_ID and not msg.is_extended_id:
+                    frames.append(msg)
+                elif msg.arbitration_id == RESULT_ID and not msg.is_extended_id:
+                    frame, status = codec.classify(msg)
+                    if frame is not None:
+                        e = frame.value
+                        events.append((e.step, e.kind, e.correction, tuple(e.params)))
+    except ValueError as e:
+        if n == 0:
+            raise LogError(f"{path}: not a CAN log python-can can read: {e}") from None
+        damage = f"unreadable after {n} frames: {e}"
+    except Exception as e:  # noqa: BLE001 - a damaged file from another tool: keep what was read
+        if n == 0:
+            raise LogError(f"{path}: not a CAN log python-can can read ({type(e).__name__}: {e})") from None
+        damage = f"unreadable after {n} frames ({type(e).__name__}: {e})"
+    if not frames:
+        raise LogError(f"{path}: no PlantSensor frames (id 0x{SENSOR_ID:X}) among its {n} frames")
+    src = ReplaySource(str(path), "can-log", scenario, frames, logged_events=events if events else None,
+                       messages_read=n, complete=not damage, damage=damage)
+    if damage:
+        src.logged_last_step = max((e[0] for e in events), default=-1)
+    return src
+
+
+def load_source(path, scenario_file=None) -> ReplaySource:
+    p = Path(path)
+    try:
+        with p.open("rb") as f:
+            head = f.read(len(MAGIC))
+    except OSError as e:
+        raise LogError(f"{path}: cannot read: {e.strerror}") from None
+    if head == MAGIC or p.suffix.lower() == ".mcap":
+        return load_mcap(path, scenario_file)
+    if p.suffix.lower() in CAN_LOG_SUFFIXES:
+        return load_can_log(path, scenario_file)
+    raise LogError(f"{path}: neither an MCAP log (no MCAP magic) nor a CAN log python-can reads "
+                   f"({', '.join(CAN_LOG_SUFFIXES)})")
+
+
+def _event_key(e: IdentificationEvent):
+    return (e.step, e.kind, e.correction, tuple(e.params))
+
+
+def replay(src: ReplaySource, strategy: str | None = None, seed: int | None = None) -> dict:
+    """Re-run the identifier on ``src``; the ``hil run --json`` summary plus replay fields."""
+    from .tcu_process import TcuNode
+
+    scenario = src.scenario
+    strategy = strategy or src.logged_strategy or "nlls"
+    seed = seed if seed is not None else (src.logged_seed if src.logged_seed is not None else scenario.run.seed)
+    period = scenario.run.exchange_period_s
+    node = TcuNode(scenario, strategy, seed)
+    ident = node.identifier
+    events: list[IdentificationEvent] = []
+    observer_mu: dict[int, float] = {}
+    fault_t = scenario.run.fault_time_s
+    inner = ident.on_sensor
+
+    def on_sensor(reading):
+        out = inner(reading)
+        events.extend(out.events)
+        obs = out.observer
+        if obs is not None and 0 <= obs.t_s - fault_t <= LAG_WINDOW_S:
+            observer_mu[obs.step] = obs.mu_hat
+        return out
+
+    ident.on_sensor = on_sensor
+    wall0 = time.perf_counter()
+    for msg in src.frames:
+        node.handle(msg)
+    wall = time.perf_counter() - wall0
+
+    tracker = StageTracker(fault_t, scenario.fault_curve.peak()[0])
+    truth_t, truth_mu = [], []
+    for t_s, creep, mu in src.truth:
+        tracker.update(t_s, creep)
+        if 0 <= t_s - fault_t <= LAG_WINDOW_S:
+            truth_t.append(t_s)
+            truth_mu.append(mu)
+    steps = [int(round(t / period)) for t in truth_t]
+    lag = None
+    if steps and all(s in observer_mu for s in steps):
+        lag = observer_lag_ms(truth_t, truth_mu, [observer_mu[s] for s in steps], fault_t,
+                              tracker.serious_time_s or scenario.run.duration_s, period)
+
+    matches = None
+    if src.logged_events is not None and strategy == src.logged_strategy and \
+            (src.logged_seed is None or seed == src.logged_seed):
+        limit = math.inf if src.logged_last_step is None else src.logged_last_step
+        mine = [_event_key(e) for e in events if e.step <= limit]
+        logged = [e for e in src.logged_events if e[0] <= limit]
+        matches = mine == logged
+    elif src.kind == "can-log" and src.logged_events is not None and src.logged_strategy is None:
+        # a CAN log does not say which strategy produced its results: compare anyway
+        limit = math.inf if src.logged_last_step is None else src.logged_last_step
+        matches = [_event_key(e) for e in events if e.step <= limit] == \
+            [e for e in src.logged_events if e[0] <= limit]
+
+    v, mu = ident.strategy.data()
+    det = ident.detector.detected_step
+    readings = node.sensor_frames
+    logged_corr = None if src.logged_events is None else sum(1 for e in src.logged_events if e[1] == "correction")
+    logged_conf = None if src.logged_events is None else next(
+        (e for e in src.logged_events if e[1] == "confirmed"), None)
+    extra = {"observer_lag_ms": lag, "mode": "replay", "source": src.kind, "wall_s": wall,
+             "sim_s": (node.last_step + 1) * period if node.last_step >= 0 else 0.0,
+             "samples_per_s": readings / wall if wall > 0 else None, "sensor_readings": readings,
+             "rejected_frames": dict(node.rejected), "messages_read": src.messages_read,
+             "matches_log": matches, "log_complete": src.complete, "damage": src.damage or None,
+             "logged": {"strategy": src.logged_strategy, "seed": src.logged_seed, "corrections": logged_corr,
+                        "t_identified_s": None if logged_conf is None else logged_conf[0] * period,
+                        "params": None if logged_conf is None else list(logged_conf[3])}}
+    out = summarise(scenario=scenario, strategy=strategy, seed=seed, bus="replay", tracker=tracker, events=events,
+                    samples_v=v, samples_mu=mu, t_detected_s=None if det is None else det * period,
+                    mcap_path=src.path, extra=extra)
+    return clean(out)
+
+
+def damage_warning(src: ReplaySource) -> str | None:
+    """One line for stderr saying how much of a damaged log was recovered (None for a whole log)."""
+    if src.complete:
+        return None
+    period = src.scenario.run.exchange_period_s
+    return (f"warning: {src.path} is damaged ({src.damage}); recovered {src.messages_read} messages, "
+            f"{len(src.frames)} sensor frames (about {len(src.frames) * period:.3f} s of the run); "
+            "replaying up to the damage")
+
+
+def dumps(summary: dict) -> str:
+    return json.dumps(summary)
