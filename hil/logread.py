@@ -1,10 +1,12 @@
 """Reading MCAP logs back, whole or damaged (a run killed mid-write, a file cut at any byte)."""
 from __future__ import annotations
 
+import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from mcap.records import Channel, Message, Metadata, Schema
+from mcap.exceptions import EndOfFile
 from mcap.stream_reader import StreamReader
 from mcap_protobuf.decoder import DecoderFactory
 
@@ -23,6 +25,7 @@ class LogContents:
     metadata: dict = field(default_factory=dict)     # name -> dict
     complete: bool = True
     damage: str = ""
+    cut: bool = False                                # reading stopped at a damaged or missing record
 
     def topic(self, name: str) -> list:
         return [m for t, _, m in self.messages if t == name]
@@ -67,7 +70,12 @@ def read_log(path, topics: set[str] | None = None) -> LogContents:
                     out.messages.append((ch.topic, record.log_time, decode(record.data)))
         except Exception as e:  # noqa: BLE001 - any failure past this point is damage to report
             out.complete = False
-            out.damage = f"{type(e).__name__}: {e}"
+            out.cut = True
+            size = p.stat().st_size
+            if isinstance(e, (EndOfFile, struct.error)):
+                out.damage = f"the file ends inside a record (cut at byte {size})"
+            else:
+                out.damage = f"unreadable record before byte {size} ({type(e).__name__}: {e})"
     if out.complete and "summary" not in out.metadata:
         out.complete = False
         out.damage = out.damage or "no summary record (the run did not finish)"

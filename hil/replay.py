@@ -65,7 +65,8 @@ def _scenario_from(path, meta: dict, scenario_file):
         return load_scenario(scenario_file)
     sc = meta.get("scenario") or {}
     if "toml" not in sc:
-        raise LogError(f"{path}: no scenario metadata (not a 'hil run' log?); give the scenario with --scenario FILE")
+        raise LogError(f"{path}: no scenario metadata: not a 'hil run' log (another tool's MCAP?); "
+                       "give the scenario with --scenario FILE")
     try:
         return parse_scenario(sc["toml"], f"{path}: scenario metadata")
     except ScenarioError as e:
@@ -81,8 +82,8 @@ def _msg_from_record(r) -> can.Message:
 
 def load_mcap(path, scenario_file=None) -> ReplaySource:
     log = read_log(path, topics=REPLAY_TOPICS)
-    if not log.metadata and not log.messages:
-        raise LogError(f"{path}: nothing readable before the damage ({log.damage or 'empty log'})")
+    if log.cut and not log.metadata and not log.message_count:
+        raise LogError(f"{path}: nothing readable before the damage ({log.damage})")
     scenario = _scenario_from(path, log.metadata, scenario_file)
     run = log.metadata.get("run") or {}
     try:
@@ -107,7 +108,7 @@ def load_mcap(path, scenario_file=None) -> ReplaySource:
     kind = "mcap-frames"
     if not frames:
         if not sensor:
-            what = f"damaged ({log.damage}) before any" if not log.complete and log.damage else "no"
+            what = f"damaged ({log.damage}) before any" if log.cut else "no"
             raise LogError(f"{path}: {what} sensor data (no PlantSensor frames on /can/frames, no /plant/sensor)")
         codec = FrameCodec(scenario.run.exchange_period_s)
         frames = [codec.sensor(r) for r in sensor]

@@ -88,3 +88,99 @@ def test_bad_strategy_is_one_line(runs):
     r = hil("replay", str(path), "--strategy", "nope")
     assert r.returncode == 2
     assert r.stderr.count("\n") == 1 and "unknown strategy 'nope'" in r.stderr
+
+
+# -- damaged and foreign logs -------------------------------------------------------------------------------
+def replay_in_process(capsys, *args):
+    """The real ``hil`` entry point in this process (50 cuts x a fresh interpreter would cost minutes)."""
+    from hil.cli import main
+
+    capsys.readouterr()
+    rc = main(["replay", *args])
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+def test_log_cut_at_50_byte_positions(runs, tmp_path, capsys):
+    run, path = runs[PF_STRATEGY]
+    data = path.read_bytes()
+    n = len(data)
+    # 10 fixed positions (inside the magic, the header, the metadata, the last bytes) + 40 spread over the file
+    cuts = [0, 5, 9, 30, 200, 2000, n - 1, n - 9, n - 64, n - 2000] + [int(n * (i + 0.5) / 40) for i in range(40)]
+    assert len(set(cuts)) == 50
+    cut_path = tmp_path / "cut.mcap"
+    recovered = []
+    for c in sorted(cuts):
+        cut_path.write_bytes(data[:c])
+        rc, out, err = replay_in_process(capsys, str(cut_path), "--json")
+        assert "Traceback" not in err
+        if rc == 0:
+            s = json.loads(out)
+            assert err.count("\n") == 1 and "is damaged" in err and "recovered" in err, (c, err)
+            assert s["messages_read"] > 0 and s["sensor_readings"] > 0
+            assert s["messages_read"] <= run["messages"]
+            # what the log still holds of the identification, the replay reproduces
+            assert s["matches_log"] is True, c
+            recovered.append((c, s["messages_read"], s["sensor_readings"]))
+        else:
+            assert rc == 2, (c, rc, err)
+            assert err.count("\n") == 1 and err.startswith("hil replay: error: "), (c, err)
+            assert c < 40_000, f"cut at {c} of {n} bytes gave nothing usable: {err}"
+    # the 40 spread cuts recover more and more of the run; the last ones nearly all of it
+    assert len(recovered) >= 40
+    counts = [m for _, m, _ in recovered]
+    assert counts == sorted(counts)
+    assert recovered[-1][2] >= 990
+
+
+def test_run_killed_with_sigkill_replays_up_to_the_kill(tmp_path):
+    import signal
+    import time
+
+    cmd = hil_command() + ["run", str(SCENARIOS / "ffcc_a.toml"), "--strategy", PF_STRATEGY, "--out", str(tmp_path),
+                           "--set", "run.duration_s=20"]
+    proc = subprocess.Popen(cmd, env=subprocess_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    path = tmp_path / f"ffcc_a-{PF_STRATEGY}-1.mcap"
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and (not path.exists() or path.stat().st_size < 300_000):
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=30)
+    assert proc.returncode == -signal.SIGKILL
+    r = hil("replay", str(path), "--json")
+    assert r.returncode == 0, r.stderr
+    s = json.loads(r.stdout)
+    assert "is damaged" in r.stderr and "recovered" in r.stderr and "Traceback" not in r.stderr
+    assert s["log_complete"] is False and s["sensor_readings"] > 300
+    assert s["matches_log"] is True
+
+
+def test_foreign_and_non_mcap_files_get_one_line(tmp_path, capsys):
+    from mcap.writer import Writer
+
+    foreign = tmp_path / "other_tool.mcap"
+    with foreign.open("wb") as f:
+        w = Writer(f)
+        w.start()
+        sid = w.register_schema("Pose", "jsonschema", b"{}")
+        cid = w.register_channel("/pose", "json", sid)
+        for i in range(20):
+            w.add_message(cid, i, json.dumps({"x": i}).encode(), i)
+        w.finish()
+    text = tmp_path / "notes.mcap"
+    text.write_text("not a log\n")
+    garbage_blf = tmp_path / "junk.blf"
+    garbage_blf.write_bytes(bytes(range(256)) * 3)
+    cases = [
+        ((str(foreign),), "no scenario metadata"),
+        ((str(foreign), "--scenario", str(SCENARIOS / "ffcc_a.toml")), "no sensor data"),
+        ((str(text),), "not an MCAP file"),
+        ((str(tmp_path / "missing.mcap"),), "No such file"),
+        ((str(tmp_path),), "cannot read"),
+        ((str(garbage_blf), "--scenario", str(SCENARIOS / "ffcc_a.toml")), "not a CAN log"),
+        ((str(garbage_blf),), "--scenario"),
+    ]
+    for args, expected in cases:
+        rc, out, err = replay_in_process(capsys, *args)
+        assert rc == 2 and out == "", args
+        assert err.count("\n") == 1 and expected in err, (args, err)
