@@ -184,3 +184,40 @@ def test_foreign_and_non_mcap_files_get_one_line(tmp_path, capsys):
         rc, out, err = replay_in_process(capsys, *args)
         assert rc == 2 and out == "", args
         assert err.count("\n") == 1 and expected in err, (args, err)
+
+
+# -- CAN logs of other tools ----------------------------------------------------------------------------------
+@pytest.mark.parametrize("suffix", ["log", "asc", "blf"])
+def test_can_log_written_by_python_can_replays_the_same(runs, tmp_path, suffix):
+    """The frames of a real run written with python-can's own writers (candump .log, Vector .asc, .blf)."""
+    import can
+
+    from hil.logread import read_log
+
+    run, path = runs["nlls"]
+    log = read_log(path, topics={"/can/frames"})
+    can_log = tmp_path / f"rig.{suffix}"
+    written = 0
+    with can.Logger(str(can_log)) as writer:
+        for _, _, m in log.messages:
+            writer.on_message_received(can.Message(
+                timestamp=m.wall_time_ns * 1e-9, arbitration_id=m.arbitration_id, is_extended_id=m.is_extended_id,
+                is_fd=m.is_fd, bitrate_switch=m.bitrate_switch, dlc=m.dlc, data=bytes(m.data),
+                is_rx=m.direction == "rx", channel="vcan0"))
+            written += 1
+    assert written > 2000
+    r = hil("replay", str(can_log), "--scenario", str(SCENARIOS / "ffcc_a.toml"), "--seed", "4", "--json")
+    assert r.returncode == 0, r.stderr
+    s = json.loads(r.stdout)
+    assert s["source"] == "can-log" and s["messages_read"] == written
+    for key in ("identified", "t_identified_s", "params", "corrections", "samples", "t_detected_s", "r2"):
+        assert s[key] == run[key], key
+    assert s["matches_log"] is True      # against the TcuResult frames in the CAN log
+    assert s["t_serious_s"] is None      # a CAN log has no true plant state
+
+
+def test_can_log_needs_a_scenario(runs, tmp_path, capsys):
+    can_log = tmp_path / "x.log"
+    can_log.write_text("(0.000000) vcan0 100##1" + "00" * 24 + "\n")
+    rc, out, err = replay_in_process(capsys, str(can_log))
+    assert rc == 2 and "--scenario" in err and err.count("\n") == 1

@@ -34,14 +34,35 @@ def cmd_replay(args) -> int:
     if args.json:
         print(json.dumps(summary))
         return 0
-    from .run import print_summary
-
-    print_summary({**summary, "mode": None})
+    print_replay(summary)
     m = summary["matches_log"]
     lg = summary["logged"]
     verdict = {True: "matches the logged identification", False: "DIFFERS from the logged identification",
                None: "not comparable with the log"}[m]
     print(f"  replay ({summary['source']}): {summary['messages_read']} messages read, {summary['sensor_readings']} "
           f"sensor readings in {summary['wall_s']:.3f} s = {summary['samples_per_s']:.0f} samples/s; {verdict} "
-          f"(logged: {lg['strategy']} seed {lg['seed']}, {lg['corrections']} corrections)")
+          f"(logged: {lg['strategy'] or 'result frames'}{'' if lg['seed'] is None else ' seed %d' % lg['seed']}, "
+          f"{lg['corrections']} corrections)")
     return 0
+
+
+def _f(x, spec):
+    return "n/a" if x is None else format(x, spec)
+
+
+def print_replay(s: dict, file=sys.stdout) -> None:
+    """The ``hil run`` summary lines (n/a where a source lacks the truth, e.g. a CAN log has no plant state)."""
+    print(f"replay {s['mcap']}: scenario {s['scenario']}  strategy {s['strategy']}  seed {s['seed']}", file=file)
+    print(f"  fault at {_f(s['t_fault_s'], '.3f')} s, serious stage at {_f(s['t_serious_s'], '.3f')} s "
+          f"(T_det {_f(s['t_det_s'] and s['t_det_s'] * 1e3, '.1f')} ms), slip detected at "
+          f"{_f(s['t_detected_s'], '.3f')} s", file=file)
+    if s["identified"]:
+        print(f"  identified at {_f(s['t_identified_s'], '.3f')} s: RT {_f(s['rt_percent'], '.1f')} % after "
+              f"{s['corrections']} corrections", file=file)
+    else:
+        print(f"  NOT identified ({s['corrections']} corrections)", file=file)
+    if s.get("params"):
+        print("  params (l0, l1, l2, t1, t2): " + ", ".join(f"{x:.5g}" for x in s["params"]), file=file)
+        print(f"  fit: RMSE {_f(s['rmse'], '.3e')}  R2 {_f(s['r2'], '.5f')}; vs true curve: peak mu error "
+              f"{_f(s['peak_mu_err_percent'], '.2f')} %, peak creep error {_f(s['peak_creep_err_percent'], '.2f')} %",
+              file=file)
