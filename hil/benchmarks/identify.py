@@ -4,7 +4,10 @@
 Per case and seed the plant, the sensors and the TCU's torque demand run once; the sensor readings
 are recorded and then replayed, reading by reading, into a fresh ``TractionIdentifier`` per
 strategy, so every strategy sees the identical data.  Each ``on_sensor`` call of the identifying
-phase (slip detected -> confirmed or end of run) is timed: that is the cost per sample.
+phase (slip detected -> confirmed or end of run) is timed: that is the cost per sample.  A run
+feeds 18-40 samples, so a seed's p99 is in effect its costliest sample (a window's end, the
+spread prelim's polish or the filter's opening); the table's p99 is the median over seeds of
+that, the worst seed's beside it.  Seeds 1..N are for reporting; tune on others (``--first-seed``).
 
 Observer-aware strategies (``*_oa``, identifier/strategies/observer_aware.py) fit the observer's
 predicted output mu^_pred(theta) rather than M(v_s; theta): their ``r2`` is still the paper's (the
