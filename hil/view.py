@@ -271,7 +271,7 @@ def build_recording(data: LogData, application_id: str = "railway_hil"):
     vmax = max(3.0 * v_peak, float(sv.max()) * 1.1 if sv.size else 0.0)
     grid = np.linspace(0.0, vmax, 301)
     grid_idx = np.round(grid * 1000)
-    _line(rr, rec, "/curve/true_fault", "true fault curve", C_TRUE, 2.5)
+    _line(rr, rec, "/curve/true_fault", "true fault curve", (255, 200, 0), 3.0)
     _scalars(rr, rec, "/curve/true_fault", grid_idx, sc.fault_curve.mu(grid), CREEP_TIMELINE, sequence=True)
     corrections = [e for e in events if e.kind == "correction"]
     for i, e in enumerate(corrections):
@@ -286,6 +286,8 @@ def build_recording(data: LogData, application_id: str = "railway_hil"):
               (31, 119, 180), 3.0)
         _scalars(rr, rec, "/curve/identified/final", grid_idx, mu_model(grid, np.array(final.params)),
                  CREEP_TIMELINE, sequence=True)
+    mu_peak = sc.fault_curve.peak()[1]
+    curve_mu_range = (min(0.0, float(smu.min()) if smu.size else 0.0) - 0.01, 1.35 * mu_peak)
     png = curve_figure_png(data, sv, smu, events)
     rec.log("/figures/curve", rr.EncodedImage(contents=png, media_type="image/png"), static=True)
 
@@ -296,20 +298,26 @@ def build_recording(data: LogData, application_id: str = "railway_hil"):
         rrb.TimeSeriesView(origin="/mu", name="True mu and observed mu^"),
         rrb.TimeSeriesView(origin="/tcu", name="TCU stage and corrections"),
     ]
+    curve_views = [
+        rrb.TimeSeriesView(origin="/curve", name=f"mu vs creep speed: select timeline {CREEP_TIMELINE} (m/h)",
+                           plot_legend=rrb.PlotLegend(visible=False),
+                           axis_x=rrb.TimeAxis(view_range=rrb.TimeRange(
+                               start=rrb.TimeRangeBoundary.absolute(seq=0),
+                               end=rrb.TimeRangeBoundary.absolute(seq=int(grid_idx[-1])))),
+                           axis_y=rrb.ScalarAxis(range=curve_mu_range)),
+        rrb.Spatial2DView(origin="/figures", name="mu-v_s figure (matplotlib)"),
+    ]
     lower = [rrb.TextLogView(origin="/events", name="Identification events")]
     if frames:
         lower.append(rrb.TimeSeriesView(origin="/bus", name="CAN frames per 10 ms"))
     if timing and (realtime or np.any(np.isfinite(rt))):
         lower.append(rrb.TimeSeriesView(origin="/timing", name="Loop timing: round trip, jitter, missed deadlines"))
-    lower.append(rrb.Spatial2DView(origin="/figures", name="mu-v_s figure (matplotlib)"))
-    run_tab = rrb.Vertical(rrb.Grid(*time_views), rrb.Horizontal(*lower), row_shares=[2, 1], name="Run vs sim time")
-    curve_tab = rrb.Horizontal(
-        rrb.TimeSeriesView(origin="/curve", name=f"mu vs creep speed (select timeline {CREEP_TIMELINE})",
-                           plot_legend=rrb.PlotLegend(visible=False)),
-        rrb.Spatial2DView(origin="/figures", name="mu-v_s figure"),
-        name="mu-v_s curve")
-    blueprint = rrb.Blueprint(rrb.Tabs(run_tab, curve_tab, active_tab=0),
-                              rrb.TimePanel(timeline=TIME_TIMELINE), collapse_panels=False)
+    # one page, no tabs: the time plots fill on sim_time, the mu-v_s plot on creep_m_per_h, the figure on both
+    blueprint = rrb.Blueprint(
+        rrb.Vertical(rrb.Grid(*time_views, *curve_views, grid_columns=3), rrb.Horizontal(*lower),
+                     row_shares=[3, 1], name="HIL run"),
+        rrb.TimePanel(timeline=TIME_TIMELINE), rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"), collapse_panels=False)
     return rec, blueprint
 
 
