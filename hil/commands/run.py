@@ -51,6 +51,7 @@ def register(sub) -> None:
                    help="plant model: the CasADi model or an FMI 2.0/3.0 Co-Simulation FMU (default: the "
                    "scenario's [plant] table, else casadi). Loading an FMU runs its native code")
     p.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
+    p.add_argument("--no-rrd", action="store_true", help="do not write the Rerun recording (.rrd) beside the log")
     p.set_defaults(func=cmd_run)
 
 
@@ -76,11 +77,28 @@ def cmd_run(args) -> int:
     finally:
         if plant is not None:
             plant.close()
+    rrd = None if args.no_rrd or not summary.get("mcap") else write_rrd_beside(summary["mcap"])
     if args.json:
         print(json.dumps(summary))
     else:
         print_summary(summary)
+        if rrd:
+            print(f"  rerun: {rrd}")
     return 0
+
+
+def write_rrd_beside(mcap_path):
+    """The Rerun recording beside the MCAP (hil view); its path on stderr; a failure only warns."""
+    from ..view import write_rrd
+
+    try:
+        rrd, _ = write_rrd(mcap_path)
+    except Exception as e:  # noqa: BLE001 - the run itself succeeded; the .rrd can be made later with hil view
+        print(f"hil run: warning: no Rerun recording written ({type(e).__name__}: {e}); try hil view {mcap_path}",
+              file=sys.stderr)
+        return None
+    print(f"hil run: Rerun recording {rrd}", file=sys.stderr)
+    return rrd
 
 
 def apply_reality_args(scenario, items):
