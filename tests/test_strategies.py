@@ -209,3 +209,48 @@ def test_strategy_options_from_a_scenario_reach_the_strategy(ffcc_a_path):
     strat = make_strategy("proposed", s)
     assert strat.n_particles == 123 and strat.particles.shape == (123, 5) and strat.window_samples == 7
     assert make_strategy("mdipf", s).n_particles == 1000          # other strategies keep their defaults
+
+
+@pytest.mark.parametrize("name", ["mdipf", "proposed"])
+def test_spread_prelim_makes_the_same_filter_steps_only_later(name):
+    """prelim_polish_per_sample > 0 spreads the prelim's lattice and LM polish over samples and has the
+    filter catch up on the samples fed meanwhile: the same corrections and curve as the prelim done at
+    once on window 1's last sample (up to rounding), only the prelim's own correction event comes later."""
+    samples = samples_spanning_peak(600)
+    runs = {}
+    for per_sample in (0, 3):
+        strat = make_strategy(name, settings(options={name: {"prelim_polish_per_sample": per_sample}}), seed=5)
+        runs[per_sample] = (strat, feed(strat, samples))
+    (at_once, ev0), (spread, ev3) = runs[0], runs[3]
+    assert spread.confirmed == at_once.confirmed and spread.corrections == at_once.corrections >= 2
+    np.testing.assert_allclose(spread.theta, at_once.theta, rtol=0, atol=1e-9)
+    assert [e.kind for e in ev3] == [e.kind for e in ev0]
+    # the first correction (the prelim) is reported later; every later event on the same sample
+    assert ev3[0].samples > ev0[0].samples == spread.window_samples
+    assert [e.samples for e in ev3[1:]] == [e.samples for e in ev0[1:]]
+
+
+def test_spread_prelim_keeps_window_end_work_off_single_samples():
+    """Per sample while the prelim is spread: at most prelim_polish_per_sample LM iterations, and after it
+    at most catch_up_per_sample filter steps (counted, not timed)."""
+    strat = make_strategy("mdipf", settings(), seed=5)
+    steps, iters = [], []
+    orig_step = strat._step
+    counter = {"steps": 0}
+
+    def counting_step(v, mu):
+        counter["steps"] += 1
+        orig_step(v, mu)
+
+    strat._step = counting_step
+    for s in samples_spanning_peak(60):
+        job = strat._job
+        before_left = job.left if job is not None else None
+        counter["steps"] = 0
+        strat.add_sample(s)
+        steps.append(counter["steps"])
+        if before_left is not None:
+            iters.append(before_left - (job.left if job is not None else 0))
+    assert max(iters) <= strat.opts["prelim_polish_per_sample"] and sum(iters) > 0
+    assert max(steps) <= strat.opts["catch_up_per_sample"]
+    assert strat.prelim_done and not strat._queue

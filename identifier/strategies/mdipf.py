@@ -56,9 +56,9 @@ the cost of every fed sample):
   most of the cost): Theta by ``pf.rownorm_transition`` (the row-normalised correlation without
   forming it), the weights as w_prev exp(ll - max ll) / sum (no logarithms; log weights only if
   that underflows), systematic resampling by counts (``pf.systematic_counts_resample``) only when
-  ESS < ``ess_fraction`` N.  These equal the reference pieces of identifier/pf.py up to rounding
-  (the runs diverge after a few resamplings, as any last-bit change does; the bench's accuracy
-  figures are unchanged within their seed-to-seed spread).
+  ESS < ``ess_fraction`` N.  These equal the reference pieces of identifier/pf.py up to rounding;
+  on hil bench identify's seeds 1-20 and 100-119 mdipf's (and proposed_oa's) RT, corrections,
+  peak errors and pass rates came out identical to the previous code.
 - the "grid" prelim is spread (``prelim_polish_per_sample`` > 0, default 3): its tau lattice's
   normal equations are summed as window 1's samples arrive (``nlls.GridAccumulator``), the
   lattice is solved on window 1's last sample, the LM polish runs 3 iterations per sample on the
