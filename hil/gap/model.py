@@ -20,13 +20,14 @@ from plant.params import KMH_PER_MS
 from plant.reality import RealityModel
 
 
-def initial_line(t_s, motor, train, n_fit: int = 20) -> tuple[np.ndarray, np.ndarray]:
-    """(value at t_s[0], slope per second) of (omega_m, v_t) from a straight-line fit to the first
-    ``n_fit`` measured samples."""
-    t = t_s[:n_fit] - t_s[0]
+def initial_line(t_s, motor, train, n_fit: int = 20, n_fit_train: int = 100) -> tuple[np.ndarray, np.ndarray]:
+    """(value at t_s[0], slope per second) of (omega_m, v_t) from straight-line fits to the first
+    ``n_fit`` motor-speed samples (it may have a fast transient) and ``n_fit_train`` train-speed samples
+    (the train's inertia keeps it straight; its error moves the creep, so the motor too)."""
     values, slopes = [], []
-    for y in (motor[:n_fit], train[:n_fit]):
-        a, b = np.polyfit(t, y, 1)
+    for y, n in ((motor, n_fit), (train, n_fit_train)):
+        n = min(n, len(y))
+        a, b = np.polyfit(t_s[:n] - t_s[0], y[:n], 1)
         values.append(b)
         slopes.append(a)
     return np.array(values), np.array(slopes)
