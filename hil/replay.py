@@ -68,9 +68,21 @@ def _scenario_from(path, meta: dict, scenario_file):
         raise LogError(f"{path}: no scenario metadata: not a 'hil run' log (another tool's MCAP?); "
                        "give the scenario with --scenario FILE")
     try:
-        return parse_scenario(sc["toml"], f"{path}: scenario metadata")
+        return parse_scenario(sc["toml"], f"{path}: scenario metadata", scenario_overrides(sc))
     except ScenarioError as e:
         raise LogError(str(e)) from None
+
+
+def scenario_overrides(sc_meta: dict) -> dict | None:
+    """``--set`` overrides stored beside the scenario text (metadata key ``overrides``, JSON), if the log has them."""
+    raw = sc_meta.get("overrides")
+    if not raw:
+        return None
+    try:
+        value = json.loads(raw)
+    except ValueError:
+        return None
+    return value if isinstance(value, dict) else None
 
 
 def _msg_from_record(r) -> can.Message:

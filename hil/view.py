@@ -57,7 +57,9 @@ class LogData:
         if "toml" not in sc:
             raise LogError(f"{path}: no scenario metadata: not a 'hil run' log (another tool's MCAP?)")
         try:
-            self.scenario = parse_scenario(sc["toml"], f"{path}: scenario metadata")
+            from .replay import scenario_overrides
+
+            self.scenario = parse_scenario(sc["toml"], f"{path}: scenario metadata", scenario_overrides(sc))
         except ScenarioError as e:
             raise LogError(str(e)) from None
         self.run = meta.get("run") or {}

@@ -28,7 +28,7 @@ def cmd_view(args) -> int:
     if args.spawn:
         exe = shutil.which("rerun") or str((__import__("pathlib").Path(sys.executable).with_name("rerun")))
         try:
-            subprocess.Popen([exe, str(out)], start_new_session=True)
+            subprocess.Popen([exe, "--bind", "127.0.0.1", str(out)], start_new_session=True)
         except OSError as e:
             raise UserError(f"cannot start the Rerun viewer ({exe}): {e.strerror}") from None
     return 0
