@@ -54,6 +54,8 @@ class LogData:
         self.log = log
         meta = log.metadata
         sc = meta.get("scenario") or {}
+        if log.cut and not meta and not log.message_count:
+            raise LogError(f"{path}: nothing readable before the damage ({log.damage})")
         if "toml" not in sc:
             raise LogError(f"{path}: no scenario metadata: not a 'hil run' log (another tool's MCAP?)")
         try:
@@ -103,6 +105,8 @@ def _marker(rr, rec, entity: str, name: str, color, t: float | None, lo: float, 
 
 def _span(*arrays) -> tuple[float, float]:
     vals = np.concatenate([np.asarray(a, float)[np.isfinite(a)] for a in arrays if np.size(a)] or [np.zeros(1)])
+    if vals.size == 0:
+        return 0.0, 1.0
     lo, hi = float(vals.min()), float(vals.max())
     pad = 0.05 * (hi - lo or 1.0)
     return lo - pad, hi + pad
