@@ -44,6 +44,7 @@ class Scenario:
     sensors: SensorConfig
     identifier: dict = field(default_factory=dict)   # overrides of IdentifierSettings defaults
     extra: dict = field(default_factory=dict)         # tables later issues add ([plant], [reality], ...)
+    overrides: dict = field(default_factory=dict)     # --set TABLE.KEY=VALUE applied over source_text
 
     def plant_config(self) -> PlantConfig:
         r = self.run
@@ -218,7 +219,8 @@ def parse_scenario(text: str, path: str = "<scenario>", overrides: dict | None =
         identifier[key] = value if key == "options" and isinstance(value, dict) else \
             _coerce(path, f"[identifier] {key}", value, typ)
     extra = {k: data[k] for k in _OPTIONAL_TABLES if k in data}
-    scenario = Scenario(name, path, text, description, vehicle, normal, fault, run, sensors, identifier, extra)
+    scenario = Scenario(name, path, text, description, vehicle, normal, fault, run, sensors, identifier, extra,
+                        dict(overrides or {}))
     try:
         scenario.identifier_settings()
         from identifier.observer import LoadTorqueObserver

@@ -124,7 +124,7 @@ def print_summary(s: dict, file=sys.stdout) -> None:
           f"(T_det {_fmt(s['t_det_s'] and s['t_det_s'] * 1e3, '.1f')} ms), slip detected at "
           f"{_fmt(s['t_detected_s'], '.3f')} s", file=file)
     if s["identified"]:
-        print(f"  identified at {s['t_identified_s']:.3f} s: RT {s['rt_percent']:.1f} % after "
+        print(f"  identified at {s['t_identified_s']:.3f} s: RT {_fmt(s['rt_percent'], '.1f')} % after "
               f"{s['corrections']} corrections", file=file)
     else:
         print(f"  NOT identified within the run ({s['corrections']} corrections)", file=file)
