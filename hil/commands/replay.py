@@ -7,6 +7,7 @@ import sys
 from identifier import STRATEGIES
 
 from ..cli import UserError
+from .run import print_summary
 
 
 def register(sub) -> None:
@@ -46,23 +47,7 @@ def cmd_replay(args) -> int:
     return 0
 
 
-def _f(x, spec):
-    return "n/a" if x is None else format(x, spec)
-
-
 def print_replay(s: dict, file=sys.stdout) -> None:
-    """The ``hil run`` summary lines (n/a where a source lacks the truth, e.g. a CAN log has no plant state)."""
-    print(f"replay {s['mcap']}: scenario {s['scenario']}  strategy {s['strategy']}  seed {s['seed']}", file=file)
-    print(f"  fault at {_f(s['t_fault_s'], '.3f')} s, serious stage at {_f(s['t_serious_s'], '.3f')} s "
-          f"(T_det {_f(s['t_det_s'] and s['t_det_s'] * 1e3, '.1f')} ms), slip detected at "
-          f"{_f(s['t_detected_s'], '.3f')} s", file=file)
-    if s["identified"]:
-        print(f"  identified at {_f(s['t_identified_s'], '.3f')} s: RT {_f(s['rt_percent'], '.1f')} % after "
-              f"{s['corrections']} corrections", file=file)
-    else:
-        print(f"  NOT identified ({s['corrections']} corrections)", file=file)
-    if s.get("params"):
-        print("  params (l0, l1, l2, t1, t2): " + ", ".join(f"{x:.5g}" for x in s["params"]), file=file)
-        print(f"  fit: RMSE {_f(s['rmse'], '.3e')}  R2 {_f(s['r2'], '.5f')}; vs true curve: peak mu error "
-              f"{_f(s['peak_mu_err_percent'], '.2f')} %, peak creep error {_f(s['peak_creep_err_percent'], '.2f')} %",
-              file=file)
+    """``hil run``'s summary lines under a replay heading."""
+    print_summary({**s, "mcap": None}, file=file,
+                  heading=f"replay {s['mcap']}: scenario {s['scenario']}  strategy {s['strategy']}  seed {s['seed']}")

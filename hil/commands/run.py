@@ -118,13 +118,15 @@ def _fmt(x, spec):
     return "n/a" if x is None else format(x, spec)
 
 
-def print_summary(s: dict, file=sys.stdout) -> None:
-    print(f"scenario {s['scenario']}  strategy {s['strategy']}  seed {s['seed']}  bus {s['bus']}", file=file)
-    print(f"  fault at {s['t_fault_s']:.3f} s, serious stage at {_fmt(s['t_serious_s'], '.3f')} s "
+def print_summary(s: dict, file=sys.stdout, heading: str | None = None) -> None:
+    """The run summary as text; every figure prints n/a where the source lacks it (e.g. a CAN log has no truth)."""
+    print(heading or f"scenario {s['scenario']}  strategy {s['strategy']}  seed {s['seed']}  bus {s['bus']}",
+          file=file)
+    print(f"  fault at {_fmt(s['t_fault_s'], '.3f')} s, serious stage at {_fmt(s['t_serious_s'], '.3f')} s "
           f"(T_det {_fmt(s['t_det_s'] and s['t_det_s'] * 1e3, '.1f')} ms), slip detected at "
           f"{_fmt(s['t_detected_s'], '.3f')} s", file=file)
     if s["identified"]:
-        print(f"  identified at {s['t_identified_s']:.3f} s: RT {_fmt(s['rt_percent'], '.1f')} % after "
+        print(f"  identified at {_fmt(s['t_identified_s'], '.3f')} s: RT {_fmt(s['rt_percent'], '.1f')} % after "
               f"{s['corrections']} corrections", file=file)
     else:
         print(f"  NOT identified within the run ({s['corrections']} corrections)", file=file)
@@ -136,7 +138,7 @@ def print_summary(s: dict, file=sys.stdout) -> None:
               f"{_fmt(s['peak_creep_err_percent'], '.2f')} %", file=file)
     print(f"  observer lag {_fmt(s.get('observer_lag_ms'), '.1f')} ms; "
           f"{_fmt(s.get('sim_s'), '.2f')} s simulated in {_fmt(s.get('wall_s'), '.2f')} s", file=file)
-    if s.get("mode"):
+    if s.get("mode") in ("lockstep", "realtime"):
         line = f"  {s['mode']} over {s['bus']}: round trip p50 {_fmt(s.get('round_trip_p50_us'), '.0f')} us"
         if s["mode"] == "realtime":
             line += (f", missed deadlines {s.get('missed_deadlines')}, jitter p99 "
@@ -145,4 +147,5 @@ def print_summary(s: dict, file=sys.stdout) -> None:
         if bad or bad_tcu:
             line += f"; rejected frames: plant {bad}, TCU {bad_tcu}"
         print(line, file=file)
-    print(f"  log: {s['mcap']}", file=file)
+    if s.get("mcap"):
+        print(f"  log: {s['mcap']}", file=file)
