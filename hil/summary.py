@@ -20,6 +20,8 @@ def observer_lag_ms(t_s, mu_true, mu_hat, t_from: float, t_to: float, period_s: 
     best, best_err = 0, math.inf
     for lag in range(0, int(round(max_lag_s / period_s)) + 1):
         idx = sel[sel - lag >= 0]
+        if idx.size < 5:      # too little overlap left to judge this shift
+            break
         err = float(np.mean((mu_hat[idx] - mu_true[idx - lag]) ** 2))
         if err < best_err:
             best, best_err = lag, err
