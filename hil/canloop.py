@@ -30,7 +30,6 @@ import dataclasses
 import gc
 import math
 import os
-import signal
 import subprocess
 import sys
 import threading
@@ -46,6 +45,7 @@ from .frames import (DBC_PATH, STATE_FAULT, STATE_FINISHED, STATE_RUNNING, STATE
                      RejectCounter, bus_load, format_bus_load)
 from .loop import LAG_WINDOW_S, PlantSide, log_path, start_recording
 from .progress import Progress
+from .recording import interrupts_between_writes
 from .scenario import ScenarioError
 from .summary import clean, observer_lag_ms, summarise
 from .tcu_process import PeerSilent, Sender, TcuNode, heartbeat_period_s, silence_limit_s
@@ -398,24 +398,6 @@ def _stop_child(child: subprocess.Popen | None) -> None:
         child.wait()
 
 
-class _SigtermAsInterrupt:
-    """SIGTERM ends a run like Ctrl-C (KeyboardInterrupt), so the MCAP is closed properly."""
-
-    def __enter__(self):
-        self.old = None
-        if threading.current_thread() is threading.main_thread():
-            self.old = signal.signal(signal.SIGTERM, self._raise)
-        return self
-
-    @staticmethod
-    def _raise(signum, frame):
-        raise KeyboardInterrupt
-
-    def __exit__(self, *exc):
-        if self.old is not None:
-            signal.signal(signal.SIGTERM, self.old)
-
-
 def run_can(scenario, strategy: str = "nlls", seed: int | None = None, bus: str = "auto", mode: str = "lockstep",
             out_dir=None, record: bool = True, progress: bool | None = None, set_args=None, log=None,
             plant=None, external_tcu: bool = False) -> dict:
@@ -447,7 +429,7 @@ def run_can(scenario, strategy: str = "nlls", seed: int | None = None, bus: str 
     rec = None
     summary = None
     path = None
-    with _SigtermAsInterrupt():
+    with interrupts_between_writes():   # SIGTERM ends a run like Ctrl-C, never mid-write
         try:
             if bus == "inprocess":
                 tcu = TcuNode(scenario, strategy, seed)
@@ -512,17 +494,19 @@ def run_can(scenario, strategy: str = "nlls", seed: int | None = None, bus: str 
             raise
         except KeyboardInterrupt:
             if rec and plant is not None:
-                rec.event(plant.t_s, "ERROR", "run interrupted (SIGINT/SIGTERM)")
+                with rec.atomic():
+                    rec.event(plant.t_s, "ERROR", "run interrupted (SIGINT/SIGTERM)")
             if plant is not None:
                 plant.finish(STATE_FAULT)
             raise
         finally:
             if rec:
-                if summary is None and plant is not None:
-                    rec.event(plant.t_s, "ERROR", "run aborted")
-                if plant is not None:
-                    plant.reality.record_truth(rec)
-                rec.close(summary)
+                with rec.atomic():
+                    if summary is None and plant is not None:
+                        rec.event(plant.t_s, "ERROR", "run aborted")
+                    if plant is not None:
+                        plant.reality.record_truth(rec)
+                    rec.close(summary)
             _stop_child(child)
             if child is not None and child.stdout:
                 child.stdout.close()

@@ -15,7 +15,7 @@ from identifier.messages import STAGE_NAMES, TcuOutput
 from plant import SensorModel, StageTracker, WheelsetPlant
 
 from .progress import Progress
-from .recording import Recorder, package_versions
+from .recording import Recorder, interrupts_between_writes, package_versions
 from .summary import observer_lag_ms, summarise
 
 #: how long after the fault the true mu is kept for measuring the observer lag
@@ -147,25 +147,27 @@ def run_inprocess(scenario, strategy: str = "nlls", seed: int | None = None, out
     plant_side = PlantSide(scenario, seed, rec, plant=plant if plant is not None else reality.plant)
     plant_side.sensors = reality.wrap_sensors(plant_side.sensors)
     tcu_side = TcuSide(scenario, strategy, seed, rec)
-    bar = Progress(scenario.steps, f"{scenario.name} {strategy}", progress)
-    wall0 = time.perf_counter()
-    summary = None
-    try:
-        for _ in range(scenario.steps):
-            reading = reality.deliver(plant_side.sense())
-            out = tcu_side.on_sensor(reading)
-            plant_side.apply(out.command)
-            if plant_side.step % 1000 == 0:
-                bar.update(plant_side.step)
-        wall = time.perf_counter() - wall0
-        summary = finish_summary(scenario, strategy, seed, "inprocess", plant_side, tcu_side, path,
-                                 {"mode": "lockstep", "wall_s": wall, "sim_s": plant_side.plant.t_s,
-                                  "messages": rec.messages + 1 if rec else 0})  # + the summary
-    finally:
-        bar.close()
-        if rec:
-            if summary is None:
-                rec.event(plant_side.plant.t_s, "ERROR", "run aborted")
-            reality.record_truth(rec)
-            rec.close(summary)
+    with interrupts_between_writes():   # Ctrl-C / SIGTERM close the log properly, never mid-write
+        bar = Progress(scenario.steps, f"{scenario.name} {strategy}", progress)
+        wall0 = time.perf_counter()
+        summary = None
+        try:
+            for _ in range(scenario.steps):
+                reading = reality.deliver(plant_side.sense())
+                out = tcu_side.on_sensor(reading)
+                plant_side.apply(out.command)
+                if plant_side.step % 1000 == 0:
+                    bar.update(plant_side.step)
+            wall = time.perf_counter() - wall0
+            summary = finish_summary(scenario, strategy, seed, "inprocess", plant_side, tcu_side, path,
+                                     {"mode": "lockstep", "wall_s": wall, "sim_s": plant_side.plant.t_s,
+                                      "messages": rec.messages + 1 if rec else 0})  # + the summary
+        finally:
+            bar.close()
+            if rec:
+                with rec.atomic():
+                    if summary is None:
+                        rec.event(plant_side.plant.t_s, "ERROR", "run aborted")
+                    reality.record_truth(rec)
+                    rec.close(summary)
     return summary

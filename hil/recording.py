@@ -8,8 +8,11 @@ leave the process chunk by chunk; only the small chunk index grows with the run.
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+import signal
+import threading
 from importlib import metadata as importlib_metadata
 from pathlib import Path
 
@@ -57,6 +60,46 @@ def sim_time_ns(t_s: float) -> int:
     return int(round(t_s * 1e9))
 
 
+class _InterruptGuard:
+    """Ctrl-C and SIGTERM never land inside a write: they raise ``KeyboardInterrupt`` right after it.
+
+    An interrupt raised halfway through mcap's chunk bookkeeping leaves a record the reader
+    rejects, and everything after it (the "run interrupted" event included) is lost.
+    """
+
+    depth = 0
+    pending = False
+
+    @classmethod
+    def handler(cls, signum, frame):
+        if cls.depth:
+            cls.pending = True
+        else:
+            raise KeyboardInterrupt
+
+    @classmethod
+    def leave(cls) -> None:
+        cls.depth -= 1
+        if cls.pending and not cls.depth:
+            cls.pending = False
+            raise KeyboardInterrupt
+
+
+class interrupts_between_writes:
+    """Context manager: SIGINT and SIGTERM end the run as ``KeyboardInterrupt``, never mid-write."""
+
+    def __enter__(self):
+        self.old = {}
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                self.old[sig] = signal.signal(sig, _InterruptGuard.handler)
+        return self
+
+    def __exit__(self, *exc):
+        for sig, old in self.old.items():
+            signal.signal(sig, old)
+
+
 class _DirectFile:
     """A write-through file: every ``write`` reaches the kernel before it returns.
 
@@ -101,11 +144,28 @@ class Recorder:
     def write(self, topic: str, log_t_s: float, /, **fields) -> None:
         msg = self._types[topic](**fields)
         ns = sim_time_ns(log_t_s)
-        self._writer.write_message(topic, msg, log_time=ns, publish_time=ns)
-        self.messages += 1
+        _InterruptGuard.depth += 1
+        try:
+            self._writer.write_message(topic, msg, log_time=ns, publish_time=ns)
+            self.messages += 1
+        finally:
+            _InterruptGuard.leave()
 
     def metadata(self, name: str, data: dict) -> None:
-        self._writer.add_metadata(name, {k: v if isinstance(v, str) else json.dumps(v) for k, v in data.items()})
+        _InterruptGuard.depth += 1
+        try:
+            self._writer.add_metadata(name, {k: v if isinstance(v, str) else json.dumps(v) for k, v in data.items()})
+        finally:
+            _InterruptGuard.leave()
+
+    @contextlib.contextmanager
+    def atomic(self):
+        """A block of writes that Ctrl-C / SIGTERM cannot split (e.g. the last events and the footer)."""
+        _InterruptGuard.depth += 1
+        try:
+            yield self
+        finally:
+            _InterruptGuard.leave()
 
     def event(self, t_s: float, level: str, text: str) -> None:
         self.write("/run/events", t_s, t_s=t_s, level=level, text=text)
@@ -113,12 +173,17 @@ class Recorder:
     def close(self, summary: dict | None = None) -> None:
         if self.closed:
             return
-        if summary is not None:
-            fields = {k: summary[k] for k in ("identified", "rt_percent", "t_fault_s", "t_serious_s", "t_identified_s",
-                                              "r2", "peak_mu_err_percent", "peak_creep_err_percent")
-                      if summary.get(k) is not None}
-            self.write("/run/summary", summary.get("sim_s", 0.0), json=json.dumps(summary), **fields)
-            self.metadata("summary", {"json": json.dumps(summary)})
-        self._writer.finish()
-        self._file.close()
-        self.closed = True
+        _InterruptGuard.depth += 1     # summary, metadata and footer go out together
+        try:
+            if summary is not None:
+                fields = {k: summary[k] for k in ("identified", "rt_percent", "t_fault_s", "t_serious_s",
+                                                  "t_identified_s", "r2", "peak_mu_err_percent",
+                                                  "peak_creep_err_percent")
+                          if summary.get(k) is not None}
+                self.write("/run/summary", summary.get("sim_s", 0.0), json=json.dumps(summary), **fields)
+                self.metadata("summary", {"json": json.dumps(summary)})
+            self._writer.finish()
+            self._file.close()
+            self.closed = True
+        finally:
+            _InterruptGuard.leave()
