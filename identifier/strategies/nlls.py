@@ -18,9 +18,12 @@ LAMBDA_BOUND = 5.0
 TAU_BOUNDS = (-10.0, -1e-3)
 
 
-def parameter_bounds(n_terms: int) -> tuple[np.ndarray, np.ndarray]:
+def parameter_bounds(n_terms: int, center=None, radius=None) -> tuple[np.ndarray, np.ndarray]:
+    """The physical box for theta, intersected with ``center ± radius`` when a radius is given."""
     lo = np.r_[-1.0, np.full(n_terms, -LAMBDA_BOUND), np.full(n_terms, TAU_BOUNDS[0])]
     hi = np.r_[1.0, np.full(n_terms, LAMBDA_BOUND), np.full(n_terms, TAU_BOUNDS[1])]
+    if radius is not None:
+        lo, hi = np.maximum(lo, center - radius), np.minimum(hi, center + radius)
     return lo, hi
 
 
@@ -31,9 +34,7 @@ def fit_curve(creep_speed_kmh, mu_samples, theta0, radius=None) -> np.ndarray:
     v = np.asarray(creep_speed_kmh, float)
     y = np.asarray(mu_samples, float)
     theta0 = np.asarray(theta0, float)
-    lo, hi = parameter_bounds((theta0.size - 1) // 2)
-    if radius is not None:
-        lo, hi = np.maximum(lo, theta0 - radius), np.minimum(hi, theta0 + radius)
+    lo, hi = parameter_bounds((theta0.size - 1) // 2, theta0, radius)
     start = np.clip(theta0, lo + 1e-9, hi - 1e-9)
     result = least_squares(lambda th: mu_model(v, th) - y, start, jac=lambda th: jacobian(v, th),
                            method="trf", bounds=(lo, hi), x_scale="jac", max_nfev=200)
@@ -127,9 +128,7 @@ def fit_curve_lm(creep_speed_kmh, mu_samples, theta0, radius=None, iterations: i
     y = np.asarray(mu_samples, float)
     theta0 = np.asarray(theta0, float)
     n = (theta0.size - 1) // 2
-    lo, hi = parameter_bounds(n)
-    if radius is not None:
-        lo, hi = np.maximum(lo, theta0 - radius), np.minimum(hi, theta0 + radius)
+    lo, hi = parameter_bounds(n, theta0, radius)
     jac = np.empty((v.size, theta0.size))
     jac[:, 0] = 1.0
 
@@ -146,9 +145,7 @@ def _grid_lattice(theta0, radius, grid: int):
     """Bounds (theta0 +- radius within parameter_bounds) and the (G, n) tau lattice of fit_curve_grid."""
     theta0 = np.asarray(theta0, float)
     n = (theta0.size - 1) // 2
-    lo, hi = parameter_bounds(n)
-    if radius is not None:
-        lo, hi = np.maximum(lo, theta0 - radius), np.minimum(hi, theta0 + radius)
+    lo, hi = parameter_bounds(n, theta0, radius)
     axes = [np.linspace(lo[1 + n + i], hi[1 + n + i], grid) for i in range(n)]
     taus = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, n)       # (G, n)
     return n, lo, hi, taus

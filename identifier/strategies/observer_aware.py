@@ -131,9 +131,7 @@ def fit_curve_oa(model: ObserverAwareModel, v, mu, rho0: float, eta0: float, the
     v = np.asarray(v, float)
     y = np.asarray(mu, float)
     theta0 = np.asarray(theta0, float)
-    lo, hi = parameter_bounds((theta0.size - 1) // 2)
-    if radius is not None:
-        lo, hi = np.maximum(lo, theta0 - radius), np.minimum(hi, theta0 + radius)
+    lo, hi = parameter_bounds((theta0.size - 1) // 2, theta0, radius)
     lin, fr, fe = model.matrices(v.size)
     free = rho0 * fr + eta0 * fe - y
     start = np.clip(theta0, lo + 1e-9, hi - 1e-9)

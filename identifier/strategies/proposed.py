@@ -142,9 +142,7 @@ def fit_curve_mu0(creep_speed_kmh, mu_samples, theta0, radius=None) -> np.ndarra
     y = np.asarray(mu_samples, float)
     theta0 = np.asarray(theta0, float)
     n = (theta0.size - 1) // 2
-    lo, hi = parameter_bounds(n)
-    if radius is not None:
-        lo, hi = np.maximum(lo, theta0 - radius), np.minimum(hi, theta0 + radius)
+    lo, hi = parameter_bounds(n, theta0, radius)
     lo, hi = lo[1:], hi[1:]
 
     def full(x):
