@@ -128,6 +128,20 @@ def equilibrium(cfg: PlantConfig) -> tuple[np.ndarray, float]:
     return np.array([omega_m0, v_t0]), float(torque0)
 
 
+def bind_buffer(fn: ca.Function, args, results):
+    """``fn.buffer()`` bound to preallocated numpy arrays: returns (buffer, evaluate).
+
+    The caller must keep the buffer and every array alive as long as it evaluates (CasADi reads and
+    writes them through raw pointers).
+    """
+    buffer, evaluate = fn.buffer()
+    for i, arr in enumerate(args):
+        buffer.set_arg(i, memoryview(arr))
+    for i, arr in enumerate(results):
+        buffer.set_res(i, memoryview(arr))
+    return buffer, evaluate
+
+
 class WheelsetPlant:
     """Fixed-step wheelset-rail plant: ``step(torque_nm)`` advances one exchange period.
 
@@ -147,11 +161,8 @@ class WheelsetPlant:
         self._x_out = np.zeros(2)
         self._mu_out = np.zeros(1)
         self._creep_out = np.zeros(1)
-        self._buffer, self._eval = self._step_fn.buffer()
-        for i, arr in enumerate((self._x_in, self._torque_in, self._t0_in)):
-            self._buffer.set_arg(i, memoryview(arr))
-        for i, arr in enumerate((self._x_out, self._mu_out, self._creep_out)):
-            self._buffer.set_res(i, memoryview(arr))
+        self._buffer, self._eval = bind_buffer(self._step_fn, (self._x_in, self._torque_in, self._t0_in),
+                                               (self._x_out, self._mu_out, self._creep_out))
         self.reset()
 
     def reset(self) -> PlantState:

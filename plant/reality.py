@@ -40,7 +40,7 @@ from dataclasses import dataclass, field
 import casadi as ca
 import numpy as np
 
-from .model import PlantConfig, PlantState, creep_speed_kmh, equilibrium, rk4_step
+from .model import PlantConfig, PlantState, bind_buffer, creep_speed_kmh, equilibrium, rk4_step
 from .params import KMH_PER_MS
 
 
@@ -314,11 +314,8 @@ class RealityPlant:
         n = self.model.nx
         self._x_in, self._u_in, self._t_in = np.zeros(n), np.zeros(1), np.zeros(1)
         self._x_out, self._mu_out, self._vs_out, self._n_out = np.zeros(n), np.zeros(1), np.zeros(1), np.zeros(1)
-        self._buffer, self._eval = self._step_fn.buffer()
-        for i, arr in enumerate((self._x_in, self._u_in, self._t_in)):
-            self._buffer.set_arg(i, memoryview(arr))
-        for i, arr in enumerate((self._x_out, self._mu_out, self._vs_out, self._n_out)):
-            self._buffer.set_res(i, memoryview(arr))
+        self._buffer, self._eval = bind_buffer(self._step_fn, (self._x_in, self._u_in, self._t_in),
+                                               (self._x_out, self._mu_out, self._vs_out, self._n_out))
         self.reset()
 
     def reset(self) -> PlantState:
