@@ -15,20 +15,42 @@ def j_ef(estimate, previous) -> float:
     return float(np.dot(d, d))
 
 
+#: windows up to this many samples are evaluated with Python floats: a window is L ~ 6 samples, where
+#: a handful of numpy calls on 6-element arrays cost several times the arithmetic (this runs on the
+#: TCU's sample that closes a window, the costliest one)
+SMALL_WINDOW = 32
+
+
+def _curve(v, theta) -> list[float] | np.ndarray:
+    """M(v_s; theta) at each sample: a list for small windows, else a numpy array."""
+    if len(v) > SMALL_WINDOW:
+        return mu_model(np.asarray(v, float), theta)
+    th = [float(x) for x in theta]
+    n = (len(th) - 1) // 2
+    out = []
+    for vk in v:
+        m = 0.0
+        for i in range(n):
+            try:
+                m += th[1 + i] * math.exp(th[1 + n + i] * float(vk))
+            except OverflowError:                     # as numpy: exp -> inf
+                m += th[1 + i] * math.inf
+        out.append(m + th[0])
+    return out
+
+
 def standard_error(creep_speed_kmh, mu_samples, theta) -> float:
     """SE of eq. 29 on the current window: sqrt(sum(resid^2) / (L - 2n - 1))."""
-    v = np.asarray(creep_speed_kmh, float)
-    y = np.asarray(mu_samples, float)
     n = (len(theta) - 1) // 2
-    dof = v.size - 2 * n - 1
+    dof = len(creep_speed_kmh) - 2 * n - 1
     if dof <= 0:
         return math.inf
-    resid = y - mu_model(v, theta)
-    return float(np.sqrt(np.sum(resid ** 2) / dof))
+    m = _curve(creep_speed_kmh, theta)
+    ss = sum((float(y) - mk) ** 2 for y, mk in zip(mu_samples, m))
+    return math.sqrt(ss / dof) if ss == ss else math.nan
 
 
 def inside_confidence_band(creep_speed_kmh, mu_samples, theta, se: float, c_lw: float, c_up: float) -> bool:
     """Gamma = 1 when every new sample lies in [M - c_lw*SE, M + c_up*SE] (eq. 28-31)."""
-    m = mu_model(np.asarray(creep_speed_kmh, float), theta)
-    y = np.asarray(mu_samples, float)
-    return bool(np.all((y >= m - c_lw * se) & (y <= m + c_up * se)))
+    m = _curve(creep_speed_kmh, theta)
+    return all(mk - c_lw * se <= float(y) <= mk + c_up * se for y, mk in zip(mu_samples, m))

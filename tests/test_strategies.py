@@ -215,11 +215,13 @@ def test_strategy_options_from_a_scenario_reach_the_strategy(ffcc_a_path):
 def test_spread_prelim_makes_the_same_filter_steps_only_later(name):
     """prelim_polish_per_sample > 0 spreads the prelim's lattice and LM polish over samples and has the
     filter catch up on the samples fed meanwhile: the same corrections and curve as the prelim done at
-    once on window 1's last sample (up to rounding), only the prelim's own correction event comes later."""
+    once on window 1's last sample (up to rounding), only the prelim's own correction event comes later.
+    (The numpy path: the compiled one solves the whole prelim on window 1's last sample.)"""
     samples = samples_spanning_peak(600)
     runs = {}
     for per_sample in (0, 3):
-        strat = make_strategy(name, settings(options={name: {"prelim_polish_per_sample": per_sample}}), seed=5)
+        opts = {"prelim_polish_per_sample": per_sample, "compiled": False}
+        strat = make_strategy(name, settings(options={name: opts}), seed=5)
         runs[per_sample] = (strat, feed(strat, samples))
     (at_once, ev0), (spread, ev3) = runs[0], runs[3]
     assert spread.confirmed == at_once.confirmed and spread.corrections == at_once.corrections >= 2
@@ -232,8 +234,9 @@ def test_spread_prelim_makes_the_same_filter_steps_only_later(name):
 
 def test_spread_prelim_keeps_window_end_work_off_single_samples():
     """Per sample while the prelim is spread: at most prelim_polish_per_sample LM iterations, and after it
-    at most catch_up_per_sample filter steps (counted, not timed)."""
-    strat = make_strategy("mdipf", settings(), seed=5)
+    at most catch_up_per_sample filter steps (counted, not timed).  The numpy path (the compiled one
+    needs no spreading: tests/test_kernels.py)."""
+    strat = make_strategy("mdipf", settings(options={"mdipf": {"compiled": False}}), seed=5)
     steps, iters = [], []
     orig_step = strat._step
     counter = {"steps": 0}

@@ -23,6 +23,8 @@ one dimension less and the early, low-creep samples cannot tilt the curve's offs
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy.optimize import least_squares
 
@@ -72,7 +74,8 @@ class ProposedStrategy(MdipfStrategy):
         self.boxes: list[tuple[np.ndarray, np.ndarray]] = []    # (lo, hi) per correction, for plots
 
     def _after_prelim(self) -> None:
-        self.particles = np.clip(self.particles, self.lo, self.hi)
+        np.maximum(self._xt, self.lo[:, None], out=self._xt)     # into the first box, in place
+        np.minimum(self._xt, self.hi[:, None], out=self._xt)
         self._constrain()
 
     def _after_recentre(self) -> None:
@@ -80,6 +83,14 @@ class ProposedStrategy(MdipfStrategy):
         np.maximum(self._xt, self.lo[:, None], out=self._xt)
         np.minimum(self._xt, self.hi[:, None], out=self._xt)
         self._constrain_in_box()
+
+    def _can_fuse_projection(self) -> bool:
+        cls = type(self)
+        return (self.opts["projector"] == "clip" and cls._project is ProposedStrategy._project
+                and cls._constrain_in_box is ProposedStrategy._constrain_in_box)
+
+    def _clip_box(self):
+        return self.lo, self.hi, True
 
     def _project(self, creep_speed_kmh, mu_hat) -> None:
         # the cloud is finite here (_constrain ran): "clip" is np.clip in place (pf.project_to_box's
@@ -102,19 +113,25 @@ class ProposedStrategy(MdipfStrategy):
         """Hook for constrained variants: re-impose the constraint without leaving the box."""
 
     def _after_correction(self, estimate) -> None:
-        change = np.abs(estimate - self._prev_estimate)
-        self._prev_estimate = np.asarray(estimate, float).copy()
-        lo = self.lo + float(self.opts["delta_dn"]) * change
-        hi = self.hi - float(self.opts["delta_up"]) * change
-        with np.errstate(invalid="ignore"):
-            narrow = hi - lo < self.min_width
-            mid = 0.5 * (lo + hi)
-        lo = np.where(narrow, mid - 0.5 * self.min_width, lo)
-        hi = np.where(narrow, mid + 0.5 * self.min_width, hi)
-        if not self.opts["box_recentre"]:
-            lo, hi = lo - estimate, hi - estimate       # fixed in parameter space: shift with the new origin
-        if not (np.any(np.isnan(lo)) or np.any(np.isnan(hi))):
-            self.lo, self.hi = lo, hi
+        # the box contraction on 2n + 1 numbers, with Python floats (numpy calls on 5-element
+        # arrays cost more than their arithmetic on the sample that closes a window)
+        est = [float(x) for x in estimate]
+        dn, up = float(self.opts["delta_dn"]), float(self.opts["delta_up"])
+        recentre = bool(self.opts["box_recentre"])
+        lo, hi = [], []
+        for e, prev, l0, h0, w in zip(est, self._prev_estimate, self.lo, self.hi, self.min_width):
+            change = abs(e - prev)
+            lo_i, hi_i = float(l0) + dn * change, float(h0) - up * change
+            if hi_i - lo_i < w:                           # never narrower than min_width: stop at the middle
+                mid = 0.5 * (lo_i + hi_i)
+                lo_i, hi_i = mid - 0.5 * w, mid + 0.5 * w
+            if not recentre:                              # fixed in parameter space: shift with the new origin
+                lo_i, hi_i = lo_i - e, hi_i - e
+            lo.append(lo_i)
+            hi.append(hi_i)
+        self._prev_estimate = np.array(est)
+        if not any(math.isnan(x) for x in lo + hi):
+            self.lo, self.hi = np.array(lo), np.array(hi)
         self.boxes.append((self.lo.copy(), self.hi.copy()))
 
 

@@ -1,0 +1,126 @@
+"""The compiled kernels (identifier/kernels.py) against the numpy reference pieces (identifier/pf.py,
+identifier/strategies/nlls.py), and the strategies run both ways on the same samples."""
+import math
+
+import numpy as np
+import pytest
+
+from identifier import kernels, make_strategy, pf
+from identifier.strategies.nlls import GridAccumulator
+
+from .test_strategies import FFCC_A, feed, samples_spanning_peak, settings
+
+pytestmark = pytest.mark.skipif(not kernels.AVAILABLE, reason="numba not installed (pip install numba)")
+
+P, N = 5, 700
+BASE = np.array([0.0, 1.0, -1.0, -0.54, -1.2])
+
+
+def cloud(seed=0, spread=(0.003, 0.02, 0.02, 0.03, 0.03)):
+    rng = np.random.default_rng(seed)
+    xt = np.ascontiguousarray(rng.standard_normal((P, N)) * np.asarray(spread)[:, None])
+    w = rng.random(N)
+    return xt, w / w.sum(), rng
+
+
+def test_vexp_matches_numpy_exp_to_an_ulp_and_keeps_the_special_values():
+    rng = np.random.default_rng(1)
+    x = np.concatenate([rng.uniform(-708.0, 709.0, 50_000), rng.uniform(-60.0, 1.0, 50_000),
+                        [0.0, -0.0, 1e-300, -1e-300, 1.0, math.log(2.0)]])
+    got = kernels.vexp(x.copy(), np.empty(x.size, np.int64))
+    ref = np.exp(x)
+    assert np.max(np.abs(got - ref) / ref) <= 2.5e-16          # about 1 ulp
+    special = np.array([np.nan, np.inf, -np.inf, -800.0, 710.0, 1e300, -1e300])
+    got = kernels.vexp(special.copy(), np.empty(special.size, np.int64))
+    assert np.isnan(got[0]) and got[1] == np.inf and got[2] == 0.0 and got[3] == 0.0
+    assert got[4] == np.inf and got[5] == np.inf and got[6] == 0.0
+
+
+@pytest.mark.parametrize("use_box", [False, True])
+def test_filter_step_equals_the_reference_pieces(use_box):
+    xt, w, rng = cloud(2)
+    noise = np.ascontiguousarray(rng.standard_normal((P, N)) * 1e-3)
+    lo, hi = np.array([-0.004, -0.02, -0.02, -0.03, -0.03]), np.array([0.004, 0.02, 0.02, 0.03, 0.03])
+    v, mu, g = 0.9, 0.12, 0.002
+    out, d, ll, w_out = np.empty((P, N)), np.empty((P, N)), np.empty(N), np.empty(N)
+    ess = kernels.filter_step(xt, w, noise, out, d, BASE, v, mu, -0.5 / g ** 2, lo, hi, use_box, ll, w_out,
+                              np.empty((2, N)), np.empty(N, np.int64))
+    # the reference: pf's pieces one after the other
+    moved = pf.propagate(xt.T, pf.correlation_transition(xt.T, w, "rownorm"), np.ones(P), noise=noise.T)
+    if use_box:
+        moved = pf.project_to_box(moved, lo, hi, BASE, v, mu, np.ones(P), g, "clip")
+        assert np.all(out >= lo[:, None]) and np.all(out <= hi[:, None])
+    np.testing.assert_allclose(out, moved.T, rtol=1e-12, atol=1e-15)
+    ref_ll = pf.log_likelihood(moved, BASE, v, mu, g)
+    np.testing.assert_allclose(ll, ref_ll, rtol=1e-9, atol=1e-9)
+    ref_w = pf.normalise(np.log(w) + ref_ll)
+    np.testing.assert_allclose(w_out, ref_w, rtol=1e-8, atol=1e-300)
+    assert ess == pytest.approx(pf.ess(ref_w), rel=1e-9)
+
+
+def test_filter_step_hands_degenerate_clouds_back_to_the_reference_path():
+    xt, w, _ = cloud(3)
+    args = dict(noise=np.zeros((P, N)), out=np.full((P, N), 7.0), d=np.empty((P, N)))
+    flat = xt.copy()
+    flat[2] = 0.0                                             # a dimension without spread: no correlation
+    ess = kernels.filter_step(flat, w, args["noise"], args["out"], args["d"], BASE, 1.0, 0.1, -1e5, BASE, BASE,
+                              False, np.empty(N), np.empty(N), np.empty((2, N)), np.empty(N, np.int64))
+    assert ess == -1.0 and np.all(args["out"] == 7.0)           # nothing written
+    bad = xt.copy()
+    bad[1, 5] = np.inf
+    ess = kernels.filter_step(bad, w, args["noise"], args["out"], args["d"], BASE, 1.0, 0.1, -1e5, BASE, BASE,
+                              False, np.empty(N), np.empty(N), np.empty((2, N)), np.empty(N, np.int64))
+    assert ess in (-1.0, -2.0)
+    far = xt.copy()                                           # every likelihood underflows to 0 (log: -inf)
+    ess = kernels.filter_step(far, w, args["noise"], args["out"], args["d"], BASE, 1.0, 50.0, -1e308, BASE, BASE,
+                              False, np.empty(N), np.empty(N), np.empty((2, N)), np.empty(N, np.int64))
+    assert ess == -3.0
+
+
+def test_systematic_resampling_picks_the_reference_ancestors():
+    for seed in range(5):
+        _, w, rng = cloud(seed)
+        w = w ** 3
+        w /= w.sum()
+        u0 = rng.random()
+        idx = kernels.systematic_resample(w, u0, np.empty(N, np.intp))
+        ref = pf.systematic_counts_resample(w, u0, np.arange(N))
+        assert np.array_equal(idx, ref)
+        taken = np.empty((P, N))
+        xt = np.ascontiguousarray(np.arange(P * N, dtype=float).reshape(P, N))
+        kernels.take_columns(xt, idx, taken)
+        assert np.array_equal(taken, xt[:, idx])
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_compiled_prelim_reaches_the_numpy_prelim(seed):
+    rng = np.random.default_rng(seed)
+    v = np.sort(rng.uniform(0.5, 1.2, 6))
+    from identifier.curve import mu_model
+    y = mu_model(v, FFCC_A) + rng.normal(0.0, 7e-4, 6)
+    radius = np.array([0.01, 0.6, 0.6, 0.05, 0.05])
+    xs = []
+    for compiled in (False, True):
+        acc = GridAccumulator(BASE, radius, 5, 8, 64, compiled=compiled)
+        for a, b in zip(v, y):
+            acc.add(a, b)
+        job = acc.job(v, y)
+        while not job.done:
+            job.step()
+        xs.append(job.x)
+    np.testing.assert_allclose(xs[1], xs[0], rtol=1e-7, atol=1e-9)
+
+
+@pytest.mark.parametrize("name", ["mdipf", "proposed", "proposed_mu0", "mdipf_raw"])
+def test_a_strategy_gives_the_same_curve_compiled_and_in_numpy(name):
+    """The compiled step, resampling and prelim (the default) against the numpy reference path
+    (``compiled = False``): same corrections, same confirmation, the same curve up to rounding."""
+    samples = samples_spanning_peak(300)
+    runs = []
+    for compiled in (False, True):
+        strat = make_strategy(name, settings(options={name: {"compiled": compiled}}), seed=11)
+        runs.append((strat, [(e.kind, e.correction) for e in feed(strat, samples)]))
+    (ref, ev_ref), (fast, ev_fast) = runs
+    assert fast._compiled and not ref._compiled
+    assert ev_fast == ev_ref and fast.confirmed == ref.confirmed
+    np.testing.assert_allclose(fast.theta, ref.theta, rtol=0, atol=1e-7)
