@@ -51,9 +51,9 @@ Choices the paper leaves open (alternatives behind options):
 
 Cost per sample (the TCU has one sampling period, 1 ms, per sample; ``hil bench identify`` reports
 the cost of every fed sample):
-- ``compiled`` (default True): the filter step is one call of ``kernels.filter_step`` (numba:
+- ``compiled`` (default True): the filter step is one call of ``self._k.filter_step`` (numba:
   Theta, propagation, the "clip" box, likelihood with a vectorised exp, reweighing), then
-  systematic resampling by ``kernels.systematic_resample`` / ``take_columns`` when ESS is low; the
+  systematic resampling by ``self._k.systematic_resample`` / ``take_columns`` when ESS is low; the
   "grid" prelim's lattice and its whole LM polish are ``kernels.grid_best`` / ``kernels.bounded_lm``
   (~20 us together), so the prelim is finished on window 1's last sample and nothing is spread
   (``prelim_polish_per_sample`` and the catch-up below only apply to the numpy path).  Measured
@@ -86,7 +86,7 @@ from collections import deque
 
 import numpy as np
 
-from .. import kernels, pf
+from .. import pf
 from .base import Strategy
 from .nlls import GridAccumulator, fit_curve, fit_curve_grid, fit_curve_lm
 
@@ -154,14 +154,18 @@ class MdipfStrategy(Strategy):
         self._arange = np.arange(self.n_particles)
         self.weights = np.full(self.n_particles, 1.0 / self.n_particles)
         # the compiled step's buffers: log-likelihoods, the other weight vector, ancestor indices
-        self._compiled = bool(opts["compiled"]) and kernels.AVAILABLE
+        self._compiled = False
+        if opts["compiled"]:                 # imported here: numba's import (~0.2 s) only where it is used
+            from .. import kernels
+            self._k = kernels
+            self._compiled = kernels.AVAILABLE
         if self._compiled:
-            kernels.warm_up()                # compile / load now, before the fault, not on the first sample
+            self._k.warm_up()                # compile / load now, before the fault, not on the first sample
             self._ll = np.empty(self.n_particles)
             self._w_spare = np.empty(self.n_particles)
             self._idx = np.empty(self.n_particles, np.intp)
             self._bits = np.empty(self.n_particles, np.int64)
-        # the whole step in one compiled call (kernels.filter_step) where this class's step is the
+        # the whole step in one compiled call (self._k.filter_step) where this class's step is the
         # plain one: Theta row-normalised, no constraint, no projection or the "clip" one
         cls = type(self)
         self._fused = (self._compiled and opts["stabiliser"] == "rownorm" and cls._step is MdipfStrategy._step
@@ -238,7 +242,7 @@ class MdipfStrategy(Strategy):
         if self._fused:
             lo, hi, use_box = self._clip_box()
             noise = self._transition_noise()
-            ess = kernels.filter_step(self._xt, self.weights, noise, self._spare, self._d, self.base, creep_speed_kmh,
+            ess = self._k.filter_step(self._xt, self.weights, noise, self._spare, self._d, self.base, creep_speed_kmh,
                                       mu_hat, -0.5 / self.noise_std ** 2, lo, hi, use_box, self._ll, self._w_spare,
                                       self._tmp, self._bits)
             if ess == -1.0:                    # no transition from this cloud: the reference path
@@ -276,7 +280,7 @@ class MdipfStrategy(Strategy):
         st = self.opts["stabiliser"]
         if noise is None:
             noise = self._transition_noise()
-        if st == "rownorm" and self._compiled and kernels.rownorm_propagate(self._xt, self.weights, noise,
+        if st == "rownorm" and self._compiled and self._k.rownorm_propagate(self._xt, self.weights, noise,
                                                                              self._spare, self._d):
             self._spare, self._xt = self._xt, self._spare
             return
@@ -313,7 +317,7 @@ class MdipfStrategy(Strategy):
     def _log_likelihood(self, creep_speed_kmh: float, mu_hat: float) -> np.ndarray:
         """log N(mu^ ; M_cor(v_s), G) per particle; -inf where not finite (pf.log_likelihood)."""
         if self._compiled:
-            kernels.log_likelihood(self._xt, self.base, creep_speed_kmh, mu_hat, -0.5 / self.noise_std ** 2, self._ll,
+            self._k.log_likelihood(self._xt, self.base, creep_speed_kmh, mu_hat, -0.5 / self.noise_std ** 2, self._ll,
                                    self._tmp, self._bits)
             return self._ll
         resid = self._curve_at(creep_speed_kmh)
@@ -331,7 +335,7 @@ class MdipfStrategy(Strategy):
         (every product 0) or is not finite, by log weights (pf.normalise), which cannot."""
         o = self.opts
         if self._compiled:
-            ess = kernels.reweigh(ll, self.weights, self._w_spare, self._bits)
+            ess = self._k.reweigh(ll, self.weights, self._w_spare, self._bits)
             if ess > 0.0:
                 self._w_spare, self.weights = self.weights, self._w_spare
             else:       # underflow or not finite: in logarithms
@@ -368,7 +372,7 @@ class MdipfStrategy(Strategy):
         o = self.opts
         if ess < o["ess_fraction"] * self.n_particles:
             if o["resampler"] == "systematic":
-                idx = kernels.systematic_resample(self.weights, self.rng.random(), self._idx)
+                idx = self._k.systematic_resample(self.weights, self.rng.random(), self._idx)
             else:
                 idx = pf.resample(self.weights, self.rng, o["resampler"])
             self._take(idx)
@@ -381,7 +385,7 @@ class MdipfStrategy(Strategy):
     def _take(self, idx: np.ndarray) -> None:
         """Keep the particles ``idx`` (resampling); variants with per-particle state extend this."""
         if self._compiled:
-            kernels.take_columns(self._xt, idx, self._spare)
+            self._k.take_columns(self._xt, idx, self._spare)
             self._spare, self._xt = self._xt, self._spare
         else:
             self._xt = self._xt.take(idx, axis=1)
