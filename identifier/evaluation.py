@@ -25,14 +25,14 @@ def _curve(v, theta) -> list[float] | np.ndarray:
     """M(v_s; theta) at each sample: a list for small windows, else a numpy array."""
     if len(v) > SMALL_WINDOW:
         return mu_model(np.asarray(v, float), theta)
-    th = [float(x) for x in theta]
+    th = np.asarray(theta, float).tolist()
     n = (len(th) - 1) // 2
     out = []
-    for vk in v:
+    for vk in np.asarray(v, float).tolist():
         m = 0.0
         for i in range(n):
             try:
-                m += th[1 + i] * math.exp(th[1 + n + i] * float(vk))
+                m += th[1 + i] * math.exp(th[1 + n + i] * vk)
             except OverflowError:                     # as numpy: exp -> inf
                 m += th[1 + i] * math.inf
         out.append(m + th[0])
@@ -46,11 +46,11 @@ def standard_error(creep_speed_kmh, mu_samples, theta) -> float:
     if dof <= 0:
         return math.inf
     m = _curve(creep_speed_kmh, theta)
-    ss = sum((float(y) - mk) ** 2 for y, mk in zip(mu_samples, m))
+    ss = sum((y - mk) ** 2 for y, mk in zip(np.asarray(mu_samples, float).tolist(), m))
     return math.sqrt(ss / dof) if ss == ss else math.nan
 
 
 def inside_confidence_band(creep_speed_kmh, mu_samples, theta, se: float, c_lw: float, c_up: float) -> bool:
     """Gamma = 1 when every new sample lies in [M - c_lw*SE, M + c_up*SE] (eq. 28-31)."""
     m = _curve(creep_speed_kmh, theta)
-    return all(mk - c_lw * se <= float(y) <= mk + c_up * se for y, mk in zip(mu_samples, m))
+    return all(mk - c_lw * se <= y <= mk + c_up * se for y, mk in zip(np.asarray(mu_samples, float).tolist(), m))

@@ -105,7 +105,7 @@ class Strategy(ABC):
 
     def _finish_correction(self, sample: Sample, estimate, v, mu) -> list[IdentificationEvent]:
         s = self.settings
-        if not np.all(np.isfinite(estimate)):
+        if not math.isfinite(float(np.sum(estimate))):     # NaN/inf propagate into the sum (one cheap check)
             estimate = self._last_estimate if self._last_estimate is not None else self.theta
         self.theta = self.estimate_to_theta(estimate)
         score = math.inf if self._last_estimate is None else j_ef(estimate, self._last_estimate)

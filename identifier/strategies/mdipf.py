@@ -51,9 +51,9 @@ Choices the paper leaves open (alternatives behind options):
 
 Cost per sample (the TCU has one sampling period, 1 ms, per sample; ``hil bench identify`` reports
 the cost of every fed sample):
-- ``compiled`` (default True): the filter step is one call of ``self._k.filter_step`` (numba:
+- ``compiled`` (default True): the filter step is one call of ``_K.filter_step`` (numba:
   Theta, propagation, the "clip" box, likelihood with a vectorised exp, reweighing), then
-  systematic resampling by ``self._k.systematic_resample`` / ``take_columns`` when ESS is low; the
+  systematic resampling by ``_K.systematic_resample`` / ``take_columns`` when ESS is low; the
   "grid" prelim's lattice and its whole LM polish are ``kernels.grid_best`` / ``kernels.bounded_lm``
   (~20 us together), so the prelim is finished on window 1's last sample and nothing is spread
   (``prelim_polish_per_sample`` and the catch-up below only apply to the numpy path).  Measured
@@ -117,6 +117,18 @@ DEFAULTS = {
 }
 
 
+_K = None   # identifier.kernels once a compiled strategy is built (numba's import, ~0.2 s, only where used)
+
+
+def load_kernels():
+    """identifier.kernels, imported on first use."""
+    global _K
+    if _K is None:
+        from .. import kernels
+        _K = kernels
+    return _K
+
+
 def per_dimension(triple, n: int) -> np.ndarray:
     """(lambda0, lambda_i, tau_i) -> a (2n+1,) vector; a scalar applies to every dimension."""
     t = np.broadcast_to(np.asarray(triple, float), (3,)) if np.ndim(triple) == 0 else np.asarray(triple, float)
@@ -154,18 +166,14 @@ class MdipfStrategy(Strategy):
         self._arange = np.arange(self.n_particles)
         self.weights = np.full(self.n_particles, 1.0 / self.n_particles)
         # the compiled step's buffers: log-likelihoods, the other weight vector, ancestor indices
-        self._compiled = False
-        if opts["compiled"]:                 # imported here: numba's import (~0.2 s) only where it is used
-            from .. import kernels
-            self._k = kernels
-            self._compiled = kernels.AVAILABLE
+        self._compiled = bool(opts["compiled"]) and load_kernels().AVAILABLE
         if self._compiled:
-            self._k.warm_up()                # compile / load now, before the fault, not on the first sample
+            _K.warm_up()                     # compile / load now, before the fault, not on the first sample
             self._ll = np.empty(self.n_particles)
             self._w_spare = np.empty(self.n_particles)
             self._idx = np.empty(self.n_particles, np.intp)
             self._bits = np.empty(self.n_particles, np.int64)
-        # the whole step in one compiled call (self._k.filter_step) where this class's step is the
+        # the whole step in one compiled call (_K.filter_step) where this class's step is the
         # plain one: Theta row-normalised, no constraint, no projection or the "clip" one
         cls = type(self)
         self._fused = (self._compiled and opts["stabiliser"] == "rownorm" and cls._step is MdipfStrategy._step
@@ -242,7 +250,7 @@ class MdipfStrategy(Strategy):
         if self._fused:
             lo, hi, use_box = self._clip_box()
             noise = self._transition_noise()
-            ess = self._k.filter_step(self._xt, self.weights, noise, self._spare, self._d, self.base, creep_speed_kmh,
+            ess = _K.filter_step(self._xt, self.weights, noise, self._spare, self._d, self.base, creep_speed_kmh,
                                       mu_hat, -0.5 / self.noise_std ** 2, lo, hi, use_box, self._ll, self._w_spare,
                                       self._tmp, self._bits)
             if ess == -1.0:                    # no transition from this cloud: the reference path
@@ -280,7 +288,7 @@ class MdipfStrategy(Strategy):
         st = self.opts["stabiliser"]
         if noise is None:
             noise = self._transition_noise()
-        if st == "rownorm" and self._compiled and self._k.rownorm_propagate(self._xt, self.weights, noise,
+        if st == "rownorm" and self._compiled and _K.rownorm_propagate(self._xt, self.weights, noise,
                                                                              self._spare, self._d):
             self._spare, self._xt = self._xt, self._spare
             return
@@ -317,7 +325,7 @@ class MdipfStrategy(Strategy):
     def _log_likelihood(self, creep_speed_kmh: float, mu_hat: float) -> np.ndarray:
         """log N(mu^ ; M_cor(v_s), G) per particle; -inf where not finite (pf.log_likelihood)."""
         if self._compiled:
-            self._k.log_likelihood(self._xt, self.base, creep_speed_kmh, mu_hat, -0.5 / self.noise_std ** 2, self._ll,
+            _K.log_likelihood(self._xt, self.base, creep_speed_kmh, mu_hat, -0.5 / self.noise_std ** 2, self._ll,
                                    self._tmp, self._bits)
             return self._ll
         resid = self._curve_at(creep_speed_kmh)
@@ -335,7 +343,7 @@ class MdipfStrategy(Strategy):
         (every product 0) or is not finite, by log weights (pf.normalise), which cannot."""
         o = self.opts
         if self._compiled:
-            ess = self._k.reweigh(ll, self.weights, self._w_spare, self._bits)
+            ess = _K.reweigh(ll, self.weights, self._w_spare, self._bits)
             if ess > 0.0:
                 self._w_spare, self.weights = self.weights, self._w_spare
             else:       # underflow or not finite: in logarithms
@@ -372,7 +380,7 @@ class MdipfStrategy(Strategy):
         o = self.opts
         if ess < o["ess_fraction"] * self.n_particles:
             if o["resampler"] == "systematic":
-                idx = self._k.systematic_resample(self.weights, self.rng.random(), self._idx)
+                idx = _K.systematic_resample(self.weights, self.rng.random(), self._idx)
             else:
                 idx = pf.resample(self.weights, self.rng, o["resampler"])
             self._take(idx)
@@ -385,7 +393,7 @@ class MdipfStrategy(Strategy):
     def _take(self, idx: np.ndarray) -> None:
         """Keep the particles ``idx`` (resampling); variants with per-particle state extend this."""
         if self._compiled:
-            self._k.take_columns(self._xt, idx, self._spare)
+            _K.take_columns(self._xt, idx, self._spare)
             self._spare, self._xt = self._xt, self._spare
         else:
             self._xt = self._xt.take(idx, axis=1)
@@ -490,7 +498,7 @@ class MdipfStrategy(Strategy):
 
     def _begin_filter(self, theta_pre) -> None:
         self.base = np.asarray(theta_pre, float)
-        if not np.all(np.isfinite(self.base)):
+        if not math.isfinite(float(np.sum(self.base))):
             self.base = self.theta.copy()
         self.prelim_done = True
         self._draw_cloud()
@@ -517,7 +525,7 @@ class MdipfStrategy(Strategy):
                 for v_k, mu_k in zip(window_v, window_mu):
                     self.on_sample(float(v_k), float(mu_k))
                 estimate = self.weights @ self.particles
-                if not np.all(np.isfinite(estimate)):
+                if not math.isfinite(float(np.sum(estimate))):
                     estimate = np.zeros_like(self.base)
                 self._last_estimate = np.zeros_like(self.base)
                 self._estimate_for_theta = estimate
@@ -525,7 +533,7 @@ class MdipfStrategy(Strategy):
             self._estimate_for_theta = estimate
             return estimate if self.opts["j_ef_from_prelim"] else np.full_like(self.base, np.nan)
         estimate = self.weights @ self.particles
-        if not np.all(np.isfinite(estimate)):
+        if not math.isfinite(float(np.sum(estimate))):
             estimate = np.zeros_like(self.base)
         self._estimate_for_theta = estimate
         return estimate
@@ -537,7 +545,7 @@ class MdipfStrategy(Strategy):
         # ``estimate`` may be the NaN placeholder of the prelim (j_ef_from_prelim False): use ours
         chi = self._estimate_for_theta
         theta = self.base + chi
-        if not np.all(np.isfinite(theta)):
+        if not math.isfinite(float(np.sum(theta))):
             theta = self.base.copy()
         self._after_correction(chi)
         if self.opts["reset_cloud"]:

@@ -266,8 +266,8 @@ class GridAccumulator:
     def __init__(self, theta0, radius, grid: int, polish: int, size: int, compiled: bool = False):
         self.compiled = False               # job() solves and polishes at once (identifier/kernels.py)
         if compiled:
-            from .. import kernels
-            self.compiled, self._k = kernels.AVAILABLE, kernels
+            from .. import kernels          # here: numba's import only where it is used
+            self.compiled = kernels.AVAILABLE
         self.n, self.lo, self.hi, self.taus = _grid_lattice(theta0, radius, grid)
         g, p1 = self.taus.shape[0], self.n + 1
         self.phi = np.ones((size, g, p1))
@@ -297,9 +297,10 @@ class GridAccumulator:
             return (lam * q).sum(axis=1) + self.tt
 
         if self.compiled:           # the lattice and the whole polish in two compiled calls (~20 us)
-            start = self._k.grid_best(self.a, self.b, self.tt, self.taus, self.lo, self.hi)
+            from .. import kernels
+            start = kernels.grid_best(self.a, self.b, self.tt, self.taus, self.lo, self.hi)
             k = np.zeros((0, 0)) if transform is None else np.ascontiguousarray(transform, dtype=float)
-            return _Done(self._k.bounded_lm(start, self.lo, self.hi, np.asarray(creep_speed_kmh, float),
+            return _Done(kernels.bounded_lm(start, self.lo, self.hi, np.asarray(creep_speed_kmh, float),
                                             np.asarray(targets, float), k, self.polish, 1e-10))
         start = _grid_best(self.a, self.b, cost_of, self.taus, self.lo, self.hi, self.n)
         if self.polish <= 0:

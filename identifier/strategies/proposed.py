@@ -115,13 +115,14 @@ class ProposedStrategy(MdipfStrategy):
     def _after_correction(self, estimate) -> None:
         # the box contraction on 2n + 1 numbers, with Python floats (numpy calls on 5-element
         # arrays cost more than their arithmetic on the sample that closes a window)
-        est = [float(x) for x in estimate]
+        est = np.asarray(estimate, float).tolist()
         dn, up = float(self.opts["delta_dn"]), float(self.opts["delta_up"])
         recentre = bool(self.opts["box_recentre"])
         lo, hi = [], []
-        for e, prev, l0, h0, w in zip(est, self._prev_estimate, self.lo, self.hi, self.min_width):
+        for e, prev, l0, h0, w in zip(est, self._prev_estimate.tolist(), self.lo.tolist(), self.hi.tolist(),
+                                      self.min_width.tolist()):
             change = abs(e - prev)
-            lo_i, hi_i = float(l0) + dn * change, float(h0) - up * change
+            lo_i, hi_i = l0 + dn * change, h0 - up * change
             if hi_i - lo_i < w:                           # never narrower than min_width: stop at the middle
                 mid = 0.5 * (lo_i + hi_i)
                 lo_i, hi_i = mid - 0.5 * w, mid + 0.5 * w
