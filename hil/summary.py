@@ -5,7 +5,7 @@ import math
 
 import numpy as np
 
-from identifier.metrics import curve_rmse_vs_truth, fit_metrics, peak_errors, rt_percent
+from identifier.metrics import curve_rmse_vs_truth, fit_metrics, peak_errors, r2_vs_truth, rt_percent
 
 
 def observer_lag_ms(t_s, mu_true, mu_hat, t_from: float, t_to: float, period_s: float, max_lag_s=0.03) -> float:
@@ -72,8 +72,9 @@ def summarise(*, scenario, strategy: str, seed: int, bus: str, tracker, events, 
         out.update(peak_errors(theta, true_theta))
         v_peak = scenario.fault_curve.peak()[0]
         out["curve_rmse_vs_truth"] = curve_rmse_vs_truth(theta, true_theta, 2.0 * v_peak)
+        out["r2_vs_truth"] = r2_vs_truth(theta, true_theta, 2.0 * v_peak)
     else:
         out.update({k: None for k in ("mse", "rmse", "mae", "r2", "peak_mu_err_percent", "peak_creep_err_percent",
-                                      "peak_mu", "peak_creep_kmh", "curve_rmse_vs_truth")})
+                                      "peak_mu", "peak_creep_kmh", "curve_rmse_vs_truth", "r2_vs_truth")})
     out.update(extra or {})
     return clean(out)

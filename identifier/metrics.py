@@ -41,6 +41,18 @@ def curve_rmse_vs_truth(theta, true_theta, upto_kmh: float) -> float:
     return float(np.sqrt(np.mean((mu_model(grid, theta) - mu_model(grid, true_theta)) ** 2)))
 
 
+def r2_vs_truth(theta, true_theta, upto_kmh: float) -> float:
+    """R^2 of the identified curve against the true one on 200 points over [0, upto_kmh]: the share
+    of the true curve's variation there that the identified curve reproduces (free of the mu^
+    samples' noise and narrow range, which cap the paper's R^2 against the samples)."""
+    grid = np.linspace(0.0, upto_kmh, 200)
+    truth = mu_model(grid, true_theta)
+    ss_tot = float(np.sum((truth - truth.mean()) ** 2))
+    with np.errstate(over="ignore", invalid="ignore"):
+        ss_res = float(np.sum((mu_model(grid, theta) - truth) ** 2))
+    return 1.0 - ss_res / ss_tot if ss_tot > 0 and math.isfinite(ss_res) else math.nan
+
+
 def rt_percent(t_identified_s: float, t_fault_s: float, deterioration_time_s: float) -> float:
     """RT = (t_identified - t_f) / T_det, percent (Table 3)."""
     if t_identified_s is None or not math.isfinite(deterioration_time_s) or deterioration_time_s <= 0:

@@ -27,7 +27,10 @@ def test_json_results_shape_same_data_for_every_strategy_and_plots(tmp_path):
         for s in r["seeds"]:
             assert s["strategy"] == strat and s["cost_p99_us"] > 0
             if s["identified"]:
-                assert s["rt_percent"] > 0
+                assert s["rt_percent"] > 0 and s["r2_vs_truth"] <= 1.0
+                # the verdict is the targets against the true curve
+                assert s["ok"] == (s["r2_vs_truth"] >= 0.999 and s["peak_mu_err_percent"] <= 3.0
+                                   and s["peak_creep_err_percent"] <= 10.0)
         per_seed[strat] = r["seeds"]
     # the same measured data: the same detection instant and the same plant stages for every strategy
     for a, b in zip(per_seed["nlls"], per_seed["proposed"]):

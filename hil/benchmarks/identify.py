@@ -32,7 +32,7 @@ from ..summary import clean, summarise
 
 #: the verdict: a fast confirmation of a wrong curve is a failure
 OK_R2, OK_PEAK_MU_PERCENT, OK_PEAK_CREEP_PERCENT = 0.999, 3.0, 10.0
-MEDIAN_KEYS = ("rt_percent", "mse", "rmse", "mae", "r2", "r2_true_curve", "r2_observer_model",
+MEDIAN_KEYS = ("rt_percent", "mse", "rmse", "mae", "r2", "r2_true_curve", "r2_vs_truth", "r2_observer_model",
                "r2_true_curve_observer_model", "peak_mu_err_percent",
                "peak_creep_err_percent", "corrections", "samples", "t_det_s", "curve_rmse_vs_truth")
 
@@ -159,7 +159,10 @@ def replay(data: CaseData, strategy: str, particles: int | None) -> tuple[dict, 
 
 
 def verdict(s: dict, need_r2: bool = True) -> bool:
-    return bool(s["identified"] and (not need_r2 or (s.get("r2") is not None and s["r2"] >= OK_R2))
+    """The issue's targets "against the true curve": R² of the identified curve against the true one
+    (``r2_vs_truth``, on [0, 2 v_peak]) and the peak errors.  The paper's R² against the μ̂ samples
+    (``r2``) is reported beside it, capped by the samples' noise (see ``r2_true_curve``)."""
+    return bool(s["identified"] and (not need_r2 or (s.get("r2_vs_truth") is not None and s["r2_vs_truth"] >= OK_R2))
                 and s["peak_mu_err_percent"] is not None and s["peak_mu_err_percent"] <= OK_PEAK_MU_PERCENT
                 and s["peak_creep_err_percent"] is not None and s["peak_creep_err_percent"] <= OK_PEAK_CREEP_PERCENT)
 
@@ -199,7 +202,7 @@ def _obs(r) -> str:
 
 
 def table(results: dict, cases: list[str], n_seeds: int) -> str:
-    head = ("| strategy | case | MSE | RMSE | MAE | R² | R² true curve | R² obs. model (true) | RT % | corrections | peak μ err % | "
+    head = ("| strategy | case | MSE | RMSE | MAE | R² | R² true curve | R² obs. model (true) | R² vs truth | RT % | corrections | peak μ err % | "
             "peak creep err % | identified | ok | ok peaks | cost median µs | cost p99 µs | p99 % of period | "
             "p99 between windows µs |")
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
@@ -208,16 +211,19 @@ def table(results: dict, cases: list[str], n_seeds: int) -> str:
             r = per_case[case]
             lines.append(
                 f"| {strat} | {case} | {_f(r['mse'], '.3e')} | {_f(r['rmse'], '.3e')} | {_f(r['mae'], '.3e')} | "
-                f"{_f(r['r2'], '.5f')} | {_f(r['r2_true_curve'], '.5f')} | {_obs(r)} | {_f(r['rt_percent'], '.1f')} | "
+                f"{_f(r['r2'], '.5f')} | {_f(r['r2_true_curve'], '.5f')} | {_obs(r)} | {_f(r['r2_vs_truth'], '.5f')} | "
+                f"{_f(r['rt_percent'], '.1f')} | "
                 f"{_f(r['corrections'], '.0f')} | {_f(r['peak_mu_err_percent'], '.2f')} | "
                 f"{_f(r['peak_creep_err_percent'], '.2f')} | {r['identified'] * 100:.0f}% | {r['ok'] * 100:.0f}% | "
                 f"{r['ok_peaks'] * 100:.0f}% | {_f(r['cost_median_us'], '.1f')} | {_f(r['cost_p99_us'], '.1f')} | "
                 f"{_f(r['cost_p99_percent_of_period'], '.1f')} | {_f(r['cost_p99_between_windows_us'], '.1f')} |")
     notes = (f"\nMedians over {n_seeds} seeds (RT, fit and peak errors over the seeds' final curves; cost p99 is the "
-             f"median over seeds of each seed's p99). ok = confirmed and R² >= {OK_R2} and peak μ err <= "
-             f"{OK_PEAK_MU_PERCENT:g} % and peak creep err <= {OK_PEAK_CREEP_PERCENT:g} %, as % of seeds. "
-             "ok peaks: the same without the R² condition. R² true curve: the true fault curve against the same μ̂ samples "
-             "(the R² the samples allow). R² obs. model: observer-aware strategies only (*_oa), R² of μ̂ against the "
+             f"median over seeds of each seed's p99). R²: the paper's, of the identified curve against the μ̂ samples. "
+             "R² true curve: the true fault curve against the same μ̂ samples (the R² the samples allow). "
+             "R² vs truth: the identified curve against the true curve on 200 points over [0, 2 × the true peak creep]. "
+             f"ok = confirmed and R² vs truth >= {OK_R2} and peak μ err <= "
+             f"{OK_PEAK_MU_PERCENT:g} % and peak creep err <= {OK_PEAK_CREEP_PERCENT:g} % (the targets, against the true "
+             "curve), as % of seeds. ok peaks: the same without the R² condition. R² obs. model: observer-aware strategies only (*_oa), R² of μ̂ against the "
              "observer's predicted output μ̂_pred(θ) for the identified θ (and, in brackets, for the true curve). Cost: wall time of TractionIdentifier.on_sensor per reading that fed a "
              "sample to the strategy (median; p99, also as % of the sampling period); 'p99 between windows' leaves "
              "out the readings that closed a window (the NLLS fits and the corrections).\n")
