@@ -413,6 +413,13 @@ class MdipfStrategy(Strategy):
         solver = self.opts["prelim_solver"]
         if solver == "lm":
             return fit_curve_lm(window_v, window_mu, self.theta, self.prelim_radius(), int(self.opts["prelim_iterations"]))
+        if solver == "grid" and self._compiled and self.prelim_radius() is not None:
+            # the same lattice built sample by sample, solved and polished by the compiled kernels
+            acc = GridAccumulator(self.theta, self.prelim_radius(), int(self.opts["prelim_grid"]),
+                                  int(self.opts["prelim_iterations"]), max(len(window_v), 1), compiled=True)
+            for v_k, mu_k in zip(np.asarray(window_v, float).tolist(), np.asarray(window_mu, float).tolist()):
+                acc.add(v_k, mu_k)
+            return acc.job(window_v, window_mu).x
         if solver == "grid":
             return fit_curve_grid(window_v, window_mu, self.theta, self.prelim_radius(), int(self.opts["prelim_grid"]),
                                   int(self.opts["prelim_iterations"]))
