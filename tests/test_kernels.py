@@ -111,7 +111,7 @@ def test_compiled_prelim_reaches_the_numpy_prelim(seed):
     np.testing.assert_allclose(xs[1], xs[0], rtol=1e-7, atol=1e-9)
 
 
-@pytest.mark.parametrize("name", ["mdipf", "proposed", "proposed_mu0", "mdipf_raw"])
+@pytest.mark.parametrize("name", ["mdipf", "proposed", "proposed_mu0", "mdipf_raw", "proposed_fast", "proposed_oa"])
 def test_a_strategy_gives_the_same_curve_compiled_and_in_numpy(name):
     """The compiled step, resampling and prelim (the default) against the numpy reference path
     (``compiled = False``): same corrections, same confirmation, the same curve up to rounding."""
