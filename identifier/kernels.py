@@ -61,19 +61,8 @@ def vexp(a, bits):
         k = math.floor(xc * _LOG2E + 0.5)
         r = (xc - k * _LN2_HI) - k * _LN2_LO
         p = c[13]
-        p = p * r + c[12]
-        p = p * r + c[11]
-        p = p * r + c[10]
-        p = p * r + c[9]
-        p = p * r + c[8]
-        p = p * r + c[7]
-        p = p * r + c[6]
-        p = p * r + c[5]
-        p = p * r + c[4]
-        p = p * r + c[3]
-        p = p * r + c[2]
-        p = p * r + c[1]
-        p = p * r + c[0]
+        for i in range(12, -1, -1):           # Horner; a constant trip count, unrolled by the compiler
+            p = p * r + c[i]
         a[j] = p
         b = (np.int64(k) + 1023) << 52
         b = _BITS_ZERO if x < -708.0 else b
