@@ -257,3 +257,19 @@ def test_spread_prelim_keeps_window_end_work_off_single_samples():
     assert max(iters) <= strat.opts["prelim_polish_per_sample"] and sum(iters) > 0
     assert max(steps) <= strat.opts["catch_up_per_sample"]
     assert strat.prelim_done and not strat._queue
+
+
+def test_proposed_latest_confirms_when_proposed_does_and_reports_one_more_correction():
+    """Same seed, same samples: the same corrections and confirmation sample as ``proposed``; the
+    confirmed curve is the checked candidate moved by the filter's estimate over the confirmation
+    window (so it differs from the last correction's curve), where ``proposed`` reports the candidate."""
+    samples = samples_spanning_peak(300)
+    paper, latest = make_strategy("proposed", settings(), seed=4), make_strategy("proposed_latest", settings(), seed=4)
+    ev_p, ev_l = feed(paper, samples), feed(latest, samples)
+    assert [(e.kind, e.samples) for e in ev_p] == [(e.kind, e.samples) for e in ev_l]
+    assert ev_p[-1].kind == "confirmed"
+    assert ev_p[-1].params == ev_p[-2].params                   # the paper: the candidate itself
+    assert ev_l[-1].params != ev_l[-2].params                   # one more correction
+    np.testing.assert_allclose(ev_l[-2].params, ev_p[-2].params, rtol=0, atol=1e-12)
+    step = np.asarray(ev_l[-1].params) - np.asarray(ev_l[-2].params)
+    assert np.all(np.abs(step) <= np.array([0.01, 0.06, 0.06, 0.09, 0.09]) + 1e-12)   # within the box

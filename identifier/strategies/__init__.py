@@ -3,11 +3,12 @@ from .base import Sample, Strategy
 from .mdipf import MdipfRawStrategy, MdipfStrategy
 from .nlls import NllsStrategy, fit_curve
 from .observer_aware import NllsOaStrategy, ProposedOaStrategy
-from .proposed import ProposedFastStrategy, ProposedMu0Strategy, ProposedRawStrategy, ProposedStrategy
+from .proposed import (ProposedFastStrategy, ProposedLatestStrategy, ProposedMu0Strategy, ProposedRawStrategy,
+                       ProposedStrategy)
 
 STRATEGIES: dict[str, type[Strategy]] = {cls.name: cls for cls in (
     NllsStrategy, MdipfStrategy, ProposedStrategy, MdipfRawStrategy, ProposedRawStrategy, ProposedMu0Strategy,
-    ProposedFastStrategy, NllsOaStrategy, ProposedOaStrategy)}
+    ProposedFastStrategy, ProposedLatestStrategy, NllsOaStrategy, ProposedOaStrategy)}
 
 
 def make_strategy(name: str, settings, seed: int = 0) -> Strategy:
@@ -19,4 +20,4 @@ def make_strategy(name: str, settings, seed: int = 0) -> Strategy:
 
 
 __all__ = ["Sample", "Strategy", "NllsStrategy", "MdipfStrategy", "ProposedStrategy", "ProposedMu0Strategy",
-           "ProposedFastStrategy", "NllsOaStrategy", "ProposedOaStrategy", "MdipfRawStrategy", "ProposedRawStrategy", "fit_curve", "STRATEGIES", "make_strategy"]
+           "ProposedFastStrategy", "ProposedLatestStrategy", "NllsOaStrategy", "ProposedOaStrategy", "MdipfRawStrategy", "ProposedRawStrategy", "fit_curve", "STRATEGIES", "make_strategy"]

@@ -95,6 +95,7 @@ class Strategy(ABC):
             self._candidate = None
             if self._inside_band(v, mu, theta, se):
                 self.confirmed = True
+                self.theta = self.published_curve(theta)
                 return [self._event(sample, "confirmed", math.nan)]
             # the window did not fit: it feeds the next correction instead
         estimate = self.correct(v, mu)
@@ -140,6 +141,10 @@ class Strategy(ABC):
         or None when the work is spread over the next samples (then ``correction_ready`` says, after
         each later sample's ``on_sample``, when ``correct_pending`` can return it; the window
         bookkeeping goes on meanwhile, and the correction's event carries the sample it finished on)."""
+
+    def published_curve(self, candidate: np.ndarray) -> np.ndarray:
+        """The curve the confirmation reports: the candidate the confidence check accepted (the paper)."""
+        return candidate
 
     def correction_ready(self) -> bool:
         return True

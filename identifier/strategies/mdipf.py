@@ -112,6 +112,8 @@ DEFAULTS = {
     "catch_up_per_sample": 2,                 # filter steps per sample while catching up after a spread prelim
     "catch_up_at_open": 1,                    # ... and on the sample the filter opens on (L = 6 needs it to
                                               # catch up before window 2 closes)
+    "publish_latest": False,                  # beyond the paper (proposed_latest): confirm the filter's estimate
+                                              # after the confirmation window instead of the checked candidate
     "compiled": True,                         # the filter step by identifier/kernels.py (numba); False: the
                                               # numpy pieces (identifier/pf.py), the reference
 }
@@ -544,6 +546,18 @@ class MdipfStrategy(Strategy):
             estimate = np.zeros_like(self.base)
         self._estimate_for_theta = estimate
         return estimate
+
+    def published_curve(self, candidate):
+        """``publish_latest``: the candidate plus the filter's estimate over the confirmation window
+        (its samples were filtered before the check ran), i.e. one more correction at no extra time;
+        else the candidate, as the paper."""
+        if not self.opts["publish_latest"] or not self.prelim_done:
+            return candidate
+        if self._queue:
+            self._drain()
+        estimate = self.weights @ self.particles
+        latest = self.base + estimate
+        return latest if math.isfinite(float(np.sum(latest))) else candidate
 
     def _after_prelim(self) -> None:
         """Hook: the proposed strategy opens its box here."""
