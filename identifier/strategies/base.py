@@ -121,7 +121,7 @@ class Strategy(ABC):
 
     def _event(self, sample: Sample, kind: str, score: float) -> IdentificationEvent:
         return IdentificationEvent(sample.step, sample.t_s, kind, self.corrections,
-                                   tuple(float(x) for x in self.theta), float(score), len(self._v))
+                                   tuple(np.asarray(self.theta, float).tolist()), float(score), len(self._v))
 
     # the multi-level evaluation's SE (eq. 29) and band (eq. 28-31); observer-aware strategies override
     def _standard_error(self, v, mu, theta) -> float:

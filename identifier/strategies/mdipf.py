@@ -507,7 +507,7 @@ class MdipfStrategy(Strategy):
 
     def _begin_filter(self, theta_pre) -> None:
         self.base = np.asarray(theta_pre, float)
-        if not math.isfinite(float(np.sum(self.base))):
+        if not math.isfinite(float(self.base.sum())):
             self.base = self.theta.copy()
         self.prelim_done = True
         self._draw_cloud()
@@ -534,7 +534,7 @@ class MdipfStrategy(Strategy):
                 for v_k, mu_k in zip(window_v, window_mu):
                     self.on_sample(float(v_k), float(mu_k))
                 estimate = self.weights @ self.particles
-                if not math.isfinite(float(np.sum(estimate))):
+                if not math.isfinite(float(estimate.sum())):
                     estimate = np.zeros_like(self.base)
                 self._last_estimate = np.zeros_like(self.base)
                 self._estimate_for_theta = estimate
@@ -542,7 +542,7 @@ class MdipfStrategy(Strategy):
             self._estimate_for_theta = estimate
             return estimate if self.opts["j_ef_from_prelim"] else np.full_like(self.base, np.nan)
         estimate = self.weights @ self.particles
-        if not math.isfinite(float(np.sum(estimate))):
+        if not math.isfinite(float(estimate.sum())):
             estimate = np.zeros_like(self.base)
         self._estimate_for_theta = estimate
         return estimate
@@ -557,7 +557,7 @@ class MdipfStrategy(Strategy):
             self._drain()
         estimate = self.weights @ self.particles
         latest = self.base + estimate
-        return latest if math.isfinite(float(np.sum(latest))) else candidate
+        return latest if math.isfinite(float(latest.sum())) else candidate
 
     def _after_prelim(self) -> None:
         """Hook: the proposed strategy opens its box here."""
@@ -566,7 +566,7 @@ class MdipfStrategy(Strategy):
         # ``estimate`` may be the NaN placeholder of the prelim (j_ef_from_prelim False): use ours
         chi = self._estimate_for_theta
         theta = self.base + chi
-        if not math.isfinite(float(np.sum(theta))):
+        if not math.isfinite(float(theta.sum())):
             theta = self.base.copy()
         self._after_correction(chi)
         if self.opts["reset_cloud"]:
