@@ -191,6 +191,7 @@ class MdipfStrategy(Strategy):
         self._noise_next = 0
         # the first cloud, scaled and laid out (P, N) as the filter keeps it
         self._next_cloud = np.ascontiguousarray((self.rng.standard_normal((self.n_particles, p)) * self.init_std).T)
+        self._next_weights = np.full(self.n_particles, 1.0 / self.n_particles)
         self.base = self.theta.copy()        # theta_{Q-1}: the curve the errors are relative to
         self.prelim_done = False
         self._job = None                     # the prelim's polish in progress (prelim_polish_per_sample)
@@ -215,11 +216,12 @@ class MdipfStrategy(Strategy):
 
     # -- the filter -------------------------------------------------------------------------
     def _draw_cloud(self) -> None:
-        if self._next_cloud is not None:
+        if self._next_cloud is not None:     # drawn (and, with a box, clipped) before the fault
             self._xt, self._next_cloud = self._next_cloud, None
+            self.weights, self._next_weights = self._next_weights, None
         else:
             self.particles = self.rng.standard_normal(self.particles.shape) * self.init_std
-        self.weights = np.full(self.n_particles, 1.0 / self.n_particles)
+            self.weights = np.full(self.n_particles, 1.0 / self.n_particles)
         self._constrain()
 
     def _constrain(self) -> None:
@@ -571,7 +573,7 @@ class MdipfStrategy(Strategy):
         self._after_correction(chi)
         if self.opts["reset_cloud"]:
             self._draw_cloud()
-        else:
+        elif chi.any():                                     # (the prelim's chi^_0 = 0 moves nothing)
             self._xt -= chi[:, None]                        # errors now relative to the new theta
         self.base = theta.copy()
         self._after_recentre()

@@ -72,10 +72,18 @@ class ProposedStrategy(MdipfStrategy):
         self.min_width = 2 * half * float(self.opts["min_width_fraction"])
         self._prev_estimate = np.zeros(self.theta.size)
         self.boxes: list[tuple[np.ndarray, np.ndarray]] = []    # (lo, hi) per correction, for plots
+        # the first cloud is drawn before the fault (mdipf.py): put it into the first box now too
+        self._clip_into_box(self._next_cloud)
+        self._first_cloud_in_box = True
+
+    def _clip_into_box(self, xt) -> None:
+        np.maximum(xt, self.lo[:, None], out=xt)
+        np.minimum(xt, self.hi[:, None], out=xt)
 
     def _after_prelim(self) -> None:
-        np.maximum(self._xt, self.lo[:, None], out=self._xt)     # into the first box, in place
-        np.minimum(self._xt, self.hi[:, None], out=self._xt)
+        if not self._first_cloud_in_box:                          # a cloud drawn now: into the first box
+            self._clip_into_box(self._xt)
+        self._first_cloud_in_box = False
         self._constrain()
 
     def _after_recentre(self) -> None:
