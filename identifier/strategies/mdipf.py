@@ -57,7 +57,7 @@ the cost of every fed sample):
   "grid" prelim's lattice and its whole LM polish are ``kernels.grid_best`` / ``kernels.bounded_lm``
   (~20 us together), so the prelim is finished on window 1's last sample and nothing is spread
   (``prelim_polish_per_sample`` and the catch-up below only apply to the numpy path).  Measured
-  (hil bench identify, proposed, 20 seeds): cost median 95 -> 45 us, p99 341 -> ~200 us; the same
+  (hil bench identify, proposed, 20 seeds): cost median 95 -> 42 us, p99 341 -> 150-190 us; the same
   RT, corrections and pass rates.  Variants with their own step (observer-aware, mu(0) = 0, other
   Theta or projections) use the compiled pieces where their step is the plain one.
 - ``compiled = False``, the numpy reference path: the filter step (``_move``, ``_log_likelihood``,
