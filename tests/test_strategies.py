@@ -128,10 +128,11 @@ def test_k_pe_gates_the_confidence_check():
     assert not strat.confirmed and strat.corrections == 6
 
 
+@pytest.mark.parametrize("compiled", [True, False])
 @pytest.mark.parametrize("name", PF_STRATEGIES)
-def test_bad_samples_and_degenerate_weights_never_give_nan_parameters(name):
+def test_bad_samples_and_degenerate_weights_never_give_nan_parameters(name, compiled):
     # tiny G makes every likelihood underflow; huge and non-finite samples in between
-    s = settings(options={name: {"noise_std": 1e-9, "particles": 200}})
+    s = settings(options={name: {"noise_std": 1e-9, "particles": 200, "compiled": compiled}})
     strat = make_strategy(name, s, seed=0)
     good = samples_spanning_peak(40)
     bad = [Sample(1000 + k, 1.0, v, m) for k, (v, m) in
