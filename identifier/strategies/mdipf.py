@@ -51,9 +51,9 @@ Choices the paper leaves open (alternatives behind options):
 
 Cost per sample (the TCU has one sampling period, 1 ms, per sample; ``hil bench identify`` reports
 the cost of every fed sample):
-- ``compiled`` (default True): the filter step is one call of ``_K.filter_step`` (numba:
+- ``compiled`` (default True): the filter step is one call of ``kernels.filter_step`` (numba:
   Theta, propagation, the "clip" box, likelihood with a vectorised exp, reweighing), then
-  systematic resampling by ``_K.systematic_resample`` / ``take_columns`` when ESS is low; the
+  systematic resampling by ``kernels.systematic_resample`` / ``take_columns`` when ESS is low; the
   "grid" prelim's lattice and its whole LM polish are ``kernels.grid_best`` / ``kernels.bounded_lm``
   (~20 us together), so the prelim is finished on window 1's last sample and nothing is spread
   (``prelim_polish_per_sample`` and the catch-up below only apply to the numpy path).  Measured
@@ -175,7 +175,7 @@ class MdipfStrategy(Strategy):
             self._w_spare = np.empty(self.n_particles)
             self._idx = np.empty(self.n_particles, np.intp)
             self._bits = np.empty(self.n_particles, np.int64)
-        # the whole step in one compiled call (_K.filter_step) where this class's step is the
+        # the whole step in one compiled call (kernels.filter_step) where this class's step is the
         # plain one: Theta row-normalised, no constraint, no projection or the "clip" one
         cls = type(self)
         self._fused = (self._compiled and opts["stabiliser"] == "rownorm" and cls._step is MdipfStrategy._step
@@ -255,8 +255,8 @@ class MdipfStrategy(Strategy):
             lo, hi, use_box = self._clip_box()
             noise = self._transition_noise()
             ess = _K.filter_step(self._xt, self.weights, noise, self._spare, self._d, self.base, creep_speed_kmh,
-                                      mu_hat, -0.5 / self.noise_std ** 2, lo, hi, use_box, self._ll, self._w_spare,
-                                      self._tmp, self._bits)
+                                 mu_hat, -0.5 / self.noise_std ** 2, lo, hi, use_box, self._ll, self._w_spare,
+                                 self._tmp, self._bits)
             if ess == -1.0:                    # no transition from this cloud: the reference path
                 self._move(noise)
             else:
@@ -292,8 +292,8 @@ class MdipfStrategy(Strategy):
         st = self.opts["stabiliser"]
         if noise is None:
             noise = self._transition_noise()
-        if st == "rownorm" and self._compiled and _K.rownorm_propagate(self._xt, self.weights, noise,
-                                                                             self._spare, self._d):
+        if st == "rownorm" and self._compiled and _K.rownorm_propagate(self._xt, self.weights, noise, self._spare,
+                                                                       self._d):
             self._spare, self._xt = self._xt, self._spare
             return
         if st == "rownorm":
@@ -330,7 +330,7 @@ class MdipfStrategy(Strategy):
         """log N(mu^ ; M_cor(v_s), G) per particle; -inf where not finite (pf.log_likelihood)."""
         if self._compiled:
             _K.log_likelihood(self._xt, self.base, creep_speed_kmh, mu_hat, -0.5 / self.noise_std ** 2, self._ll,
-                                   self._tmp, self._bits)
+                              self._tmp, self._bits)
             return self._ll
         resid = self._curve_at(creep_speed_kmh)
         np.subtract(mu_hat, resid, out=resid)
