@@ -4,11 +4,11 @@ pieces of ``identifier/pf.py`` up to rounding.
 Why compiled: at N = 1000 particles a numpy call costs a few microseconds of overhead whatever
 its arithmetic, and a filter step in numpy needs about 35 of them (~65 us measured); the TCU has
 one 1 ms sampling period per sample and the issue asks for p99 <= 5 % of it.  Each kernel below
-replaces a group of numpy calls by one pass over the cloud, with no allocation.
+replaces a group of numpy calls by one pass over the cloud; the filter step allocates nothing.
 
 The numpy pieces stay the reference (strategies run them with the option ``compiled = False``,
 and tests/test_kernels.py checks the kernels against them).  Results agree to rounding, not to
-the bit: the kernels add in a different order and call the C library's ``exp``.
+the bit: the kernels add in a different order and use their own vectorised ``exp`` (``vexp``).
 
 ``AVAILABLE`` is False when numba cannot be imported; the strategies then run the numpy pieces.
 Compiled code is cached beside this file (``cache=True``), so only the first use on a machine
@@ -32,8 +32,10 @@ except ImportError:           # the numpy pieces run instead (identifier/pf.py)
         return wrap(args[0]) if args and callable(args[0]) else wrap
 
 # Reductions over particles may be reassociated (so they vectorise); no other fast-math licence:
-# NaN and inf keep their IEEE meaning, which the filter's fallbacks rely on.
+# NaN and inf keep their IEEE meaning, which the filter's fallbacks rely on.  ``vexp`` gets none
+# at all: its range reduction depends on the order of its operations.
 _JIT = dict(cache=True, nogil=True, fastmath={"reassoc"}, error_model="numpy")
+_JIT_EXACT = dict(cache=True, nogil=True, error_model="numpy")
 
 
 # exp by Cody-Waite range reduction x = k ln2 + r, |r| <= ln2 / 2, a degree-13 Taylor polynomial
@@ -49,7 +51,7 @@ _INV_FACT = tuple(1.0 / math.factorial(i) for i in range(14))
 _BITS_ZERO, _BITS_INF, _BITS_NAN = 0, 0x7FF0000000000000, 0x7FF8000000000000
 
 
-@njit(**_JIT)
+@njit(**_JIT_EXACT)
 def vexp(a, bits):
     """a <- exp(a) in place (float64 (M,)); ``bits``: int64 scratch of at least M."""
     m = a.size
