@@ -199,7 +199,8 @@ class MdipfStrategy(Strategy):
         self._prelim_samples = 0             # samples the prelim fitted (window 1)
         # the "grid" prelim's lattice, built over window 1's samples (set up now, before the fault)
         self._grid_acc = None
-        if self._spread_prelim():
+        if self._spread_prelim() or (self._compiled and opts["filter_prelim_window"] and opts["prelim_solver"] == "grid"
+                                     and opts["prelim_radius"] is not None):
             self._grid_acc = GridAccumulator(self.theta, self.prelim_radius(), int(opts["prelim_grid"]),
                                              int(opts["prelim_iterations"]), max(64, self.window_samples),
                                              compiled=self._compiled)
@@ -418,11 +419,14 @@ class MdipfStrategy(Strategy):
         if solver == "lm":
             return fit_curve_lm(window_v, window_mu, self.theta, self.prelim_radius(), int(self.opts["prelim_iterations"]))
         if solver == "grid" and self._compiled and self.prelim_radius() is not None:
-            # the same lattice built sample by sample, solved and polished by the compiled kernels
-            acc = GridAccumulator(self.theta, self.prelim_radius(), int(self.opts["prelim_grid"]),
-                                  int(self.opts["prelim_iterations"]), max(len(window_v), 1), compiled=True)
-            for v_k, mu_k in zip(np.asarray(window_v, float).tolist(), np.asarray(window_mu, float).tolist()):
-                acc.add(v_k, mu_k)
+            # the lattice built sample by sample (as window 1's samples came, when the accumulator
+            # was set up before the fault; else now), solved and polished by the compiled kernels
+            acc, self._grid_acc = self._grid_acc, None
+            if acc is None or acc.count != len(window_v):
+                acc = GridAccumulator(self.theta, self.prelim_radius(), int(self.opts["prelim_grid"]),
+                                      int(self.opts["prelim_iterations"]), max(len(window_v), 1), compiled=True)
+                for v_k, mu_k in zip(np.asarray(window_v, float).tolist(), np.asarray(window_mu, float).tolist()):
+                    acc.add(v_k, mu_k)
             return acc.job(window_v, window_mu).x
         if solver == "grid":
             return fit_curve_grid(window_v, window_mu, self.theta, self.prelim_radius(), int(self.opts["prelim_grid"]),
