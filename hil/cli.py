@@ -30,10 +30,15 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    from .logread import LogError
-    from .scenario import ScenarioError
+    try:
+        # the imports (numpy, scipy, casadi ...) take about a second: a Ctrl-C then is an interrupt too
+        from .logread import LogError
+        from .scenario import ScenarioError
 
-    parser = build_parser()
+        parser = build_parser()
+    except KeyboardInterrupt:
+        print("hil: interrupted", file=sys.stderr)
+        return 130
     args = parser.parse_args(argv)
     try:
         return int(args.func(args) or 0)

@@ -11,7 +11,7 @@ from mcap_protobuf.decoder import DecoderFactory
 
 from hil.logread import read_log
 
-from .conftest import hil_command, subprocess_env
+from .conftest import SCENARIOS, hil_command, subprocess_env
 
 TOPICS = {"/plant/state", "/plant/sensor", "/tcu/command", "/tcu/observer", "/tcu/status", "/tcu/identification",
           "/run/summary"}
@@ -88,3 +88,15 @@ def test_sigkill_leaves_a_readable_prefix(tmp_path):
     # what was read back is a gap-free prefix of the run
     assert [m.step for m in states] == list(range(len(states)))
     assert "scenario" in log.metadata
+
+
+@pytest.mark.parametrize("delay_s", [0.15, 0.4])
+def test_ctrl_c_during_start_up_is_one_line_not_a_traceback(tmp_path, delay_s):
+    """SIGINT while hil is still importing numpy, scipy and casadi (the first ~second)."""
+    p = subprocess.Popen(hil_command() + ["run", str(SCENARIOS / "ffcc_a.toml"), "--bus", "inprocess"], cwd=tmp_path,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=subprocess_env())
+    time.sleep(delay_s)
+    p.send_signal(signal.SIGINT)
+    _, err = p.communicate(timeout=120)
+    assert p.returncode == 130, err
+    assert "Traceback" not in err and err.strip().splitlines()[-1].endswith("interrupted")
