@@ -11,11 +11,12 @@ import numpy as np
 import pytest
 
 from identifier import IdentifierSettings, VehicleModel, make_strategy
-from identifier.curve import mu_model, peak
+from identifier.curve import mu_model
 from identifier.strategies import Sample
 from identifier.strategies.observer_aware import ObserverAwareModel
 
-FFCC_A = np.array([-0.005, 0.585, -0.580, -0.525, -1.100])
+from .test_strategies import FFCC_A, assert_confirmed_near_the_peak, feed
+
 NFCC_0 = np.array([0.0, 1.0, -1.0, -0.54, -1.2])
 J, C, GEAR, RADIUS, T, POLE, TORQUE = 16.6, 21373.0, 2.788, 0.4375, 1e-3, 400.0, 3400.0
 TRAIN_MS = 10.0
@@ -64,13 +65,6 @@ def simulate(theta=FFCC_A, steps=150, seed=0, speed_noise=0.005, train_noise=0.0
     return samples, np.array(true_mu)
 
 
-def feed(strategy, samples):
-    events = []
-    for s in samples:
-        events.extend(strategy.add_sample(s))
-    return events
-
-
 def test_model_predicts_the_simulated_observer_output_with_the_true_curve():
     samples, true_mu = simulate(seed=1, speed_noise=0.0, train_noise=0.0)
     v = np.array([s.creep_speed_kmh for s in samples])
@@ -89,13 +83,7 @@ def test_model_predicts_the_simulated_observer_output_with_the_true_curve():
 def test_recovers_a_known_curve_from_the_observer_transient(name):
     samples, _ = simulate(seed=2)
     strat = make_strategy(name, settings(), seed=3)
-    events = feed(strat, samples)
-    assert strat.confirmed, f"{name} did not confirm after {strat.corrections} corrections"
-    assert events[-1].kind == "confirmed"
-    v_true, mu_true = peak(FFCC_A)
-    v_id, mu_id = peak(strat.theta)
-    assert abs(mu_id - mu_true) / mu_true < 0.03
-    assert abs(v_id - v_true) / v_true < 0.10
+    assert_confirmed_near_the_peak(strat, feed(strat, samples))
     assert strat.observer_model_metrics(strat.theta)["r2_observer_model"] > 0.99
 
 

@@ -7,7 +7,7 @@ import pytest
 from hil.loop import run_inprocess
 from hil.scenario import load_scenario
 
-from .conftest import SCENARIOS, hil_command, subprocess_env
+from .conftest import SCENARIOS, hil_command, kill_run_when_log_reaches, subprocess_env
 
 PF_STRATEGY = "proposed"     # a particle-filter strategy (identifier/strategies/proposed.py)
 
@@ -134,19 +134,9 @@ def test_log_cut_at_50_byte_positions(runs, tmp_path, capsys):
 
 
 def test_run_killed_with_sigkill_replays_up_to_the_kill(tmp_path):
-    import signal
-    import time
-
-    cmd = hil_command() + ["run", str(SCENARIOS / "ffcc_a.toml"), "--strategy", PF_STRATEGY, "--out", str(tmp_path),
-                           "--set", "run.duration_s=20"]
-    proc = subprocess.Popen(cmd, env=subprocess_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     path = tmp_path / f"ffcc_a-{PF_STRATEGY}-1.mcap"
-    deadline = time.monotonic() + 120
-    while time.monotonic() < deadline and (not path.exists() or path.stat().st_size < 300_000):
-        time.sleep(0.05)
-    proc.send_signal(signal.SIGKILL)
-    proc.wait(timeout=30)
-    assert proc.returncode == -signal.SIGKILL
+    kill_run_when_log_reaches(["run", str(SCENARIOS / "ffcc_a.toml"), "--strategy", PF_STRATEGY, "--out", str(tmp_path),
+                               "--set", "run.duration_s=20"], path, 300_000)
     r = hil("replay", str(path), "--json")
     assert r.returncode == 0, r.stderr
     s = json.loads(r.stdout)

@@ -11,7 +11,7 @@ from mcap_protobuf.decoder import DecoderFactory
 
 from hil.logread import read_log
 
-from .conftest import SCENARIOS, hil_command, subprocess_env
+from .conftest import SCENARIOS, hil_command, kill_run_when_log_reaches, subprocess_env
 
 TOPICS = {"/plant/state", "/plant/sensor", "/tcu/command", "/tcu/observer", "/tcu/status", "/tcu/identification",
           "/run/summary"}
@@ -71,16 +71,9 @@ def test_mcap_reads_back_with_the_standard_reader(ffcc_a_run):
 
 
 def test_sigkill_leaves_a_readable_prefix(tmp_path):
-    cmd = hil_command() + ["run", "scenarios/ffcc_a.toml", "--bus", "inprocess", "--out", str(tmp_path),
-                           "--set", "run.duration_s=60", "--set", "run.fault_time_s=50"]
-    proc = subprocess.Popen(cmd, env=subprocess_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     path = tmp_path / "ffcc_a-nlls-1.mcap"
-    deadline = time.monotonic() + 120
-    while time.monotonic() < deadline and (not path.exists() or path.stat().st_size < 400_000):
-        time.sleep(0.05)
-    proc.send_signal(signal.SIGKILL)
-    proc.wait(timeout=30)
-    assert proc.returncode == -signal.SIGKILL
+    kill_run_when_log_reaches(["run", str(SCENARIOS / "ffcc_a.toml"), "--bus", "inprocess", "--out", str(tmp_path),
+                               "--set", "run.duration_s=60", "--set", "run.fault_time_s=50"], path, 400_000)
     log = read_log(path)
     assert not log.complete
     states = log.topic("/plant/state")
