@@ -344,52 +344,50 @@ class MdipfStrategy(Strategy):
     def _weigh(self, ll: np.ndarray) -> None:
         """w <- w_prev p(Z | chi), normalised; resample (``resampler``) when the ESS is low.
 
-        As w_prev exp(ll - max ll) / sum (one max shift, no logarithms); when that underflows
-        (every product 0) or is not finite, by log weights (pf.normalise), which cannot."""
-        o = self.opts
+        As w_prev exp(ll - max ll) / sum (one max shift, no logarithms: ``kernels.reweigh``, or
+        numpy); when that underflows (every product 0) or is not finite, by log weights
+        (pf.normalise), which cannot."""
+        ess = self._reweigh(ll)
+        if ess is None:
+            with np.errstate(divide="ignore"):
+                self.weights = pf.normalise(np.log(self.weights) + np.where(np.isnan(ll), -np.inf, ll))
+            ess = 1.0 / np.dot(self.weights, self.weights)
+        self._resample_if_low(ess)
+
+    def _reweigh(self, ll: np.ndarray) -> float | None:
+        """New weights without logarithms (``ll`` left as it is); their ESS, or None if that underflows."""
         if self._compiled:
             ess = _K.reweigh(ll, self.weights, self._w_spare, self._bits)
-            if ess > 0.0:
-                self._w_spare, self.weights = self.weights, self._w_spare
-            else:       # underflow or not finite: in logarithms
-                with np.errstate(divide="ignore"):
-                    self.weights = pf.normalise(np.log(self.weights) + np.where(np.isnan(ll), -np.inf, ll))
-                ess = 1.0 / np.dot(self.weights, self.weights)
-            self._resample_if_low(ess)
-            return
+            if not ess > 0.0:
+                return None
+            self._w_spare, self.weights = self.weights, self._w_spare
+            return ess
         top = ll.max()
-        w = None
-        if math.isfinite(top):
-            w = np.subtract(ll, top, out=ll)
-            np.exp(w, out=w)
-            w *= self.weights
-            total = w.sum()
-            if total > 0.0 and math.isfinite(total):
-                w /= total
-            else:
-                w = None
-        if w is None:
-            with np.errstate(divide="ignore"):
-                w = pf.normalise(np.log(self.weights) + np.where(np.isnan(ll), -np.inf, ll))
+        if not math.isfinite(top):
+            return None
+        w = np.subtract(ll, top)
+        np.exp(w, out=w)
+        w *= self.weights
+        total = w.sum()
+        if not (total > 0.0 and math.isfinite(total)):
+            return None
+        w /= total
         self.weights = w
-        if 1.0 / np.dot(w, w) < o["ess_fraction"] * self.n_particles:
-            if o["resampler"] == "systematic":
-                idx = pf.systematic_counts_resample(w, self.rng.random(), self._arange)
-            else:
-                idx = pf.resample(w, self.rng, o["resampler"])
-            self._take(idx)
-            self.weights = np.full(self.n_particles, 1.0 / self.n_particles)
+        return 1.0 / np.dot(w, w)
 
     def _resample_if_low(self, ess: float) -> None:
-        """The compiled path's resampling (``resampler``) when ESS < ``ess_fraction`` * N."""
+        """Resampling (``resampler``) when ESS < ``ess_fraction`` * N; systematic by counts."""
         o = self.opts
-        if ess < o["ess_fraction"] * self.n_particles:
-            if o["resampler"] == "systematic":
-                idx = _K.systematic_resample(self.weights, self.rng.random(), self._idx)
-            else:
-                idx = pf.resample(self.weights, self.rng, o["resampler"])
-            self._take(idx)
-            self.weights.fill(1.0 / self.n_particles)
+        if ess >= o["ess_fraction"] * self.n_particles:
+            return
+        if o["resampler"] == "systematic":
+            u0 = self.rng.random()
+            idx = (_K.systematic_resample(self.weights, u0, self._idx) if self._compiled
+                   else pf.systematic_counts_resample(self.weights, u0, self._arange))
+        else:
+            idx = pf.resample(self.weights, self.rng, o["resampler"])
+        self._take(idx)
+        self.weights.fill(1.0 / self.n_particles)
 
     @property
     def _base_col(self) -> np.ndarray:
