@@ -47,7 +47,7 @@ from .loop import LAG_WINDOW_S, PlantSide, log_path, start_recording
 from .progress import Progress
 from .recording import interrupts_between_writes
 from .scenario import ScenarioError
-from .summary import clean, observer_lag_ms, summarise
+from .summary import clean, observer_lag_by_step, summarise
 from .tcu_process import PeerSilent, Sender, TcuNode, heartbeat_period_s, silence_limit_s
 
 LOAD_WARN_PERCENT = 70.0
@@ -555,11 +555,7 @@ def _child_report(child) -> dict:
 def _summary(scenario, strategy, seed, bus_name, mode, plant: PlantNode, report, path, wall, load) -> dict:
     ps = plant.plant_side
     period = scenario.run.exchange_period_s
-    steps = [int(round(t / period)) for t in ps.truth_t]
-    lag = None
-    if steps and all(s in plant.observer_mu for s in steps):
-        lag = observer_lag_ms(ps.truth_t, ps.truth_mu, [plant.observer_mu[s] for s in steps],
-                              scenario.run.fault_time_s, ps.tracker.serious_time_s or scenario.run.duration_s, period)
+    lag = observer_lag_by_step(scenario, ps.truth_t, ps.truth_mu, plant.observer_mu, ps.tracker.serious_time_s)
     det = report.get("detected_step")
     extra = {"observer_lag_ms": lag, "mode": mode, "wall_s": wall, "sim_s": ps.plant.t_s,
              "sim_s_per_wall_s": ps.plant.t_s / wall if wall > 0 else None,

@@ -31,6 +31,29 @@ class LogContents:
         return [m for t, _, m in self.messages if t == name]
 
 
+def scenario_from_log(log: LogContents, hint: str = ""):
+    """The scenario a ``hil run`` log was recorded with (its TOML text and ``--set`` overrides, from
+    the metadata), or one LogError line; ``hint`` ends the line that says the log has none."""
+    import json
+
+    from .scenario import ScenarioError, parse_scenario
+
+    if log.cut and not log.metadata and not log.message_count:
+        raise LogError(f"{log.path}: nothing readable before the damage ({log.damage})")
+    sc = log.metadata.get("scenario") or {}
+    if "toml" not in sc:
+        raise LogError(f"{log.path}: no scenario metadata: not a 'hil run' log (another tool's MCAP?){hint}")
+    try:
+        overrides = json.loads(sc["overrides"]) if sc.get("overrides") else None
+    except ValueError:
+        overrides = None
+    try:
+        return parse_scenario(sc["toml"], f"{log.path}: scenario metadata",
+                              overrides if isinstance(overrides, dict) else None)
+    except ScenarioError as e:
+        raise LogError(str(e)) from None
+
+
 def read_log(path, topics: set[str] | None = None) -> LogContents:
     """Read every message that can be read; a damaged tail is reported, not raised."""
     p = Path(path)

@@ -6,7 +6,6 @@ frames carry (``SensorReading`` one way, ``TorqueCommand`` and results the other
 """
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
@@ -109,7 +108,7 @@ def start_recording(scenario, strategy: str, seed: int, bus: str, mode: str, pat
     rec = Recorder(path)
     # the TOML as written plus the --set overrides, so replay and view rebuild exactly this scenario
     rec.metadata("scenario", {"name": scenario.name, "path": scenario.path, "toml": scenario.source_text,
-                              "overrides": json.dumps(scenario.overrides)})
+                              "overrides": scenario.overrides})   # Recorder.metadata JSON-encodes it
     rec.metadata("versions", package_versions())
     rec.metadata("run", {"strategy": strategy, "seed": str(seed), "bus": bus, "mode": mode,
                          "exchange_period_s": repr(scenario.run.exchange_period_s)})

@@ -20,7 +20,6 @@ and ``messages_read``.  A damaged log (run killed, file cut) replays up to the d
 """
 from __future__ import annotations
 
-import json
 import math
 import time
 from dataclasses import dataclass, field
@@ -32,10 +31,10 @@ from identifier.messages import IdentificationEvent, SensorReading
 from plant import StageTracker
 
 from .frames import RESULT_ID, SENSOR_ID, FrameCodec
-from .logread import MAGIC, LogError, read_log
+from .logread import MAGIC, LogError, read_log, scenario_from_log
 from .loop import LAG_WINDOW_S
-from .scenario import ScenarioError, load_scenario, parse_scenario
-from .summary import clean, observer_lag_ms, summarise
+from .scenario import load_scenario
+from .summary import clean, observer_lag_by_step, summarise
 
 #: file suffixes read with ``can.LogReader`` (python-can's writers/readers)
 CAN_LOG_SUFFIXES = (".log", ".asc", ".blf", ".csv", ".trc", ".mf4")
@@ -60,31 +59,6 @@ class ReplaySource:
     damage: str = ""
 
 
-def _scenario_from(path, meta: dict, scenario_file):
-    if scenario_file is not None:
-        return load_scenario(scenario_file)
-    sc = meta.get("scenario") or {}
-    if "toml" not in sc:
-        raise LogError(f"{path}: no scenario metadata: not a 'hil run' log (another tool's MCAP?); "
-                       "give the scenario with --scenario FILE")
-    try:
-        return parse_scenario(sc["toml"], f"{path}: scenario metadata", scenario_overrides(sc))
-    except ScenarioError as e:
-        raise LogError(str(e)) from None
-
-
-def scenario_overrides(sc_meta: dict) -> dict | None:
-    """``--set`` overrides stored beside the scenario text (metadata key ``overrides``, JSON), if the log has them."""
-    raw = sc_meta.get("overrides")
-    if not raw:
-        return None
-    try:
-        value = json.loads(raw)
-    except ValueError:
-        return None
-    return value if isinstance(value, dict) else None
-
-
 def _msg_from_record(r) -> can.Message:
     return can.Message(timestamp=r.send_time_ns * 1e-9, arbitration_id=r.arbitration_id,
                        is_extended_id=r.is_extended_id, is_fd=r.is_fd, bitrate_switch=r.bitrate_switch,
@@ -94,9 +68,8 @@ def _msg_from_record(r) -> can.Message:
 
 def load_mcap(path, scenario_file=None) -> ReplaySource:
     log = read_log(path, topics=REPLAY_TOPICS)
-    if log.cut and not log.metadata and not log.message_count:
-        raise LogError(f"{path}: nothing readable before the damage ({log.damage})")
-    scenario = _scenario_from(path, log.metadata, scenario_file)
+    scenario = (load_scenario(scenario_file) if scenario_file is not None
+                else scenario_from_log(log, "; give the scenario with --scenario FILE"))
     run = log.metadata.get("run") or {}
     try:
         seed = int(run["seed"]) if "seed" in run else None
@@ -135,7 +108,7 @@ def load_mcap(path, scenario_file=None) -> ReplaySource:
     return src
 
 
-def load_can_log(path, scenario_file, strategy=None) -> ReplaySource:
+def load_can_log(path, scenario_file) -> ReplaySource:
     if scenario_file is None:
         raise LogError(f"{path}: a CAN log has no scenario; give it with --scenario FILE")
     scenario = load_scenario(scenario_file)
@@ -225,24 +198,16 @@ def replay(src: ReplaySource, strategy: str | None = None, seed: int | None = No
         if 0 <= t_s - fault_t <= LAG_WINDOW_S:
             truth_t.append(t_s)
             truth_mu.append(mu)
-    steps = [int(round(t / period)) for t in truth_t]
-    lag = None
-    if steps and all(s in observer_mu for s in steps):
-        lag = observer_lag_ms(truth_t, truth_mu, [observer_mu[s] for s in steps], fault_t,
-                              tracker.serious_time_s or scenario.run.duration_s, period)
+    lag = observer_lag_by_step(scenario, truth_t, truth_mu, observer_mu, tracker.serious_time_s)
 
+    # compare with the logged identification when it came from the same strategy and seed (a CAN
+    # log does not say which strategy produced its results: compare anyway)
     matches = None
-    if src.logged_events is not None and strategy == src.logged_strategy and \
-            (src.logged_seed is None or seed == src.logged_seed):
+    same_run = (strategy == src.logged_strategy and (src.logged_seed is None or seed == src.logged_seed)) or \
+        (src.kind == "can-log" and src.logged_strategy is None)
+    if src.logged_events is not None and same_run:
         limit = math.inf if src.logged_last_step is None else src.logged_last_step
-        mine = [_event_key(e) for e in events if e.step <= limit]
-        logged = [e for e in src.logged_events if e[0] <= limit]
-        matches = mine == logged
-    elif src.kind == "can-log" and src.logged_events is not None and src.logged_strategy is None:
-        # a CAN log does not say which strategy produced its results: compare anyway
-        limit = math.inf if src.logged_last_step is None else src.logged_last_step
-        matches = [_event_key(e) for e in events if e.step <= limit] == \
-            [e for e in src.logged_events if e[0] <= limit]
+        matches = [_event_key(e) for e in events if e.step <= limit] == [e for e in src.logged_events if e[0] <= limit]
 
     v, mu = ident.strategy.data()
     det = ident.detector.detected_step
@@ -273,6 +238,3 @@ def damage_warning(src: ReplaySource) -> str | None:
             f"{len(src.frames)} sensor frames (about {len(src.frames) * period:.3f} s of the run); "
             "replaying up to the damage")
 
-
-def dumps(summary: dict) -> str:
-    return json.dumps(summary)

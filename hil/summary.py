@@ -28,6 +28,17 @@ def observer_lag_ms(t_s, mu_true, mu_hat, t_from: float, t_to: float, period_s: 
     return best * period_s * 1e3
 
 
+def observer_lag_by_step(scenario, truth_t, truth_mu, observer_mu_by_step: dict, serious_time_s) -> float | None:
+    """``observer_lag_ms`` with mu^ given per step (what a TCU report or a replay collects): None
+    when a step of the truth window has no mu^ (the TCU's side of the run is incomplete)."""
+    period = scenario.run.exchange_period_s
+    steps = [int(round(t / period)) for t in truth_t]
+    if not steps or not all(s in observer_mu_by_step for s in steps):
+        return None
+    return observer_lag_ms(truth_t, truth_mu, [observer_mu_by_step[s] for s in steps], scenario.run.fault_time_s,
+                           serious_time_s or scenario.run.duration_s, period)
+
+
 def clean(x):
     """JSON-safe: NaN and inf become None."""
     if isinstance(x, float) and not math.isfinite(x):

@@ -31,8 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .logread import LogError, read_log
-from .scenario import ScenarioError, parse_scenario
+from .logread import LogError, read_log, scenario_from_log
 
 CREEP_TIMELINE = "creep_m_per_h"
 TIME_TIMELINE = "sim_time"
@@ -53,17 +52,7 @@ class LogData:
         self.path = str(path)
         self.log = log
         meta = log.metadata
-        sc = meta.get("scenario") or {}
-        if log.cut and not meta and not log.message_count:
-            raise LogError(f"{path}: nothing readable before the damage ({log.damage})")
-        if "toml" not in sc:
-            raise LogError(f"{path}: no scenario metadata: not a 'hil run' log (another tool's MCAP?)")
-        try:
-            from .replay import scenario_overrides
-
-            self.scenario = parse_scenario(sc["toml"], f"{path}: scenario metadata", scenario_overrides(sc))
-        except ScenarioError as e:
-            raise LogError(str(e)) from None
+        self.scenario = scenario_from_log(log)
         self.run = meta.get("run") or {}
         by_topic: dict[str, list] = {}
         for topic, _, m in log.messages:
