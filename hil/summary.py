@@ -39,6 +39,11 @@ def observer_lag_by_step(scenario, truth_t, truth_mu, observer_mu_by_step: dict,
                            serious_time_s or scenario.run.duration_s, period)
 
 
+def fmt(x, spec: str = ".3g") -> str:
+    """A summary value for people: ``format(x, spec)``, "n/a" for a missing one."""
+    return "n/a" if x is None else format(x, spec)
+
+
 def clean(x):
     """JSON-safe: NaN and inf become None."""
     if isinstance(x, float) and not math.isfinite(x):

@@ -25,7 +25,8 @@ FFCC_A = SCENARIOS / "ffcc_a.toml"
 # model's replay, so its held-out gap shrinks less, and by an amount that varies with the run's
 # noise: quantum 0.0744 rad/s over run seeds 1001-1010 gave 73-100 % (median 92 %), the same
 # with observer poles 400 and 500 rad/s; a local test run failed once on 62.9 % at quantum 0.0744.
-MIN_SHRINK_PERCENT = {"sensor_quantisation": 50}
+# (The diagnosis only names an effect whose held-out shrink is >= 50 %, so the floor must sit above that.)
+MIN_SHRINK_PERCENT = {"sensor_quantisation": 60}
 
 
 def fresh_seed() -> int:

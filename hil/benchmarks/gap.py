@@ -166,7 +166,7 @@ def cmd_gap_bench(args) -> int:
         print(json.dumps(result))
     else:
         print(f"gap bench: {result['cases']} cases (seed {args.seed}), {result['effect_classes']} effect classes")
-        f = lambda x, spec: "n/a" if x is None else format(x, spec)  # noqa: E731
+        from ..summary import fmt as f
         print(f"  top-1 accuracy {f(result['top1_accuracy'], '.3f')} ({result['library_cases']} library cases)  "
               f"'none' accuracy {f(result['none_accuracy'], '.3f')} ({result['outside_cases']} outside)")
         print(f"  median held-out gap shrink {f(result['median_shrink_percent'], '.1f')} %  "

@@ -29,6 +29,7 @@ from ..cli import UserError
 from ..progress import Progress
 from ..scenario import load_scenario
 from ..summary import clean, summarise
+from ..summary import fmt as _f
 
 #: the verdict: a fast confirmation of a wrong curve is a failure
 OK_R2, OK_PEAK_MU_PERCENT, OK_PEAK_CREEP_PERCENT = 0.999, 3.0, 10.0
@@ -191,10 +192,6 @@ def aggregate(per_seed: list[dict]) -> dict:
 
 
 # -- output ----------------------------------------------------------------------------------
-def _f(x, spec):
-    return "n/a" if x is None else format(x, spec)
-
-
 def _obs(r) -> str:
     if r.get("r2_observer_model") is None:
         return "-"

@@ -8,6 +8,7 @@ from identifier import STRATEGIES
 
 from ..cli import UserError
 from ..scenario import load_scenario
+from ..summary import fmt as _fmt
 
 
 def parse_set(items) -> dict:
@@ -112,10 +113,6 @@ def apply_reality_args(scenario, items):
     except ValueError as e:
         raise UserError(str(e)) from None
     return with_reality(scenario, parsed) if parsed else scenario
-
-
-def _fmt(x, spec):
-    return "n/a" if x is None else format(x, spec)
 
 
 def print_summary(s: dict, file=sys.stdout, heading: str | None = None) -> None:

@@ -102,14 +102,15 @@ def _fit_ls(resid, u0, lo, hi, scale, starts=None, sigma=None):
     return best
 
 
-def fit_nominal(ctx: Context) -> Fit:
-    """The nominal model with its initial state fitted on the training blocks."""
+def fit_nominal(ctx: Context, mask=None) -> Fit:
+    """The nominal model with its initial state fitted on ``mask`` (default: the training blocks)."""
     sim = ctx.simulator(None, (), {})
     torque = ctx.data.torque_cmd_nm
+    mask = ctx.train if mask is None else mask
 
     def resid(u):
         motor, train = sim.run([], ctx.x0 + u, torque)
-        return ctx.residuals(ctx.predict(motor, train), ctx.sigma_nom, ctx.train)
+        return ctx.residuals(ctx.predict(motor, train), ctx.sigma_nom, mask)
 
     r = _fit_ls(resid, np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0), [np.zeros(2)], ctx.sigma_nom)
     x0 = ctx.x0 + r.x

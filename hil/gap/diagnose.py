@@ -221,20 +221,13 @@ class Diagnosis:
         return clean(out)
 
     def normal_running_replay(self, ctx: Context):
-        from .candidates import _fit_ls
-
+        """The nominal model fitted on the pre-fault samples only: the reference of the WHERE statistics."""
         d = self.data
-        sim = ctx.simulator(None, (), {})
         pre = ctx.window & (d.t_s < self.scenario.run.fault_time_s)
         if pre.sum() < 20:
-            return sim.run([], ctx.x0, d.torque_cmd_nm)
-
-        def resid(u):
-            motor, train = sim.run([], ctx.x0 + u, d.torque_cmd_nm)
-            return ctx.residuals(ctx.predict(motor, train), ctx.sigma_nom, pre)
-
-        r = _fit_ls(resid, None, np.zeros(0), np.zeros(0), np.zeros(0), [np.zeros(2)], ctx.sigma_nom)
-        return sim.run([], ctx.x0 + r.x, d.torque_cmd_nm)
+            return ctx.simulator(None, (), {}).run([], ctx.x0, d.torque_cmd_nm)
+        fit = fit_nominal(ctx, pre)
+        return fit.extra["plant_motor"], fit.extra["plant_train"]
 
     # -- scores ---------------------------------------------------------------------------------------
     def score(self, ctx: Context, fit: Fit) -> dict:
@@ -341,28 +334,27 @@ class Diagnosis:
                 "input_constant": bool(np.std(torque) < 1e-9)}
 
     # -- identification -----------------------------------------------------------------------------
-    def identification(self, ctx: Context, nominal, best: Fit | None, creep_meas) -> dict:
+    def _outcome(self, events, creep) -> dict:
+        """What an identification run came to (identified, T_det from ``creep``, RT, curve, peak errors)."""
         d, sc = self.data, self.scenario
-        true_theta = sc.fault_curve.params
-        peak_creep = sc.fault_curve.peak()[0]
         t_f = sc.run.fault_time_s
+        st = stages(d.t_s, creep, t_f, sc.fault_curve.peak()[0])
+        idx = np.flatnonzero(st == 2)
+        tdet = float(d.t_s[idx[0]] - t_f) if idx.size else math.nan
+        conf = next((e for e in events if e["kind"] == "confirmed"), None)
+        last = conf or (events[-1] if events else None)
+        out = {"identified": conf is not None, "t_det_s": tdet,
+               "t_identified_s": conf["t_s"] if conf else None,
+               "rt_percent": rt_percent(conf["t_s"] if conf else None, t_f, tdet),
+               "params": last["params"] if last else None}
+        if last:
+            out.update(peak_errors(np.asarray(last["params"]), sc.fault_curve.params))
+        return out
 
-        def outcome(events, creep, label):
-            st = stages(d.t_s, creep, t_f, peak_creep)
-            idx = np.flatnonzero(st == 2)
-            tdet = float(d.t_s[idx[0]] - t_f) if idx.size else math.nan
-            conf = next((e for e in events if e["kind"] == "confirmed"), None)
-            last = conf or (events[-1] if events else None)
-            out = {"source": label, "identified": conf is not None, "t_det_s": tdet,
-                   "t_identified_s": conf["t_s"] if conf else None,
-                   "rt_percent": rt_percent(conf["t_s"] if conf else None, t_f, tdet),
-                   "params": last["params"] if last else None}
-            if last:
-                out.update(peak_errors(np.asarray(last["params"]), true_theta))
-            return out
-
+    def identification(self, ctx: Context, nominal, best: Fit | None, creep_meas) -> dict:
+        d = self.data
         strategy = d.strategy or "nlls"
-        real = outcome(d.identification, creep_meas, "real run (log)")
+        real = {"source": "real run (log)", **self._outcome(d.identification, creep_meas)}
         nom = self.replay(ctx, nominal.extra["plant_motor"], nominal.extra["plant_train"], {}, strategy,
                           "nominal model replay")
         out = {"strategy": strategy, "real": real, "nominal_replay": nom}
@@ -432,20 +424,7 @@ class Diagnosis:
         for k in range(d.n):
             out = ident.on_sensor(SensorReading(int(d.step[k]), float(tcu_m[k]), float(tcu_v[k])))
             events.extend({"t_s": e.t_s, "kind": e.kind, "params": list(e.params)} for e in out.events)
-        creep = ctx.observer.creep_kmh(meas[:, 0], meas[:, 1])
-        t_f = sc.run.fault_time_s
-        st = stages(d.t_s, creep, t_f, sc.fault_curve.peak()[0])
-        idx = np.flatnonzero(st == 2)
-        tdet = float(d.t_s[idx[0]] - t_f) if idx.size else math.nan
-        conf = next((e for e in events if e["kind"] == "confirmed"), None)
-        last = conf or (events[-1] if events else None)
-        out = {"identified": conf is not None, "t_det_s": tdet,
-               "t_identified_s": conf["t_s"] if conf else None,
-               "rt_percent": rt_percent(conf["t_s"] if conf else None, t_f, tdet),
-               "params": last["params"] if last else None}
-        if last:
-            out.update(peak_errors(np.asarray(last["params"]), sc.fault_curve.params))
-        return out
+        return self._outcome(events, ctx.observer.creep_kmh(meas[:, 0], meas[:, 1]))
 
 
 def diagnose(data, scenario, **kw) -> tuple[dict, Diagnosis]:

@@ -33,11 +33,6 @@ def initial_line(t_s, motor, train, n_fit: int = 20, n_fit_train: int = 100) -> 
     return np.array(values), np.array(slopes)
 
 
-def initial_state(t_s, motor, train, n_fit: int = 20) -> np.ndarray:
-    """(omega_m, v_t) at t_s[0] from a straight-line fit to the first ``n_fit`` measured samples."""
-    return initial_line(t_s, motor, train, n_fit)[0]
-
-
 class Simulator:
     """``run(theta, x0, torque) -> (motor_rad_s, train_ms)`` at every step k (state at t_k)."""
 

@@ -6,13 +6,10 @@ from pathlib import Path
 
 import numpy as np
 
+from ..summary import fmt as _f
 from .candidates import SIGNALS, UNITS
 
 STAGES = ("normal", "early", "serious")
-
-
-def _f(x, spec=".3g"):
-    return "n/a" if x is None else format(x, spec)
 
 
 def text_summary(out: dict) -> str:
