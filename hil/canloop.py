@@ -355,11 +355,10 @@ class PlantNode:
             self.on_rx(msg)
 
     def drain_until_child_exits(self, timeout_s: float) -> None:
-        """Record the TCU's last frames while its process ends."""
-        if self.child is None:
-            return
+        """Record the TCU's last frames while its process ends (an external TCU, no child: for
+        ``timeout_s``, its last status and 'finished' heartbeat)."""
         end = time.monotonic() + timeout_s
-        while self.child.poll() is None and time.monotonic() < end:
+        while (self.child is None or self.child.poll() is None) and time.monotonic() < end:
             msg = self.bus.recv(timeout=0.01)
             if msg is not None:
                 self.on_rx(msg)
@@ -477,7 +476,7 @@ def run_can(scenario, strategy: str = "nlls", seed: int | None = None, bus: str 
                 plant.drain()
                 report = tcu.report()
             elif external_tcu:
-                _drain_for(plant, 0.2)
+                plant.drain_until_child_exits(0.2)
                 report = {"samples_v": [], "samples_mu": [], "detected_step": None, "external": True}
             else:
                 plant.drain_until_child_exits(CHILD_EXIT_TIMEOUT_S)
@@ -494,8 +493,7 @@ def run_can(scenario, strategy: str = "nlls", seed: int | None = None, bus: str 
             raise
         except KeyboardInterrupt:
             if rec and plant is not None:
-                with rec.atomic():
-                    rec.event(plant.t_s, "ERROR", "run interrupted (SIGINT/SIGTERM)")
+                rec.event(plant.t_s, "ERROR", "run interrupted (SIGINT/SIGTERM)")   # one write: already atomic
             if plant is not None:
                 plant.finish(STATE_FAULT)
             raise
@@ -527,15 +525,6 @@ def _set_rt_priority(priority: int, log) -> None:
     except (AttributeError, PermissionError, OSError) as e:
         log(f"warning: cannot set SCHED_FIFO priority {priority} ({e}); running at normal priority")
         return None
-
-
-def _drain_for(plant: PlantNode, seconds: float) -> None:
-    """Record what an external TCU still sends (its last status, its 'finished' heartbeat)."""
-    end = time.monotonic() + seconds
-    while time.monotonic() < end:
-        msg = plant.bus.recv(timeout=0.02)
-        if msg is not None:
-            plant.on_rx(msg)
 
 
 def _child_report(child) -> dict:

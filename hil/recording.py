@@ -152,11 +152,8 @@ class Recorder:
             _InterruptGuard.leave()
 
     def metadata(self, name: str, data: dict) -> None:
-        _InterruptGuard.depth += 1
-        try:
+        with self.atomic():
             self._writer.add_metadata(name, {k: v if isinstance(v, str) else json.dumps(v) for k, v in data.items()})
-        finally:
-            _InterruptGuard.leave()
 
     @contextlib.contextmanager
     def atomic(self):
@@ -173,8 +170,7 @@ class Recorder:
     def close(self, summary: dict | None = None) -> None:
         if self.closed:
             return
-        _InterruptGuard.depth += 1     # summary, metadata and footer go out together
-        try:
+        with self.atomic():             # summary, metadata and footer go out together
             if summary is not None:
                 fields = {k: summary[k] for k in ("identified", "rt_percent", "t_fault_s", "t_serious_s",
                                                   "t_identified_s", "r2", "peak_mu_err_percent",
@@ -185,5 +181,3 @@ class Recorder:
             self._writer.finish()
             self._file.close()
             self.closed = True
-        finally:
-            _InterruptGuard.leave()

@@ -44,6 +44,13 @@ C_TRUE, C_MEAS = (44, 160, 44), (214, 39, 40)
 C_FAULT, C_SERIOUS = (148, 103, 189), (140, 86, 75)
 
 
+def corrections_and_final(events) -> tuple[list, object]:
+    """The correction events, and the curve a run ended with: the confirmed one, else the last correction."""
+    corrections = [e for e in events if e.kind == "correction"]
+    final = next((e for e in events if e.kind == "confirmed"), corrections[-1] if corrections else None)
+    return corrections, final
+
+
 class LogData:
     """The arrays a view needs, pulled out of one log."""
 
@@ -128,13 +135,12 @@ def curve_figure_png(data: LogData, samples_v, samples_mu, events) -> bytes:
     fig, ax = plt.subplots(figsize=(7.0, 4.4), dpi=110)
     if len(samples_v):
         ax.plot(samples_v, samples_mu, ".", ms=3, color="0.55", label="samples (measured $v_s$, observed $\\hat\\mu$)")
-    corrections = [e for e in events if e.kind == "correction"]
+    corrections, final = corrections_and_final(events)
     cmap = plt.get_cmap("Blues")
     for i, e in enumerate(corrections):
         ax.plot(grid, mu_model(grid, np.array(e.params)), lw=0.8,
                 color=cmap(0.3 + 0.6 * (i + 1) / max(len(corrections), 1)),
                 label="identified after each correction" if i == 0 else None)
-    final = next((e for e in events if e.kind == "confirmed"), corrections[-1] if corrections else None)
     if final is not None:
         ax.plot(grid, mu_model(grid, np.array(final.params)), lw=2.2, color="tab:blue",
                 label=f"identified ({final.kind}, Q={final.correction}, t={final.t_s:.3f} s)")
@@ -165,7 +171,7 @@ def build_recording(data: LogData, application_id: str = "railway_hil"):
     sc = data.scenario
     t_f = sc.run.fault_time_s
     t_serious = serious_time(data)
-    v_peak = fault_peak = sc.fault_curve.peak()[0]
+    v_peak = sc.fault_curve.peak()[0]
 
     # -- against sim time -------------------------------------------------------------------------------
     t, train, creep, mu = data.arrays("/plant/state", "t_s", "train_speed_ms", "creep_speed_kmh", "mu")
@@ -184,7 +190,7 @@ def build_recording(data: LogData, application_id: str = "railway_hil"):
     t_all = np.concatenate([t, to]) if t.size or to.size else np.zeros(1)
     if t_all.size:
         _line(rr, rec, "/creep/peak_creep_kmh", "fault curve peak creep (km/h)", (127, 127, 127), 1.0)
-        _scalars(rr, rec, "/creep/peak_creep_kmh", [t_all.min(), t_all.max()], [fault_peak, fault_peak])
+        _scalars(rr, rec, "/creep/peak_creep_kmh", [t_all.min(), t_all.max()], [v_peak, v_peak])
     lo, hi = _span(creep, creep_meas)
     _marker(rr, rec, "/creep/fault_onset", f"fault onset t_f = {t_f:.3f} s", C_FAULT, t_f, lo, hi)
     _marker(rr, rec, "/creep/serious_start", "serious stage starts" + (f" {t_serious:.3f} s" if t_serious else ""),
@@ -268,14 +274,13 @@ def build_recording(data: LogData, application_id: str = "railway_hil"):
     grid_idx = np.round(grid * 1000)
     _line(rr, rec, "/curve/true_fault", "true fault curve", (255, 200, 0), 3.0)
     _scalars(rr, rec, "/curve/true_fault", grid_idx, sc.fault_curve.mu(grid), CREEP_TIMELINE, sequence=True)
-    corrections = [e for e in events if e.kind == "correction"]
+    corrections, final = corrections_and_final(events)
     for i, e in enumerate(corrections):
         shade = int(200 - 150 * (i + 1) / max(len(corrections), 1))
         _line(rr, rec, f"/curve/identified/q{e.correction:02d}", f"after correction {e.correction} "
               f"(t = {e.t_s:.3f} s)", (shade, shade, 255), 1.0)
         _scalars(rr, rec, f"/curve/identified/q{e.correction:02d}", grid_idx, mu_model(grid, np.array(e.params)),
                  CREEP_TIMELINE, sequence=True)
-    final = conf or (corrections[-1] if corrections else None)
     if final is not None:
         _line(rr, rec, "/curve/identified/final", f"identified ({final.kind}, t = {final.t_s:.3f} s)",
               (31, 119, 180), 3.0)
