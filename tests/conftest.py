@@ -33,6 +33,12 @@ def subprocess_env():
     return env
 
 
+def hil(*args, timeout: float = 300, cwd=None) -> subprocess.CompletedProcess:
+    """``hil ARGS`` as a user runs it, output captured."""
+    return subprocess.run(hil_command() + [str(a) for a in args], capture_output=True, text=True,
+                          env=subprocess_env(), timeout=timeout, cwd=cwd)
+
+
 def kill_run_when_log_reaches(args, log_path: Path, min_bytes: int, timeout_s: float = 120.0) -> None:
     """Start ``hil ARGS``, SIGKILL it once ``log_path`` has grown to ``min_bytes`` (a run killed
     halfway, for the crash-recovery tests) and check it died of the signal."""

@@ -1,13 +1,11 @@
 """``hil bench identify`` end to end through the real CLI (real plant, real strategies)."""
 import json
-import subprocess
 
-from .conftest import hil_command, subprocess_env
+from .conftest import hil
 
 
 def run(args, tmp_path):
-    return subprocess.run(hil_command() + ["bench", "identify", *args], capture_output=True, text=True,
-                          env=subprocess_env(), cwd=tmp_path, timeout=600)
+    return hil("bench", "identify", *args, cwd=tmp_path, timeout=600)
 
 
 def test_json_results_shape_same_data_for_every_strategy_and_plots(tmp_path):

@@ -22,7 +22,7 @@ from hil.frames import PLANT_HEARTBEAT_ID, TCU_HEARTBEAT_ID, FrameCodec, load_db
 from hil.logread import read_log
 from identifier.messages import SensorReading
 
-from .conftest import ROOT, hil_command, subprocess_env
+from .conftest import ROOT, hil, hil_command, subprocess_env
 
 HEARTBEATS = {PLANT_HEARTBEAT_ID, TCU_HEARTBEAT_ID}
 IDENT_KEYS = ("identified", "t_identified_s", "t_detected_s", "t_serious_s", "corrections", "params", "samples",
@@ -31,8 +31,7 @@ IDENT_KEYS = ("identified", "t_identified_s", "t_detected_s", "t_serious_s", "co
 
 # -- helpers (also used by test_vcan.py) ------------------------------------------------------------
 def hil_run(args, timeout=600, check=True):
-    r = subprocess.run(hil_command() + ["run", *args], capture_output=True, text=True, env=subprocess_env(),
-                       timeout=timeout, cwd=ROOT)
+    r = hil("run", *args, timeout=timeout, cwd=ROOT)
     if check:
         assert r.returncode == 0, r.stderr
     return r

@@ -5,7 +5,6 @@ Cases are drawn with a seed chosen when the test runs (printed, for reproduction
 """
 import json
 import os
-import subprocess
 import time
 
 import pytest
@@ -18,7 +17,7 @@ from hil.loop import run_inprocess
 from hil.reality_bus import TRUTH_KEY
 from hil.scenario import load_scenario
 
-from .conftest import SCENARIOS, hil_command, subprocess_env
+from .conftest import SCENARIOS, hil
 
 FFCC_A = SCENARIOS / "ffcc_a.toml"
 # A quantised speed steps at slightly different instants in the real run and in the augmented
@@ -102,8 +101,7 @@ def test_cli_gap_json_and_report(tmp_path, scenario):
     real = run_inprocess(with_reality(scenario, {"adhesion_lag": {"tau_s": 0.008}}), "nlls", 12, tmp_path / "r",
                          progress=False)
     rep = tmp_path / "report"
-    r = subprocess.run(hil_command() + ["gap", real["mcap"], "--model", str(FFCC_A), "--json", "--report", str(rep)],
-                       capture_output=True, text=True, env=subprocess_env(), timeout=600)
+    r = hil("gap", real["mcap"], "--model", FFCC_A, "--json", "--report", rep, timeout=600)
     assert r.returncode == 0, r.stderr
     out = json.loads(r.stdout)
     assert out["which"]["named"] == "adhesion_lag"
@@ -131,15 +129,13 @@ def test_cli_gap_bad_inputs(tmp_path):
     asc.write_text("date Mon Jan 1\n")
     for args, word in (([str(tmp_path / "missing.mcap")], "cannot read"), ([str(bad)], "not an MCAP file"),
                        ([str(asc)], "python-can CAN logs are not read")):
-        r = subprocess.run(hil_command() + ["gap", *args, "--model", str(FFCC_A)], capture_output=True, text=True,
-                           env=subprocess_env(), timeout=120)
+        r = hil("gap", *args, "--model", FFCC_A, timeout=120)
         assert r.returncode == 2 and word in r.stderr and r.stderr.strip().count("\n") == 0, r.stderr
 
 
 def test_bench_gap_json_keys(tmp_path):
     seed = fresh_seed()
-    r = subprocess.run(hil_command() + ["bench", "gap", str(FFCC_A), "--cases", "2", "--seed", str(seed), "--json"],
-                       capture_output=True, text=True, env=subprocess_env(), timeout=600, cwd=tmp_path)
+    r = hil("bench", "gap", FFCC_A, "--cases", 2, "--seed", seed, "--json", timeout=600, cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     out = json.loads(r.stdout)
     for k in ("cases", "top1_accuracy", "none_accuracy", "median_shrink_percent", "median_param_err_percent",

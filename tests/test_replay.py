@@ -1,20 +1,14 @@
 """``hil replay``: real ``hil run`` logs (two processes over the default bus) re-identified offline."""
 import json
-import subprocess
 
 import pytest
 
 from hil.loop import run_inprocess
 from hil.scenario import load_scenario
 
-from .conftest import SCENARIOS, hil_command, kill_run_when_log_reaches, subprocess_env
+from .conftest import SCENARIOS, hil, kill_run_when_log_reaches
 
 PF_STRATEGY = "proposed"     # a particle-filter strategy (identifier/strategies/proposed.py)
-
-
-def hil(*args, timeout=300):
-    return subprocess.run(hil_command() + list(args), capture_output=True, text=True, env=subprocess_env(),
-                          timeout=timeout)
 
 
 @pytest.fixture(scope="module")

@@ -11,18 +11,13 @@ from pathlib import Path
 
 import pytest
 
-from .conftest import ROOT, SCENARIOS, hil_command, subprocess_env
+from .conftest import ROOT, SCENARIOS, hil
 
 ARTEFACTS = ROOT / "tests" / "artefacts"
 RERUN = Path(sys.executable).with_name("rerun")
 EXPECTED_VIEWS = {"Train and wheel speed (km/h) vs sim time", "Creep speed (km/h): fault onset, serious stage",
                   "True mu and observed mu^", "TCU stage and corrections", "Identification events",
                   "CAN frames per 10 ms", "mu-v_s figure (matplotlib)"}
-
-
-def hil(*args, timeout=300):
-    return subprocess.run(hil_command() + list(args), capture_output=True, text=True, env=subprocess_env(),
-                          timeout=timeout)
 
 
 def rerun_exe() -> str:
