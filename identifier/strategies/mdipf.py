@@ -33,9 +33,10 @@ Choices the paper leaves open (alternatives behind options):
 - between corrections the cloud is re-centred on the new theta (chi <- chi - chi^_Q), so it keeps
   its learnt spread and weights; ``reset_cloud`` re-draws it from the initial spread instead.
 - random numbers are drawn when the strategy is built (before the fault, when the TCU is idle):
-  the first ``noise_block`` samples' transition noise and the initial cloud, in the order the
-  filter would have drawn them (so results are unchanged); past the block, one draw per sample
-  (no burst of a whole block on one sample; runs that long now draw a different stream).
+  the first ``noise_block`` samples' transition noise, the initial cloud and ``noise_block``
+  resampling uniforms, in the order the filter would have drawn them within the block (so results
+  are unchanged); past the block, one draw per sample (no burst of a whole block on one sample;
+  runs that long draw a different stream).
 - the cloud is kept as a (P, N) C-contiguous array ``_xt`` (``particles`` is its (N, P) view),
   so every pass over it is over contiguous rows, also after resampling.
 - ``prelim_solver``: how the bounded prelim problem is solved (the same objective and bounds).
@@ -182,6 +183,12 @@ class MdipfStrategy(Strategy):
                        and cls._constrain is MdipfStrategy._constrain and cls._move is MdipfStrategy._move
                        and cls._log_likelihood is MdipfStrategy._log_likelihood
                        and cls._weigh is MdipfStrategy._weigh and self._can_fuse_projection())
+        # with the fused step, a correction's re-centring of the cloud (and, with a box, its clip
+        # into the new box) waits for the next step, which does it first (``_recentre_pending``):
+        # the same operations in the same order, off the sample that closes the window
+        self._defer_recentre = self._fused and self._recentre_is_plain()
+        self._shift = np.zeros(p)            # chi^_Q still to subtract from the cloud
+        self._recentre_pending = False
         # Random numbers are drawn before the fault, when the TCU is idle: the first block of
         # transition noise (kept transposed and scaled, as the filter step adds it) and the initial
         # cloud, in that order from the one generator (the order the filter would draw them).
@@ -191,6 +198,10 @@ class MdipfStrategy(Strategy):
         self._noise_next = 0
         # the first cloud, scaled and laid out (P, N) as the filter keeps it
         self._next_cloud = np.ascontiguousarray((self.rng.standard_normal((self.n_particles, p)) * self.init_std).T)
+        # ... and the resampling's uniforms for as many steps (the generator's first call after a
+        # long idle spell costs ~10 us in a run; these follow the cloud, as the first draws did)
+        self._uniforms = self.rng.random(self._noise_block).tolist()
+        self._uniforms.reverse()             # pop() from the end takes them in the drawn order
         self._next_weights = np.full(self.n_particles, 1.0 / self.n_particles)
         self.base = self.theta.copy()        # theta_{Q-1}: the curve the errors are relative to
         self.prelim_done = False
@@ -207,8 +218,12 @@ class MdipfStrategy(Strategy):
         self.history: list[np.ndarray] = []  # theta after each correction (for plots)
 
     # -- the cloud: kept as a (P, N) C-contiguous array; ``particles`` is its (N, P) view --------
+    _recentre_pending = False                # (before __init__ sets it: the setter below runs first)
+
     @property
     def particles(self) -> np.ndarray:
+        if self._recentre_pending:
+            self._settle_recentre()
         return self._xt.T
 
     @particles.setter
@@ -252,6 +267,8 @@ class MdipfStrategy(Strategy):
 
     def _step(self, creep_speed_kmh: float, mu_hat: float) -> None:
         """One filter step on one sample."""
+        if self._recentre_pending:
+            self._settle_recentre()
         if self._fused:
             lo, hi, use_box = self._clip_box()
             noise = self._transition_noise()
@@ -381,7 +398,7 @@ class MdipfStrategy(Strategy):
         if ess >= o["ess_fraction"] * self.n_particles:
             return
         if o["resampler"] == "systematic":
-            u0 = self.rng.random()
+            u0 = self._uniforms.pop() if self._uniforms else self.rng.random()
             idx = (_K.systematic_resample(self.weights, u0, self._idx) if self._compiled
                    else pf.systematic_counts_resample(self.weights, u0, self._arange))
         else:
@@ -545,6 +562,8 @@ class MdipfStrategy(Strategy):
                 return estimate
             self._estimate_for_theta = estimate
             return estimate if self.opts["j_ef_from_prelim"] else np.full_like(self.base, np.nan)
+        if self._recentre_pending:
+            self._settle_recentre()
         estimate = self.weights @ self.particles
         if not math.isfinite(float(estimate.sum())):
             estimate = np.zeros_like(self.base)
@@ -559,12 +578,18 @@ class MdipfStrategy(Strategy):
             return candidate
         if self._queue:
             self._drain()
+        if self._recentre_pending:
+            self._settle_recentre()
         estimate = self.weights @ self.particles
         latest = self.base + estimate
         return latest if math.isfinite(float(latest.sum())) else candidate
 
     def _after_prelim(self) -> None:
         """Hook: the proposed strategy opens its box here."""
+
+    def _recentre_changes(self, chi: np.ndarray) -> bool:
+        """Whether re-centring by ``chi`` changes the cloud (MDIPF: only a non-zero shift does)."""
+        return bool(chi.any())
 
     def estimate_to_theta(self, estimate):
         # ``estimate`` may be the NaN placeholder of the prelim (j_ef_from_prelim False): use ours
@@ -575,15 +600,31 @@ class MdipfStrategy(Strategy):
         self._after_correction(chi)
         if self.opts["reset_cloud"]:
             self._draw_cloud()
+        elif self._defer_recentre:                          # done by the next step (_settle_recentre)
+            self._shift += chi
+            self._recentre_pending = self._recentre_pending or self._recentre_changes(chi)
         elif chi.any():                                     # (the prelim's chi^_0 = 0 moves nothing)
             self._xt -= chi[:, None]                        # errors now relative to the new theta
         self.base = theta.copy()
-        self._after_recentre()
+        if not self._defer_recentre or self.opts["reset_cloud"]:
+            self._after_recentre()
         self.history.append(theta.copy())
         return theta
 
     def _after_recentre(self) -> None:
         """Hook: the proposed strategy puts the re-centred cloud back into its new box."""
+
+    def _recentre_is_plain(self) -> bool:
+        """Whether the re-centring is the plain shift (+ this class's plain clip), so it may wait."""
+        return type(self)._after_recentre is MdipfStrategy._after_recentre
+
+    def _settle_recentre(self) -> None:
+        """The deferred re-centring (``_defer_recentre``): chi <- chi - chi^_Q, then ``_after_recentre``."""
+        self._recentre_pending = False
+        if self._shift.any():
+            self._xt -= self._shift[:, None]
+            self._shift.fill(0.0)
+        self._after_recentre()
 
 
 class MdipfRawStrategy(MdipfStrategy):

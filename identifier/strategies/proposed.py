@@ -72,6 +72,7 @@ class ProposedStrategy(MdipfStrategy):
         self.min_width = 2 * half * float(self.opts["min_width_fraction"])
         self._prev_estimate = np.zeros(self.theta.size)
         self.boxes: list[tuple[np.ndarray, np.ndarray]] = []    # (lo, hi) per correction, for plots
+        self._box_changed = False
         # the first cloud is drawn before the fault (mdipf.py): put it into the first box now too
         self._clip_into_box(self._next_cloud)
         self._first_cloud_in_box = True
@@ -91,6 +92,12 @@ class ProposedStrategy(MdipfStrategy):
         np.maximum(self._xt, self.lo[:, None], out=self._xt)
         np.minimum(self._xt, self.hi[:, None], out=self._xt)
         self._constrain_in_box()
+
+    def _recentre_is_plain(self) -> bool:
+        return type(self)._after_recentre is ProposedStrategy._after_recentre and self._can_fuse_projection()
+
+    def _recentre_changes(self, chi) -> bool:
+        return self._box_changed or bool(chi.any())
 
     def _can_fuse_projection(self) -> bool:
         cls = type(self)
@@ -124,12 +131,16 @@ class ProposedStrategy(MdipfStrategy):
         # the box contraction on 2n + 1 numbers, with Python floats (numpy calls on 5-element
         # arrays cost more than their arithmetic on the sample that closes a window)
         est = np.asarray(estimate, float).tolist()
-        dn, up = float(self.opts["delta_dn"]), float(self.opts["delta_up"])
+        prev = self._prev_estimate.tolist()
         recentre = bool(self.opts["box_recentre"])
+        if est == prev and (recentre or not any(est)):   # nothing moves (the prelim's chi^_0 = 0): the same box
+            self._box_changed = False
+            self.boxes.append((self.lo.copy(), self.hi.copy()))
+            return
+        dn, up = float(self.opts["delta_dn"]), float(self.opts["delta_up"])
         lo, hi = [], []
-        for e, prev, l0, h0, w in zip(est, self._prev_estimate.tolist(), self.lo.tolist(), self.hi.tolist(),
-                                      self.min_width.tolist()):
-            change = abs(e - prev)
+        for e, e_prev, l0, h0, w in zip(est, prev, self.lo.tolist(), self.hi.tolist(), self.min_width.tolist()):
+            change = abs(e - e_prev)
             lo_i, hi_i = l0 + dn * change, h0 - up * change
             if hi_i - lo_i < w:                           # never narrower than min_width: stop at the middle
                 mid = 0.5 * (lo_i + hi_i)
@@ -139,7 +150,8 @@ class ProposedStrategy(MdipfStrategy):
             lo.append(lo_i)
             hi.append(hi_i)
         self._prev_estimate = np.array(est)
-        if not any(math.isnan(x) for x in lo + hi):
+        self._box_changed = not any(math.isnan(x) for x in lo + hi)
+        if self._box_changed:
             self.lo, self.hi = np.array(lo), np.array(hi)
         self.boxes.append((self.lo.copy(), self.hi.copy()))
 
