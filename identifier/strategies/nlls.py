@@ -256,6 +256,9 @@ def fit_curve_grid(creep_speed_kmh, mu_samples, theta0, radius, grid: int = 5, p
     return bounded_lm(fun, start, lo, hi, polish)
 
 
+_NO_TRANSFORM = np.zeros((0, 0))      # kernels.bounded_lm's "no transform" (the plain curve model)
+
+
 class GridAccumulator:
     """``fit_curve_grid``'s lattice built sample by sample: ``add`` one sample's rank-one update
     of every lattice point's normal equations as it arrives (a few microseconds), ``job`` at the
@@ -299,7 +302,7 @@ class GridAccumulator:
         if self.compiled:           # the lattice and the whole polish in two compiled calls (~20 us)
             from .. import kernels
             start = kernels.grid_best(self.a, self.b, self.tt, self.taus, self.lo, self.hi)
-            k = np.zeros((0, 0)) if transform is None else np.ascontiguousarray(transform, dtype=float)
+            k = _NO_TRANSFORM if transform is None else np.ascontiguousarray(transform, dtype=float)
             return _Done(kernels.bounded_lm(start, self.lo, self.hi, np.asarray(creep_speed_kmh, float),
                                             np.asarray(targets, float), k, self.polish, 1e-10))
         start = _grid_best(self.a, self.b, cost_of, self.taus, self.lo, self.hi, self.n)

@@ -84,8 +84,8 @@ class ProposedStrategy(MdipfStrategy):
     def _after_prelim(self) -> None:
         if not self._first_cloud_in_box:                          # a cloud drawn now: into the first box
             self._clip_into_box(self._xt)
+            self._constrain()                                     # (_draw_cloud constrained it before the clip)
         self._first_cloud_in_box = False
-        self._constrain()
 
     def _after_recentre(self) -> None:
         # no measurement at hand between windows: the Euclidean projection into the new box (in place)
