@@ -277,3 +277,10 @@ def test_proposed_latest_confirms_when_proposed_does_and_reports_one_more_correc
     np.testing.assert_allclose(ev_l[-2].params, ev_p[-2].params, rtol=0, atol=1e-12)
     step = np.asarray(ev_l[-1].params) - np.asarray(ev_l[-2].params)
     assert np.all(np.abs(step) <= np.array([0.01, 0.06, 0.06, 0.09, 0.09]) + 1e-12)   # within the box
+
+
+@pytest.mark.parametrize("key, value", [("particles", 1), ("init_std", [0.003, math.nan, 0.03]),
+                                        ("transition_std", -0.001), ("noise_std", 0.0), ("noise_std", math.inf)])
+def test_bad_filter_tuning_is_refused_by_name(key, value):
+    with pytest.raises(ValueError, match=key):
+        make_strategy("proposed", settings(options={"proposed": {key: value}}), 0)

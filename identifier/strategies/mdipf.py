@@ -160,6 +160,13 @@ class MdipfStrategy(Strategy):
         self.init_std = per_dimension(opts["init_std"], n)
         self.transition_std = per_dimension(opts["transition_std"], n)
         self.noise_std = float(opts["noise_std"])
+        if self.n_particles < 2:
+            raise ValueError(f"{self.name}: particles must be at least 2, got {self.n_particles}")
+        for key, value in (("init_std", self.init_std), ("transition_std", self.transition_std)):
+            if not np.all(np.isfinite(value) & (value >= 0)):
+                raise ValueError(f"{self.name}: {key} must be finite and >= 0, got {opts[key]}")
+        if not (math.isfinite(self.noise_std) and self.noise_std > 0):
+            raise ValueError(f"{self.name}: noise_std must be finite and > 0, got {opts['noise_std']}")
         self.particles = np.zeros((p, self.n_particles)).T   # (N, P), a view of the (P, N) cloud self._xt
         # scratch buffers of the filter step (P, N) / (n, N): the step allocates almost nothing
         self._spare = np.empty((p, self.n_particles))
@@ -235,6 +242,8 @@ class MdipfStrategy(Strategy):
         if self._next_cloud is not None:     # drawn (and, with a box, clipped) before the fault
             self._xt, self._next_cloud = self._next_cloud, None
             self.weights, self._next_weights = self._next_weights, None
+            if type(self)._constrain is MdipfStrategy._constrain:
+                return                       # finite by construction (finite init_std, checked above)
         else:
             self.particles = self.rng.standard_normal(self.particles.shape) * self.init_std
             self.weights = np.full(self.n_particles, 1.0 / self.n_particles)
