@@ -4,11 +4,24 @@ pieces of ``identifier/pf.py`` up to rounding.
 Why compiled: at N = 1000 particles a numpy call costs a few microseconds of overhead whatever
 its arithmetic, and a filter step in numpy needs about 35 of them (~65 us measured); the TCU has
 one 1 ms sampling period per sample and the issue asks for p99 <= 5 % of it.  Each kernel below
-replaces a group of numpy calls by one pass over the cloud; the filter step allocates nothing.
+replaces a group of numpy calls by a few passes over the cloud; the filter step allocates one
+(P + 1, P) array and nothing per particle.  Measured at N = 1000, P = 5 on a 2-core AMD EPYC
+(Zen 4, AVX-512), each call on data it has not seen before (median): ``filter_step`` ~9 us (was
+~19 us; ~9 us in a real run, was ~22 us), ``systematic_resample`` ~2.3 us (was ~12 us),
+``take_columns`` ~2 us (was ~2.6 us).  Of the step's 9 us, ~1 us is numba's dispatch of its 16
+arguments and ~3 us the 3000 exponentials (two per particle for the curve, one for its weight).
+
+How the step gets there: the five-parameter model (two exponential terms, the strategies' only
+size) has its own pieces (``_moments5``, ``_move_weigh5``) that keep every per-particle quantity in
+registers: one pass for the means, one for the covariance from values centred on the fly (the
+centred cloud is never stored), and one that moves a particle, checks it, clips it and weighs it
+(curve, residual, log-likelihood) before the next; then short passes over the N log-likelihoods
+for their maximum, the weights and their normalisation.  Other sizes go through the generic
+kernels, a pass per operation.
 
 The numpy pieces stay the reference (strategies run them with the option ``compiled = False``,
 and tests/test_kernels.py checks the kernels against them).  Results agree to rounding, not to
-the bit: the kernels add in a different order and use their own vectorised ``exp`` (``vexp``).
+the bit: the kernels add in a different order and use their own vectorised ``exp`` (``_exp``).
 
 ``AVAILABLE`` is False when numba cannot be imported; the strategies then run the numpy pieces.
 Compiled code is cached beside this file (``cache=True``), so only the first use on a machine
@@ -21,10 +34,14 @@ import math
 import numpy as np
 
 try:
+    from llvmlite import ir as _ir
     from numba import njit
+    from numba.core import types as _types
+    from numba.extending import intrinsic as _intrinsic
     AVAILABLE = True
 except ImportError:           # the numpy pieces run instead (identifier/pf.py)
     AVAILABLE = False
+    _intrinsic = None
 
     def njit(*args, **kwargs):
         def wrap(f):
@@ -32,150 +49,331 @@ except ImportError:           # the numpy pieces run instead (identifier/pf.py)
         return wrap(args[0]) if args and callable(args[0]) else wrap
 
 # Reductions over particles may be reassociated (so they vectorise); no other fast-math licence:
-# NaN and inf keep their IEEE meaning, which the filter's fallbacks rely on.  ``vexp`` gets none
-# at all: its range reduction depends on the order of its operations.
+# NaN and inf keep their IEEE meaning, which the filter's fallbacks rely on.  ``_exp`` gets only
+# "contract" (its multiply-adds fused: fewer operations, rounding no worse) and no reassociation:
+# its range reduction depends on the order of its operations.  Resampling gets no licence at all:
+# its cumulative sum must be numpy's, term by term, to pick the reference's ancestors.
 _JIT = dict(cache=True, nogil=True, fastmath={"reassoc"}, error_model="numpy")
 _JIT_EXACT = dict(cache=True, nogil=True, error_model="numpy")
+_JIT_EXP = dict(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
+
+
+# Bit casts and an IEEE maxNum, which numba's Python-level code cannot express: built as LLVM
+# instructions so they vectorise with the loops around them.
+if AVAILABLE:
+    @_intrinsic
+    def _as_float(typingctx, b):
+        """The float64 whose bits are the int64 ``b``."""
+        if b != _types.int64:
+            return None
+        return _types.float64(_types.int64), lambda context, builder, sig, args: builder.bitcast(
+            args[0], _ir.DoubleType())
+
+    @_intrinsic
+    def _as_int(typingctx, x):
+        """The int64 holding the bits of the float64 ``x``."""
+        if x != _types.float64:
+            return None
+        return _types.int64(_types.float64), lambda context, builder, sig, args: builder.bitcast(
+            args[0], _ir.IntType(64))
+
+    @_intrinsic
+    def _maxnum(typingctx, a, b):
+        """max(a, b) for float64, the other operand if one is NaN (llvm.maxnum): unlike a compare
+        and select, a reduction by it vectorises without a no-NaN licence.  Only used where no
+        NaN can occur (or is caught separately)."""
+        if a != _types.float64 or b != _types.float64:
+            return None
+
+        def codegen(context, builder, sig, args):
+            d = _ir.DoubleType()
+            fn = builder.module.declare_intrinsic("llvm.maxnum", [d], _ir.FunctionType(d, [d, d]))
+            return builder.call(fn, args)
+        return _types.float64(_types.float64, _types.float64), codegen
+else:                          # plain Python (the kernels are then unused, but still correct)
+    def _as_float(b):
+        return float(np.uint64(b & 0xFFFF_FFFF_FFFF_FFFF).view(np.float64))
+
+    def _as_int(x):
+        return int(np.float64(x).view(np.int64))
+
+    def _maxnum(a, b):
+        return b if a != a or b > a else a
 
 
 # exp by Cody-Waite range reduction x = k ln2 + r, |r| <= ln2 / 2, a degree-13 Taylor polynomial
-# for e^r (truncation error < 1e-17 relative) and 2^k built in the exponent bits.  The C library's
-# exp is a call per element (~7 ns here); this is plain arithmetic the compiler vectorises
-# (~1.5 ns).  Agrees with numpy.exp to a few ulp on [-708, 709] (tests/test_kernels.py); below
-# -708 it returns 0 where the library returns values under 3e-308 (a weight or a curve term that
-# small is zero to the filter), above 709 inf, NaN for NaN.
+# for e^r (truncation error < 1e-17 relative) by Horner's rule in fused multiply-adds, and 2^k
+# built in the exponent bits.  The C library's exp is a call per element (~7 ns here); this is
+# plain arithmetic the compiler vectorises and inlines into the loops that call it (~0.8 ns per
+# element, bound by its 16 multiply-adds; degree 13 is what 1 ulp needs: a degree-11 minimax fit
+# would save ~0.5 us a step but add ~0.15 ulp).  Agrees with numpy.exp to 1 ulp on [-708, 709]
+# (tests/test_kernels.py); below -708 it returns 0 where the library returns values under 3e-308
+# (a weight or a curve term that small is zero to the filter), above 709 inf, NaN for NaN.
 _LOG2E = 1.4426950408889634
 _LN2_HI = 6.93147180369123816490e-01     # fdlibm's split of ln 2: k * _LN2_HI is exact for |k| < 2^20
 _LN2_LO = 1.90821492927058770002e-10
-_INV_FACT = tuple(1.0 / math.factorial(i) for i in range(14))
-_BITS_ZERO, _BITS_INF, _BITS_NAN = 0, 0x7FF0000000000000, 0x7FF8000000000000
+_ROUND = 6755399441055744.0              # 1.5 * 2^52: t + _ROUND - _ROUND rounds t to an integer (|t| < 2^51)
+_C = tuple(1.0 / math.factorial(i) for i in range(14))
+
+
+@njit(**_JIT_EXP)
+def _exp(x):
+    """exp(x) for one float64 (see above); branch-free, so it vectorises where it is inlined."""
+    xc = -708.0 if x < -708.0 else x          # NaN stays NaN and flows through to the result
+    xc = 709.0 if xc > 709.0 else xc
+    t = xc * _LOG2E + _ROUND                  # k = round(x / ln 2), held in t's low mantissa bits
+    k = t - _ROUND
+    r = (xc - k * _LN2_HI) - k * _LN2_LO
+    c = _C
+    p = c[13] * r + c[12]
+    p = p * r + c[11]
+    p = p * r + c[10]
+    p = p * r + c[9]
+    p = p * r + c[8]
+    p = p * r + c[7]
+    p = p * r + c[6]
+    p = p * r + c[5]
+    p = p * r + c[4]
+    p = p * r + c[3]
+    p = p * r + c[2]
+    p = p * r + c[1]
+    p = p * r + c[0]
+    y = p * _as_float((_as_int(t) + 1023) << 52)   # 2^k: k + 1023 in the exponent field (t's high bits shift out)
+    y = 0.0 if x < -708.0 else y
+    return math.inf if x > 709.0 else y
 
 
 @njit(**_JIT_EXACT)
 def vexp(a, bits):
-    """a <- exp(a) in place (float64 (M,)); ``bits``: int64 scratch of at least M."""
-    m = a.size
-    c = _INV_FACT
-    for j in range(m):
-        x = a[j]
-        xc = x if x > -708.0 else -708.0          # NaN lands here too: its bits are set below
-        xc = xc if xc < 709.0 else 709.0
-        k = math.floor(xc * _LOG2E + 0.5)
-        r = (xc - k * _LN2_HI) - k * _LN2_LO
-        p = c[13]
-        for i in range(12, -1, -1):           # Horner; a constant trip count, unrolled by the compiler
-            p = p * r + c[i]
-        a[j] = p
-        b = (np.int64(k) + 1023) << 52
-        b = _BITS_ZERO if x < -708.0 else b
-        b = _BITS_INF if x > 709.0 else b
-        b = _BITS_NAN if x != x else b
-        bits[j] = b
-    scale = bits[:m].view(np.float64)
-    for j in range(m):
-        a[j] *= scale[j]
+    """a <- exp(a) in place (float64 (M,)) by ``_exp``.  ``bits``: no longer used (2^k is built in a
+    register); kept so the callers' scratch stays valid."""
+    for j in range(a.size):
+        a[j] = _exp(a[j])
     return a
+
+
+@njit(**_JIT)
+def weighted_mean(xt, weights, out):
+    """out[i] = sum_j xt[i, j] w_j: the weighted mean of the (P, N) cloud (``weights @ xt.T``), (P,)."""
+    p, n = xt.shape
+    for i in range(p):
+        x = xt[i]
+        s = 0.0
+        for j in range(n):
+            s += x[j] * weights[j]
+        out[i] = s
+    return out
+
+
+@njit(**_JIT)
+def _covariance(xt, weights, d, cov):
+    """cov (P, P) <- the weighted covariance of the (P, N) cloud; ``d``: (P, N) scratch (the centred
+    cloud).  Any P, a pass per row and per pair (``_moments5``: five rows in two passes)."""
+    p, n = xt.shape
+    for i in range(p):
+        x, di = xt[i], d[i]
+        s = 0.0
+        for j in range(n):
+            s += x[j] * weights[j]
+        for j in range(n):
+            di[j] = x[j] - s
+    for i in range(p):
+        di = d[i]
+        for k in range(i + 1):
+            dk = d[k]
+            s = 0.0
+            for j in range(n):
+                s += di[j] * weights[j] * dk[j]
+            cov[i, k] = s
+            cov[k, i] = s
+
+
+@njit(**_JIT)
+def _moments5(xt, weights, cov):
+    """``_covariance`` of a five-row cloud without its scratch: the means in one pass, then the 15
+    sums of centred products in one more, every running sum in a register (the centred values are
+    made on the fly; storing them would be a third 40 kB pass at N = 1000)."""
+    n = xt.shape[1]
+    x0, x1, x2, x3, x4 = xt[0], xt[1], xt[2], xt[3], xt[4]
+    m0 = m1 = m2 = m3 = m4 = 0.0
+    for j in range(n):
+        w = weights[j]
+        m0 += x0[j] * w
+        m1 += x1[j] * w
+        m2 += x2[j] * w
+        m3 += x3[j] * w
+        m4 += x4[j] * w
+    s00 = s10 = s11 = s20 = s21 = s22 = s30 = s31 = s32 = s33 = s40 = s41 = s42 = s43 = s44 = 0.0
+    for j in range(n):
+        w = weights[j]
+        d0, d1, d2, d3, d4 = x0[j] - m0, x1[j] - m1, x2[j] - m2, x3[j] - m3, x4[j] - m4
+        e0, e1, e2, e3, e4 = d0 * w, d1 * w, d2 * w, d3 * w, d4 * w
+        s00 += e0 * d0
+        s10 += e1 * d0
+        s11 += e1 * d1
+        s20 += e2 * d0
+        s21 += e2 * d1
+        s22 += e2 * d2
+        s30 += e3 * d0
+        s31 += e3 * d1
+        s32 += e3 * d2
+        s33 += e3 * d3
+        s40 += e4 * d0
+        s41 += e4 * d1
+        s42 += e4 * d2
+        s43 += e4 * d3
+        s44 += e4 * d4
+    cov[0, 0] = s00
+    cov[1, 0] = cov[0, 1] = s10
+    cov[1, 1] = s11
+    cov[2, 0] = cov[0, 2] = s20
+    cov[2, 1] = cov[1, 2] = s21
+    cov[2, 2] = s22
+    cov[3, 0] = cov[0, 3] = s30
+    cov[3, 1] = cov[1, 3] = s31
+    cov[3, 2] = cov[2, 3] = s32
+    cov[3, 3] = s33
+    cov[4, 0] = cov[0, 4] = s40
+    cov[4, 1] = cov[1, 4] = s41
+    cov[4, 2] = cov[2, 4] = s42
+    cov[4, 3] = cov[3, 4] = s43
+    cov[4, 4] = s44
+
+
+@njit(**_JIT)
+def _rownorm(cov, inv_sd):
+    """cov (P, P) <- Theta in place: the correlation C_ik s_i s_k (s = 1 / sd) row-normalised, i.e.
+    C_ik s_k / sum_k |C_ik s_k| (s_i cancels; ``pf.rownorm_transition``).  ``inv_sd``: (P,) scratch.
+    False when a dimension has no spread or a row is not finite (Theta then undefined)."""
+    p = cov.shape[0]
+    for i in range(p):
+        if not cov[i, i] > 0.0:
+            return False
+        inv_sd[i] = 1.0 / math.sqrt(cov[i, i])
+    for i in range(p):
+        row = 0.0
+        for k in range(p):
+            t = cov[i, k] * inv_sd[k]
+            cov[i, k] = t
+            row += abs(t)
+        if not (row > 0.0 and math.isfinite(row)):
+            return False
+        for k in range(p):
+            cov[i, k] /= row
+    return True
+
+
+@njit(**_JIT)
+def _transition(xt, weights, d, mat):
+    """Theta of the cloud into mat[:P] ((P + 1, P) scratch, its last row for 1 / sd); False if none."""
+    p = xt.shape[0]
+    theta = mat[:p]
+    if p == 5:
+        _moments5(xt, weights, theta)
+    else:
+        _covariance(xt, weights, d, theta)
+    return _rownorm(theta, mat[p])
+
+
+@njit(**_JIT)
+def _propagate(xt, theta, noise, out):
+    """out = Theta xt + noise, (P, N), a pass per row and term."""
+    p, n = xt.shape
+    for i in range(p):
+        o, b = out[i], noise[i]
+        for j in range(n):
+            o[j] = b[j]
+        for k in range(p):
+            t, x = theta[i, k], xt[k]
+            for j in range(n):
+                o[j] += t * x[j]
+
+
+@njit(**_JIT)
+def _coefficients5(theta):
+    """Theta's 25 entries as scalars, row by row, so that a loop over particles keeps them in registers."""
+    return (theta[0, 0], theta[0, 1], theta[0, 2], theta[0, 3], theta[0, 4],
+            theta[1, 0], theta[1, 1], theta[1, 2], theta[1, 3], theta[1, 4],
+            theta[2, 0], theta[2, 1], theta[2, 2], theta[2, 3], theta[2, 4],
+            theta[3, 0], theta[3, 1], theta[3, 2], theta[3, 3], theta[3, 4],
+            theta[4, 0], theta[4, 1], theta[4, 2], theta[4, 3], theta[4, 4])
+
+
+@njit(**_JIT)
+def _moved5(xt, noise, j, a):
+    """Theta x_j + beta_j, particle j of a five-row cloud, as five scalars; ``a``: ``_coefficients5``."""
+    y0, y1, y2, y3, y4 = xt[0, j], xt[1, j], xt[2, j], xt[3, j], xt[4, j]
+    return (noise[0, j] + a[0] * y0 + a[1] * y1 + a[2] * y2 + a[3] * y3 + a[4] * y4,
+            noise[1, j] + a[5] * y0 + a[6] * y1 + a[7] * y2 + a[8] * y3 + a[9] * y4,
+            noise[2, j] + a[10] * y0 + a[11] * y1 + a[12] * y2 + a[13] * y3 + a[14] * y4,
+            noise[3, j] + a[15] * y0 + a[16] * y1 + a[17] * y2 + a[18] * y3 + a[19] * y4,
+            noise[4, j] + a[20] * y0 + a[21] * y1 + a[22] * y2 + a[23] * y3 + a[24] * y4)
+
+
+@njit(**_JIT)
+def _propagate5(xt, theta, noise, out):
+    """``_propagate`` of a five-row cloud in one pass, a particle at a time (~3x faster)."""
+    a = _coefficients5(theta)
+    for j in range(xt.shape[1]):
+        out[0, j], out[1, j], out[2, j], out[3, j], out[4, j] = _moved5(xt, noise, j, a)
 
 
 @njit(**_JIT)
 def rownorm_propagate(xt, weights, noise, out, d):
     """chi(k) = Theta chi(k-1) + beta with Theta the row-normalised weighted correlation of the
     cloud (``pf.rownorm_transition`` then ``pf.propagate``).  ``xt``: the (P, N) cloud; ``noise``:
-    beta, (P, N), already scaled; ``out``: (P, N) result; ``d``: (P, N) scratch.  Returns False,
-    leaving ``out`` unwritten, when a dimension has no spread (the caller's reference path handles
-    it) or the transition is not finite."""
-    p, n = xt.shape
-    mean = np.zeros(p)
-    for i in range(p):
-        s = 0.0
-        for j in range(n):
-            s += xt[i, j] * weights[j]
-        mean[i] = s
-    for i in range(p):
-        for j in range(n):
-            d[i, j] = xt[i, j] - mean[i]
-    cov = np.empty((p, p))
-    for i in range(p):
-        for k in range(i + 1):
-            s = 0.0
-            for j in range(n):
-                s += d[i, j] * weights[j] * d[k, j]
-            cov[i, k] = s
-            cov[k, i] = s
-    inv_sd = np.empty(p)
-    for i in range(p):
-        if not cov[i, i] > 0.0:
-            return False
-        inv_sd[i] = 1.0 / math.sqrt(cov[i, i])
-    theta = np.empty((p, p))
-    for i in range(p):
-        row = 0.0
-        for k in range(p):
-            theta[i, k] = cov[i, k] * inv_sd[k]
-            row += abs(theta[i, k])
-        if not (row > 0.0 and math.isfinite(row)):
-            return False
-        for k in range(p):
-            theta[i, k] /= row
-    for i in range(p):
-        for j in range(n):
-            out[i, j] = noise[i, j]
-        for k in range(p):
-            t = theta[i, k]
-            for j in range(n):
-                out[i, j] += t * xt[k, j]
+    beta, (P, N), already scaled; ``out``: (P, N) result; ``d``: (P, N) scratch (unused at P = 5).
+    Returns False, leaving ``out`` unwritten, when a dimension has no spread (the caller's
+    reference path handles it) or the transition is not finite."""
+    p = xt.shape[0]
+    mat = np.empty((p + 1, p))
+    if not _transition(xt, weights, d, mat):
+        return False
+    if p == 5:
+        _propagate5(xt, mat[:p], noise, out)
+    else:
+        _propagate(xt, mat[:p], noise, out)
     return True
 
 
 @njit(**_JIT)
 def log_likelihood(xt, base, creep_speed_kmh, mu_hat, scale, out, tmp, bits):
     """out_j = scale (mu^ - M_cor(v_s; chi_j))^2 with scale = -1 / (2 G): ``pf.log_likelihood``
-    at one sample.  Non-finite entries become -inf.  ``tmp``: (n, N) float scratch, ``bits``:
-    (N,) int64 scratch.  Returns True when all entries were finite."""
+    at one sample.  Non-finite entries become -inf.  ``tmp``: (n, N) float scratch (the curve's
+    exponentials), ``bits``: no longer used.  Returns True when all entries were finite.  A pass
+    per term; ``_move_weigh5`` does the five-parameter model in the step's own pass."""
     p, n = xt.shape
     terms = (p - 1) // 2
     for t in range(terms):
-        row = tmp[t]
-        b = base[1 + terms + t]
+        e, x, b = tmp[t], xt[1 + terms + t], base[1 + terms + t]
         for j in range(n):
-            row[j] = (xt[1 + terms + t, j] + b) * creep_speed_kmh
-        vexp(row, bits)
-    finite = True
+            e[j] = _exp((x[j] + b) * creep_speed_kmh)
     for j in range(n):
-        m = (xt[1, j] + base[1]) * tmp[0, j]
-        for t in range(1, terms):
-            m += (xt[1 + t, j] + base[1 + t]) * tmp[t, j]
-        m += xt[0, j] + base[0]
-        r = mu_hat - m
+        out[j] = 0.0
+    for t in range(terms):                    # sum_t lambda_t e_t, in out
+        e, x, b = tmp[t], xt[1 + t], base[1 + t]
+        for j in range(n):
+            out[j] += (x[j] + b) * e[j]
+    x, b = xt[0], base[0]
+    bad = False
+    for j in range(n):
+        r = mu_hat - (out[j] + (x[j] + b))
         ll = r * r * scale
-        if not math.isfinite(ll):
-            ll = -math.inf
-            finite = False
-        out[j] = ll
-    return finite
+        ok = abs(ll) < math.inf               # False for NaN too
+        out[j] = ll if ok else -math.inf
+        bad |= not ok
+    return not bad
 
 
 @njit(**_JIT)
-def reweigh(log_lik, weights_prev, weights_out, bits):
-    """w = w_prev exp(ll - max ll) / sum (``pf.normalise`` of log w_prev + ll when that is finite);
-    returns the effective sample size 1 / sum w^2, or -1.0 (``weights_out`` then undefined) when
-    the product underflows or is not finite: the caller then normalises in logarithms."""
+def _weigh_shifted(log_lik, top, weights_prev, weights_out):
+    """weights_out = w_prev exp(ll - top) / sum and its effective sample size 1 / sum w^2, or -1.0
+    (``weights_out`` undefined) when the sum underflows or is not finite (a NaN in ``log_lik``
+    makes it NaN).  ``top``: max ll, finite."""
     n = log_lik.size
-    top = -math.inf
-    for j in range(n):
-        x = log_lik[j]
-        if x != x:
-            return -1.0
-        if x > top:
-            top = x
-    if not math.isfinite(top):
-        return -1.0
-    for j in range(n):
-        weights_out[j] = log_lik[j] - top
-    vexp(weights_out, bits)
     total = 0.0
     for j in range(n):
-        w = weights_out[j] * weights_prev[j]
+        w = _exp(log_lik[j] - top) * weights_prev[j]
         weights_out[j] = w
         total += w
     if not (total > 0.0 and math.isfinite(total)):
@@ -189,37 +387,122 @@ def reweigh(log_lik, weights_prev, weights_out, bits):
 
 
 @njit(**_JIT)
+def _top(log_lik):
+    """max_j log_lik_j, NaN entries skipped (-inf if all are NaN or there are none).  A loop of its
+    own: the maxNum reduction vectorises alone, not beside other reductions or the step's pass."""
+    top = -math.inf
+    for j in range(log_lik.size):
+        top = _maxnum(top, log_lik[j])
+    return top
+
+
+@njit(**_JIT)
+def reweigh(log_lik, weights_prev, weights_out, bits):
+    """w = w_prev exp(ll - max ll) / sum (``pf.normalise`` of log w_prev + ll when that is finite);
+    returns the effective sample size 1 / sum w^2, or -1.0 (``weights_out`` then undefined) when
+    ``log_lik`` holds NaN or no finite maximum, or the product underflows or is not finite: the
+    caller then normalises in logarithms.  ``bits``: no longer used."""
+    top = _top(log_lik)
+    if not math.isfinite(top):
+        return -1.0
+    return _weigh_shifted(log_lik, top, weights_prev, weights_out)     # a NaN in ll makes its sum NaN: -1.0
+
+
+@njit(**_JIT)
+def _move_weigh5(xt, theta, noise, out, box, lo, hi, base, creep_speed_kmh, mu_hat, scale, log_lik):
+    """The five-parameter step's pass over the particles, one at a time with everything in
+    registers: out_j = Theta x_j + beta_j, clipped into [lo, hi] when ``box``; log_lik_j as
+    ``log_likelihood`` computes it on the clipped particle.  Returns (the sum of the moved values
+    before the clip: finite iff they all are, as ``filter_step`` checks; max_j log_lik_j)."""
+    n = xt.shape[1]
+    a = _coefficients5(theta)
+    inf = math.inf
+    l0, l1, l2, l3, l4 = (lo[0], lo[1], lo[2], lo[3], lo[4]) if box else (-inf, -inf, -inf, -inf, -inf)
+    h0, h1, h2, h3, h4 = (hi[0], hi[1], hi[2], hi[3], hi[4]) if box else (inf, inf, inf, inf, inf)
+    c0, c1, c2, c3, c4 = base[0], base[1], base[2], base[3], base[4]
+    v = creep_speed_kmh
+    total = 0.0
+    for j in range(n):
+        z0, z1, z2, z3, z4 = _moved5(xt, noise, j, a)
+        total += z0 + z1 + z2 + z3 + z4
+        z0 = l0 if z0 < l0 else z0
+        z0 = h0 if z0 > h0 else z0
+        z1 = l1 if z1 < l1 else z1
+        z1 = h1 if z1 > h1 else z1
+        z2 = l2 if z2 < l2 else z2
+        z2 = h2 if z2 > h2 else z2
+        z3 = l3 if z3 < l3 else z3
+        z3 = h3 if z3 > h3 else z3
+        z4 = l4 if z4 < l4 else z4
+        z4 = h4 if z4 > h4 else z4
+        out[0, j], out[1, j], out[2, j], out[3, j], out[4, j] = z0, z1, z2, z3, z4
+        m = (z1 + c1) * _exp((z3 + c3) * v) + (z2 + c2) * _exp((z4 + c4) * v) + (z0 + c0)
+        r = mu_hat - m
+        ll = r * r * scale
+        ll = ll if abs(ll) < inf else -inf    # NaN too: no NaN reaches the maximum
+        log_lik[j] = ll
+    return total, _top(log_lik)               # a pass of its own: in the loop above it stops the vectorising
+
+
+@njit(**_JIT)
 def filter_step(xt, weights, noise, out, d, base, creep_speed_kmh, mu_hat, scale, lo, hi, use_box, log_lik,
                 weights_out, tmp, bits):
     """One whole filter step: ``rownorm_propagate`` into ``out``, clip into the box [lo, hi] (the
     proposed strategy's "clip" projection; ``use_box``), ``log_likelihood``, ``reweigh``.
     Returns the effective sample size, or a code for the caller's reference path to take over:
     -1.0 no transition (nothing written), -2.0 the moved cloud in ``out`` is not finite (not yet
-    clipped or weighed), -3.0 the weights underflowed (``out`` moved and clipped, ``log_lik`` set)."""
-    if not rownorm_propagate(xt, weights, noise, out, d):
-        return -1.0
-    p, n = out.shape
-    total = 0.0
-    for i in range(p):
-        for j in range(n):
-            total += out[i, j]
-    if not math.isfinite(total):
-        return -2.0
-    if use_box:
+    clipped or weighed), -3.0 the weights underflowed (``out`` moved and clipped, ``log_lik`` set).
+    At P = 5: ``_moments5``, then ``_move_weigh5`` (``d``, ``tmp`` and ``bits`` unused); else the
+    generic kernels in turn."""
+    p, n = xt.shape
+    if p != 5:
+        if not rownorm_propagate(xt, weights, noise, out, d):
+            return -1.0
+        total = 0.0
         for i in range(p):
-            a, b = lo[i], hi[i]
             for j in range(n):
-                out[i, j] = min(max(out[i, j], a), b)
-    log_likelihood(out, base, creep_speed_kmh, mu_hat, scale, log_lik, tmp, bits)
-    ess = reweigh(log_lik, weights, weights_out, bits)
+                total += out[i, j]
+        if not math.isfinite(total):
+            return -2.0
+        if use_box:
+            for i in range(p):
+                a, b = lo[i], hi[i]
+                for j in range(n):
+                    out[i, j] = min(max(out[i, j], a), b)
+        log_likelihood(out, base, creep_speed_kmh, mu_hat, scale, log_lik, tmp, bits)
+        ess = reweigh(log_lik, weights, weights_out, bits)
+        return -3.0 if ess < 0.0 else ess
+    mat = np.empty((p + 1, p))
+    if not _transition(xt, weights, d, mat):
+        return -1.0
+    theta = mat[:p]
+    total, top = _move_weigh5(xt, theta, noise, out, use_box, lo, hi, base, creep_speed_kmh, mu_hat, scale, log_lik)
+    if not math.isfinite(total):
+        _propagate5(xt, theta, noise, out)   # rare: the caller wants the moved cloud unclipped
+        return -2.0
+    if not math.isfinite(top):                # every likelihood is 0
+        return -3.0
+    ess = _weigh_shifted(log_lik, top, weights, weights_out)
     return -3.0 if ess < 0.0 else ess
 
 
-@njit(**_JIT)
+# Systematic resampling writes each particle's copies as one run of ancestor indices.  A loop of
+# the particle's count mispredicts on almost every particle when the weights are new (~10 us at
+# N = 1000); instead every particle stores a block of _RUN copies of its index where its run
+# starts (no branch on the count), and the next particle's block overwrites the excess.  Only
+# counts above _RUN (a weight over _RUN / N: a few particles when the ESS is low) and the last
+# _RUN slots, where a block would overrun, take a loop.  What remains is the cumulative sum's
+# chain of additions (~1.5 us): it must be sequential to be numpy's to the bit.  _RUN = 4
+# measured best (2-8 within 20 %): fewer stores than 8, fewer counts above it than 2.
+_RUN = 4
+
+
+@njit(**_JIT_EXACT)
 def systematic_resample(weights, u0, idx):
     """Ancestor indices of systematic resampling with the uniform ``u0``, by counts
     (``pf.systematic_counts_resample``): particle i is kept ceil(N c_i - u0) - ceil(N c_{i-1} - u0)
-    times, c the cumulative weights."""
+    times, c the cumulative weights (summed in numpy's order, so the counts are the reference's
+    to the bit); the last particle takes whatever remains (c_N may round off 1).  ``idx``: (N,) intp."""
     n = weights.size
     c = 0.0
     filled = 0
@@ -227,16 +510,28 @@ def systematic_resample(weights, u0, idx):
         c += weights[i]
         k = n if i == n - 1 else int(math.ceil(c * n - u0))
         k = min(max(k, filled), n)
-        for q in range(filled, k):
-            idx[q] = i
+        if filled <= n - _RUN:
+            for q in range(_RUN):             # unrolled: _RUN stores, no loop; the excess is the next particles'
+                idx[filled + q] = i
+            for q in range(filled + _RUN, k):
+                idx[q] = i
+        else:
+            for q in range(filled, k):
+                idx[q] = i
         filled = k
     return idx
 
 
 @njit(**_JIT)
 def take_columns(xt, idx, out):
-    """out[:, q] = xt[:, idx[q]]: the resampled cloud, into a preallocated buffer."""
+    """out[:, q] = xt[:, idx[q]]: the resampled cloud, into a preallocated buffer.  Five rows: a
+    column at a time, each index read (and checked for wraparound) once for the five."""
     p = xt.shape[0]
+    if p == 5:
+        for q in range(idx.size):
+            j = idx[q]
+            out[0, q], out[1, q], out[2, q], out[3, q], out[4, q] = xt[0, j], xt[1, j], xt[2, j], xt[3, j], xt[4, j]
+        return
     for i in range(p):
         for q in range(idx.size):
             out[i, q] = xt[i, idx[q]]
@@ -477,6 +772,7 @@ def warm_up() -> None:
     filter_step(xt, w, np.zeros((5, 4)), np.empty((5, 4)), np.empty((5, 4)), np.zeros(5), 1.0, 0.1, -0.5,
                 np.zeros(5), np.ones(5), True, ll, np.empty(4), tmp, bits)
     vexp(np.zeros(4), bits)
+    weighted_mean(xt, w, np.empty(5))
     systematic_resample(w, 0.5, np.empty(4, np.intp))
     take_columns(xt, np.zeros(4, np.intp), np.empty((5, 4)))
     v = np.linspace(0.5, 1.0, 6)

@@ -124,3 +124,142 @@ def test_a_strategy_gives_the_same_curve_compiled_and_in_numpy(name):
     assert fast._compiled and not ref._compiled
     assert ev_fast == ev_ref and fast.confirmed == ref.confirmed
     np.testing.assert_allclose(fast.theta, ref.theta, rtol=0, atol=1e-7)
+
+
+# -- sizes other than the five-parameter model (the generic kernels) and the step's edge cases ----
+BASES = {3: np.array([0.0, 1.0, -1.0]), 5: BASE, 7: np.array([0.0, 1.0, -1.0, 0.3, -0.54, -1.2, -2.5])}
+
+
+def cloud_p(p, seed=0, n=N):
+    rng = np.random.default_rng(seed)
+    spread = np.r_[0.003, np.full(p - 1, 0.02)]
+    xt = np.ascontiguousarray(rng.standard_normal((p, n)) * spread[:, None])
+    w = rng.random(n)
+    return xt, w / w.sum(), rng
+
+
+@pytest.mark.parametrize("p", [3, 7])
+@pytest.mark.parametrize("use_box", [False, True])
+def test_filter_step_of_other_sizes_equals_the_reference_pieces(p, use_box):
+    xt, w, rng = cloud_p(p, 4)
+    base = BASES[p]
+    noise = np.ascontiguousarray(rng.standard_normal((p, N)) * 1e-3)
+    lo, hi = np.full(p, -0.02), np.full(p, 0.02)
+    lo[0], hi[0] = -0.004, 0.004
+    v, mu, g = 0.9, 0.12, 0.002
+    out, ll, w_out = np.empty((p, N)), np.empty(N), np.empty(N)
+    ess = kernels.filter_step(xt, w, noise, out, np.empty((p, N)), base, v, mu, -0.5 / g ** 2, lo, hi, use_box, ll,
+                              w_out, np.empty(((p - 1) // 2, N)), np.empty(N, np.int64))
+    moved = pf.propagate(xt.T, pf.correlation_transition(xt.T, w, "rownorm"), np.ones(p), noise=noise.T)
+    if use_box:
+        moved = pf.project_to_box(moved, lo, hi, base, v, mu, np.ones(p), g, "clip")
+    np.testing.assert_allclose(out, moved.T, rtol=1e-12, atol=1e-15)
+    ref_ll = pf.log_likelihood(moved, base, v, mu, g)
+    np.testing.assert_allclose(ll, ref_ll, rtol=1e-9, atol=1e-9)
+    ref_w = pf.normalise(np.log(w) + ref_ll)
+    np.testing.assert_allclose(w_out, ref_w, rtol=1e-8, atol=1e-300)
+    assert ess == pytest.approx(pf.ess(ref_w), rel=1e-9)
+
+
+@pytest.mark.parametrize("p", [3, 5, 7])
+def test_the_separate_kernels_equal_the_reference_pieces(p):
+    """rownorm_propagate, log_likelihood and reweigh (the strategies' unfused path) one by one."""
+    xt, w, rng = cloud_p(p, 5)
+    base = BASES[p]
+    noise = np.ascontiguousarray(rng.standard_normal((p, N)) * 1e-3)
+    out = np.empty((p, N))
+    assert kernels.rownorm_propagate(xt, w, noise, out, np.empty((p, N)))
+    moved = pf.propagate(xt.T, pf.correlation_transition(xt.T, w, "rownorm"), np.ones(p), noise=noise.T)
+    np.testing.assert_allclose(out, moved.T, rtol=1e-12, atol=1e-15)
+    ll = np.empty(N)
+    assert kernels.log_likelihood(out, base, 0.8, 0.12, -0.5 / 0.002 ** 2, ll, np.empty(((p - 1) // 2, N)),
+                                  np.empty(N, np.int64))
+    ref_ll = pf.log_likelihood(moved, base, 0.8, 0.12, 0.002)
+    np.testing.assert_allclose(ll, ref_ll, rtol=1e-11, atol=1e-10)
+    w_out = np.empty(N)
+    ess = kernels.reweigh(ll, w, w_out, np.empty(N, np.int64))
+    ref_w = pf.normalise(np.log(w) + ref_ll)
+    np.testing.assert_allclose(w_out, ref_w, rtol=1e-8, atol=1e-300)
+    assert ess == pytest.approx(pf.ess(ref_w), rel=1e-9)
+    bad = ll.copy()
+    bad[7] = np.nan                                            # NaN, or no finite maximum: the caller's log path
+    assert kernels.reweigh(bad, w, w_out, np.empty(N, np.int64)) == -1.0
+    assert kernels.reweigh(np.full(N, -np.inf), w, w_out, np.empty(N, np.int64)) == -1.0
+
+
+def test_the_steps_likelihood_is_the_curve_at_its_own_clipped_cloud():
+    """The five-parameter step evaluates the curve (its inlined exp) in the same pass as the move:
+    log_lik must be the likelihood of the cloud it leaves in ``out``, to rounding."""
+    xt, w, rng = cloud(6)
+    noise = np.ascontiguousarray(rng.standard_normal((P, N)) * 1e-3)
+    lo, hi = np.array([-0.004, -0.02, -0.02, -0.03, -0.03]), np.array([0.004, 0.02, 0.02, 0.03, 0.03])
+    out, ll = np.empty((P, N)), np.empty(N)
+    kernels.filter_step(xt, w, noise, out, np.empty((P, N)), BASE, 0.7, 0.13, -0.5 / 0.002 ** 2, lo, hi, True, ll,
+                        np.empty(N), np.empty((2, N)), np.empty(N, np.int64))
+    np.testing.assert_allclose(ll, pf.log_likelihood(out.T, BASE, 0.7, 0.13, 0.002), rtol=1e-11, atol=1e-10)
+
+
+@pytest.mark.parametrize("use_box", [False, True])
+def test_a_non_finite_move_leaves_the_unclipped_moved_cloud(use_box):
+    """Code -2: ``out`` holds the moved cloud, not clipped, for the caller's reference path."""
+    xt, w, rng = cloud(7)
+    noise = np.ascontiguousarray(rng.standard_normal((P, N)) * 1e-2)
+    noise[3, 11] = np.inf
+    lo, hi = np.full(P, -1e-3), np.full(P, 1e-3)              # most particles lie outside this box
+    out = np.empty((P, N))
+    ess = kernels.filter_step(xt, w, noise, out, np.empty((P, N)), BASE, 1.0, 0.1, -1e5, lo, hi, use_box,
+                              np.empty(N), np.empty(N), np.empty((2, N)), np.empty(N, np.int64))
+    assert ess == -2.0
+    with np.errstate(invalid="ignore"):
+        moved = pf.propagate(xt.T, pf.correlation_transition(xt.T, w, "rownorm"), np.ones(P), noise=noise.T).T
+    assert out[3, 11] == np.inf and np.sum(~np.isfinite(out)) == 1
+    np.testing.assert_allclose(out, moved, rtol=1e-12, atol=1e-15)
+
+
+def resample_cases():
+    """(weights, u0): the filter's kind of weights and the edges of resampling by counts."""
+    rng = np.random.default_rng(8)
+    for n in (1, 2, 3, 4, 5, 7, 8, 9, 33, 1000):
+        for _ in range(4):
+            yield rng.random(n) ** 3, rng.random()
+    for n in (100, 1000):
+        z = rng.standard_normal(n)
+        yield np.exp(-2.0 * z * z), rng.random()                 # the step's weights (ESS ~ N / 2)
+        yield np.exp(-40.0 * z * z), rng.random()                # a low ESS: many particles with > 4 copies
+        one = np.zeros(n)
+        one[n // 3] = 1.0
+        yield one, rng.random()                                  # all copies to one particle, N of them
+        yield np.r_[np.zeros(n - 1), 1.0], rng.random()          # ... to the last one
+        yield np.r_[1.0, np.zeros(n - 1)], 0.0                   # ... to the first one, u0 = 0
+        sparse = np.where(rng.random(n) < 0.05, rng.random(n), 0.0)
+        yield sparse, rng.random()
+        yield np.full(n, 1.0), rng.random()                      # every particle once
+
+
+@pytest.mark.parametrize("short", [False, True])
+def test_systematic_resampling_picks_the_reference_ancestors_at_the_edges(short):
+    """Counts above the kernel's block of copies, runs ending in its last slots, zero weights, and
+    (``short``) cumulative sums that round below 1, where the last particle takes what remains."""
+    for w, u0 in resample_cases():
+        w = w / w.sum()
+        if short:
+            w = w * (1.0 - 1e-9)
+        idx = kernels.systematic_resample(w, u0, np.full(w.size, -1, np.intp))
+        assert np.array_equal(idx, pf.systematic_counts_resample(w, u0, np.arange(w.size))), (w.size, u0)
+
+
+@pytest.mark.parametrize("p", [3, 5])
+def test_take_columns_keeps_the_ancestors_columns(p):
+    xt = np.ascontiguousarray(np.arange(p * N, dtype=float).reshape(p, N))
+    idx = np.sort(np.random.default_rng(9).integers(0, N, N))
+    taken = np.empty((p, N))
+    kernels.take_columns(xt, idx, taken)
+    assert np.array_equal(taken, xt[:, idx])
+
+
+@pytest.mark.parametrize("p", [3, 5])
+def test_weighted_mean_is_weights_at_the_cloud(p):
+    xt, w, _ = cloud_p(p, 10)
+    xt += np.arange(p)[:, None]                               # means far from 0, as the model's errors are not
+    out = kernels.weighted_mean(xt, w, np.empty(p))
+    np.testing.assert_allclose(out, w @ xt.T, rtol=1e-13, atol=1e-16)
