@@ -486,6 +486,22 @@ def filter_step(xt, weights, noise, out, d, base, creep_speed_kmh, mu_hat, scale
     return -3.0 if ess < 0.0 else ess
 
 
+@njit(**_JIT)
+def recentre(xt, shift, lo, hi, use_box):
+    """xt[i, j] <- xt[i, j] - shift[i], then clipped into [lo_i, hi_i] when ``use_box``: a correction's
+    re-centring of the (P, N) cloud on the new theta and the clip into the new box, in one pass
+    (numpy's ``xt -= shift[:, None]``, ``maximum``, ``minimum`` to the bit)."""
+    p, n = xt.shape
+    for i in range(p):
+        x, s, a, b = xt[i], shift[i], lo[i], hi[i]
+        if use_box:
+            for j in range(n):
+                x[j] = min(max(x[j] - s, a), b)
+        else:
+            for j in range(n):
+                x[j] = x[j] - s
+
+
 # Systematic resampling writes each particle's copies as one run of ancestor indices.  A loop of
 # the particle's count mispredicts on almost every particle when the weights are new (~10 us at
 # N = 1000); instead every particle stores a block of _RUN copies of its index where its run
@@ -775,6 +791,7 @@ def warm_up() -> None:
     weighted_mean(xt, w, np.empty(5))
     systematic_resample(w, 0.5, np.empty(4, np.intp))
     take_columns(xt, np.zeros(4, np.intp), np.empty((5, 4)))
+    recentre(np.zeros((5, 4)), np.zeros(5), -np.ones(5), np.ones(5), True)
     v = np.linspace(0.5, 1.0, 6)
     x = np.array([0.0, 0.1, -0.1, -0.5, -1.0])
     lo, hi = x - 0.1, x + 0.1

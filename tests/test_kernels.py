@@ -263,3 +263,17 @@ def test_weighted_mean_is_weights_at_the_cloud(p):
     xt += np.arange(p)[:, None]                               # means far from 0, as the model's errors are not
     out = kernels.weighted_mean(xt, w, np.empty(p))
     np.testing.assert_allclose(out, w @ xt.T, rtol=1e-13, atol=1e-16)
+
+
+@pytest.mark.parametrize("use_box", [True, False])
+def test_recentre_is_numpys_shift_and_clip_to_the_bit(use_box):
+    rng = np.random.default_rng(11)
+    xt = rng.standard_normal((5, 1000)) * 0.05
+    shift = rng.standard_normal(5) * 0.01
+    lo, hi = -np.full(5, 0.04), np.full(5, 0.03)
+    expected = xt - shift[:, None]
+    if use_box:
+        expected = np.minimum(np.maximum(expected, lo[:, None]), hi[:, None])
+    got = xt.copy()
+    kernels.recentre(got, shift, lo, hi, use_box)
+    assert np.array_equal(got, expected)

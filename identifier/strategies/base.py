@@ -56,6 +56,7 @@ class Strategy(ABC):
         self._mu: list[float] = []
         self._window_start = 0          # index of the first sample of the open window
         self._candidate: tuple[np.ndarray, float] | None = None   # (theta, SE) awaiting the check
+        self._candidate_window: tuple[np.ndarray, np.ndarray] | None = None   # the window its SE is of
         self._last_estimate: np.ndarray | None = None
         self._pending: tuple[np.ndarray, np.ndarray] | None = None   # window of a correction in progress
 
@@ -74,6 +75,8 @@ class Strategy(ABC):
         self._v.append(sample.creep_speed_kmh)
         self._mu.append(sample.mu_hat)
         self.on_sample(sample.creep_speed_kmh, sample.mu_hat)
+        if self._candidate_window is not None and len(self._v) - self._window_start == 2:
+            self._candidate_standard_error()       # on the next window's 2nd sample (the 1st settles the filter)
         events = []
         if self._pending is not None and (self.correction_ready()
                                           or len(self._v) - self._window_start >= self.window_samples):
@@ -91,6 +94,8 @@ class Strategy(ABC):
     def _on_window(self, sample: Sample, v: np.ndarray, mu: np.ndarray) -> list[IdentificationEvent]:
         s = self.settings
         if self._candidate is not None:
+            if self._candidate_window is not None:
+                self._candidate_standard_error()
             theta, se = self._candidate
             self._candidate = None
             if self._inside_band(v, mu, theta, se):
@@ -114,10 +119,19 @@ class Strategy(ABC):
         events = [self._event(sample, "correction", score)]
         self.corrections += 1
         if score <= self.k_pe:
-            self._candidate = (self.theta.copy(), self._standard_error(v, mu, self.theta))
+            # the candidate's SE (eq. 29, on this window) is needed only when the next window closes:
+            # it is computed on a later sample, not on this one (``_candidate_standard_error``)
+            self._candidate = (self.theta.copy(), math.nan)
+            self._candidate_window = (v, mu)
         elif self.corrections >= s.max_corrections:
             self.gave_up = True
         return events
+
+    def _candidate_standard_error(self) -> None:
+        v, mu = self._candidate_window
+        self._candidate_window = None
+        theta = self._candidate[0]
+        self._candidate = (theta, self._standard_error(v, mu, theta))
 
     def _event(self, sample: Sample, kind: str, score: float) -> IdentificationEvent:
         return IdentificationEvent(sample.step, sample.t_s, kind, self.corrections,

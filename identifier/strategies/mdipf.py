@@ -190,10 +190,11 @@ class MdipfStrategy(Strategy):
                        and cls._constrain is MdipfStrategy._constrain and cls._move is MdipfStrategy._move
                        and cls._log_likelihood is MdipfStrategy._log_likelihood
                        and cls._weigh is MdipfStrategy._weigh and self._can_fuse_projection())
-        # with the fused step, a correction's re-centring of the cloud (and, with a box, its clip
-        # into the new box) waits for the next step, which does it first (``_recentre_pending``):
-        # the same operations in the same order, off the sample that closes the window
-        self._defer_recentre = self._fused and self._recentre_is_plain()
+        # with the fused step, what a correction does to the cloud (its re-centring, and with a box
+        # the box's contraction and the clip into it) waits for the next step, which does it first
+        # (``_settle_recentre``; reading ``particles`` does it too): the same operations in the same
+        # order, off the sample that closes the window
+        self._defer_recentre = self._fused and self._recentre_is_plain() and not opts["reset_cloud"]
         self._shift = np.zeros(p)            # chi^_Q still to subtract from the cloud
         self._recentre_pending = False
         # Random numbers are drawn before the fault, when the TCU is idle: the first block of
@@ -573,11 +574,17 @@ class MdipfStrategy(Strategy):
             return estimate if self.opts["j_ef_from_prelim"] else np.full_like(self.base, np.nan)
         if self._recentre_pending:
             self._settle_recentre()
-        estimate = self.weights @ self.particles
+        estimate = self._posterior_mean()
         if not math.isfinite(float(estimate.sum())):
             estimate = np.zeros_like(self.base)
         self._estimate_for_theta = estimate
         return estimate
+
+    def _posterior_mean(self) -> np.ndarray:
+        """chi^ = sum_j w_j chi_j (eq. 21), a new (P,) array."""
+        if self._compiled:
+            return _K.weighted_mean(self._xt, self.weights, np.empty(self._xt.shape[0]))
+        return self.weights @ self.particles
 
     def published_curve(self, candidate):
         """``publish_latest``: the candidate plus the filter's estimate over the confirmation window
@@ -589,8 +596,7 @@ class MdipfStrategy(Strategy):
             self._drain()
         if self._recentre_pending:
             self._settle_recentre()
-        estimate = self.weights @ self.particles
-        latest = self.base + estimate
+        latest = self.base + self._posterior_mean()
         return latest if math.isfinite(float(latest.sum())) else candidate
 
     def _after_prelim(self) -> None:
@@ -606,17 +612,19 @@ class MdipfStrategy(Strategy):
         theta = self.base + chi
         if not math.isfinite(float(theta.sum())):
             theta = self.base.copy()
-        self._after_correction(chi)
-        if self.opts["reset_cloud"]:
-            self._draw_cloud()
-        elif self._defer_recentre:                          # done by the next step (_settle_recentre)
-            self._shift += chi
-            self._recentre_pending = self._recentre_pending or self._recentre_changes(chi)
-        elif chi.any():                                     # (the prelim's chi^_0 = 0 moves nothing)
-            self._xt -= chi[:, None]                        # errors now relative to the new theta
-        self.base = theta.copy()
-        if not self._defer_recentre or self.opts["reset_cloud"]:
+        if self._recentre_pending:                          # the previous correction's, never stepped on
+            self._settle_recentre()
+        if self._defer_recentre:                            # done by the next step (_settle_recentre)
+            self._shift[:] = chi
+            self._recentre_pending = True
+        else:
+            self._after_correction(chi)
+            if self.opts["reset_cloud"]:
+                self._draw_cloud()
+            elif chi.any():                                 # (the prelim's chi^_0 = 0 moves nothing)
+                self._xt -= chi[:, None]                    # errors now relative to the new theta
             self._after_recentre()
+        self.base = theta.copy()
         self.history.append(theta.copy())
         return theta
 
@@ -628,12 +636,16 @@ class MdipfStrategy(Strategy):
         return type(self)._after_recentre is MdipfStrategy._after_recentre
 
     def _settle_recentre(self) -> None:
-        """The deferred re-centring (``_defer_recentre``): chi <- chi - chi^_Q, then ``_after_recentre``."""
+        """The deferred part of the last correction (``_defer_recentre``): ``_after_correction``, then
+        chi <- chi - chi^_Q and the clip into the (new) box in one compiled pass (``kernels.recentre``,
+        which is the plain ``_after_recentre``); skipped when neither moves."""
         self._recentre_pending = False
-        if self._shift.any():
-            self._xt -= self._shift[:, None]
-            self._shift.fill(0.0)
-        self._after_recentre()
+        chi = self._shift
+        self._after_correction(chi)
+        if self._recentre_changes(chi):
+            lo, hi, use_box = self._clip_box()
+            _K.recentre(self._xt, chi, lo, hi, use_box)
+        chi.fill(0.0)
 
 
 class MdipfRawStrategy(MdipfStrategy):
