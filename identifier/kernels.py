@@ -716,6 +716,23 @@ def bounded_lm(x0, lo, hi, v, target, transform, iterations, rtol):
 
 
 @njit(**_JIT)
+def grid_add(taus, creep_speed_kmh, target, phi, a, b):
+    """One sample into every tau-lattice point's normal equations (``nlls.GridAccumulator.add``
+    without a transform): phi_g = (1, exp(tau_g v_s)) into ``phi`` (G, 1 + n), a_g += phi_g phi_g^T
+    (``a``: (G, 1 + n, 1 + n)), b_g += phi_g target (``b``: (G, 1 + n))."""
+    count, n = taus.shape
+    for g in range(count):
+        phi[g, 0] = 1.0
+        for i in range(n):
+            phi[g, 1 + i] = math.exp(taus[g, i] * creep_speed_kmh)
+        for i in range(n + 1):
+            pi = phi[g, i]
+            b[g, i] += pi * target
+            for k in range(n + 1):
+                a[g, i, k] += pi * phi[g, k]
+
+
+@njit(**_JIT)
 def grid_best(a, b, tt, taus, lo, hi):
     """``nlls._grid_best`` on a lattice built by ``nlls.GridAccumulator``: per tau lattice point g
     the linear lambdas from the normal equations a_g lam = b_g (with a 1e-12 trace ridge; one
@@ -798,3 +815,4 @@ def warm_up() -> None:
     bounded_lm(x, lo, hi, v, np.full(6, 0.1), np.zeros((0, 0)), 2, 1e-10)
     bounded_lm(x, lo, hi, v, np.full(6, 0.1), np.eye(6), 2, 1e-10)
     grid_best(np.tile(np.eye(3), (4, 1, 1)), np.ones((4, 3)), 1.0, np.full((4, 2), -0.5), lo, hi)
+    grid_add(np.full((4, 2), -0.5), 1.0, 0.1, np.empty((4, 3)), np.zeros((4, 3, 3)), np.zeros((4, 3)))

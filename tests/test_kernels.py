@@ -277,3 +277,16 @@ def test_recentre_is_numpys_shift_and_clip_to_the_bit(use_box):
     got = xt.copy()
     kernels.recentre(got, shift, lo, hi, use_box)
     assert np.array_equal(got, expected)
+
+
+def test_compiled_lattice_sums_are_numpys():
+    radius = np.array([0.01, 0.6, 0.6, 0.05, 0.05])
+    accs = [GridAccumulator(BASE, radius, 5, 8, 8, compiled=c) for c in (False, True)]
+    for a, b in zip(np.linspace(0.4, 1.3, 6), np.linspace(0.08, 0.15, 6)):
+        for acc in accs:
+            acc.add(float(a), float(b))
+    ref, fast = accs
+    assert fast.compiled and not ref.compiled
+    for name in ("phi", "a", "b"):
+        np.testing.assert_allclose(getattr(fast, name), getattr(ref, name), rtol=1e-13, atol=0)
+    assert fast.tt == ref.tt and fast.count == ref.count == 6

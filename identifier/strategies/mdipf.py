@@ -452,7 +452,10 @@ class MdipfStrategy(Strategy):
                                       int(self.opts["prelim_iterations"]), max(len(window_v), 1), compiled=True)
                 for v_k, mu_k in zip(np.asarray(window_v, float).tolist(), np.asarray(window_mu, float).tolist()):
                     acc.add(v_k, mu_k)
-            return acc.job(window_v, window_mu).x
+            job = acc.job(window_v, window_mu)
+            while not job.done:
+                job.step()
+            return job.x
         if solver == "grid":
             return fit_curve_grid(window_v, window_mu, self.theta, self.prelim_radius(), int(self.opts["prelim_grid"]),
                                   int(self.opts["prelim_iterations"]))
@@ -496,24 +499,30 @@ class MdipfStrategy(Strategy):
             for _ in range(int(self.opts["prelim_polish_per_sample"])):
                 if job.step():
                     break
+            if not (job.done and self._compiled):
+                return
+            # compiled: the polish was one call; the filter opens on this sample too, and its first
+            # step waits for the next sample (this one has had the polish)
+            self._finish_prelim(now=False, catch_up=0)
             return
         self._finish_prelim(now=False)
 
-    def _finish_prelim(self, now: bool = True) -> None:
+    def _finish_prelim(self, now: bool = True, catch_up: int | None = None) -> None:
         """The prelim is final: open the filter (cloud drawn around it, the prelim's correction
         event on this sample) and queue the samples fed since window 1 ended; the filter steps
-        through them in order, ``catch_up_at_open`` on this sample and ``catch_up_per_sample`` per
-        later sample (all at once with ``now``), so it computes exactly the steps it would have made on time,
-        only later (a window's correction first finishes the queue)."""
+        through them in order, ``catch_up`` (default ``catch_up_at_open``) on this sample and
+        ``catch_up_per_sample`` per later sample (all at once with ``now``), so it computes exactly
+        the steps it would have made on time, only later (a window's correction first finishes the queue)."""
         job, self._job = self._job, None
         while not job.done:
             job.step()
         self._begin_filter(job.x)
         self._queue.extend(zip(self._v[self._window_start:], self._mu[self._window_start:]))
+        catch_up = int(self.opts["catch_up_at_open"]) if catch_up is None else catch_up
         if now:
             self._drain()
-        elif int(self.opts["catch_up_at_open"]) > 0:
-            self._drain(int(self.opts["catch_up_at_open"]))
+        elif catch_up > 0:
+            self._drain(catch_up)
 
     def _curve_many(self, v: np.ndarray) -> np.ndarray:
         """M_cor at several creep speeds per particle: (N, S) (curve.mu_model on the (P, N) cloud)."""
@@ -553,7 +562,7 @@ class MdipfStrategy(Strategy):
             self._job = self._start_prelim_job(window_v, window_mu)
             if not self._job.done:
                 return None
-            self._finish_prelim(now=True)         # compiled: lattice and polish already done (~20 us)
+            self._finish_prelim(now=True)         # (no polish to spread: prelim_iterations = 0)
             estimate = np.zeros_like(self.base)
             self._estimate_for_theta = estimate
             return estimate if self.opts["j_ef_from_prelim"] else np.full_like(self.base, np.nan)
