@@ -215,6 +215,7 @@ class MdipfStrategy(Strategy):
         self.prelim_done = False
         self._job = None                     # the prelim's polish in progress (prelim_polish_per_sample)
         self._queue: deque = deque()         # (v, mu) fed during the polish, not yet filtered
+        self._steps_taken = 0                # steps made from the queue
         self._prelim_samples = 0             # samples the prelim fitted (window 1)
         # the "grid" prelim's lattice, built over window 1's samples (set up now, before the fault)
         self._grid_acc = None
@@ -263,7 +264,9 @@ class MdipfStrategy(Strategy):
             return
         if self._queue:                    # still catching up on the samples fed during the prelim's polish
             self._queue.append((creep_speed_kmh, mu_hat))
-            self._drain(int(self.opts["catch_up_per_sample"]))
+            # the filter's first step (on cold caches, ~3x a later one) alone on its sample
+            first = self._steps_taken == 0
+            self._drain(1 if first else int(self.opts["catch_up_per_sample"]))
             return
         self._step(creep_speed_kmh, mu_hat)
 
@@ -310,6 +313,7 @@ class MdipfStrategy(Strategy):
         count = len(q) if limit is None else min(len(q), max(1, limit))
         for _ in range(count):
             self._step(*q.popleft())
+            self._steps_taken += 1
 
     # The step below is pf.correlation_transition / propagate / log_likelihood / normalise /
     # resample to the last bit, written on the (P, N) cloud with preallocated buffers and as few
