@@ -51,16 +51,27 @@ Choices the paper leaves open (alternatives behind options):
   early in the valley (10/10 %): kept only as a measured alternative.
 
 Cost per sample (the TCU has one sampling period, 1 ms, per sample; ``hil bench identify`` reports
-the cost of every fed sample):
+the cost of every fed sample, and its p99 is in effect a run's costliest sample).  Work that runs
+once per window runs on cold caches (2-3x its cost in a loop), so the window-end work is spread:
 - ``compiled`` (default True): the filter step is one call of ``kernels.filter_step`` (numba:
-  Theta, propagation, the "clip" box, likelihood with a vectorised exp, reweighing), then
-  systematic resampling by ``kernels.systematic_resample`` / ``take_columns`` when ESS is low; the
-  "grid" prelim's lattice and its whole LM polish are ``kernels.grid_best`` / ``kernels.bounded_lm``
-  (~20 us together), so the prelim is finished on window 1's last sample and nothing is spread
-  (``prelim_polish_per_sample`` and the catch-up below only apply to the numpy path).  Measured
-  (hil bench identify, proposed, 20 seeds): cost median 95 -> 42 us, p99 341 -> 150-190 us; the same
-  RT, corrections and pass rates.  Variants with their own step (observer-aware, mu(0) = 0, other
-  Theta or projections) use the compiled pieces where their step is the plain one.
+  Theta, propagation, the "clip" box, likelihood with an inlined exp, reweighing; ~9 us at
+  N = 1000), then systematic resampling by ``kernels.systematic_resample`` / ``take_columns`` when
+  ESS is low (~5 us).  Around the windows:
+  - window 1: each sample adds to the prelim's tau lattice (``kernels.grid_add``); its last sample
+    solves the lattice (``kernels.grid_best``), the next runs the LM polish (``kernels.bounded_lm``,
+    one call) and opens the filter (the prelim's correction event moves one sample, 1 ms, later);
+    the filter's first step comes on the sample after, alone, then ``catch_up_per_sample`` steps
+    per sample until it has caught up (results unchanged: the same steps, later);
+  - a correction: its sample computes chi^ (``kernels.weighted_mean``), theta and J_EF and emits
+    the event; the box contraction, the re-centring and the clip into the new box wait for the
+    next step (``_defer_recentre``; one pass, ``kernels.recentre``), the candidate's SE for the
+    next window's 2nd sample (``Strategy``);
+  - random numbers (noise, first cloud, resampling uniforms) are drawn before the fault.
+  Measured in a replay (proposed, FFCC-a, seeds 1-5): quiet samples 16-24 us, the costliest
+  (the polish + opening) 70-93 us; before this spreading and the kernels' rewrite: 28-47 us and
+  145-235 us (the prelim's sample).  Variants with their own step (observer-aware, mu(0) = 0,
+  other Theta or projections) use the compiled pieces where their step is the plain one, and
+  re-centre at the correction.
 - ``compiled = False``, the numpy reference path: the filter step (``_move``, ``_log_likelihood``,
   ``_weigh``) works on the (P, N) cloud with
   preallocated buffers and few numpy calls (at N = 1000 a call's overhead, not its arithmetic, is
@@ -68,17 +79,17 @@ the cost of every fed sample):
   forming it), the weights as w_prev exp(ll - max ll) / sum (no logarithms; log weights only if
   that underflows), systematic resampling by counts (``pf.systematic_counts_resample``) only when
   ESS < ``ess_fraction`` N.  These equal the reference pieces of identifier/pf.py up to rounding.
-- numpy path only: the "grid" prelim is spread (``prelim_polish_per_sample`` > 0, default 3): its tau lattice's
-  normal equations are summed as window 1's samples arrive (``nlls.GridAccumulator``), the
-  lattice is solved on window 1's last sample, the LM polish runs 3 iterations per sample on the
-  next samples, and on the sample after the polish the filter opens (cloud drawn, the prelim's
+  Its "grid" prelim is spread (``prelim_polish_per_sample`` > 0, default 3): the lattice's normal
+  equations are summed as window 1's samples arrive (``nlls.GridAccumulator``), the lattice is
+  solved on window 1's last sample, the LM polish runs 3 iterations per sample on the next
+  samples, and on the sample after the polish the filter opens (cloud drawn, the prelim's
   correction event) and steps through the samples fed meanwhile, in order, ``catch_up_at_open``
   of them on that sample and ``catch_up_per_sample`` per later sample until it has caught up (a
   window's correction first finishes the queue).  The filter's steps are exactly those it would
   have made on time (same results as ``prelim_polish_per_sample = 0`` up to rounding), only
   later; what moves is the prelim's correction event, 4 samples (4 ms) after window 1 ends on
   the bench's data (the polish takes its 8 iterations there).  RT, J_EF and the confirmation are
-  unchanged.  0 keeps the whole prelim on window 1's last sample (the previous behaviour).
+  unchanged.  0 keeps the whole prelim on window 1's last sample.
 """
 from __future__ import annotations
 
@@ -109,7 +120,8 @@ DEFAULTS = {
     "prelim_iterations": 8,                   # iteration cap of the "lm" prelim / LM polish of "grid"
     "prelim_grid": 5,                         # tau lattice of the "grid" prelim (per tau)
     "prelim_polish_per_sample": 3,            # "grid" prelim: LM polish iterations per sample, spread over the
-                                              # samples after window 1 (0: the whole prelim on window 1's last sample)
+                                              # samples after window 1 (compiled: > 0 puts the whole polish on
+                                              # the next sample; 0: the whole prelim on window 1's last sample)
     "catch_up_per_sample": 2,                 # filter steps per sample while catching up after a spread prelim
     "catch_up_at_open": 1,                    # ... and on the sample the filter opens on (L = 6 needs it to
                                               # catch up before window 2 closes)
