@@ -25,7 +25,7 @@ the bit: the kernels add in a different order and use their own vectorised ``exp
 
 ``AVAILABLE`` is False when numba cannot be imported; the strategies then run the numpy pieces.
 Compiled code is cached beside this file (``cache=True``), so only the first use on a machine
-pays the compilation (a few seconds); ``warm_up()`` does it ahead of time.
+pays the compilation (~15 s on a 2-core machine); ``warm_up()`` does it ahead of time.
 """
 from __future__ import annotations
 
