@@ -59,17 +59,18 @@ once per window runs on cold caches (2-3x its cost in a loop), so the window-end
   ESS is low (~5 us).  Around the windows:
   - window 1: each sample adds to the prelim's tau lattice (``kernels.grid_add``); its last sample
     solves the lattice (``kernels.grid_best``), the next runs the LM polish (``kernels.bounded_lm``,
-    one call) and opens the filter (the prelim's correction event moves one sample, 1 ms, later);
-    the filter's first step comes on the sample after, alone, then ``catch_up_per_sample`` steps
-    per sample until it has caught up (results unchanged: the same steps, later);
+    one call), the one after opens the filter (the prelim's correction event moves two samples,
+    2 ms, later); the filter's first step comes on the sample after, alone, then
+    ``catch_up_per_sample`` steps per sample until it has caught up (results unchanged: the same
+    steps, later);
   - a correction: its sample computes chi^ (``kernels.weighted_mean``), theta and J_EF and emits
     the event; the box contraction, the re-centring and the clip into the new box wait for the
     next step (``_defer_recentre``; one pass, ``kernels.recentre``), the candidate's SE for the
     next window's 2nd sample (``Strategy``);
   - random numbers (noise, first cloud, resampling uniforms) are drawn before the fault.
   Measured in a replay (proposed, FFCC-a, seeds 1-5): quiet samples 16-24 us, the costliest
-  (the polish + opening) 70-93 us; before this spreading and the kernels' rewrite: 28-47 us and
-  145-235 us (the prelim's sample).  Variants with their own step (observer-aware, mu(0) = 0,
+  the opening (46-58 us) and the first step (57-60 us); before this spreading and the kernels'
+  rewrite: 28-47 us and 145-235 us (the prelim's sample).  Variants with their own step (observer-aware, mu(0) = 0,
   other Theta or projections) use the compiled pieces where their step is the plain one, and
   re-centre at the correction.
 - ``compiled = False``, the numpy reference path: the filter step (``_move``, ``_log_likelihood``,
@@ -515,13 +516,10 @@ class MdipfStrategy(Strategy):
             for _ in range(int(self.opts["prelim_polish_per_sample"])):
                 if job.step():
                     break
-            if not (job.done and self._compiled):
-                return
-            # compiled: the polish was one call; the filter opens on this sample too, and its first
-            # step waits for the next sample (this one has had the polish)
-            self._finish_prelim(now=False, catch_up=0)
             return
-        self._finish_prelim(now=False)
+        # compiled: the polish was one call on the previous sample; the filter opens on this one and
+        # its first step waits for the next (each of the three costs ~20-40 us on cold caches)
+        self._finish_prelim(now=False, catch_up=0 if self._compiled else None)
 
     def _finish_prelim(self, now: bool = True, catch_up: int | None = None) -> None:
         """The prelim is final: open the filter (cloud drawn around it, the prelim's correction
