@@ -16,11 +16,32 @@ P, N = 5, 700
 BASE = np.array([0.0, 1.0, -1.0, -0.54, -1.2])
 
 
-def cloud(seed=0, spread=(0.003, 0.02, 0.02, 0.03, 0.03)):
+def cloud(seed=0, spread=(0.003, 0.02, 0.02, 0.03, 0.03), n=N):
+    """A (len(spread), n) cloud, normalised weights and the generator that drew them."""
+    spread = np.asarray(spread, float)
     rng = np.random.default_rng(seed)
-    xt = np.ascontiguousarray(rng.standard_normal((P, N)) * np.asarray(spread)[:, None])
-    w = rng.random(N)
+    xt = np.ascontiguousarray(rng.standard_normal((spread.size, n)) * spread[:, None])
+    w = rng.random(n)
     return xt, w / w.sum(), rng
+
+
+def assert_filter_step_is_the_reference_pieces(xt, w, noise, base, lo, hi, use_box):
+    """kernels.filter_step against pf's pieces one after the other (move, clip, likelihood, weights)."""
+    p, n = xt.shape
+    v, mu, g = 0.9, 0.12, 0.002
+    out, ll, w_out = np.empty((p, n)), np.empty(n), np.empty(n)
+    ess = kernels.filter_step(xt, w, noise, out, np.empty((p, n)), base, v, mu, -0.5 / g ** 2, lo, hi, use_box, ll,
+                              w_out, np.empty(((p - 1) // 2, n)), np.empty(n, np.int64))
+    moved = pf.propagate(xt.T, pf.correlation_transition(xt.T, w, "rownorm"), np.ones(p), noise=noise.T)
+    if use_box:
+        moved = pf.project_to_box(moved, lo, hi, base, v, mu, np.ones(p), g, "clip")
+        assert np.all(out >= lo[:, None]) and np.all(out <= hi[:, None])
+    np.testing.assert_allclose(out, moved.T, rtol=1e-12, atol=1e-15)
+    ref_ll = pf.log_likelihood(moved, base, v, mu, g)
+    np.testing.assert_allclose(ll, ref_ll, rtol=1e-9, atol=1e-9)
+    ref_w = pf.normalise(np.log(w) + ref_ll)
+    np.testing.assert_allclose(w_out, ref_w, rtol=1e-8, atol=1e-300)
+    assert ess == pytest.approx(pf.ess(ref_w), rel=1e-9)
 
 
 def test_vexp_matches_numpy_exp_to_an_ulp_and_keeps_the_special_values():
@@ -41,21 +62,7 @@ def test_filter_step_equals_the_reference_pieces(use_box):
     xt, w, rng = cloud(2)
     noise = np.ascontiguousarray(rng.standard_normal((P, N)) * 1e-3)
     lo, hi = np.array([-0.004, -0.02, -0.02, -0.03, -0.03]), np.array([0.004, 0.02, 0.02, 0.03, 0.03])
-    v, mu, g = 0.9, 0.12, 0.002
-    out, d, ll, w_out = np.empty((P, N)), np.empty((P, N)), np.empty(N), np.empty(N)
-    ess = kernels.filter_step(xt, w, noise, out, d, BASE, v, mu, -0.5 / g ** 2, lo, hi, use_box, ll, w_out,
-                              np.empty((2, N)), np.empty(N, np.int64))
-    # the reference: pf's pieces one after the other
-    moved = pf.propagate(xt.T, pf.correlation_transition(xt.T, w, "rownorm"), np.ones(P), noise=noise.T)
-    if use_box:
-        moved = pf.project_to_box(moved, lo, hi, BASE, v, mu, np.ones(P), g, "clip")
-        assert np.all(out >= lo[:, None]) and np.all(out <= hi[:, None])
-    np.testing.assert_allclose(out, moved.T, rtol=1e-12, atol=1e-15)
-    ref_ll = pf.log_likelihood(moved, BASE, v, mu, g)
-    np.testing.assert_allclose(ll, ref_ll, rtol=1e-9, atol=1e-9)
-    ref_w = pf.normalise(np.log(w) + ref_ll)
-    np.testing.assert_allclose(w_out, ref_w, rtol=1e-8, atol=1e-300)
-    assert ess == pytest.approx(pf.ess(ref_w), rel=1e-9)
+    assert_filter_step_is_the_reference_pieces(xt, w, noise, BASE, lo, hi, use_box)
 
 
 def test_filter_step_hands_degenerate_clouds_back_to_the_reference_path():
@@ -131,34 +138,18 @@ BASES = {3: np.array([0.0, 1.0, -1.0]), 5: BASE, 7: np.array([0.0, 1.0, -1.0, 0.
 
 
 def cloud_p(p, seed=0, n=N):
-    rng = np.random.default_rng(seed)
-    spread = np.r_[0.003, np.full(p - 1, 0.02)]
-    xt = np.ascontiguousarray(rng.standard_normal((p, n)) * spread[:, None])
-    w = rng.random(n)
-    return xt, w / w.sum(), rng
+    """``cloud`` of p dimensions (spread 0.003 for lambda0, 0.02 for the others)."""
+    return cloud(seed, np.r_[0.003, np.full(p - 1, 0.02)], n)
 
 
 @pytest.mark.parametrize("p", [3, 7])
 @pytest.mark.parametrize("use_box", [False, True])
 def test_filter_step_of_other_sizes_equals_the_reference_pieces(p, use_box):
     xt, w, rng = cloud_p(p, 4)
-    base = BASES[p]
     noise = np.ascontiguousarray(rng.standard_normal((p, N)) * 1e-3)
     lo, hi = np.full(p, -0.02), np.full(p, 0.02)
     lo[0], hi[0] = -0.004, 0.004
-    v, mu, g = 0.9, 0.12, 0.002
-    out, ll, w_out = np.empty((p, N)), np.empty(N), np.empty(N)
-    ess = kernels.filter_step(xt, w, noise, out, np.empty((p, N)), base, v, mu, -0.5 / g ** 2, lo, hi, use_box, ll,
-                              w_out, np.empty(((p - 1) // 2, N)), np.empty(N, np.int64))
-    moved = pf.propagate(xt.T, pf.correlation_transition(xt.T, w, "rownorm"), np.ones(p), noise=noise.T)
-    if use_box:
-        moved = pf.project_to_box(moved, lo, hi, base, v, mu, np.ones(p), g, "clip")
-    np.testing.assert_allclose(out, moved.T, rtol=1e-12, atol=1e-15)
-    ref_ll = pf.log_likelihood(moved, base, v, mu, g)
-    np.testing.assert_allclose(ll, ref_ll, rtol=1e-9, atol=1e-9)
-    ref_w = pf.normalise(np.log(w) + ref_ll)
-    np.testing.assert_allclose(w_out, ref_w, rtol=1e-8, atol=1e-300)
-    assert ess == pytest.approx(pf.ess(ref_w), rel=1e-9)
+    assert_filter_step_is_the_reference_pieces(xt, w, noise, BASES[p], lo, hi, use_box)
 
 
 @pytest.mark.parametrize("p", [3, 5, 7])

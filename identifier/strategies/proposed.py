@@ -94,7 +94,8 @@ class ProposedStrategy(MdipfStrategy):
         self._constrain_in_box()
 
     def _recentre_is_plain(self) -> bool:
-        return type(self)._after_recentre is ProposedStrategy._after_recentre and self._can_fuse_projection()
+        # (the fused step, which deferring needs, already requires the plain _constrain_in_box)
+        return type(self)._after_recentre is ProposedStrategy._after_recentre
 
     def _recentre_changes(self, chi) -> bool:
         return self._box_changed or bool(chi.any())
