@@ -791,9 +791,14 @@ def grid_best(a, b, tt, taus, lo, hi):
     return out_x
 
 
+_warmed = False
+
+
 def warm_up() -> None:
-    """Compile (or load from the cache) every kernel now, e.g. before the fault, not on the first sample."""
-    if not AVAILABLE:
+    """Compile (or load from the cache) every kernel now, e.g. before the fault, not on the first
+    sample; once per process."""
+    global _warmed
+    if not AVAILABLE or _warmed:
         return
     xt = np.zeros((5, 4))
     xt[:, 1] = 1e-3
@@ -816,3 +821,4 @@ def warm_up() -> None:
     bounded_lm(x, lo, hi, v, np.full(6, 0.1), np.eye(6), 2, 1e-10)
     grid_best(np.tile(np.eye(3), (4, 1, 1)), np.ones((4, 3)), 1.0, np.full((4, 2), -0.5), lo, hi)
     grid_add(np.full((4, 2), -0.5), 1.0, 0.1, np.empty((4, 3)), np.zeros((4, 3, 3)), np.zeros((4, 3)))
+    _warmed = True

@@ -40,6 +40,9 @@ class IdentifierSettings:
     c_lw: float = 3.0                             # lower confidence coefficient
     c_up: float = 3.0                             # upper confidence coefficient
     max_corrections: int = 200                    # give up (unconfirmed) after this many
+    # particles of the drill that keeps the strategy's code warm before a slip (identifier/drill.py);
+    # 0: no drill.  64 keeps its samples at ~10-40 us
+    drill_particles: int = 64
     options: dict = field(default_factory=dict)   # strategy-specific tuning, by strategy name
 
     def __post_init__(self):

@@ -13,6 +13,7 @@ from collections import deque
 
 import numpy as np
 
+from .drill import Drill
 from .messages import (STAGE_CONFIRMED, STAGE_GAVE_UP, STAGE_IDENTIFYING, STAGE_MONITORING, ObserverSample,
                        SensorReading, TcuOutput, TcuStatus, TorqueCommand)
 from .observer import LoadTorqueObserver
@@ -36,6 +37,11 @@ class SlipDetector:
         self.sigmas = sigmas
         self.consecutive = consecutive
         self._history: deque[float] = deque(maxlen=baseline_samples)
+        # the baseline's running sum and sum of squares (Python floats: a numpy mean and std of 50
+        # numbers cost ~9 us a reading, most of the TCU's work while monitoring), summed afresh
+        # each time the window has turned over, so rounding cannot drift over a long run
+        self._sum = self._sum_sq = 0.0
+        self._until_resum = baseline_samples
         self._above = 0
         self.detected_step: int | None = None
 
@@ -43,17 +49,28 @@ class SlipDetector:
         if self.detected_step is not None:
             return True
         h = self._history
-        if len(h) == h.maxlen:
-            base = np.fromiter(h, float, len(h))
-            limit = max(self.threshold_kmh, self.sigmas * float(base.std()))
-            if creep_speed_kmh - float(base.mean()) > limit:
+        n = len(h)
+        if n == h.maxlen:
+            mean = self._sum / n
+            std = math.sqrt(max(self._sum_sq / n - mean * mean, 0.0))
+            if creep_speed_kmh - mean > max(self.threshold_kmh, self.sigmas * std):
                 self._above += 1
                 if self._above >= self.consecutive:
                     self.detected_step = step - self.consecutive + 1   # the slip began at the first one
                     return True
                 return False        # a candidate is not part of the baseline
             self._above = 0
+            oldest = h[0]
+            self._sum -= oldest
+            self._sum_sq -= oldest * oldest
         h.append(creep_speed_kmh)
+        self._sum += creep_speed_kmh
+        self._sum_sq += creep_speed_kmh * creep_speed_kmh
+        self._until_resum -= 1
+        if self._until_resum <= 0:
+            self._until_resum = h.maxlen
+            self._sum = math.fsum(h)
+            self._sum_sq = math.fsum(x * x for x in h)
         return False
 
 
@@ -76,6 +93,11 @@ class TractionIdentifier:
         self._recent: deque[Sample] = deque(maxlen=self.detector.consecutive + 1)
         self.rejected_readings = 0
         self._last_torque = settings.torque_demand_nm
+        # a small copy of the strategy identifying a synthetic slip while there is no real one, so the
+        # strategy's code is warm when the fault comes (identifier/drill.py); not for strategies
+        # whose samples are not all cheap (``Strategy.keeps_warm``)
+        self.drill = (Drill(settings, strategy, settings.drill_particles, seed)
+                      if settings.drill_particles > 0 and self.strategy.keeps_warm and not self._observer_aware else None)
 
     def stage(self) -> int:
         if self.strategy.confirmed:
@@ -101,6 +123,9 @@ class TractionIdentifier:
         paired_creep = self._creep_history[0]   # v_s(k - lag): the creep mu^(k) really belongs to
         observer = ObserverSample(reading.step, t_s, creep, mu_hat, load_torque)
         events = []
+        if self.drill is not None and (self.detector.detected_step is None
+                                       or reading.step - self.detector.detected_step < self._settle_steps - 1):
+            self.drill.tick()       # monitoring, or settling: the strategy's first sample is still ahead
         if self._observer_aware:
             sample = Sample(reading.step, t_s, creep, mu_hat, innovation)
             detected_before = self.detector.detected_step is not None

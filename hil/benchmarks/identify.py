@@ -17,6 +17,7 @@ observer's transient), and ``r2_observer_model`` is mu^ against mu^_pred(theta).
 from __future__ import annotations
 
 import dataclasses
+import gc
 import json
 import math
 import sys
@@ -103,6 +104,30 @@ def with_particles(settings, strategy: str, particles: int | None):
     return dataclasses.replace(settings, options=options)
 
 
+#: monitoring readings left out of its cost: the first ones, while the identifier's objects are new
+_MONITORING_SKIP = 20
+
+
+def _feed(ident, readings, events, costs_ns, quiet_ns, monitoring_ns) -> None:
+    """The readings into ``ident`` until it confirms or gives up, each ``on_sensor`` call timed."""
+    clock = time.perf_counter_ns
+    fed = 0
+    for r in readings:
+        t0 = clock()
+        out = ident.on_sensor(r)
+        dt = clock() - t0
+        events.extend(out.events)
+        if ident.strategy.samples > fed or out.events:     # this reading reached the strategy
+            fed = ident.strategy.samples
+            costs_ns.append(dt)
+            if not out.events:
+                quiet_ns.append(dt)     # a filter step alone, no window end
+        elif not fed:
+            monitoring_ns.append(dt)    # before the strategy's first sample: observer, detector, drill
+        if ident.strategy.confirmed or ident.strategy.gave_up:
+            break
+
+
 def replay(data: CaseData, strategy: str, particles: int | None) -> tuple[dict, object]:
     """Feed the recorded readings to a fresh identifier; summary (hil run --json keys) + costs."""
     from identifier import TractionIdentifier
@@ -113,21 +138,17 @@ def replay(data: CaseData, strategy: str, particles: int | None) -> tuple[dict, 
         ident = TractionIdentifier(settings, strategy, data.seed)
     except ValueError as e:
         raise UserError(f"{sc.path}: [identifier] options for {strategy}: {e}") from None
-    events, costs_ns, quiet_ns = [], [], []
-    clock = time.perf_counter_ns
-    fed = 0
-    for r in data.readings:
-        t0 = clock()
-        out = ident.on_sensor(r)
-        dt = clock() - t0
-        events.extend(out.events)
-        if ident.strategy.samples > fed or out.events:     # this reading reached the strategy
-            fed = ident.strategy.samples
-            costs_ns.append(dt)
-            if not out.events:
-                quiet_ns.append(dt)     # a filter step alone, no window end
-        if ident.strategy.confirmed or ident.strategy.gave_up:
-            break
+    events, costs_ns, quiet_ns, monitoring_ns = [], [], [], []
+    # as the TCU process runs in real time (hil/tcu_process.py): no garbage collection in the loop
+    gc_was_enabled = gc.isenabled()
+    gc.freeze()
+    gc.disable()
+    try:
+        _feed(ident, data.readings, events, costs_ns, quiet_ns, monitoring_ns)
+    finally:
+        gc.unfreeze()
+        if gc_was_enabled:
+            gc.enable()
     ident.events_seen = events
     v, mu = ident.strategy.data()
     detected = ident.detector.detected_step
@@ -153,6 +174,13 @@ def replay(data: CaseData, strategy: str, particles: int | None) -> tuple[dict, 
     q = np.asarray(quiet_ns, float) / 1e3
     s["cost_p99_between_windows_us"] = float(np.percentile(q, 99)) if q.size else None
     s["cost_samples"] = int(c.size)
+    # the readings before the strategy's first sample (monitoring and the settle time, where the
+    # drill runs): their cost is the TCU's too, so it is reported beside the identifying phase's
+    m = np.asarray(monitoring_ns[_MONITORING_SKIP:], float) / 1e3
+    s["cost_monitoring_median_us"] = float(np.median(m)) if m.size else None
+    s["cost_monitoring_p99_us"] = float(np.percentile(m, 99)) if m.size else None
+    s["drill_cycles"] = None if ident.drill is None else ident.drill.cycles
+    s["drill_error"] = None if ident.drill is None else ident.drill.error
     s["cost_p99_percent_of_period"] = None if not c.size else s["cost_p99_us"] / (period * 1e6) * 100.0
     s["ok"] = verdict(s)
     s["ok_peaks"] = verdict(s, need_r2=False)
@@ -187,6 +215,10 @@ def aggregate(per_seed: list[dict]) -> dict:
     out["cost_p99_percent_of_period"] = _median([s["cost_p99_percent_of_period"] for s in costs])
     out["cost_p99_worst_us"] = float(np.max([s["cost_p99_us"] for s in costs])) if costs else None
     out["cost_p99_between_windows_us"] = _median([s["cost_p99_between_windows_us"] for s in per_seed])
+    out["cost_monitoring_median_us"] = _median([s["cost_monitoring_median_us"] for s in per_seed])
+    out["cost_monitoring_p99_us"] = _median([s["cost_monitoring_p99_us"] for s in per_seed])
+    errors = sorted({s["drill_error"] for s in per_seed if s.get("drill_error")})
+    out["drill_errors"] = errors
     out["seeds"] = per_seed
     return out
 
@@ -201,7 +233,7 @@ def _obs(r) -> str:
 def table(results: dict, cases: list[str], n_seeds: int) -> str:
     head = ("| strategy | case | MSE | RMSE | MAE | R² | R² true curve | R² obs. model (true) | R² vs truth | RT % | corrections | peak μ err % | "
             "peak creep err % | identified | ok | ok peaks | cost median µs | cost p99 µs | p99 % of period | "
-            "p99 between windows µs |")
+            "p99 between windows µs | monitoring cost median / p99 µs |")
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for strat, per_case in results.items():
         for case in cases:
@@ -213,7 +245,8 @@ def table(results: dict, cases: list[str], n_seeds: int) -> str:
                 f"{_f(r['corrections'], '.0f')} | {_f(r['peak_mu_err_percent'], '.2f')} | "
                 f"{_f(r['peak_creep_err_percent'], '.2f')} | {r['identified'] * 100:.0f}% | {r['ok'] * 100:.0f}% | "
                 f"{r['ok_peaks'] * 100:.0f}% | {_f(r['cost_median_us'], '.1f')} | {_f(r['cost_p99_us'], '.1f')} | "
-                f"{_f(r['cost_p99_percent_of_period'], '.1f')} | {_f(r['cost_p99_between_windows_us'], '.1f')} |")
+                f"{_f(r['cost_p99_percent_of_period'], '.1f')} | {_f(r['cost_p99_between_windows_us'], '.1f')} | "
+                f"{_f(r['cost_monitoring_median_us'], '.1f')} / {_f(r['cost_monitoring_p99_us'], '.1f')} |")
     notes = (f"\nMedians over {n_seeds} seeds (RT, fit and peak errors over the seeds' final curves; cost p99 is the "
              f"median over seeds of each seed's p99). R²: the paper's, of the identified curve against the μ̂ samples. "
              "R² true curve: the true fault curve against the same μ̂ samples (the R² the samples allow). "
@@ -223,7 +256,10 @@ def table(results: dict, cases: list[str], n_seeds: int) -> str:
              "curve), as % of seeds. ok peaks: the same without the R² condition. R² obs. model: observer-aware strategies only (*_oa), R² of μ̂ against the "
              "observer's predicted output μ̂_pred(θ) for the identified θ (and, in brackets, for the true curve). Cost: wall time of TractionIdentifier.on_sensor per reading that fed a "
              "sample to the strategy (median; p99, also as % of the sampling period); 'p99 between windows' leaves "
-             "out the readings that closed a window (the NLLS fits and the corrections).\n")
+             "out the readings that closed a window (the NLLS fits and the corrections). Monitoring cost: the same "
+             "per reading before the strategy's first sample (observer, slip detector and, for the particle "
+             "strategies, the drill that keeps their code warm: identifier/drill.py; "
+             "--set identifier.drill_particles=0 turns it off).\n")
     return "\n".join(lines) + notes
 
 

@@ -34,6 +34,9 @@ class Strategy(ABC):
     #: True: the TCU feeds every sample from the detected slip start on, creep of the same instant
     #: (no settle time, no lag pairing): for strategies that model the observer's transient
     observer_aware: bool = False
+    #: True: every sample's work is small (no whole-data refit), so a TractionIdentifier may run a
+    #: small copy of this strategy on a synthetic slip while monitoring (identifier/drill.py)
+    keeps_warm: bool = False
 
     def __init__(self, settings: IdentifierSettings, seed: int = 0):
         self.settings = settings

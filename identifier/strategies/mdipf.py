@@ -239,6 +239,13 @@ class MdipfStrategy(Strategy):
                                              compiled=self._compiled)
         self.history: list[np.ndarray] = []  # theta after each correction (for plots)
 
+    @property
+    def keeps_warm(self) -> bool:
+        # compiled steps and the compiled lattice prelim: every sample's work is bounded (the
+        # scipy prelims of the *_raw and mu0 variants are not)
+        return (self._compiled and self.opts["prelim_solver"] == "grid"
+                and type(self).preliminary_fit is MdipfStrategy.preliminary_fit)
+
     # -- the cloud: kept as a (P, N) C-contiguous array; ``particles`` is its (N, P) view --------
     _recentre_pending = False                # (before __init__ sets it: the setter below runs first)
 
