@@ -22,8 +22,12 @@ def test_json_results_shape_same_data_for_every_strategy_and_plots(tmp_path):
                     "corrections", "identified", "cost_median_us", "cost_p99_us", "cost_p99_percent_of_period"):
             assert key in r, key
         assert len(r["seeds"]) == 2 and [s["seed"] for s in r["seeds"]] == [1, 2]
+        assert r["cost_monitoring_p99_us"] > 0 and r["drill_errors"] == []
         for s in r["seeds"]:
             assert s["strategy"] == strat and s["cost_p99_us"] > 0
+            # the drill runs for the particle strategy only, and went through identifications
+            assert (s["drill_cycles"] is None) == (strat == "nlls")
+            assert strat == "nlls" or s["drill_cycles"] >= 10
             if s["identified"]:
                 assert s["rt_percent"] > 0 and s["r2_vs_truth"] <= 1.0
                 # the verdict is the targets against the true curve

@@ -1,0 +1,134 @@
+"""The drill that keeps a strategy's code warm before a slip (identifier/drill.py), and the slip
+detector's running sums: neither may change what the TCU identifies."""
+import dataclasses
+import math
+from collections import deque
+
+import numpy as np
+import pytest
+
+from identifier import TractionIdentifier
+from identifier.drill import Drill
+from identifier.tcu import SlipDetector
+
+
+@pytest.fixture(scope="module")
+def ffcc_a_run():
+    """FFCC-a's scenario and the sensor readings of one real plant run (seed 3)."""
+    from hil.benchmarks.identify import generate
+    from hil.scenario import load_scenario
+    from tests.conftest import SCENARIOS
+
+    sc = load_scenario(SCENARIOS / "ffcc_a.toml")
+    return sc, generate(sc, 3).readings
+
+
+def identify(settings, strategy, readings):
+    ident = TractionIdentifier(settings, strategy, 3)
+    events = []
+    for r in readings:
+        events.extend(ident.on_sensor(r).events)
+        if ident.strategy.confirmed or ident.strategy.gave_up:
+            break
+    return ident, events
+
+
+@pytest.mark.parametrize("strategy", ["proposed", "mdipf", "proposed_fast"])
+def test_the_drill_runs_while_monitoring_and_changes_no_result(ffcc_a_run, strategy):
+    sc, readings = ffcc_a_run
+    with_drill = sc.identifier_settings()
+    assert with_drill.drill_particles > 0                       # on by default
+    without = dataclasses.replace(with_drill, drill_particles=0)
+    ident, events = identify(with_drill, strategy, readings)
+    plain, plain_events = identify(without, strategy, readings)
+    assert plain.drill is None
+    assert ident.drill.error is None
+    # ~500 monitoring readings: the drill went through whole identifications, not just their start
+    assert ident.drill.cycles >= 10
+    assert ident.strategy.confirmed and plain.strategy.confirmed
+    assert [(e.step, e.kind, e.params) for e in events] == [(e.step, e.kind, e.params) for e in plain_events]
+
+
+def test_the_drill_stops_once_the_strategy_has_samples(ffcc_a_run):
+    sc, readings = ffcc_a_run
+    ident = TractionIdentifier(sc.identifier_settings(), "proposed", 3)
+    ticks_at_first_sample = None
+    for r in readings:
+        ident.on_sensor(r)
+        drill = ident.drill
+        state = (drill.cycles, drill._next, id(drill.strategy))
+        if ident.strategy.samples == 1:
+            ticks_at_first_sample = state
+        elif ident.strategy.samples > 1:
+            assert state == ticks_at_first_sample                # nothing moved after the first sample
+        if ident.strategy.samples > 8:
+            break
+    assert ticks_at_first_sample is not None
+
+
+@pytest.mark.parametrize("strategy", ["nlls", "proposed_mu0", "proposed_raw", "proposed_oa"])
+def test_no_drill_for_strategies_with_costly_samples_or_their_own_feed(ffcc_a_run, strategy):
+    sc, _ = ffcc_a_run
+    assert TractionIdentifier(sc.identifier_settings(), strategy, 3).drill is None
+
+
+def test_a_failing_drill_stops_and_says_why_without_raising(ffcc_a_run):
+    sc, _ = ffcc_a_run
+    drill = Drill(sc.identifier_settings(), "proposed", 16)
+    for _ in range(40):
+        drill.tick()
+    assert drill.error is None and drill.strategy is not None
+    drill.strategy._v = None              # a broken state: the next sample cannot be stored
+    for _ in range(5):
+        drill.tick()                      # never raises
+    assert drill.error is not None and "NoneType" in drill.error
+    assert drill.strategy is None
+
+
+def reference_detection(creep, threshold, baseline, sigmas=6.0, consecutive=2):
+    """The detector with numpy's mean and std of the baseline window at every reading."""
+    hist, above = deque(maxlen=baseline), 0
+    for step, c in enumerate(creep):
+        if len(hist) == baseline:
+            base = np.array(hist)
+            if c - base.mean() > max(threshold, sigmas * base.std()):
+                above += 1
+                if above >= consecutive:
+                    return step - consecutive + 1
+                continue
+            above = 0
+        hist.append(c)
+    return None
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_slip_detector_running_sums_detect_where_numpy_statistics_do(seed):
+    rng = np.random.default_rng(seed)
+    n, slip_at = 3000, int(rng.integers(500, 2800))
+    level = rng.uniform(0.1, 20.0)                     # creep speed km/h: cancellation grows with it
+    noise = rng.uniform(1e-4, 0.02)
+    creep = level + noise * rng.standard_normal(n) + 0.01 * np.sin(np.arange(n) / 300.0)
+    creep[slip_at:] += 0.05 * np.arange(n - slip_at)                 # km/h per reading
+    creep[int(rng.integers(100, slip_at))] += 5.0 * noise          # a lone outlier is not a slip
+    threshold = 0.03
+    detector = SlipDetector(threshold, 50)
+    found = None
+    for step, c in enumerate(creep):
+        if detector.update(step, float(c)):
+            found = detector.detected_step
+            break
+    assert found == reference_detection(creep, threshold, 50)
+    assert found is not None and slip_at <= found <= slip_at + 10
+
+
+def test_slip_detector_baseline_statistics_do_not_drift_over_a_long_run():
+    rng = np.random.default_rng(11)
+    detector = SlipDetector(0.03, 50)
+    creep = 8.0 + 0.001 * rng.standard_normal(200_000)
+    for step, c in enumerate(creep):
+        assert not detector.update(step, float(c))
+    window = np.array(detector._history)
+    n = len(window)
+    assert math.isclose(detector._sum / n, window.mean(), rel_tol=0, abs_tol=1e-12)
+    std = math.sqrt(max(detector._sum_sq / n - (detector._sum / n) ** 2, 0.0))
+    assert math.isclose(std, window.std(), rel_tol=1e-6)
