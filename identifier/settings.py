@@ -48,3 +48,5 @@ class IdentifierSettings:
     def __post_init__(self):
         if self.window_samples < 2 * ((len(self.initial_guess) - 1) // 2) + 2:
             raise ValueError("window_samples must exceed 2n + 1 (the SE of eq. 29 divides by L - 2n - 1)")
+        if self.drill_particles != 0 and self.drill_particles < 2:
+            raise ValueError(f"drill_particles must be 0 (no drill) or at least 2, got {self.drill_particles}")

@@ -132,3 +132,15 @@ def test_slip_detector_baseline_statistics_do_not_drift_over_a_long_run():
     assert math.isclose(detector._sum / n, window.mean(), rel_tol=0, abs_tol=1e-12)
     std = math.sqrt(max(detector._sum_sq / n - (detector._sum / n) ** 2, 0.0))
     assert math.isclose(std, window.std(), rel_tol=1e-6)
+
+
+@pytest.mark.parametrize("value, message", [("1", "drill_particles must be 0 (no drill) or at least 2, got 1"),
+                                            ("-4", "drill_particles must be 0 (no drill) or at least 2, got -4"),
+                                            ("many", "drill_particles: must be an integer, got 'many'")])
+def test_a_bad_drill_size_is_refused_by_name(ffcc_a_path, value, message):
+    from tests.conftest import hil
+
+    p = hil("run", ffcc_a_path, "--strategy", "proposed", "--bus", "inprocess", "--set",
+            f"identifier.drill_particles={value}", timeout=120)
+    assert p.returncode == 2
+    assert p.stderr.strip().splitlines()[-1].endswith(message) and "Traceback" not in p.stderr

@@ -70,7 +70,9 @@ once per window runs on cold caches (2-3x its cost in a loop), so the window-end
   - random numbers (noise, first cloud, resampling uniforms) are drawn before the fault.
   Measured in a replay (proposed, FFCC-a, seeds 1-5): quiet samples 16-24 us, the costliest
   the opening (46-58 us) and the first step (57-60 us); before this spreading and the kernels'
-  rewrite: 28-47 us and 145-235 us (the prelim's sample).  Variants with their own step (observer-aware, mu(0) = 0,
+  rewrite: 28-47 us and 145-235 us (the prelim's sample).  What is left of "cold" is taken off by
+  the TCU's drill (identifier/drill.py, ``keeps_warm`` below): with the code warm, the opening
+  costs 23-29 us and the first step 35-41 us (same replay).  Variants with their own step (observer-aware, mu(0) = 0,
   other Theta or projections) use the compiled pieces where their step is the plain one, and
   re-centre at the correction.
 - ``compiled = False``, the numpy reference path: the filter step (``_move``, ``_log_likelihood``,
