@@ -11,8 +11,6 @@ from __future__ import annotations
 import math
 from collections import deque
 
-import numpy as np
-
 from .drill import Drill
 from .messages import (STAGE_CONFIRMED, STAGE_GAVE_UP, STAGE_IDENTIFYING, STAGE_MONITORING, ObserverSample,
                        SensorReading, TcuOutput, TcuStatus, TorqueCommand)

@@ -7,7 +7,10 @@ strategy, so every strategy sees the identical data.  Each ``on_sensor`` call of
 phase (slip detected -> confirmed or end of run) is timed: that is the cost per sample.  A run
 feeds 18-40 samples, so a seed's p99 is in effect its costliest sample (a window's end, the
 spread prelim's polish or the filter's opening); the table's p99 is the median over seeds of
-that, the worst seed's beside it.  Seeds 1..N are for reporting; tune on others (``--first-seed``).
+that, the worst seed's beside it.  Readings are fed with the garbage collector frozen and
+disabled, as the TCU process runs in real time; the readings before the strategy's first sample
+(monitoring, where the drill of identifier/drill.py keeps the strategy's code warm) are timed too.
+Seeds 1..N are for reporting; tune on others (``--first-seed``).
 
 Observer-aware strategies (``*_oa``, identifier/strategies/observer_aware.py) fit the observer's
 predicted output mu^_pred(theta) rather than M(v_s; theta): their ``r2`` is still the paper's (the
@@ -306,6 +309,10 @@ def cmd_identify(args) -> int:
                 bar.update(done, f"{c} seed {seed} {strat}")
     bar.close()
     results = {s: {c: aggregate(per_seed[s][c]) for c in cases} for s in strategies}
+    for s, per_case in results.items():
+        for c, r in per_case.items():
+            for e in r["drill_errors"]:     # the drill never stops a run, but a stopped drill is news
+                print(f"bench identify: warning: {s} on {c}: the drill stopped: {e}", file=sys.stderr)
     if args.plots:
         paths = write_plots(Path(args.plots), first_runs, strategies)
         print(f"wrote {len(paths)} figures to {args.plots}", file=sys.stderr)
