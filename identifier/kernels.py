@@ -125,28 +125,17 @@ def _exp(x):
     k = t - _ROUND
     r = (xc - k * _LN2_HI) - k * _LN2_LO
     c = _C
-    p = c[13] * r + c[12]
-    p = p * r + c[11]
-    p = p * r + c[10]
-    p = p * r + c[9]
-    p = p * r + c[8]
-    p = p * r + c[7]
-    p = p * r + c[6]
-    p = p * r + c[5]
-    p = p * r + c[4]
-    p = p * r + c[3]
-    p = p * r + c[2]
-    p = p * r + c[1]
-    p = p * r + c[0]
+    p = c[13]
+    for i in range(12, -1, -1):               # a constant trip count: compiled fully unrolled
+        p = p * r + c[i]
     y = p * _as_float((_as_int(t) + 1023) << 52)   # 2^k: k + 1023 in the exponent field (t's high bits shift out)
     y = 0.0 if x < -708.0 else y
     return math.inf if x > 709.0 else y
 
 
 @njit(**_JIT_EXACT)
-def vexp(a, bits):
-    """a <- exp(a) in place (float64 (M,)) by ``_exp``.  ``bits``: no longer used (2^k is built in a
-    register); kept so the callers' scratch stays valid."""
+def vexp(a):
+    """a <- exp(a) in place (float64 (M,)) by ``_exp``."""
     for j in range(a.size):
         a[j] = _exp(a[j])
     return a
@@ -337,10 +326,10 @@ def rownorm_propagate(xt, weights, noise, out, d):
 
 
 @njit(**_JIT)
-def log_likelihood(xt, base, creep_speed_kmh, mu_hat, scale, out, tmp, bits):
+def log_likelihood(xt, base, creep_speed_kmh, mu_hat, scale, out, tmp):
     """out_j = scale (mu^ - M_cor(v_s; chi_j))^2 with scale = -1 / (2 G): ``pf.log_likelihood``
     at one sample.  Non-finite entries become -inf.  ``tmp``: (n, N) float scratch (the curve's
-    exponentials), ``bits``: no longer used.  Returns True when all entries were finite.  A pass
+    exponentials).  Returns True when all entries were finite.  A pass
     per term; ``_move_weigh5`` does the five-parameter model in the step's own pass."""
     p, n = xt.shape
     terms = (p - 1) // 2
@@ -397,11 +386,11 @@ def _top(log_lik):
 
 
 @njit(**_JIT)
-def reweigh(log_lik, weights_prev, weights_out, bits):
+def reweigh(log_lik, weights_prev, weights_out):
     """w = w_prev exp(ll - max ll) / sum (``pf.normalise`` of log w_prev + ll when that is finite);
     returns the effective sample size 1 / sum w^2, or -1.0 (``weights_out`` then undefined) when
     ``log_lik`` holds NaN or no finite maximum, or the product underflows or is not finite: the
-    caller then normalises in logarithms.  ``bits``: no longer used."""
+    caller then normalises in logarithms."""
     top = _top(log_lik)
     if not math.isfinite(top):
         return -1.0
@@ -446,13 +435,13 @@ def _move_weigh5(xt, theta, noise, out, box, lo, hi, base, creep_speed_kmh, mu_h
 
 @njit(**_JIT)
 def filter_step(xt, weights, noise, out, d, base, creep_speed_kmh, mu_hat, scale, lo, hi, use_box, log_lik,
-                weights_out, tmp, bits):
+                weights_out, tmp):
     """One whole filter step: ``rownorm_propagate`` into ``out``, clip into the box [lo, hi] (the
     proposed strategy's "clip" projection; ``use_box``), ``log_likelihood``, ``reweigh``.
     Returns the effective sample size, or a code for the caller's reference path to take over:
     -1.0 no transition (nothing written), -2.0 the moved cloud in ``out`` is not finite (not yet
     clipped or weighed), -3.0 the weights underflowed (``out`` moved and clipped, ``log_lik`` set).
-    At P = 5: ``_moments5``, then ``_move_weigh5`` (``d``, ``tmp`` and ``bits`` unused); else the
+    At P = 5: ``_moments5``, then ``_move_weigh5`` (``d`` and ``tmp`` unused); else the
     generic kernels in turn."""
     p, n = xt.shape
     if p != 5:
@@ -469,8 +458,8 @@ def filter_step(xt, weights, noise, out, d, base, creep_speed_kmh, mu_hat, scale
                 a, b = lo[i], hi[i]
                 for j in range(n):
                     out[i, j] = min(max(out[i, j], a), b)
-        log_likelihood(out, base, creep_speed_kmh, mu_hat, scale, log_lik, tmp, bits)
-        ess = reweigh(log_lik, weights, weights_out, bits)
+        log_likelihood(out, base, creep_speed_kmh, mu_hat, scale, log_lik, tmp)
+        ess = reweigh(log_lik, weights, weights_out)
         return -3.0 if ess < 0.0 else ess
     mat = np.empty((p + 1, p))
     if not _transition(xt, weights, d, mat):
@@ -804,12 +793,12 @@ def warm_up() -> None:
     xt[:, 1] = 1e-3
     w = np.full(4, 0.25)
     rownorm_propagate(xt, w, np.zeros((5, 4)), np.empty((5, 4)), np.empty((5, 4)))
-    ll, tmp, bits = np.empty(4), np.empty((2, 4)), np.empty(4, np.int64)
-    log_likelihood(xt, np.zeros(5), 1.0, 0.1, -0.5, ll, tmp, bits)
-    reweigh(ll, w, np.empty(4), bits)
+    ll, tmp = np.empty(4), np.empty((2, 4))
+    log_likelihood(xt, np.zeros(5), 1.0, 0.1, -0.5, ll, tmp)
+    reweigh(ll, w, np.empty(4))
     filter_step(xt, w, np.zeros((5, 4)), np.empty((5, 4)), np.empty((5, 4)), np.zeros(5), 1.0, 0.1, -0.5,
-                np.zeros(5), np.ones(5), True, ll, np.empty(4), tmp, bits)
-    vexp(np.zeros(4), bits)
+                np.zeros(5), np.ones(5), True, ll, np.empty(4), tmp)
+    vexp(np.zeros(4))
     weighted_mean(xt, w, np.empty(5))
     systematic_resample(w, 0.5, np.empty(4, np.intp))
     take_columns(xt, np.zeros(4, np.intp), np.empty((5, 4)))

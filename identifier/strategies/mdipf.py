@@ -197,7 +197,6 @@ class MdipfStrategy(Strategy):
             self._ll = np.empty(self.n_particles)
             self._w_spare = np.empty(self.n_particles)
             self._idx = np.empty(self.n_particles, np.intp)
-            self._bits = np.empty(self.n_particles, np.int64)
         # the whole step in one compiled call (kernels.filter_step) where this class's step is the
         # plain one: Theta row-normalised, no constraint, no projection or the "clip" one
         cls = type(self)
@@ -309,7 +308,7 @@ class MdipfStrategy(Strategy):
             noise = self._transition_noise()
             ess = _K.filter_step(self._xt, self.weights, noise, self._spare, self._d, self.base, creep_speed_kmh,
                                  mu_hat, -0.5 / self.noise_std ** 2, lo, hi, use_box, self._ll, self._w_spare,
-                                 self._tmp, self._bits)
+                                 self._tmp)
             if ess == -1.0:                    # no transition from this cloud: the reference path
                 self._move(noise)
             else:
@@ -384,7 +383,7 @@ class MdipfStrategy(Strategy):
         """log N(mu^ ; M_cor(v_s), G) per particle; -inf where not finite (pf.log_likelihood)."""
         if self._compiled:
             _K.log_likelihood(self._xt, self.base, creep_speed_kmh, mu_hat, -0.5 / self.noise_std ** 2, self._ll,
-                              self._tmp, self._bits)
+                              self._tmp)
             return self._ll
         resid = self._curve_at(creep_speed_kmh)
         np.subtract(mu_hat, resid, out=resid)
@@ -410,7 +409,7 @@ class MdipfStrategy(Strategy):
     def _reweigh(self, ll: np.ndarray) -> float | None:
         """New weights without logarithms (``ll`` left as it is); their ESS, or None if that underflows."""
         if self._compiled:
-            ess = _K.reweigh(ll, self.weights, self._w_spare, self._bits)
+            ess = _K.reweigh(ll, self.weights, self._w_spare)
             if not ess > 0.0:
                 return None
             self._w_spare, self.weights = self.weights, self._w_spare
