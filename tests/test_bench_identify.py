@@ -33,6 +33,8 @@ def test_json_results_shape_same_data_for_every_strategy_and_plots(tmp_path):
                 # the verdict is the targets against the true curve
                 assert s["ok"] == (s["r2_vs_truth"] >= 0.999 and s["peak_mu_err_percent"] <= 3.0
                                    and s["peak_creep_err_percent"] <= 10.0)
+                # what the samples alone determine, beside it
+                assert s["lsq_truth_r2_vs_truth"] <= 1.0 and s["lsq_truth_ok_peaks"] in (True, False)
         per_seed[strat] = r["seeds"]
     # the same measured data: the same detection instant and the same plant stages for every strategy
     for a, b in zip(per_seed["nlls"], per_seed["proposed"]):
@@ -74,3 +76,35 @@ def test_observer_aware_strategy_reports_its_own_fit_beside_the_papers(tmp_path)
     # the observer-aware strategy gets its samples earlier than the paper's settle-and-pair feed
     assert oa["t_detected_s"] == paper["t_detected_s"] and oa["samples"] > 0
     assert oa["r2_observer_model"] is not None and oa["cost_p99_us"] > 0
+    # the static least squares says nothing about samples taken through the observer's transient
+    assert oa["lsq_truth_r2_vs_truth"] is None and oa["lsq_truth_ok_peaks"] is None
+    assert paper["lsq_truth_r2_vs_truth"] is not None
+
+
+FFCC_A = (-0.005, 0.585, -0.580, -0.525, -1.100)
+FFCC_B = (-0.002, 0.478, -0.476, -0.505, -1.180)
+
+
+def test_data_limit_recovers_a_curve_its_samples_determine_and_not_one_they_do_not():
+    import numpy as np
+
+    from hil.benchmarks.identify import data_limit
+    from identifier.curve import mu_model
+
+    rng = np.random.default_rng(3)
+    wide = np.linspace(0.2, 2.5, 60)                        # spans the peak (1.27 km/h)
+    exact = data_limit(wide, mu_model(wide, FFCC_A), FFCC_A)
+    assert exact["lsq_truth_r2_vs_truth"] > 0.999999 and exact["lsq_truth_ok_peaks"] is True
+    assert exact["lsq_truth_peak_mu_err_percent"] < 1e-3
+    noisy = data_limit(wide, mu_model(wide, FFCC_A) + rng.normal(0, 1e-3, wide.size), FFCC_A)
+    assert noisy["lsq_truth_ok_peaks"] is True and noisy["lsq_truth_r2_vs_truth"] > 0.99
+    # samples of another curve: the fit leaves the truth it started from
+    other = data_limit(wide, mu_model(wide, FFCC_B), FFCC_A)
+    assert other["lsq_truth_peak_mu_err_percent"] > 3.0 and other["lsq_truth_ok_peaks"] is False
+    # a narrow range below the peak with the same noise does not pin the curve down
+    narrow = np.linspace(0.55, 0.88, 18)
+    narrow_fit = data_limit(narrow, mu_model(narrow, FFCC_A) + rng.normal(0, 1.6e-3, narrow.size), FFCC_A)
+    assert narrow_fit["lsq_truth_r2_vs_truth"] < noisy["lsq_truth_r2_vs_truth"]
+    # nothing to say: too few samples, or samples through the observer's transient
+    assert data_limit(wide[:4], mu_model(wide[:4], FFCC_A), FFCC_A)["lsq_truth_ok_peaks"] is None
+    assert data_limit(wide, mu_model(wide, FFCC_A), FFCC_A, observer_aware=True)["lsq_truth_r2_vs_truth"] is None
