@@ -208,7 +208,7 @@ def data_limit(creep_speed_kmh, mu_samples, true_theta, observer_aware: bool = F
 
     keys = ("lsq_truth_r2_vs_truth", "lsq_truth_peak_mu_err_percent", "lsq_truth_peak_creep_err_percent")
     out = dict.fromkeys(keys)
-    out["lsq_truth_ok_peaks"] = None
+    out["lsq_truth_ok_peaks"] = out["lsq_truth_params"] = None
     v, mu = np.asarray(creep_speed_kmh, float), np.asarray(mu_samples, float)
     ok = np.isfinite(v) & np.isfinite(mu)
     v, mu = v[ok], mu[ok]
@@ -220,6 +220,7 @@ def data_limit(creep_speed_kmh, mu_samples, true_theta, observer_aware: bool = F
     out.update(lsq_truth_r2_vs_truth=clean(r2_vs_truth(fit.x, true_theta, 2.0 * peak(true_theta)[0])),
                lsq_truth_peak_mu_err_percent=clean(pe["peak_mu_err_percent"]),
                lsq_truth_peak_creep_err_percent=clean(pe["peak_creep_err_percent"]))
+    out["lsq_truth_params"] = [float(x) for x in fit.x] if np.all(np.isfinite(fit.x)) else None
     out["lsq_truth_ok_peaks"] = bool(pe["peak_mu_err_percent"] <= OK_PEAK_MU_PERCENT
                                      and pe["peak_creep_err_percent"] <= OK_PEAK_CREEP_PERCENT)
     return out
@@ -405,9 +406,14 @@ def write_plots(out_dir: Path, first_runs: dict, strategies: list[str]) -> list[
                 # observer-aware strategies fit the observer's predicted output, not the curve itself
                 ax.plot(v, ident.strategy.predicted_observer_output(np.asarray(summary["params"])), "x-",
                         color="tab:orange", ms=3, lw=0.8, label="μ̂_pred(θ identified): what the strategy fits")
+            if summary.get("lsq_truth_params"):
+                # what the samples alone say (data_limit): the distance to the true curve is not the strategy's
+                ax.plot(grid, mu_model(grid, np.asarray(summary["lsq_truth_params"])), ":", color="0.35", lw=1.2,
+                        label="least squares on these samples, from the true curve")
             ax.axvline(v_peak, color="tab:red", lw=1.2, ls=":")
-            ax.text(v_peak, 0.02, "  serious stage →", color="tab:red", fontsize=8)
-            ax.text(v_peak, 0.02, "← early stage  ", color="tab:red", fontsize=8, ha="right")
+            top = 1.4 * max(sc.fault_curve.peak()[1], 0.05)      # stage labels at the top, clear of the legend
+            ax.text(v_peak, 0.94 * top, "  serious stage →", color="tab:red", fontsize=8)
+            ax.text(v_peak, 0.94 * top, "← early stage  ", color="tab:red", fontsize=8, ha="right")
             status = (f"confirmed, RT {summary['rt_percent']:.1f} %" if summary["identified"] else "not confirmed")
             ax.set_title(f"{case} {strat} (seed {data.seed}): {status}; peak μ err "
                          f"{_f(summary['peak_mu_err_percent'], '.1f')} %, creep err "
@@ -415,7 +421,7 @@ def write_plots(out_dir: Path, first_runs: dict, strategies: list[str]) -> list[
             ax.set_xlabel("creep speed v_s (km/h)")
             ax.set_ylabel("adhesion coefficient μ")
             ax.set_xlim(0, grid[-1])
-            ax.set_ylim(0, 1.4 * max(sc.fault_curve.peak()[1], 0.05))
+            ax.set_ylim(0, top)
             ax.grid(alpha=0.3)
             ax.legend(fontsize=7, loc="lower right")
             fig.tight_layout()
