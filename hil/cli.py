@@ -29,6 +29,16 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _caused_by_interrupt(error: BaseException) -> bool:
+    seen = set()
+    while error is not None and id(error) not in seen:
+        if isinstance(error, KeyboardInterrupt):
+            return True
+        seen.add(id(error))
+        error = error.__cause__ or error.__context__
+    return False
+
+
 def main(argv=None) -> int:
     try:
         # the imports (numpy, scipy, casadi ...) take about a second: a Ctrl-C then is an interrupt too
@@ -37,6 +47,13 @@ def main(argv=None) -> int:
 
         parser = build_parser()
     except KeyboardInterrupt:
+        print("hil: interrupted", file=sys.stderr)
+        return 130
+    except Exception as e:
+        # a Ctrl-C inside an extension module's initialisation (e.g. scipy's HiGHS) comes out as
+        # another error, "ImportError: initialization failed", caused by the KeyboardInterrupt
+        if not _caused_by_interrupt(e):
+            raise
         print("hil: interrupted", file=sys.stderr)
         return 130
     args = parser.parse_args(argv)
