@@ -215,7 +215,12 @@ def data_limit(creep_speed_kmh, mu_samples, true_theta, observer_aware: bool = F
     true_theta = np.asarray(true_theta, float)
     if observer_aware or v.size < true_theta.size:
         return out
-    fit = least_squares(lambda th: mu_model(v, th) - mu, true_theta, jac=lambda th: jacobian(v, th), method="lm")
+    try:
+        with np.errstate(over="ignore", invalid="ignore"):     # LM may try steep exponents on its way
+            fit = least_squares(lambda th: mu_model(v, th) - mu, true_theta, jac=lambda th: jacobian(v, th),
+                                method="lm")
+    except ValueError:          # non-finite residuals on the way: the diagnostic has nothing to say, the run stands
+        return out
     pe = peak_errors(fit.x, true_theta)
     out.update(lsq_truth_r2_vs_truth=clean(r2_vs_truth(fit.x, true_theta, 2.0 * peak(true_theta)[0])),
                lsq_truth_peak_mu_err_percent=clean(pe["peak_mu_err_percent"]),
