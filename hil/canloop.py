@@ -27,7 +27,6 @@ report when the plant says it finished; in process the node hands them over dire
 from __future__ import annotations
 
 import dataclasses
-import gc
 import math
 import os
 import subprocess
@@ -43,7 +42,7 @@ from identifier.messages import STAGE_NAMES, TorqueCommand
 from .bus import BusError, die_with_parent, open_bus
 from .frames import (DBC_PATH, STATE_FAULT, STATE_FINISHED, STATE_RUNNING, STATE_STARTING, TCU_IDS, FrameCodec,
                      RejectCounter, bus_load, format_bus_load)
-from .loop import LAG_WINDOW_S, PlantSide, log_path, start_recording
+from .loop import LAG_WINDOW_S, PlantSide, collector_paused, log_path, start_recording
 from .progress import Progress
 from .recording import interrupts_between_writes
 from .scenario import ScenarioError
@@ -305,11 +304,7 @@ class PlantNode:
     def run(self, steps: int, bar: Progress | None = None) -> None:
         period = self.period_s
         realtime = self.mode == "realtime"
-        gc_was_enabled = gc.isenabled()
-        if realtime:
-            gc.freeze()         # a collection in the loop costs whole periods
-            gc.disable()
-        try:
+        with collector_paused(realtime):
             t0 = time.perf_counter() + 0.005
             prev = None
             for k in range(steps):
@@ -333,10 +328,6 @@ class PlantNode:
                 if bar is not None and k % 200 == 0:
                     bar.update(k)
             self.awaited = steps
-        finally:
-            if gc_was_enabled:
-                gc.unfreeze()
-                gc.enable()
 
     def finish(self, state: int = STATE_FINISHED) -> None:
         """Tell the TCU the run is over (it then reports and exits)."""

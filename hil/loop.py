@@ -6,6 +6,8 @@ frames carry (``SensorReading`` one way, ``TorqueCommand`` and results the other
 """
 from __future__ import annotations
 
+import contextlib
+import gc
 import time
 from pathlib import Path
 
@@ -19,6 +21,25 @@ from .summary import observer_lag_ms, summarise
 
 #: how long after the fault the true mu is kept for measuring the observer lag
 LAG_WINDOW_S = 0.3
+
+
+@contextlib.contextmanager
+def collector_paused(active: bool = True):
+    """No garbage collection inside (when ``active``), as the real-time loops run: a full collection
+    over scipy's and casadi's objects costs whole periods.  The objects alive on entry are frozen
+    (never scanned again); on exit the collector is as it was."""
+    if not active:
+        yield
+        return
+    was_enabled = gc.isenabled()
+    gc.freeze()
+    gc.disable()
+    try:
+        yield
+    finally:
+        gc.unfreeze()
+        if was_enabled:
+            gc.enable()
 
 
 def log_path(scenario, strategy: str, seed: int, out_dir=None) -> Path:

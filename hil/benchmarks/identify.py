@@ -11,8 +11,8 @@ that, the worst seed's beside it.  Readings are fed with the garbage collector f
 disabled, as the TCU process runs in real time; the readings before the strategy's first sample
 (monitoring, where the drill of identifier/drill.py keeps the strategy's code warm) are timed too.
 Seeds 1..N are for reporting; tune on others (``--first-seed``).  Beside each strategy's curve the
-bench reports what its samples alone determine (``data_limit``: their least-squares fit from the
-true curve), so an accuracy figure shows how much of it comes from the data and how much from the prior.
+bench reports what its samples alone determine (``data_limit``: the NLLS baseline's fit to them
+from the true curve), so an accuracy figure shows how much of it comes from the data and how much from the prior.
 
 Observer-aware strategies (``*_oa``, identifier/strategies/observer_aware.py) fit the observer's
 predicted output mu^_pred(theta) rather than M(v_s; theta): their ``r2`` is still the paper's (the
@@ -22,7 +22,6 @@ observer's transient), and ``r2_observer_model`` is mu^ against mu^_pred(theta).
 from __future__ import annotations
 
 import dataclasses
-import gc
 import json
 import math
 import sys
@@ -32,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from ..cli import UserError
+from ..loop import collector_paused
 from ..progress import Progress
 from ..scenario import load_scenario
 from ..summary import clean, summarise
@@ -145,16 +145,8 @@ def replay(data: CaseData, strategy: str, particles: int | None) -> tuple[dict, 
     except ValueError as e:
         raise UserError(f"{sc.path}: [identifier] options for {strategy}: {e}") from None
     events, costs_ns, quiet_ns, monitoring_ns = [], [], [], []
-    # as the TCU process runs in real time (hil/tcu_process.py): no garbage collection in the loop
-    gc_was_enabled = gc.isenabled()
-    gc.freeze()
-    gc.disable()
-    try:
+    with collector_paused():        # as the TCU process runs in real time (hil/tcu_process.py)
         _feed(ident, data.readings, events, costs_ns, quiet_ns, monitoring_ns)
-    finally:
-        gc.unfreeze()
-        if gc_was_enabled:
-            gc.enable()
     ident.events_seen = events
     v, mu = ident.strategy.data()
     detected = ident.detector.detected_step
@@ -195,16 +187,16 @@ def replay(data: CaseData, strategy: str, particles: int | None) -> tuple[dict, 
 
 
 def data_limit(creep_speed_kmh, mu_samples, true_theta, observer_aware: bool = False) -> dict:
-    """What the strategy's samples alone say about the curve: the least-squares fit of M(v_s; theta)
-    to them (no prior, no box, no window), started at the *true* curve so that no search can miss
-    the samples' own optimum near it.  Its R² vs truth and peak errors are what the data determine;
-    a strategy that does better does so by its prior (initial guess, box, particle spread), not by
-    the data.  None for observer-aware strategies (their samples include the observer's transient,
-    which M(v_s; theta) does not model) and for fewer samples than parameters."""
-    from scipy.optimize import least_squares
-
-    from identifier.curve import jacobian, mu_model, peak
+    """What the strategy's samples alone say about the curve: the NLLS baseline's fit of M(v_s; theta)
+    to them (``nlls.fit_curve``: within the physical bounds, no prior, no box, no window), started at
+    the *true* curve so that no search can miss the samples' own optimum near it.  Its R² vs truth
+    and peak errors are what the data determine; a strategy that does better does so by its prior
+    (initial guess, box, particle spread), not by the data.  None for observer-aware strategies
+    (their samples include the observer's transient, which M(v_s; theta) does not model) and for
+    fewer samples than parameters."""
+    from identifier.curve import peak
     from identifier.metrics import peak_errors, r2_vs_truth
+    from identifier.strategies.nlls import fit_curve
 
     keys = ("lsq_truth_r2_vs_truth", "lsq_truth_peak_mu_err_percent", "lsq_truth_peak_creep_err_percent")
     out = dict.fromkeys(keys)
@@ -215,17 +207,13 @@ def data_limit(creep_speed_kmh, mu_samples, true_theta, observer_aware: bool = F
     true_theta = np.asarray(true_theta, float)
     if observer_aware or v.size < true_theta.size:
         return out
-    try:
-        with np.errstate(over="ignore", invalid="ignore"):     # LM may try steep exponents on its way
-            fit = least_squares(lambda th: mu_model(v, th) - mu, true_theta, jac=lambda th: jacobian(v, th),
-                                method="lm")
-    except ValueError:          # non-finite residuals on the way: the diagnostic has nothing to say, the run stands
-        return out
-    pe = peak_errors(fit.x, true_theta)
-    out.update(lsq_truth_r2_vs_truth=clean(r2_vs_truth(fit.x, true_theta, 2.0 * peak(true_theta)[0])),
+    with np.errstate(over="ignore", invalid="ignore"):     # the solver may try steep exponents on its way
+        theta = fit_curve(v, mu, true_theta)
+    pe = peak_errors(theta, true_theta)
+    out.update(lsq_truth_r2_vs_truth=clean(r2_vs_truth(theta, true_theta, 2.0 * peak(true_theta)[0])),
                lsq_truth_peak_mu_err_percent=clean(pe["peak_mu_err_percent"]),
-               lsq_truth_peak_creep_err_percent=clean(pe["peak_creep_err_percent"]))
-    out["lsq_truth_params"] = [float(x) for x in fit.x] if np.all(np.isfinite(fit.x)) else None
+               lsq_truth_peak_creep_err_percent=clean(pe["peak_creep_err_percent"]),
+               lsq_truth_params=[float(x) for x in theta])
     out["lsq_truth_ok_peaks"] = bool(pe["peak_mu_err_percent"] <= OK_PEAK_MU_PERCENT
                                      and pe["peak_creep_err_percent"] <= OK_PEAK_CREEP_PERCENT)
     return out
@@ -311,8 +299,8 @@ def table(results: dict, cases: list[str], n_seeds: int) -> str:
              "out the readings that closed a window (the NLLS fits and the corrections). Monitoring cost: the same "
              "per reading before the strategy's first sample (observer, slip detector and, for the particle "
              "strategies, the drill that keeps their code warm: identifier/drill.py; "
-             "--set identifier.drill_particles=0 turns it off). The samples' LS from truth: the least-squares fit of "
-             "M(v_s; θ) to the strategy's own samples at its confirmation, started at the true curve, with no prior "
+             "--set identifier.drill_particles=0 turns it off). The samples' LS from truth: the NLLS baseline's fit of "
+             "M(v_s; θ) (physical bounds) to the strategy's own samples at its confirmation, started at the true curve, with no prior "
              "(what the data determine; a strategy above it owes the difference to its prior; - for *_oa).\n")
     return "\n".join(lines) + notes
 

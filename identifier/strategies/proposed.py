@@ -89,8 +89,7 @@ class ProposedStrategy(MdipfStrategy):
 
     def _after_recentre(self) -> None:
         # no measurement at hand between windows: the Euclidean projection into the new box (in place)
-        np.maximum(self._xt, self.lo[:, None], out=self._xt)
-        np.minimum(self._xt, self.hi[:, None], out=self._xt)
+        self._clip_into_box(self._xt)
         self._constrain_in_box()
 
     def _recentre_is_plain(self) -> bool:
