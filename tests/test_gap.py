@@ -195,4 +195,8 @@ def test_torque_lag_found_when_the_command_varies(tmp_path, scenario):
     assert out["which"]["named"] == "torque_lag"
     assert out["which"]["ranking"][0]["params"]["tau_s"] == pytest.approx(tau, rel=0.2)
     assert out["where"]["input_constant"] is False
-    assert out["where"]["tests"]["motor"]["xcorr_input"] > out["where"]["tests"]["motor"]["xcorr_bound_95"]
+    # the lag shows in the observer's mu^ (it reads the lagged torque as load): its residual follows the
+    # command, ~6x the 95 % bound on every seed tried (0.42-0.58 against 0.072).  The motor speed's
+    # correlation depends on the dither's pattern (0.04-0.60 over those seeds), so it is not asserted.
+    mu_test = out["where"]["tests"]["mu_hat"]
+    assert mu_test["xcorr_input"] > 3 * mu_test["xcorr_bound_95"]
