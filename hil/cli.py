@@ -1,5 +1,6 @@
 """The ``hil`` command line.  Each sub-command lives in ``hil/commands/<name>.py`` and exposes
-``register(subparsers)``; errors a user can fix print one line and exit 2, never a traceback."""
+``register(subparsers)``; library code raises ``hil.errors.HilError`` and this module turns it into
+one line on stderr and the error's exit code, never a traceback.  Nothing below imports this module."""
 from __future__ import annotations
 
 import argparse
@@ -8,14 +9,7 @@ import pkgutil
 import sys
 
 from . import commands
-
-
-class UserError(Exception):
-    """An error the user can fix; printed as one line, exit code 2 (or ``exit_code``)."""
-
-    def __init__(self, message: str, exit_code: int = 2):
-        super().__init__(message)
-        self.exit_code = exit_code
+from .errors import EXIT_INTERRUPTED, HilError
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -42,29 +36,26 @@ def _caused_by_interrupt(error: BaseException) -> bool:
 def main(argv=None) -> int:
     try:
         # the imports (numpy, scipy, casadi ...) take about a second: a Ctrl-C then is an interrupt too
-        from .logread import LogError
-        from .scenario import ScenarioError
-
         parser = build_parser()
     except KeyboardInterrupt:
         print("hil: interrupted", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
     except Exception as e:
         # a Ctrl-C inside an extension module's initialisation (e.g. scipy's HiGHS) comes out as
         # another error, "ImportError: initialization failed", caused by the KeyboardInterrupt
         if not _caused_by_interrupt(e):
             raise
         print("hil: interrupted", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
     args = parser.parse_args(argv)
     try:
         return int(args.func(args) or 0)
-    except (UserError, ScenarioError, LogError) as e:
+    except HilError as e:
         print(f"hil {args.command}: error: {e}", file=sys.stderr)
-        return getattr(e, "exit_code", 2)
+        return e.exit_code
     except KeyboardInterrupt:
         print(f"hil {args.command}: interrupted", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
 
 
 if __name__ == "__main__":

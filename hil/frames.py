@@ -5,9 +5,9 @@ frame goes through ``FrameCodec.classify``: it either yields a decoded ``Frame``
 reason (unknown id, wrong length, error/remote frame, undecodable, non-finite or out-of-range
 signal).  Rejected frames are counted by reason (``RejectCounter``) and never reach the identifier.
 
-Frame schedule per exchange period: PlantSensor (plant -> TCU), then TorqueCommand, TcuResult (0..n,
-only on an identification event) and TcuStatus (TCU -> plant, in this order), heartbeats both
-ways every ``heartbeat_period_s`` of wall time.
+Frame schedule per exchange period: PlantSensor (plant -> TCU), then TorqueCommand, TcuSample (0..n,
+one per sample the strategy took), TcuResult (0..n, only on an identification event) and TcuStatus
+(TCU -> plant, in this order), heartbeats both ways every ``heartbeat_period_s`` of wall time.
 """
 from __future__ import annotations
 
@@ -25,10 +25,10 @@ DBC_NAME = "hil.dbc"
 DBC_PATH = Path(__file__).with_name(DBC_NAME)
 
 # frame ids (also in the DBC; checked against it at load)
-SENSOR_ID, COMMAND_ID, STATUS_ID, RESULT_ID = 0x100, 0x110, 0x120, 0x130
+SENSOR_ID, COMMAND_ID, STATUS_ID, RESULT_ID, SAMPLE_ID = 0x100, 0x110, 0x120, 0x130, 0x140
 PLANT_HEARTBEAT_ID, TCU_HEARTBEAT_ID = 0x701, 0x702
 PLANT_IDS = frozenset({SENSOR_ID, PLANT_HEARTBEAT_ID})
-TCU_IDS = frozenset({COMMAND_ID, STATUS_ID, RESULT_ID, TCU_HEARTBEAT_ID})
+TCU_IDS = frozenset({COMMAND_ID, STATUS_ID, RESULT_ID, SAMPLE_ID, TCU_HEARTBEAT_ID})
 
 # heartbeat states
 STATE_STARTING, STATE_RUNNING, STATE_FINISHED, STATE_FAULT = 0, 1, 2, 3
@@ -53,10 +53,20 @@ class Heartbeat:
 
 
 @dataclass(frozen=True)
+class SampleReport:
+    """One (creep, mu^) sample the TCU's strategy took, and when the TCU dates the slip's start."""
+    step: int
+    index: int
+    detected_step: int
+    creep_speed_kmh: float
+    mu_hat: float
+
+
+@dataclass(frozen=True)
 class Frame:
     """A received frame that passed validation: its DBC name and the decoded object."""
     name: str
-    value: object          # SensorReading | TorqueCommand | (TcuStatus, ObserverSample|None) | IdentificationEvent | Heartbeat
+    value: object          # SensorReading | TorqueCommand | (TcuStatus, ObserverSample|None) | IdentificationEvent | SampleReport | Heartbeat
 
 
 class RejectCounter(Counter):
@@ -75,7 +85,7 @@ class FrameCodec:
         self.period_s = period_s
         self._by_id = {m.frame_id: m for m in self.db.messages}
         expected = {SENSOR_ID: "PlantSensor", COMMAND_ID: "TorqueCommand", STATUS_ID: "TcuStatus",
-                    RESULT_ID: "TcuResult", PLANT_HEARTBEAT_ID: "PlantHeartbeat", TCU_HEARTBEAT_ID: "TcuHeartbeat"}
+                    RESULT_ID: "TcuResult", SAMPLE_ID: "TcuSample", PLANT_HEARTBEAT_ID: "PlantHeartbeat", TCU_HEARTBEAT_ID: "TcuHeartbeat"}
         for fid, name in expected.items():
             if fid not in self._by_id or self._by_id[fid].name != name:
                 raise ValueError(f"{DBC_NAME}: frame 0x{fid:X} must be {name}")
@@ -111,6 +121,11 @@ class FrameCodec:
         for i in range(MAX_PARAMS):
             values[f"Param{i}"] = e.params[i] if i < len(e.params) else 0.0
         return self._msg(RESULT_ID, values)
+
+    def sample(self, r: SampleReport) -> can.Message:
+        return self._msg(SAMPLE_ID, {"SampleStep": r.step, "SampleIndex": min(r.index, 65535),
+                                     "DetectedStep": r.detected_step, "SampleCreep": r.creep_speed_kmh,
+                                     "SampleMu": r.mu_hat})
 
     def plant_heartbeat(self, counter: int, state: int, step: int) -> can.Message:
         return self._msg(PLANT_HEARTBEAT_ID, {"PlantCounter": counter & 0xFFFF, "PlantState": state,
@@ -170,6 +185,9 @@ class FrameCodec:
                                        int(v["ResultCorrection"]),
                                        tuple(float(v[f"Param{i}"]) for i in range(n)), float(v["JEf"]),
                                        int(v["ResultSamples"]))
+        if fid == SAMPLE_ID:
+            return SampleReport(int(v["SampleStep"]), int(v["SampleIndex"]), int(v["DetectedStep"]),
+                                float(v["SampleCreep"]), float(v["SampleMu"]))
         if fid == PLANT_HEARTBEAT_ID:
             return Heartbeat(int(v["PlantCounter"]), int(v["PlantState"]), int(v["PlantStep"]))
         if fid == TCU_HEARTBEAT_ID:
@@ -199,21 +217,22 @@ def fd_frame_time_s(data_len: int, bitrate: int, data_bitrate: int, brs: bool = 
 
 def bus_load(db, period_s: float, heartbeat_period_s: float, bitrate: int, data_bitrate: int) -> dict:
     """Worst-case bus load of the HIL schedule: per exchange period one sensor, status and command
-    frame; heartbeats from both sides every ``heartbeat_period_s``; one result frame per period
-    as the worst case of identification events (they are rare: one per correction window).
+    frame; heartbeats from both sides every ``heartbeat_period_s``; the peak adds a sample frame and a
+    result frame in the same period (samples flow only while identifying; results once a window).
     """
     lengths = {m.frame_id: m.length for m in db.messages}
     per_period = sum(fd_frame_time_s(lengths[i], bitrate, data_bitrate) for i in (SENSOR_ID, STATUS_ID, COMMAND_ID))
     heartbeats = sum(fd_frame_time_s(lengths[i], bitrate, data_bitrate)
                      for i in (PLANT_HEARTBEAT_ID, TCU_HEARTBEAT_ID)) / heartbeat_period_s
     steady = per_period / period_s + heartbeats
-    peak = steady + fd_frame_time_s(lengths[RESULT_ID], bitrate, data_bitrate) / period_s
+    peak = steady + sum(fd_frame_time_s(lengths[i], bitrate, data_bitrate) for i in (RESULT_ID, SAMPLE_ID)) / period_s
     return {"bitrate": bitrate, "data_bitrate": data_bitrate, "period_s": period_s,
             "heartbeat_period_s": heartbeat_period_s, "load_percent": 100.0 * steady,
             "peak_load_percent": 100.0 * peak}
 
 
 def format_bus_load(load: dict) -> str:
-    return (f"bus load {load['load_percent']:.1f} % (peak {load['peak_load_percent']:.1f} % with a result frame) at "
+    return (f"bus load {load['load_percent']:.1f} % (peak {load['peak_load_percent']:.1f} % with a sample and a result "
+            f"frame) at "
             f"{load['bitrate'] / 1e3:g} kbit/s arbitration, {load['data_bitrate'] / 1e6:g} Mbit/s data, "
             f"{load['period_s'] * 1e3:g} ms exchange period")

@@ -10,11 +10,9 @@ from mcap.exceptions import EndOfFile
 from mcap.stream_reader import StreamReader
 from mcap_protobuf.decoder import DecoderFactory
 
+from .errors import LogError
+
 MAGIC = b"\x89MCAP0\r\n"
-
-
-class LogError(ValueError):
-    """A file that is not a log this tool can read; the message is one line."""
 
 
 @dataclass
@@ -36,7 +34,7 @@ def scenario_from_log(log: LogContents, hint: str = ""):
     the metadata), or one LogError line; ``hint`` ends the line that says the log has none."""
     import json
 
-    from .scenario import ScenarioError, parse_scenario
+    from .config import ScenarioError, parse_scenario
 
     if log.cut and not log.metadata and not log.message_count:
         raise LogError(f"{log.path}: nothing readable before the damage ({log.damage})")

@@ -5,13 +5,13 @@ the same ``TcuNode`` the TCU process runs (same validation and step sequencing),
 machine allows.  Sources, in order of preference:
 
 - an MCAP log of ``hil run``: the raw ``/can/frames`` (the plant's transmitted ``PlantSensor``
-  frames); a log with no frames (``run_inprocess``) falls back to ``/plant/sensor``, encoded to
+  frames); a log with no frames (older in-process runs) falls back to ``/plant/sensor``, encoded to
   frames by the DBC (64-bit floats, so exactly the readings).  The scenario comes from the log's
   ``scenario`` metadata (or ``--scenario``), strategy and seed from its ``run`` metadata;
 - a CAN log of another tool (``.log`` candump, ``.asc``, ``.blf``, ... anything ``can.LogReader``
   reads) with ``--scenario``.
 
-The summary is the one ``hil run --json`` prints (``hil.summary.summarise``), with the stages from
+The summary is the one ``hil run --json`` prints (``hil.trace.Trace``), with the stages from
 the logged true plant state when present, plus ``matches_log`` (the replayed identification events
 equal the logged ones: count, kind, correction number, step and parameters bit for bit; ``None``
 when the strategy or seed differ from the logged run's, or the log holds no identification record)
@@ -28,13 +28,13 @@ from pathlib import Path
 import can
 
 from identifier.messages import IdentificationEvent, SensorReading
-from plant import StageTracker
 
+from .config import load_scenario
+from .errors import LogError
 from .frames import RESULT_ID, SENSOR_ID, FrameCodec
-from .logread import MAGIC, LogError, read_log, scenario_from_log
-from .loop import LAG_WINDOW_S
-from .scenario import load_scenario
-from .summary import clean, observer_lag_by_step, summarise
+from .logread import MAGIC, read_log, scenario_from_log
+from .tcu_node import TcuNode
+from .trace import Trace, clean
 
 #: file suffixes read with ``can.LogReader`` (python-can's writers/readers)
 CAN_LOG_SUFFIXES = (".log", ".asc", ".blf", ".csv", ".trc", ".mf4")
@@ -164,44 +164,34 @@ def _event_key(e: IdentificationEvent):
 
 def replay(src: ReplaySource, strategy: str | None = None, seed: int | None = None) -> dict:
     """Re-run the identifier on ``src``; the ``hil run --json`` summary plus replay fields."""
-    from .tcu_process import TcuNode
-
     scenario = src.scenario
     strategy = strategy or src.logged_strategy or "nlls"
     seed = seed if seed is not None else (src.logged_seed if src.logged_seed is not None else scenario.run.seed)
     period = scenario.run.exchange_period_s
     node = TcuNode(scenario, strategy, seed)
-    ident = node.identifier
-    events: list[IdentificationEvent] = []
-    observer_mu: dict[int, float] = {}
-    fault_t = scenario.run.fault_time_s
-    inner = ident.on_sensor
-
-    def on_sensor(reading):
-        out = inner(reading)
-        events.extend(out.events)
-        obs = out.observer
-        if obs is not None and 0 <= obs.t_s - fault_t <= LAG_WINDOW_S:
-            observer_mu[obs.step] = obs.mu_hat
-        return out
-
-    ident.on_sensor = on_sensor
+    trace = Trace(scenario)
+    for t_s, creep, mu in src.truth:
+        trace.plant(int(round(t_s / period)), t_s, creep, mu)
+    codec = node.codec
     wall0 = time.perf_counter()
     for msg in src.frames:
-        node.handle(msg)
+        for reply in node.handle(msg):      # the frames the TCU would send, read back as the plant reads them
+            frame, _ = codec.classify(reply)
+            if frame is None:
+                continue
+            if frame.name == "TcuResult":
+                trace.event(frame.value)
+            elif frame.name == "TcuSample":
+                trace.sample(frame.value.creep_speed_kmh, frame.value.mu_hat)
+                trace.detected(frame.value.detected_step)
+            elif frame.name == "TcuStatus":
+                trace.observer(frame.value[1])
     wall = time.perf_counter() - wall0
-
-    tracker = StageTracker(fault_t, scenario.fault_curve.peak()[0])
-    truth_t, truth_mu = [], []
-    for t_s, creep, mu in src.truth:
-        tracker.update(t_s, creep)
-        if 0 <= t_s - fault_t <= LAG_WINDOW_S:
-            truth_t.append(t_s)
-            truth_mu.append(mu)
-    lag = observer_lag_by_step(scenario, truth_t, truth_mu, observer_mu, tracker.serious_time_s)
+    trace.detected(node.identifier.detector.detected_step)
 
     # compare with the logged identification when it came from the same strategy and seed (a CAN
     # log does not say which strategy produced its results: compare anyway)
+    events = trace.events
     matches = None
     same_run = (strategy == src.logged_strategy and (src.logged_seed is None or seed == src.logged_seed)) or \
         (src.kind == "can-log" and src.logged_strategy is None)
@@ -209,13 +199,11 @@ def replay(src: ReplaySource, strategy: str | None = None, seed: int | None = No
         limit = math.inf if src.logged_last_step is None else src.logged_last_step
         matches = [_event_key(e) for e in events if e.step <= limit] == [e for e in src.logged_events if e[0] <= limit]
 
-    v, mu = ident.strategy.data()
-    det = ident.detector.detected_step
     readings = node.sensor_frames
     logged_corr = None if src.logged_events is None else sum(1 for e in src.logged_events if e[1] == "correction")
     logged_conf = None if src.logged_events is None else next(
         (e for e in src.logged_events if e[1] == "confirmed"), None)
-    extra = {"observer_lag_ms": lag, "mode": "replay", "source": src.kind, "wall_s": wall,
+    extra = {"mode": "replay", "source": src.kind, "wall_s": wall,
              "sim_s": (node.last_step + 1) * period if node.last_step >= 0 else 0.0,
              "samples_per_s": readings / wall if wall > 0 else None, "sensor_readings": readings,
              "rejected_frames": dict(node.rejected), "messages_read": src.messages_read,
@@ -223,10 +211,7 @@ def replay(src: ReplaySource, strategy: str | None = None, seed: int | None = No
              "logged": {"strategy": src.logged_strategy, "seed": src.logged_seed, "corrections": logged_corr,
                         "t_identified_s": None if logged_conf is None else logged_conf[0] * period,
                         "params": None if logged_conf is None else list(logged_conf[3])}}
-    out = summarise(scenario=scenario, strategy=strategy, seed=seed, bus="replay", tracker=tracker, events=events,
-                    samples_v=v, samples_mu=mu, t_detected_s=None if det is None else det * period,
-                    mcap_path=src.path, extra=extra)
-    return clean(out)
+    return clean(trace.summary(strategy=strategy, seed=seed, bus="replay", mcap_path=src.path, extra=extra))
 
 
 def damage_warning(src: ReplaySource) -> str | None:

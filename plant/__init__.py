@@ -1,10 +1,10 @@
 """Wheelset-rail physics: friction curves, the CasADi plant, sensors, fault stages. No CAN here."""
 from .friction import FrictionCurve
-from .model import PlantConfig, PlantState, WheelsetPlant, creep_speed_kmh, equilibrium
+from .model import Plant, PlantConfig, PlantState, WheelsetPlant, creep_speed_kmh, equilibrium
 from .params import KMH_PER_MS, WheelsetParams
 from .sensors import SensorConfig, SensorModel
 from .stages import EARLY, NORMAL, SERIOUS, StageTracker
 
-__all__ = ["FrictionCurve", "PlantConfig", "PlantState", "WheelsetPlant", "creep_speed_kmh", "equilibrium",
+__all__ = ["FrictionCurve", "Plant", "PlantConfig", "PlantState", "WheelsetPlant", "creep_speed_kmh", "equilibrium",
            "KMH_PER_MS", "WheelsetParams", "SensorConfig", "SensorModel", "StageTracker",
            "NORMAL", "EARLY", "SERIOUS"]

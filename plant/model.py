@@ -14,6 +14,7 @@ sub-steps, so Python pays its call overhead once per period rather than once per
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol
 
 import casadi as ca
 import numpy as np
@@ -140,6 +141,21 @@ def bind_buffer(fn: ca.Function, args, results):
     for i, arr in enumerate(results):
         buffer.set_res(i, memoryview(arr))
     return buffer, evaluate
+
+
+class Plant(Protocol):
+    """What a run needs of a plant: the CasADi ``WheelsetPlant``, ``plant.reality.RealityPlant`` and
+    ``plant.fmu_plant.FmuPlant`` all fit.  ``step`` advances one exchange period holding the torque."""
+
+    step_index: int
+    state: PlantState
+
+    @property
+    def t_s(self) -> float: ...
+
+    def reset(self) -> PlantState: ...
+
+    def step(self, torque_nm: float) -> PlantState: ...
 
 
 class WheelsetPlant:

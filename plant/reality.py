@@ -25,17 +25,15 @@ A "real" run is the nominal plant plus one or more of these effects.  Three leve
 * **sensor** effects (``RealitySensors`` wraps ``plant.SensorModel``): ``sensor_delay`` (delay_ms,
   fractional periods by linear interpolation) and ``sensor_quantisation`` (quanta on top of noise).
 
-* **bus** effects (``can``: delay, jitter, loss of sensor frames) live in ``hil/reality_bus.py``;
-  this module only knows their parameters.
+* **bus** effects (``can``: delay, jitter, loss of sensor frames) are not physics of the plant: they
+  live with the registry of every effect (names, parameters, defaults, which the diagnosis may offer
+  as candidates) in ``hil/effects.py``.
 
-``parse_effect("load_transfer:z=1.5")`` and ``effects_from_table({...})`` turn text into
-``{name: {param: value}}`` with defaults filled in; unknown names/params raise ``ValueError`` with a
-one-line message.
+This module takes effects as ``{name: {param: value}}`` already checked by that registry.
 """
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
 
 import casadi as ca
 import numpy as np
@@ -44,112 +42,11 @@ from .model import PlantConfig, PlantState, bind_buffer, creep_speed_kmh, equili
 from .params import KMH_PER_MS
 
 
-@dataclass(frozen=True)
-class EffectSpec:
-    name: str
-    level: str                         # "plant" | "sensor" | "bus"
-    params: dict                       # param -> default value
-    doc: str
-    units: dict = field(default_factory=dict)
-    candidate: bool = True             # offered to the diagnosis as an explanation
-
-
-EFFECTS: dict[str, EffectSpec] = {s.name: s for s in [
-    EffectSpec("load_transfer", "plant",
-               {"half_bogie_distance_m": None, "half_wheelbase_m": None, "coupler_height_m": None,
-                "bogie_height_m": None},
-               "axle load transfer under traction (L, L_b, Z, z; defaults from the scenario's [vehicle])",
-               {"half_bogie_distance_m": "m", "half_wheelbase_m": "m", "coupler_height_m": "m", "bogie_height_m": "m"}),
-    EffectSpec("torque_lag", "plant", {"tau_s": 0.005}, "first-order motor/inverter torque lag",
-               {"tau_s": "s"}),
-    EffectSpec("compliance", "plant",
-               {"stiffness_nm_rad": 3e5, "damping_ratio": 0.05, "backlash_rad": 0.0},
-               "drivetrain torsional compliance (motor side) with gear backlash (half-width)",
-               {"stiffness_nm_rad": "N·m/rad", "damping_ratio": "-", "backlash_rad": "rad"}),
-    EffectSpec("adhesion_lag", "plant", {"tau_s": 0.01}, "adhesion dynamics: mu relaxes to the curve with tau_s",
-               {"tau_s": "s"}),
-    EffectSpec("resistance", "plant", {"factor": 1.5}, "running resistance = factor x the Davis polynomial",
-               {"factor": "-"}),
-    EffectSpec("torque_ripple", "plant", {"amplitude": 0.02, "frequency_hz": 60.0, "phase_rad": 0.0},
-               "sinusoidal torque ripple (fraction of the torque)",
-               {"amplitude": "-", "frequency_hz": "Hz", "phase_rad": "rad"}, candidate=False),
-    EffectSpec("wheel_radius", "plant", {"error_percent": 0.2}, "true wheel radius = nominal x (1 + error)",
-               {"error_percent": "%"}, candidate=False),
-    EffectSpec("sensor_delay", "sensor", {"delay_ms": 3.0}, "speed sensors report values delay_ms old",
-               {"delay_ms": "ms"}),
-    EffectSpec("sensor_quantisation", "sensor", {"motor_quantum_rad_s": 0.05, "train_quantum_ms": 0.0},
-               "speed sensors quantised (on top of their noise)",
-               {"motor_quantum_rad_s": "rad/s", "train_quantum_ms": "m/s"}),
-    EffectSpec("can", "bus", {"delay_ms": 2.0, "jitter_ms": 0.0, "loss": 0.0},
-               "CAN sensor frames delayed (+ uniform jitter), lost with probability loss; the TCU uses the "
-               "newest frame it has", {"delay_ms": "ms", "jitter_ms": "ms", "loss": "-"}),
-]}
-
+#: the plant-level effects this module integrates, in the order they act on the torque path
 PLANT_ORDER = ("torque_lag", "torque_ripple", "compliance", "wheel_radius", "adhesion_lag", "load_transfer",
                "resistance")
-
-
-def _number(text: str, where: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise ValueError(f"{where}: expected a number, got {text!r}") from None
-    if not math.isfinite(v):
-        raise ValueError(f"{where}: must be finite, got {text!r}")
-    return v
-
-
-def check_effect(name: str, params: dict, where: str = "reality") -> dict:
-    """Validated ``params`` of effect ``name`` with defaults filled in (None = from the scenario)."""
-    if name not in EFFECTS:
-        raise ValueError(f"{where}: unknown effect {name!r} (known: {', '.join(EFFECTS)})")
-    spec = EFFECTS[name]
-    out = dict(spec.params)
-    for k, v in params.items():
-        if k not in spec.params:
-            raise ValueError(f"{where} {name}: unknown parameter {k!r} (known: {', '.join(spec.params)})")
-        if isinstance(v, bool) or not isinstance(v, (int, float)):
-            v = _number(str(v), f"{where} {name}.{k}")
-        if not math.isfinite(v):
-            raise ValueError(f"{where} {name}.{k}: must be finite, got {v!r}")
-        out[k] = float(v)
-    for k, v in out.items():
-        if v is not None and v < 0 and k not in ("phase_rad", "error_percent"):
-            raise ValueError(f"{where} {name}.{k}: must be >= 0, got {v}")
-    if name in ("torque_lag", "adhesion_lag") and out["tau_s"] <= 0:
-        raise ValueError(f"{where} {name}.tau_s: must be > 0, got {out['tau_s']}")
-    if name == "compliance" and out["stiffness_nm_rad"] <= 0:
-        raise ValueError(f"{where} compliance.stiffness_nm_rad: must be > 0, got {out['stiffness_nm_rad']}")
-    if name == "can" and not out["loss"] < 1:
-        raise ValueError(f"{where} can.loss: must be < 1, got {out['loss']}")
-    return out
-
-
-def parse_effect(text: str) -> tuple[str, dict]:
-    """``"NAME[:p=v,...]"`` -> (name, params with defaults)."""
-    name, _, rest = text.partition(":")
-    name = name.strip()
-    params = {}
-    for item in filter(None, (s.strip() for s in rest.split(","))):
-        if "=" not in item:
-            raise ValueError(f"--reality {text!r}: expected PARAM=VALUE, got {item!r}")
-        k, v = item.split("=", 1)
-        params[k.strip()] = _number(v.strip(), f"--reality {name}.{k.strip()}")
-    return name, check_effect(name, params, "--reality")
-
-
-def effects_from_table(table: dict, where: str = "[reality]") -> dict:
-    """A scenario's ``[reality]`` table ``{effect: {param: value}}`` -> validated effects."""
-    if not isinstance(table, dict):
-        raise ValueError(f"{where}: must be a table of effects")
-    out = {}
-    for name, params in table.items():
-        if params is True:
-            params = {}
-        if not isinstance(params, dict):
-            raise ValueError(f"{where} {name}: must be a table of parameters (or true)")
-        out[name] = check_effect(name, params, where)
-    return out
+#: the sensor-level effects ``RealitySensors`` applies
+SENSOR_EFFECTS = ("sensor_delay", "sensor_quantisation")
 
 
 def fill_defaults(effects: dict, cfg: PlantConfig) -> dict:
@@ -167,7 +64,7 @@ def fill_defaults(effects: dict, cfg: PlantConfig) -> dict:
 
 
 def plant_effects(effects: dict) -> dict:
-    return {k: v for k, v in effects.items() if EFFECTS[k].level == "plant"}
+    return {k: v for k, v in effects.items() if k in PLANT_ORDER}
 
 
 # -- plant-level physics ----------------------------------------------------------------------------
@@ -189,7 +86,7 @@ class RealityModel:
 
     def __init__(self, cfg: PlantConfig, effects: dict):
         self.cfg = cfg
-        self.effects = {k: v for k, v in effects.items() if EFFECTS[k].level == "plant"}
+        self.effects = plant_effects(effects)
         names = ["omega_m", "v_t"]
         if "compliance" in self.effects:
             names += ["omega_w", "twist"]

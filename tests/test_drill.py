@@ -16,7 +16,7 @@ from identifier.tcu import SlipDetector
 def ffcc_a_run():
     """FFCC-a's scenario and the sensor readings of one real plant run (seed 3)."""
     from hil.benchmarks.identify import generate
-    from hil.scenario import load_scenario
+    from hil.config import load_scenario
     from tests.conftest import SCENARIOS
 
     sc = load_scenario(SCENARIOS / "ffcc_a.toml")

@@ -20,10 +20,10 @@ import pytest
 from fmpy.fmi2 import FMU2Slave
 from fmpy.validation import validate_fmu
 
-from hil.loop import run_inprocess
+from hil.exchange import run
 from hil.logread import read_log
-from hil.plant_factory import make_plant
-from hil.scenario import load_scenario
+from hil.plants import make_plant
+from hil.config import load_scenario
 from plant import WheelsetPlant
 from plant.fmu import export_fmu, model_param_names, parameter_values
 from plant.fmu_plant import FmuError, FmuPlant
@@ -258,7 +258,7 @@ train_speed_ms = "y"
     sc = load_scenario(scenario)
     plant = make_plant(sc)
     try:
-        summary = run_inprocess(sc, "nlls", 1, tmp_path, progress=False, plant=plant)
+        summary = run(sc, "nlls", 1, bus="inprocess", out_dir=tmp_path, progress=False, plant=plant, log=print)
     finally:
         plant.close()
     assert summary["sim_s"] == pytest.approx(sc.run.duration_s)
@@ -318,8 +318,8 @@ def _scenario_with(tmp_path, extra: str):
 
 
 def test_plant_table_relative_fmu_path_and_plant_spec(wheelset_fmu, tmp_path):
-    from hil.cli import UserError
-    from hil.scenario import ScenarioError
+    from hil.errors import ConfigError
+    from hil.config import ScenarioError
 
     shutil.copy(wheelset_fmu, tmp_path / "wheelset.fmu")
     sc = _scenario_with(tmp_path, '\n[plant]\nfmu = "wheelset.fmu"\n')
@@ -330,11 +330,11 @@ def test_plant_table_relative_fmu_path_and_plant_spec(wheelset_fmu, tmp_path):
         plant.close()
     assert make_plant(sc, "casadi") is None                      # --plant casadi wins over the table
     assert make_plant(load_scenario(SCENARIOS / "ffcc_a.toml")) is None
-    with pytest.raises(UserError, match="expected 'casadi' or 'fmu:PATH'"):
+    with pytest.raises(ConfigError, match="expected 'casadi' or 'fmu:PATH'"):
         make_plant(sc, "modelica")
     with pytest.raises(ScenarioError, match=r"s.toml: \[plant\] fmux: unknown key"):
         make_plant(_scenario_with(tmp_path, '\n[plant]\nfmux = "a.fmu"\n'))
     with pytest.raises(ScenarioError, match=r"\[plant.mapping\] torque_nm: must be an FMU variable name"):
         make_plant(_scenario_with(tmp_path, '\n[plant]\nfmu = "wheelset.fmu"\n[plant.mapping]\ntorque_nm = 3\n'))
-    with pytest.raises(UserError, match=r"\[reality\] plant effects \(torque_lag\).*cannot be combined"):
+    with pytest.raises(ConfigError, match=r"\[reality\] plant effects \(torque_lag\).*cannot be combined"):
         make_plant(_scenario_with(tmp_path, '\n[plant]\nfmu = "wheelset.fmu"\n[reality]\ntorque_lag = true\n'))

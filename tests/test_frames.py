@@ -9,8 +9,8 @@ import pytest
 
 from hil.frames import (COMMAND_ID, DBC_PATH, PLANT_HEARTBEAT_ID, RESULT_ID, SENSOR_ID, STATUS_ID, TCU_HEARTBEAT_ID,
                         FrameCodec, bus_load, fd_frame_time_s, load_dbc)
-from hil.scenario import load_scenario
-from hil.tcu_process import TcuNode
+from hil.config import load_scenario
+from hil.tcu_node import TcuNode
 from identifier.messages import IdentificationEvent, ObserverSample, SensorReading, TcuStatus, TorqueCommand
 
 PERIOD = 1e-3

@@ -13,9 +13,9 @@ from hil.benchmarks.gap import LIBRARY, draw_case, run_case
 from hil.gap import diagnose, read_real_log
 from hil.gap.data import describe
 from hil.logread import read_log
-from hil.loop import run_inprocess
-from hil.reality_bus import TRUTH_KEY
-from hil.scenario import load_scenario
+from hil.exchange import run
+from hil.effects import TRUTH_KEY
+from hil.config import load_scenario
 
 from .conftest import SCENARIOS, hil
 
@@ -45,7 +45,7 @@ def test_reader_drops_the_truth_even_from_the_scenario_text(tmp_path, scenario):
     path = tmp_path / "real.toml"
     path.write_text(text)
     real = load_scenario(path)
-    summary = run_inprocess(real, "nlls", 5, tmp_path, progress=False)
+    summary = run(real, "nlls", 5, bus="inprocess", out_dir=tmp_path, progress=False, log=print)
     raw = read_log(summary["mcap"])
     assert TRUTH_KEY in raw.metadata and "1.234" in json.dumps(raw.metadata)   # it is in the file ...
     data = read_real_log(summary["mcap"])
@@ -60,7 +60,7 @@ def test_reader_drops_the_truth_even_from_the_scenario_text(tmp_path, scenario):
 
 def test_nominal_run_has_no_gap(tmp_path, scenario):
     seed = fresh_seed() % 100000
-    summary = run_inprocess(scenario, "nlls", seed, tmp_path, progress=False)
+    summary = run(scenario, "nlls", seed, bus="inprocess", out_dir=tmp_path, progress=False, log=print)
     out, _ = diagnose(read_real_log(summary["mcap"]), scenario, identify=False)
     assert out["which"]["named"] == "none"
     assert out["which"]["gap_present"] is False
@@ -97,9 +97,9 @@ def test_blind_cases_with_a_seed_chosen_now(tmp_path, scenario):
 
 
 def test_cli_gap_json_and_report(tmp_path, scenario):
-    from hil.reality_bus import with_reality
-    real = run_inprocess(with_reality(scenario, {"adhesion_lag": {"tau_s": 0.008}}), "nlls", 12, tmp_path / "r",
-                         progress=False)
+    from hil.effects import with_reality
+    real = run(with_reality(scenario, {"adhesion_lag": {"tau_s": 0.008}}), "nlls", 12, bus="inprocess",
+               out_dir=tmp_path / "r", progress=False, log=print)
     rep = tmp_path / "report"
     r = hil("gap", real["mcap"], "--model", FFCC_A, "--json", "--report", rep, timeout=600)
     assert r.returncode == 0, r.stderr
@@ -154,7 +154,7 @@ def test_torque_lag_found_when_the_command_varies(tmp_path, scenario):
     import numpy as np
 
     from hil.gap.model import ObserverReplica
-    from hil.recording import Recorder
+    from hil.record import Recorder
     from plant import SensorModel
     from plant.reality import RealityPlant
 

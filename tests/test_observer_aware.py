@@ -130,7 +130,7 @@ def test_first_sample_without_innovation_is_handled():
 def test_tcu_feeds_observer_aware_strategies_from_the_slip_start(ffcc_a_path):
     """Through the real TCU and plant: samples from the detected slip start, creep of the same instant."""
     from hil.benchmarks.identify import generate
-    from hil.scenario import load_scenario
+    from hil.config import load_scenario
     from identifier import TractionIdentifier
 
     sc = load_scenario(ffcc_a_path)

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from hil.scenario import load_scenario
+from hil.config import load_scenario
 from plant import FrictionCurve, SensorConfig, SensorModel, StageTracker, WheelsetPlant
 
 

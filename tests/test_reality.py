@@ -7,12 +7,13 @@ import numpy as np
 import pytest
 
 from hil.logread import read_log
-from hil.loop import run_inprocess
-from hil.reality_bus import TRUTH_KEY, CanReality, with_reality
-from hil.scenario import load_scenario
+from hil.exchange import run
+from hil.effects import TRUTH_KEY, CanReality, with_reality
+from hil.config import load_scenario
 from identifier import SensorReading
 from plant import SensorConfig, SensorModel, WheelsetPlant
-from plant.reality import RealityPlant, RealitySensors, parse_effect
+from hil.effects import parse_effect
+from plant.reality import RealityPlant, RealitySensors
 
 from .conftest import hil_command, subprocess_env
 
@@ -150,14 +151,14 @@ def test_parse_effect_errors():
 
 def test_run_records_truth_under_one_key(scenario, tmp_path):
     real = with_reality(scenario, {"resistance": {"factor": 1.7}, "can": {"delay_ms": 2.0}})
-    summary = run_inprocess(real, "nlls", 3, tmp_path, progress=False)
+    summary = run(real, "nlls", 3, bus="inprocess", out_dir=tmp_path, progress=False, log=print)
     log = read_log(summary["mcap"])
     truth = log.metadata[TRUTH_KEY]
     assert json.loads(truth["effects"]) == {"resistance": {"factor": 1.7},
                                             "can": {"delay_ms": 2.0, "jitter_ms": 0.0, "loss": 0.0}}
     others = json.dumps({k: v for k, v in log.metadata.items() if k != TRUTH_KEY})
     assert "resistance" not in others and "factor" not in others and "delay_ms" not in others
-    nominal = run_inprocess(scenario, "nlls", 3, tmp_path / "nom", progress=False)
+    nominal = run(scenario, "nlls", 3, bus="inprocess", out_dir=tmp_path / "nom", progress=False, log=print)
     assert TRUTH_KEY not in read_log(nominal["mcap"]).metadata
 
 

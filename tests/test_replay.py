@@ -3,10 +3,10 @@ import json
 
 import pytest
 
-from hil.loop import run_inprocess
-from hil.scenario import load_scenario
+from hil.exchange import run
+from hil.config import load_scenario
 
-from .conftest import SCENARIOS, hil, kill_run_when_log_reaches
+from .conftest import ROOT, SCENARIOS, hil, kill_run_when_log_reaches
 
 PF_STRATEGY = "proposed"     # a particle-filter strategy (identifier/strategies/proposed.py)
 
@@ -65,16 +65,21 @@ def test_text_output_reports_speed(runs):
     assert float(line[0].split(" samples/s")[0].split()[-1]) > 0
 
 
-def test_log_without_frames_replays_from_plant_sensor(tmp_path):
-    """run_inprocess records no CAN frames: the replay reads /plant/sensor instead."""
-    scenario = load_scenario(SCENARIOS / "ffcc_a.toml")
-    run = run_inprocess(scenario, "nlls", seed=5, out_dir=tmp_path, progress=False)
-    r = hil("replay", run["mcap"], "--json")
+@pytest.mark.parametrize("name, source", [("ffcc_a-proposed-1-hub-7d64428.mcap", "mcap-frames"),
+                                          ("ffcc_a-proposed-1-inprocess-7d64428.mcap", "mcap-sensor")])
+def test_logs_recorded_before_the_redesign_replay_to_the_same_identification(name, source):
+    """tests/data holds two logs written by commit 7d64428, before hil/ was redesigned (FFCC-a,
+    proposed, seed 1, fault at 0.15 s, 0.25 s long): one over the hub with its CAN frames, one by the
+    old in-process loop that recorded no frames (the replay then reads /plant/sensor).  Both must
+    still replay to the identification they logged, bit for bit."""
+    r = hil("replay", ROOT / "tests" / "data" / name, "--json")
     assert r.returncode == 0, r.stderr
     s = json.loads(r.stdout)
-    assert s["source"] == "mcap-sensor"
+    assert s["source"] == source
     assert s["matches_log"] is True
-    assert s["params"] == run["params"] and s["corrections"] == run["corrections"]
+    assert s["corrections"] == s["logged"]["corrections"] == 2
+    assert s["params"] == s["logged"]["params"]
+    assert s["rt_percent"] == pytest.approx(34.667, abs=0.01)
 
 
 def test_bad_strategy_is_one_line(runs):

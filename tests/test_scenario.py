@@ -3,7 +3,7 @@ import subprocess
 
 import pytest
 
-from hil.scenario import ScenarioError, load_scenario, parse_scenario
+from hil.config import ScenarioError, load_scenario, parse_scenario
 
 from .conftest import hil_command, subprocess_env
 

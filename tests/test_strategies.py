@@ -196,7 +196,7 @@ def test_correlation_transition_does_not_amplify(stabiliser):
                                          ("[identifier.options.proposed]\nparticles = \"many\"\n", "many"),
                                          ("[identifier.options.magic]\nparticles = 10\n", "magic")])
 def test_bad_strategy_options_fail_at_scenario_load(ffcc_a_path, table, word):
-    from hil.scenario import ScenarioError, parse_scenario
+    from hil.config import ScenarioError, parse_scenario
 
     text = ffcc_a_path.read_text() + "\n" + table
     with pytest.raises(ScenarioError) as e:
@@ -206,7 +206,7 @@ def test_bad_strategy_options_fail_at_scenario_load(ffcc_a_path, table, word):
 
 
 def test_strategy_options_from_a_scenario_reach_the_strategy(ffcc_a_path):
-    from hil.scenario import parse_scenario
+    from hil.config import parse_scenario
 
     text = ffcc_a_path.read_text() + "\n[identifier.options.proposed]\nparticles = 123\nwindow_samples = 7\n"
     s = parse_scenario(text, "x.toml").identifier_settings()

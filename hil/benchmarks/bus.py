@@ -7,7 +7,7 @@ import json
 import sys
 import tempfile
 
-from ..scenario import load_scenario
+from ..config import load_scenario
 
 IDENT_KEYS = ("identified", "t_identified_s", "corrections", "params", "samples", "mse", "r2", "observer_lag_ms")
 HEARTBEAT_IDS = (0x701, 0x702)
@@ -47,8 +47,8 @@ def stream_digest(mcap_path) -> dict:
 
 
 def cmd_bus(args) -> int:
-    from ..canloop import run_can
-    from ..commands.run import parse_set
+    from ..exchange import run as run_can
+    from ..config import parse_set
 
     sets = list(args.set or [])
     scenario = load_scenario(args.scenario, parse_set(sets))

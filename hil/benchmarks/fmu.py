@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..scenario import load_scenario
+from ..config import load_scenario
 
 STATE_FIELDS = ("motor_speed_rad_s", "train_speed_ms", "creep_speed_kmh", "mu", "load_torque_nm")
 #: summary keys that depend on the wall clock, not on the run
@@ -61,7 +61,8 @@ def cmd_fmu(args) -> int:
     from plant.fmu import export_fmu, parameter_values
     from plant.fmu_plant import FmuPlant
 
-    from ..loop import run_inprocess
+    from ..exchange import run
+    from ..plants import plant_label
 
     out: dict = {"scenarios": {}}
     with tempfile.TemporaryDirectory(prefix="hil-bench-fmu-") as tmp:
@@ -86,7 +87,8 @@ def cmd_fmu(args) -> int:
             for kind in ("casadi", "fmu"):
                 plant = FmuPlant(fmu_path, cfg) if kind == "fmu" else None
                 try:
-                    summaries[kind] = run_inprocess(sc, "nlls", args.seed, record=False, progress=False, plant=plant)
+                    summaries[kind] = run(sc, "nlls", args.seed, bus="inprocess", record=False, progress=False,
+                                             plant=plant, plant_label=plant_label(plant), log=lambda text: None)
                 finally:
                     if plant is not None:
                         plant.close()

@@ -78,11 +78,12 @@ def truth_value(effect: str, truth: dict) -> float | None:
 def run_case(scenario, effect: str, params: dict, run_seed: int, out_dir: Path, i: int) -> dict:
     from ..gap import diagnose, read_real_log
     from ..logread import read_log
-    from ..loop import run_inprocess
-    from ..reality_bus import TRUTH_KEY, with_reality
+    from ..exchange import run
+    from ..effects import TRUTH_KEY, with_reality
 
     real = with_reality(scenario, {effect: params})
-    summary = run_inprocess(real, "nlls", run_seed, out_dir / f"case{i:03d}", progress=False)
+    summary = run(real, "nlls", run_seed, bus="inprocess", out_dir=out_dir / f"case{i:03d}", progress=False,
+                  log=lambda text: None)
     path = summary["mcap"]
     t0 = time.perf_counter()
     out, _ = diagnose(read_real_log(path), scenario, identify=False)   # blind: no truth in here
@@ -131,13 +132,13 @@ def summarise(records: list[dict]) -> dict:
 
 
 def cmd_gap_bench(args) -> int:
-    from ..cli import UserError
-    from ..scenario import load_scenario
+    from ..errors import ConfigError
+    from ..config import load_scenario
 
     if args.cases < 1:
-        raise UserError(f"--cases {args.cases}: must be >= 1")
+        raise ConfigError(f"--cases {args.cases}: must be >= 1")
     if not 0 <= args.outside <= 1:
-        raise UserError(f"--outside {args.outside}: must be in [0, 1]")
+        raise ConfigError(f"--outside {args.outside}: must be in [0, 1]")
     scenario = load_scenario(args.scenario)
     tmp = None
     if args.out:
@@ -166,7 +167,7 @@ def cmd_gap_bench(args) -> int:
         print(json.dumps(result))
     else:
         print(f"gap bench: {result['cases']} cases (seed {args.seed}), {result['effect_classes']} effect classes")
-        from ..summary import fmt as f
+        from ..trace import fmt as f
         print(f"  top-1 accuracy {f(result['top1_accuracy'], '.3f')} ({result['library_cases']} library cases)  "
               f"'none' accuracy {f(result['none_accuracy'], '.3f')} ({result['outside_cases']} outside)")
         print(f"  median held-out gap shrink {f(result['median_shrink_percent'], '.1f')} %  "

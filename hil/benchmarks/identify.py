@@ -30,12 +30,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cli import UserError
-from ..loop import collector_paused
+from ..errors import ConfigError
+from ..exchange import collector_paused
 from ..progress import Progress
-from ..scenario import load_scenario
-from ..summary import clean, summarise
-from ..summary import fmt as _f
+from ..config import load_scenario
+from ..trace import clean, summarise
+from ..trace import fmt as _f
 
 #: the verdict: a fast confirmation of a wrong curve is a failure
 OK_R2, OK_PEAK_MU_PERCENT, OK_PEAK_CREEP_PERCENT = 0.999, 3.0, 10.0
@@ -85,16 +85,18 @@ def generate(scenario, seed: int) -> CaseData:
     """Run plant + sensors with the TCU's torque demand and record the sensor readings."""
     from identifier import TorqueCommand
 
-    from ..loop import PlantSide
+    from ..plant_node import PlantRig
+    from ..trace import Trace
 
-    plant_side = PlantSide(scenario, seed, None)
+    trace = Trace(scenario)
+    rig = PlantRig(scenario, seed, trace)
     torque = scenario.identifier_settings().torque_demand_nm
     readings = []
     for _ in range(scenario.steps):
-        r = plant_side.sense()
+        r = rig.sense()
         readings.append(r)
-        plant_side.apply(TorqueCommand(r.step, torque))
-    return CaseData(scenario, seed, readings, plant_side.tracker)
+        rig.apply(TorqueCommand(r.step, torque))
+    return CaseData(scenario, seed, readings, trace.tracker)
 
 
 def with_particles(settings, strategy: str, particles: int | None):
@@ -143,9 +145,9 @@ def replay(data: CaseData, strategy: str, particles: int | None) -> tuple[dict, 
         settings = with_particles(sc.identifier_settings(), strategy, particles)
         ident = TractionIdentifier(settings, strategy, data.seed)
     except ValueError as e:
-        raise UserError(f"{sc.path}: [identifier] options for {strategy}: {e}") from None
+        raise ConfigError(f"{sc.path}: [identifier] options for {strategy}: {e}") from None
     events, costs_ns, quiet_ns, monitoring_ns = [], [], [], []
-    with collector_paused():        # as the TCU process runs in real time (hil/tcu_process.py)
+    with collector_paused():        # as the TCU process runs in real time (hil/tcu_node.py)
         _feed(ident, data.readings, events, costs_ns, quiet_ns, monitoring_ns)
     ident.events_seen = events
     v, mu = ident.strategy.data()
@@ -308,27 +310,26 @@ def table(results: dict, cases: list[str], n_seeds: int) -> str:
 def cmd_identify(args) -> int:
     from identifier import STRATEGIES
 
-    from .. import commands  # noqa: F401  (ensures the CLI package is importable for parse_set)
-    from ..commands.run import parse_set
+    from ..config import parse_set
 
     strategies = [s.strip() for s in args.strategies.split(",") if s.strip()]
     for s in strategies:
         if s not in STRATEGIES:
-            raise UserError(f"--strategies: unknown strategy {s!r}; available: {', '.join(sorted(STRATEGIES))}")
+            raise ConfigError(f"--strategies: unknown strategy {s!r}; available: {', '.join(sorted(STRATEGIES))}")
     if args.seeds < 1:
-        raise UserError("--seeds: must be >= 1")
+        raise ConfigError("--seeds: must be >= 1")
     if args.particles is not None and args.particles < 2:
-        raise UserError("--particles: must be >= 2")
+        raise ConfigError("--particles: must be >= 2")
     cases = [c.strip() for c in args.cases.split(",") if c.strip()]
     overrides = parse_set(args.set)
     scenarios = {}
     for c in cases:
         path = case_path(c)
         if not path.exists():
-            raise UserError(f"--cases: no scenario file {path}")
+            raise ConfigError(f"--cases: no scenario file {path}")
         scenarios[c] = load_scenario(path, overrides)
     if args.first_seed < 0:
-        raise UserError("--first-seed: must be >= 0")
+        raise ConfigError("--first-seed: must be >= 0")
     seeds = list(range(args.first_seed, args.first_seed + args.seeds))
     per_seed = {s: {c: [] for c in cases} for s in strategies}
     first_runs = {c: {} for c in cases}

@@ -4,7 +4,7 @@ from __future__ import annotations
 import json
 import time
 
-from ..scenario import load_scenario
+from ..config import load_scenario
 
 
 def register(sub) -> None:
@@ -31,13 +31,13 @@ def measure_plant(scenario, sim_seconds: float) -> dict:
 
 
 def cmd_plant(args) -> int:
-    from ..loop import run_inprocess
+    from ..exchange import run
 
     scenario = load_scenario(args.scenario, {"run.fault_time_s": args.sim_seconds * 2,
                                              "run.duration_s": args.sim_seconds * 2 + 1})
     out = measure_plant(scenario, args.sim_seconds)
     loop_scenario = load_scenario(args.scenario)
-    summary = run_inprocess(loop_scenario, record=False, progress=False)
+    summary = run(loop_scenario, bus="inprocess", record=False, progress=False, log=lambda text: None)
     out["loop_inprocess_x_realtime"] = summary["sim_s"] / summary["wall_s"]
     if args.json:
         print(json.dumps(out))

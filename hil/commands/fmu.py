@@ -4,7 +4,7 @@ from __future__ import annotations
 import json
 import sys
 
-from ..cli import UserError
+from ..errors import ConfigError
 
 
 def register(sub) -> None:
@@ -30,18 +30,18 @@ def register(sub) -> None:
 def cmd_export(args) -> int:
     from plant.fmu import FmuExportError, export_fmu
 
-    from ..scenario import load_scenario
-    from .run import parse_set
+    from ..config import load_scenario
+    from ..config import parse_set
 
     if args.terms is not None and args.terms < 1:
-        raise UserError(f"--terms {args.terms}: must be >= 1")
+        raise ConfigError(f"--terms {args.terms}: must be >= 1")
     scenario = load_scenario(args.scenario, parse_set(args.set))
     try:
         path = export_fmu(scenario.plant_config(), args.output, n_terms=args.terms,
                           description=f"railway-hil wheelset-rail plant, start values from {scenario.name}",
                           stop_time_s=scenario.run.duration_s, fmi_version=args.fmi)
     except (FmuExportError, OSError) as e:
-        raise UserError(f"{args.output}: {e}") from None
+        raise ConfigError(f"{args.output}: {e}") from None
     print(f"wrote {path} (FMI {args.fmi}.0 Co-Simulation, parameters from {args.scenario})", file=sys.stderr)
     return 0
 
@@ -55,7 +55,7 @@ def cmd_info(args) -> int:
     try:
         md = read_fmu(args.fmu)
     except FmuError as e:
-        raise UserError(str(e)) from None
+        raise ConfigError(str(e)) from None
     problems = validate_fmu(args.fmu)
     info = {"fmu": args.fmu, "fmi_version": md.fmiVersion, "model_name": md.modelName,
             "generation_tool": md.generationTool,

@@ -3,8 +3,8 @@ from __future__ import annotations
 
 import json
 
-from ..cli import UserError
-from ..scenario import load_scenario
+from ..errors import ConfigError
+from ..config import load_scenario
 
 
 def register(sub) -> None:
@@ -25,9 +25,9 @@ def cmd_gap(args) -> int:
     from ..gap.report import text_summary, write_report
 
     if args.block < 2:
-        raise UserError(f"--block {args.block}: must be >= 2")
+        raise ConfigError(f"--block {args.block}: must be >= 2")
     if args.max_creep_kmh <= 0:
-        raise UserError(f"--max-creep-kmh {args.max_creep_kmh}: must be > 0")
+        raise ConfigError(f"--max-creep-kmh {args.max_creep_kmh}: must be > 0")
     scenario = load_scenario(args.model)
     data = read_real_log(args.real_log)
     out, dg = diagnose(data, scenario, block=args.block, max_creep_kmh=args.max_creep_kmh,

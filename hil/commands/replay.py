@@ -6,7 +6,7 @@ import sys
 
 from identifier import STRATEGIES
 
-from ..cli import UserError
+from ..errors import ConfigError
 from .run import print_summary
 
 
@@ -24,7 +24,7 @@ def register(sub) -> None:
 
 def cmd_replay(args) -> int:
     if args.strategy is not None and args.strategy not in STRATEGIES:
-        raise UserError(f"unknown strategy {args.strategy!r}; available: {', '.join(sorted(STRATEGIES))}")
+        raise ConfigError(f"unknown strategy {args.strategy!r}; available: {', '.join(sorted(STRATEGIES))}")
     from ..replay import damage_warning, load_source, replay
 
     src = load_source(args.log, args.scenario)

@@ -6,25 +6,9 @@ import sys
 
 from identifier import STRATEGIES
 
-from ..cli import UserError
-from ..scenario import load_scenario
-from ..summary import fmt as _fmt
-
-
-def parse_set(items) -> dict:
-    """``--set run.duration_s=600`` -> {"run.duration_s": 600} (values parsed as TOML scalars)."""
-    import tomllib
-
-    out = {}
-    for item in items or []:
-        if "=" not in item:
-            raise UserError(f"--set {item!r}: expected TABLE.KEY=VALUE")
-        key, value = item.split("=", 1)
-        try:
-            out[key.strip()] = tomllib.loads(f"v = {value}")["v"]
-        except tomllib.TOMLDecodeError:
-            out[key.strip()] = value
-    return out
+from ..config import load_scenario, parse_set
+from ..errors import ConfigError
+from ..trace import fmt as _fmt
 
 
 def register(sub) -> None:
@@ -47,7 +31,7 @@ def register(sub) -> None:
                    help="override a scenario field, e.g. --set run.duration_s=600 (repeatable)")
     p.add_argument("--reality", action="append", metavar="EFFECT[:PARAM=VALUE,...]",
                    help="switch on an effect the nominal model lacks, for a 'real' run (repeatable; "
-                   "see plant/reality.py, e.g. load_transfer:bogie_height_m=1.5, can:delay_ms=3)")
+                   "see hil/effects.py, e.g. load_transfer:bogie_height_m=1.5, can:delay_ms=3)")
     p.add_argument("--plant", default=None, metavar="casadi|fmu:PATH",
                    help="plant model: the CasADi model or an FMI 2.0/3.0 Co-Simulation FMU (default: the "
                    "scenario's [plant] table, else casadi). Loading an FMU runs its native code")
@@ -58,23 +42,22 @@ def register(sub) -> None:
 
 def cmd_run(args) -> int:
     if args.strategy not in STRATEGIES:
-        raise UserError(f"unknown strategy {args.strategy!r}; available: {', '.join(sorted(STRATEGIES))}")
+        raise ConfigError(f"unknown strategy {args.strategy!r}; available: {', '.join(sorted(STRATEGIES))}")
     scenario = load_scenario(args.scenario, parse_set(args.set))
     scenario = apply_reality_args(scenario, args.reality)
-    from ..bus import BusError
-    from ..canloop import run_can
-    from ..tcu_process import EXIT_SILENT, PeerSilent
-
-    from ..plant_factory import make_plant
+    from ..errors import PeerSilent
+    from ..exchange import run
+    from ..plants import make_plant, plant_label
 
     plant = make_plant(scenario, args.plant)   # None: the CasADi model
     try:
-        summary = run_can(scenario, args.strategy, args.seed, bus=args.bus, mode=args.mode, out_dir=args.out,
-                          set_args=args.set, plant=plant, external_tcu=args.tcu == "external")
-    except BusError as e:
-        raise UserError(str(e)) from None
+        summary = run(scenario, args.strategy, args.seed, bus=args.bus, mode=args.mode, out_dir=args.out,
+                      set_args=args.set, plant=plant, plant_label=plant_label(plant),
+                      external_tcu=args.tcu == "external")
     except PeerSilent as e:
-        raise UserError(f"{e}; fault recorded, log closed", exit_code=EXIT_SILENT) from None
+        if args.json and getattr(e, "summary", None) is not None:
+            print(json.dumps(e.summary))      # still the one JSON object, with the fault in it
+        raise PeerSilent(f"{e}; fault recorded, log closed") from None
     finally:
         if plant is not None:
             plant.close()
@@ -104,21 +87,21 @@ def write_rrd_beside(mcap_path):
 
 def apply_reality_args(scenario, items):
     """``--reality EFFECT[:p=v,...]`` merged into the scenario's [reality] table (validated)."""
-    from plant.reality import effects_from_table, parse_effect
-
-    from ..reality_bus import with_reality
+    from ..effects import parse_effect, with_reality
     try:
-        effects_from_table(scenario.extra.get("reality") or {}, f"{scenario.path}: [reality]")
         parsed = dict(parse_effect(item) for item in items or [])
     except ValueError as e:
-        raise UserError(str(e)) from None
+        raise ConfigError(str(e)) from None
     return with_reality(scenario, parsed) if parsed else scenario
 
 
 def print_summary(s: dict, file=sys.stdout, heading: str | None = None) -> None:
     """The run summary as text; every figure prints n/a where the source lacks it (e.g. a CAN log has no truth)."""
-    print(heading or f"scenario {s['scenario']}  strategy {s['strategy']}  seed {s['seed']}  bus {s['bus']}",
-          file=file)
+    print(heading or f"scenario {s['scenario']}  strategy {s['strategy']}  seed {s['seed']}  bus {s['bus']}"
+          + (f"  plant {s['plant']}" if s.get("plant") else ""), file=file)
+    if s.get("reality"):
+        print("  reality: " + "; ".join(f"{name}(" + ", ".join(f"{k}={v}" for k, v in (params or {}).items()) + ")"
+                                        for name, params in s["reality"].items()), file=file)
     print(f"  fault at {_fmt(s['t_fault_s'], '.3f')} s, serious stage at {_fmt(s['t_serious_s'], '.3f')} s "
           f"(T_det {_fmt(s['t_det_s'] and s['t_det_s'] * 1e3, '.1f')} ms), slip detected at "
           f"{_fmt(s['t_detected_s'], '.3f')} s", file=file)

@@ -5,7 +5,7 @@ import shutil
 import subprocess
 import sys
 
-from ..cli import UserError
+from ..errors import ConfigError
 
 
 def register(sub) -> None:
@@ -30,5 +30,5 @@ def cmd_view(args) -> int:
         try:
             subprocess.Popen([exe, "--bind", "127.0.0.1", str(out)], start_new_session=True)
         except OSError as e:
-            raise UserError(f"cannot start the Rerun viewer ({exe}): {e.strerror}") from None
+            raise ConfigError(f"cannot start the Rerun viewer ({exe}): {e.strerror}") from None
     return 0

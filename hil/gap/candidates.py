@@ -20,7 +20,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares, minimize_scalar
 
-from plant.reality import EFFECTS, fill_defaults
+from plant.reality import fill_defaults
+
+from ..effects import EFFECTS
 
 from .model import Simulator, lattice_quantum, shift
 

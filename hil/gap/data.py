@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from ..logread import LogError, read_log
-from ..reality_bus import TRUTH_KEY
+from ..effects import TRUTH_KEY
 
 TOPICS = {"/plant/sensor", "/tcu/command", "/tcu/observer", "/tcu/identification"}
 KEPT_METADATA = ("run",)

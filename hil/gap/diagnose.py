@@ -33,7 +33,7 @@ from identifier import SensorReading, TractionIdentifier
 from identifier.metrics import peak_errors, rt_percent
 from plant import SensorModel
 
-from ..summary import clean
+from ..trace import clean
 from .candidates import SIGNALS, UNITS, Context, Fit, candidates, fit_nominal
 from .model import ObserverReplica, Simulator, initial_line
 
@@ -126,8 +126,8 @@ class Diagnosis:
     def run(self) -> dict:
         d, sc = self.data, self.scenario
         if abs(d.period_s - sc.run.exchange_period_s) > 1e-9:
-            from ..cli import UserError
-            raise UserError(f"{d.path}: exchange period {d.period_s} s differs from the model scenario's "
+            from ..errors import ConfigError
+            raise ConfigError(f"{d.path}: exchange period {d.period_s} s differs from the model scenario's "
                             f"{sc.run.exchange_period_s} s ({sc.path})")
         settings = sc.identifier_settings()
         obs = ObserverReplica(settings)

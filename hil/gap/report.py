@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..summary import fmt as _f
+from ..trace import fmt as _f
 from .candidates import SIGNALS, UNITS
 
 STAGES = ("normal", "early", "serious")

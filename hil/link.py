@@ -1,4 +1,5 @@
-"""One factory for every bus the HIL runs on: ``open_bus(spec)``.
+"""The link between plant and TCU: opening a bus by name from a table of backends (``open_bus``), a
+thread-safe sender, and the timing rules both nodes share (heartbeat period, silence limit).
 
 Bus specs:
   ``auto``               ``socketcan:vcan0`` when this kernel has it, otherwise ``hub``
@@ -12,11 +13,11 @@ Bus specs:
                          and timing come from python-can's own configuration (``~/.canrc``)
 
 ``BusHandle.peer_spec`` is what a second process passes to ``open_bus`` to reach the same bus.
-Errors are ``BusError``: one line naming the bus and what is available here.
+Backends are looked up by name in ``BACKENDS`` (as python-can's ``BACKENDS``); ``register_backend``
+adds one.  Errors are ``BusError``: one line naming the bus and what is available here.
 """
 from __future__ import annotations
 
-import errno
 import os
 import socket
 import subprocess
@@ -26,14 +27,16 @@ from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import threading
+from typing import Callable
+
 import can
+
+from .errors import BusError
 
 HUB_START_TIMEOUT_S = 15.0
 HUB_SWITCH_INTERVAL_S = 1e-4
-
-
-class BusError(ValueError):
-    """A bus spec that names nothing usable here; the message is one line."""
+MODES = ("lockstep", "realtime")
 
 
 # -- what this machine offers ---------------------------------------------------------------------
@@ -219,31 +222,101 @@ def open_python_can(interface: str, channel: str) -> can.BusABC:
                        f"; available here: {available_here()}") from None
 
 
+def _open_inprocess(spec, name, channel, inprocess_node=None) -> BusHandle:
+    if inprocess_node is None:
+        raise BusError("bus inprocess: needs the TCU node to answer in this process")
+    return BusHandle(spec, name, InprocessTcuBus(inprocess_node), None)
+
+
+def _open_hub(spec, name, channel, inprocess_node=None) -> BusHandle:
+    hub = Hub()
+    try:
+        bus = can.Bus(interface="remote", channel=hub.url, receive_own_messages=False)
+    except Exception as e:  # noqa: BLE001
+        hub.stop()
+        raise BusError(f"bus hub: cannot connect to {hub.url}: {e}") from None
+    return BusHandle(spec, "hub", bus, f"remote:{hub.url}", hub=hub)
+
+
+def _open_refused(spec, name, channel, inprocess_node=None) -> BusHandle:
+    raise BusError(f"bus {name}: udp_multicast sends through the real network interface; use hub or vcan "
+                   f"(available here: {available_here()})")
+
+
+def _open_local_only(spec, name, channel, inprocess_node=None) -> BusHandle:
+    interface = name.split(":", 1)[0]
+    return BusHandle(spec, name, open_python_can(interface, channel), None)
+
+
+def _open_python_can(spec, name, channel, inprocess_node=None) -> BusHandle:
+    interface = name.split(":", 1)[0]
+    return BusHandle(spec, name, open_python_can(interface, channel), name)
+
+
+Opener = Callable[..., BusHandle]
+#: backend name -> opener(spec, resolved name, channel, inprocess_node=None); any other
+#: ``interface:channel`` goes to python-can
+BACKENDS: dict[str, Opener] = {
+    "inprocess": _open_inprocess,
+    "hub": _open_hub,
+    "udp_multicast": _open_refused,
+    "virtual": _open_local_only,      # python-can's virtual bus lives inside one process
+}
+
+
+def register_backend(name: str, opener: Opener) -> None:
+    """Make ``open_bus(name)`` / ``open_bus(f"{name}:CHANNEL")`` use ``opener``."""
+    BACKENDS[name] = opener
+
+
 def open_bus(spec: str, inprocess_node=None) -> BusHandle:
     """Open the bus named by ``spec`` (see the module docstring); raises BusError with one line."""
     if not isinstance(spec, str) or not spec:
         raise BusError(f"bus {spec!r}: empty bus name; available here: {available_here()}")
     name = resolve(spec)
-    if name == "inprocess":
-        if inprocess_node is None:
-            raise BusError("bus inprocess: needs the TCU node to answer in this process")
-        return BusHandle(spec, name, InprocessTcuBus(inprocess_node), None)
-    if name == "hub":
-        hub = Hub()
-        try:
-            bus = can.Bus(interface="remote", channel=hub.url, receive_own_messages=False)
-        except Exception as e:  # noqa: BLE001
-            hub.stop()
-            raise BusError(f"bus hub: cannot connect to {hub.url}: {e}") from None
-        return BusHandle(spec, "hub", bus, f"remote:{hub.url}", hub=hub)
-    if ":" not in name:
+    backend, _, channel = name.partition(":")
+    if backend in BACKENDS:
+        return BACKENDS[backend](spec, name, channel, inprocess_node=inprocess_node)
+    if not channel:
         raise BusError(f"unknown bus {spec!r}; available here: {available_here()}")
-    interface, channel = name.split(":", 1)
-    if interface == "udp_multicast":
-        raise BusError(f"bus {name}: udp_multicast sends through the real network interface; use hub or vcan "
-                       f"(available here: {available_here()})")
-    if interface == "virtual":
-        bus = open_python_can(interface, channel)
-        return BusHandle(spec, name, bus, None)
-    bus = open_python_can(interface, channel)
-    return BusHandle(spec, name, bus, name)
+    return _open_python_can(spec, name, channel)
+
+
+# -- sending and timing -------------------------------------------------------------------------------
+class Sender:
+    """Thread-safe ``send`` (a heartbeat thread and the main loop share the bus); a full transmit
+    queue (ENOBUFS) is retried for up to ~25 ms, then the error propagates."""
+
+    def __init__(self, bus: can.BusABC):
+        self.bus = bus
+        self._lock = threading.Lock()
+        self.sent = 0
+
+    def send(self, msg: can.Message) -> None:
+        with self._lock:
+            for attempt in range(50):
+                try:
+                    self.bus.send(msg, timeout=0.1)
+                    self.sent += 1
+                    return
+                except can.CanOperationError:
+                    if attempt == 49:
+                        raise
+                    time.sleep(0.0005)
+
+
+def silence_limit_s(settings, mode: str, period_s: float) -> float:
+    """How long the peer may send nothing before it counts as silent (wall seconds).
+
+    Realtime: ``silence_periods`` periods of the heartbeat, the one frame a node sends however busy
+    it is (``max(heartbeat_period_s, period_s)``).  Lockstep: ``lockstep_silence_s`` (a lockstep
+    period has no wall-clock length, and a TCU busy fitting is not silent)."""
+    if mode == "realtime":
+        return settings.silence_periods * max(settings.heartbeat_period_s, period_s)
+    return settings.lockstep_silence_s
+
+
+def heartbeat_period_s(settings, mode: str) -> float:
+    """Realtime: ``[bus] heartbeat_period_s``.  Lockstep: a quarter of the silence limit (the peers wait
+    for each other by design; frequent heartbeats would only cost syscalls, which are dear in UML)."""
+    return settings.heartbeat_period_s if mode == "realtime" else settings.lockstep_silence_s / 4

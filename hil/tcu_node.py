@@ -1,17 +1,23 @@
-"""The TCU on a bus: ``TcuNode`` turns received frames into reply frames around a ``TractionIdentifier``;
-``serve`` runs a node on an open bus with heartbeats and plant-silence detection; ``main`` is the
-process ``hil run`` spawns (``python -m hil.tcu_process``) and ``hil tcu`` runs.
+"""The TCU node: frames in, frames out, around a ``TractionIdentifier``.
+
+``TcuNode.handle(msg)`` turns one received frame into the reply frames (TorqueCommand first, then a
+TcuSample per sample the strategy took, a TcuResult per identification event, TcuStatus); replay and
+the in-process bus call it directly.  ``serve`` runs a node on an open bus with heartbeats and
+plant-silence detection; ``main`` is the process ``hil run`` spawns (``python -m hil.tcu_node``) and
+``hil tcu`` runs.  This module imports neither the command line nor the recorder.
 
 Only frames that pass ``FrameCodec.classify`` and the step sequence check reach the identifier.
-At the end the process prints one JSON report on stdout (``--report-json``): the identifier's
-samples (for the fit metrics of the run summary), its detection step, the events it produced and
-the rejected frames by reason.
+The samples travel as frames, so the plant side computes the run's fit metrics whichever TCU
+answered; the node's own counters (rejected frames and readings, resyncs) go to ``--report FILE``
+(JSON, written at exit) and, with ``--json``, to stdout.
 """
 from __future__ import annotations
 
 import argparse
 import gc
 import json
+import math
+import os
 import signal
 import sys
 import threading
@@ -19,20 +25,15 @@ import time
 
 import can
 
-from identifier import TractionIdentifier
+from identifier import STRATEGIES, TractionIdentifier
 
-from .frames import (PLANT_IDS, STATE_FAULT, STATE_FINISHED, STATE_NAMES,
-                     STATE_RUNNING, STATE_STARTING, FrameCodec, RejectCounter)
-from .summary import clean
+from .errors import EXIT_INTERRUPTED, EXIT_OK, BusError, ConfigError, HilError, PeerSilent, PlantFault
+from .frames import (PLANT_IDS, STATE_FAULT, STATE_FINISHED, STATE_NAMES, STATE_RUNNING, STATE_STARTING,
+                     FrameCodec, RejectCounter, SampleReport)
+from .link import Sender, heartbeat_period_s, silence_limit_s
 
 #: a sensor step may jump ahead by at most this many periods (frames lost); beyond it is garbage
 MAX_STEP_GAP = 100
-
-EXIT_OK, EXIT_USAGE, EXIT_SILENT, EXIT_PLANT_FAULT, EXIT_INTERRUPTED = 0, 2, 3, 4, 130
-
-
-class PeerSilent(RuntimeError):
-    """The other side of the bus stopped sending; the message is one line."""
 
 
 class TcuNode:
@@ -48,6 +49,7 @@ class TcuNode:
         self.resyncs = 0
         self.sensor_frames = 0
         self.events = 0
+        self.samples_sent = 0
         self.plant_state: int | None = None
         self.finished = False
 
@@ -72,44 +74,34 @@ class TcuNode:
             out = self.identifier.on_sensor(reading)
             self.events += len(out.events)
             c = self.codec
-            # the command first: the plant waits for it; results and status follow
-            return [c.command(out.command)] + [c.result(e) for e in out.events] + [c.status(out.status, out.observer)]
+            # the command first: the plant waits for it; samples, results and status follow
+            return [c.command(out.command)] + self._new_samples(reading.step) + [c.result(e) for e in out.events] \
+                + [c.status(out.status, out.observer)]
         if frame.name == "PlantHeartbeat":
             self.plant_state = frame.value.state
             if frame.value.state in (STATE_FINISHED, STATE_FAULT):
                 self.finished = True
         return []          # TCU frames of another node: nothing to do
 
+    def _new_samples(self, step: int) -> list[can.Message]:
+        strategy = self.identifier.strategy
+        n = strategy.samples
+        if n == self.samples_sent:
+            return []
+        v, mu = strategy.data()
+        detected = self.identifier.detector.detected_step
+        frames = [self.codec.sample(SampleReport(step, i, -1 if detected is None else detected, float(v[i]),
+                                                 float(mu[i]))) for i in range(self.samples_sent, n)]
+        self.samples_sent = n
+        return frames
+
     def report(self) -> dict:
-        v, mu = self.identifier.strategy.data()
         ident = self.identifier
-        return {"samples_v": [float(x) for x in v], "samples_mu": [float(x) for x in mu],
-                "detected_step": ident.detector.detected_step, "events": self.events,
+        return {"detected_step": ident.detector.detected_step, "events": self.events, "samples": self.samples_sent,
                 "sensor_frames": self.sensor_frames, "last_step": self.last_step, "resyncs": self.resyncs,
                 "rejected_frames": dict(self.rejected), "rejected_readings": ident.rejected_readings,
                 "plant_state": None if self.plant_state is None else STATE_NAMES.get(self.plant_state),
                 "confirmed": bool(ident.strategy.confirmed)}
-
-
-class Sender:
-    """Thread-safe ``send`` (the heartbeat thread and the main loop share the bus)."""
-
-    def __init__(self, bus: can.BusABC):
-        self.bus = bus
-        self._lock = threading.Lock()
-        self.sent = 0
-
-    def send(self, msg: can.Message) -> None:
-        with self._lock:
-            for attempt in range(50):
-                try:
-                    self.bus.send(msg, timeout=0.1)
-                    self.sent += 1
-                    return
-                except can.CanOperationError:
-                    if attempt == 49:
-                        raise
-                    time.sleep(0.0005)   # transmit queue full (ENOBUFS): wait a little
 
 
 def serve(bus: can.BusABC, node: TcuNode, *, silence_s: float, heartbeat_period_s: float,
@@ -175,24 +167,7 @@ def serve(bus: can.BusABC, node: TcuNode, *, silence_s: float, heartbeat_period_
             pass
 
 
-def silence_limit_s(settings, mode: str, period_s: float) -> float:
-    """How long the peer may send nothing before it counts as silent (wall seconds).
-
-    Realtime: ``silence_periods`` periods of the heartbeat, the one frame a node sends however busy
-    it is (``max(heartbeat_period_s, period_s)``; defaults 3 x 2 ms).  Lockstep: ``lockstep_silence_s``
-    (a lockstep period has no wall-clock length, and a TCU busy fitting is not silent)."""
-    if mode == "realtime":
-        return settings.silence_periods * max(settings.heartbeat_period_s, period_s)
-    return settings.lockstep_silence_s
-
-
-def heartbeat_period_s(settings, mode: str) -> float:
-    """Realtime: ``[bus] heartbeat_period_s``.  Lockstep: a quarter of the silence limit (the peers wait
-    for each other by design; frequent heartbeats would only cost syscalls, which are dear in UML)."""
-    return settings.heartbeat_period_s if mode == "realtime" else settings.lockstep_silence_s / 4
-
-
-def build_parser(prog="python -m hil.tcu_process") -> argparse.ArgumentParser:
+def build_parser(prog="python -m hil.tcu_node") -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog=prog, description="The identifier (TCU) alone on a bus.")
     add_arguments(p)
     return p
@@ -211,53 +186,71 @@ def add_arguments(p) -> None:
     p.add_argument("--wait", type=float, default=None, help="seconds to wait for the plant's first frame "
                    "(default: [bus] startup_timeout_s)")
     p.add_argument("--json", action="store_true", help="print the TCU's report as one JSON object on stdout")
+    p.add_argument("--report", metavar="FILE", default=None, help="write the TCU's report (JSON) to FILE at exit")
 
 
 def run_tcu(args) -> int:
-    """Shared by ``hil tcu`` and the child process; raises UserError-like exceptions for bad input."""
-    from identifier import STRATEGIES
-
-    from .bus import BusError, open_bus
-    from .canloop import bus_settings
-    from .commands.run import parse_set
-    from .scenario import load_scenario
+    """Shared by ``hil tcu`` and the child process; raises ``HilError`` for bad input."""
+    from .config import load_scenario, parse_set
+    from .link import open_bus, resolve
 
     if args.strategy not in STRATEGIES:
-        raise BusError(f"unknown strategy {args.strategy!r}; available: {', '.join(sorted(STRATEGIES))}")
+        raise ConfigError(f"unknown strategy {args.strategy!r}; available: {', '.join(sorted(STRATEGIES))}")
     scenario = load_scenario(args.scenario, parse_set(args.set))
-    settings = bus_settings(scenario)
+    settings = scenario.bus
     seed = scenario.run.seed if args.seed is None else args.seed
-    from .bus import resolve
-
     bus = resolve(args.bus)
     if bus in ("inprocess", "hub"):
         raise BusError(f"bus {args.bus}{' (no vcan0 here: hub)' if args.bus == 'auto' else ''}: the TCU alone needs "
                        "the plant's bus (socketcan:<ch>, remote:ws://HOST:PORT/ of a running hub, or a python-can "
                        "interface:channel)")
-    handle = open_bus(bus)
     node = TcuNode(scenario, args.strategy, seed)
+    handle = open_bus(bus)
     if args.mode == "realtime":     # a full collection over scipy's and casadi's objects stalls both threads
         gc.freeze()
         gc.disable()
     period = scenario.run.exchange_period_s
     code = EXIT_OK
+    error = None
     try:
         serve(handle.bus, node, silence_s=silence_limit_s(settings, args.mode, period),
               heartbeat_period_s=heartbeat_period_s(settings, args.mode),
               startup_timeout_s=settings.startup_timeout_s if args.wait is None else args.wait)
         if node.plant_state == STATE_FAULT:
-            print(f"hil tcu: the plant reported a fault after step {node.last_step}", file=sys.stderr)
-            code = EXIT_PLANT_FAULT
+            error = PlantFault(f"the plant reported a fault after step {node.last_step}")
     except PeerSilent as e:
-        print(f"hil tcu: error: {e}", file=sys.stderr)
-        code = EXIT_SILENT
+        error = e
     finally:
         handle.close()
-        if args.json:
-            report = node.report()
-            report["exit"] = code
-            print(json.dumps(clean(report)), flush=True)
+        report = node.report()
+        report["exit"] = error.exit_code if error is not None else code
+        report["error"] = None if error is None else str(error)
+        _write_report(report, args.report, args.json)
+    if error is not None:
+        raise error
     return code
+
+
+def _clean(x):
+    """JSON-safe: NaN and inf become None."""
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    if isinstance(x, dict):
+        return {k: _clean(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_clean(v) for v in x]
+    return x
+
+
+def _write_report(report: dict, path, to_stdout: bool) -> None:
+    text = json.dumps(_clean(report))
+    if path:
+        tmp = f"{path}.tmp"
+        with open(tmp, "w") as f:
+            f.write(text)
+        os.replace(tmp, path)     # the reader sees a whole report or none
+    if to_stdout:
+        print(text, flush=True)
 
 
 def _terminate(signum, frame):
@@ -265,16 +258,13 @@ def _terminate(signum, frame):
 
 
 def main(argv=None) -> int:
-    from .bus import BusError
-    from .scenario import ScenarioError
-
     args = build_parser().parse_args(argv)
     signal.signal(signal.SIGTERM, _terminate)
     try:
         return run_tcu(args)
-    except (BusError, ScenarioError) as e:
+    except HilError as e:
         print(f"hil tcu: error: {e}", file=sys.stderr)
-        return EXIT_USAGE
+        return e.exit_code
     except KeyboardInterrupt:
         print("hil tcu: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED

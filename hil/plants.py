@@ -18,33 +18,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .cli import UserError
-from .scenario import ScenarioError
+from .config import PLANT_KEYS
+from .errors import ConfigError, PlantError
 
-PLANT_KEYS = ("fmu", "mapping", "parameters")
-
-
-def plant_table(scenario) -> dict:
-    """The scenario's ``[plant]`` table, checked; ScenarioError naming the field otherwise."""
-    table = scenario.extra.get("plant", {})
-    path = scenario.path
-    if not isinstance(table, dict):
-        raise ScenarioError(f"{path}: [plant]: must be a table")
-    for key, value in table.items():
-        if key not in PLANT_KEYS:
-            raise ScenarioError(f"{path}: [plant] {key}: unknown key (known: {', '.join(PLANT_KEYS)})")
-    if "fmu" in table and not isinstance(table["fmu"], str):
-        raise ScenarioError(f"{path}: [plant] fmu: must be a path string, got {table['fmu']!r}")
-    for key in ("mapping", "parameters"):
-        if key in table and not isinstance(table[key], dict):
-            raise ScenarioError(f"{path}: [plant.{key}]: must be a table, got {table[key]!r}")
-    for role, name in table.get("mapping", {}).items():
-        if not isinstance(name, str):
-            raise ScenarioError(f"{path}: [plant.mapping] {role}: must be an FMU variable name, got {name!r}")
-    for name, value in table.get("parameters", {}).items():
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ScenarioError(f"{path}: [plant.parameters] {name}: must be a number, got {value!r}")
-    return table
+__all__ = ["PLANT_KEYS", "make_plant", "parse_plant_spec", "plant_label"]
 
 
 def parse_plant_spec(spec: str | None) -> tuple[str, str | None]:
@@ -55,7 +32,7 @@ def parse_plant_spec(spec: str | None) -> tuple[str, str | None]:
         return "casadi", None
     if spec.startswith("fmu:") and len(spec) > 4:
         return "fmu", spec[4:]
-    raise UserError(f"--plant {spec!r}: expected 'casadi' or 'fmu:PATH'")
+    raise ConfigError(f"--plant {spec!r}: expected 'casadi' or 'fmu:PATH'")
 
 
 def make_plant(scenario, spec: str | None = None):
@@ -65,12 +42,12 @@ def make_plant(scenario, spec: str | None = None):
     ``spec``: the ``--plant`` value or None to follow the scenario's ``[plant]`` table.
     """
     kind, path = parse_plant_spec(spec)
-    table = plant_table(scenario)
+    table = scenario.extra.get("plant", {})      # its shape was checked when the scenario was loaded
     if kind == "casadi" or (kind == "" and "fmu" not in table):
         return None
     reality_plant_effects = _reality_plant_effects(scenario)
     if reality_plant_effects:
-        raise UserError(f"{scenario.path}: [reality] plant effects ({', '.join(reality_plant_effects)}) run on the "
+        raise ConfigError(f"{scenario.path}: [reality] plant effects ({', '.join(reality_plant_effects)}) run on the "
                         "CasADi model and cannot be combined with an FMU plant; drop them or use --plant casadi")
     if path is None:
         p = Path(table["fmu"]).expanduser()
@@ -81,19 +58,17 @@ def make_plant(scenario, spec: str | None = None):
         return FmuPlant(path, scenario.plant_config(), mapping=table.get("mapping"),
                         parameters=table.get("parameters"))
     except FmuError as e:
-        raise UserError(str(e)) from None
+        raise PlantError(str(e)) from None
 
 
 def _reality_plant_effects(scenario) -> list[str]:
-    table = scenario.extra.get("reality") or {}
-    if not table:
-        return []
-    try:
-        from plant.reality import EFFECTS, effects_from_table
-    except ImportError:
-        return []
-    try:
-        effects = effects_from_table(table, f"{scenario.path}: [reality]")
-    except ValueError as e:
-        raise UserError(str(e)) from None
-    return [name for name in effects if EFFECTS[name].level == "plant"]
+    from plant.reality import PLANT_ORDER
+
+    return [name for name in (scenario.extra.get("reality") or {}) if name in PLANT_ORDER]
+
+
+def plant_label(plant) -> str | None:
+    """The plant's name in log names and summaries: None for the CasADi model, ``fmu-<file stem>``."""
+    if plant is None:
+        return None
+    return f"fmu-{Path(str(getattr(plant, 'path', 'plant'))).stem}"

@@ -1,6 +1,12 @@
-"""Scenario files (TOML): load, validate, and build the plant and identifier configurations.
+"""Scenario files (TOML) and every table in them, loaded and checked in one place.
 
-Every problem is reported as one ``ScenarioError`` line naming the file and the field, e.g.
+Tables: ``name``/``description``, ``[vehicle]``, ``[curves.normal]``/``[curves.fault]``, ``[run]``,
+``[sensors]``, ``[identifier]`` (+ ``[identifier.options.NAME]``), ``[bus]`` (``BusSettings``),
+``[plant]`` (an FMU instead of the CasADi model) and ``[reality]`` (effects the nominal model lacks,
+checked against ``hil.effects``).  ``parse_set`` turns ``--set TABLE.KEY=VALUE`` items into the
+overrides ``load_scenario`` applies over the file.
+
+Every problem is one ``ConfigError`` (alias ``ScenarioError``) line naming the file and the field, e.g.
 ``scenarios/x.toml: [run] fault_time_s: must be >= 0, got -1``.
 """
 from __future__ import annotations
@@ -15,9 +21,23 @@ from typing import Any
 from identifier.settings import IdentifierSettings, VehicleModel
 from plant import FrictionCurve, PlantConfig, SensorConfig, WheelsetParams, equilibrium
 
+from .errors import ConfigError, ScenarioError
 
-class ScenarioError(ValueError):
-    """A scenario file that cannot be used; the message is one line naming file and field."""
+__all__ = ["BusSettings", "ConfigError", "RunConfig", "Scenario", "ScenarioError", "load_scenario", "parse_scenario",
+           "parse_set"]
+
+
+@dataclass(frozen=True)
+class BusSettings:
+    """The scenario's optional ``[bus]`` table."""
+    bitrate: int = 1_000_000              # arbitration bit rate, bit/s (for the bus-load figure)
+    data_bitrate: int = 5_000_000         # CAN FD data-phase bit rate, bit/s
+    heartbeat_period_s: float = 0.002     # wall-clock period of the heartbeats, both ways
+    silence_periods: int = 3              # realtime: peer silent after this many heartbeat periods
+    lockstep_silence_s: float = 1.0       # lockstep: peer silent after this many wall seconds
+    startup_timeout_s: float = 60.0       # wait for the other side's first frame
+    deadline_fraction: float = 0.9        # realtime: the command is due this far into the period
+    rt_priority: int = 0                  # realtime: SCHED_FIFO priority for plant, hub and TCU (0: off)
 
 
 @dataclass(frozen=True)
@@ -43,8 +63,9 @@ class Scenario:
     run: RunConfig
     sensors: SensorConfig
     identifier: dict = field(default_factory=dict)   # overrides of IdentifierSettings defaults
-    extra: dict = field(default_factory=dict)         # tables later issues add ([plant], [reality], ...)
+    extra: dict = field(default_factory=dict)         # the raw [plant], [reality] and [bus] tables
     overrides: dict = field(default_factory=dict)     # --set TABLE.KEY=VALUE applied over source_text
+    bus: BusSettings = field(default_factory=BusSettings)
 
     def plant_config(self) -> PlantConfig:
         r = self.run
@@ -68,7 +89,8 @@ class Scenario:
 # -- validation ---------------------------------------------------------------------------------
 _IDENTIFIER_FIELDS = {f.name: f for f in dataclasses.fields(IdentifierSettings)
                       if f.name not in ("period_s", "vehicle", "torque_demand_nm", "initial_guess")}
-_OPTIONAL_TABLES = ("plant", "reality", "bus")   # owned by the plant/FMU, gap and CAN layers
+_OPTIONAL_TABLES = ("plant", "reality", "bus")
+PLANT_KEYS = ("fmu", "mapping", "parameters")
 
 
 def _fail(path, where, msg) -> ScenarioError:
@@ -165,8 +187,10 @@ def parse_scenario(text: str, path: str = "<scenario>", overrides: dict | None =
     for dotted, value in (overrides or {}).items():
         *tables, key = dotted.split(".")
         node = data
-        for t in tables:
+        for i, t in enumerate(tables):
             node = node.setdefault(t, {})
+            if not isinstance(node, dict):
+                raise ConfigError(f"--set {dotted}: {'.'.join(tables[:i + 1])} is not a table in {path}")
         node[key] = value
     known = {"name", "description", "vehicle", "curves", "run", "sensors", "identifier", *_OPTIONAL_TABLES}
     for key in data:
@@ -218,9 +242,12 @@ def parse_scenario(text: str, path: str = "<scenario>", overrides: dict | None =
         typ = _IDENTIFIER_FIELDS[key].type
         identifier[key] = value if key == "options" and isinstance(value, dict) else \
             _coerce(path, f"[identifier] {key}", value, typ)
+    bus = _bus(path, data)
+    _plant(path, data)
+    _reality(path, data)
     extra = {k: data[k] for k in _OPTIONAL_TABLES if k in data}
     scenario = Scenario(name, path, text, description, vehicle, normal, fault, run, sensors, identifier, extra,
-                        dict(overrides or {}))
+                        dict(overrides or {}), bus)
     try:
         scenario.identifier_settings()
         from identifier.observer import LoadTorqueObserver
@@ -229,6 +256,73 @@ def parse_scenario(text: str, path: str = "<scenario>", overrides: dict | None =
         raise _fail(path, "[identifier]", str(e)) from None
     _check_strategy_options(path, scenario)
     return scenario
+
+
+def _bus(path, data) -> BusSettings:
+    table = data.get("bus", {})
+    if not isinstance(table, dict):
+        raise _fail(path, "[bus]", "must be a table")
+    fields = {f.name: f for f in dataclasses.fields(BusSettings)}
+    values = {}
+    for key, value in table.items():
+        if key not in fields:
+            raise _fail(path, f"[bus] {key}", f"unknown key (known: {', '.join(fields)})")
+        floor_ok = key == "rt_priority"
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
+                or not (value >= 0 if floor_ok else value > 0):
+            raise _fail(path, f"[bus] {key}", f"must be a {'non-negative' if floor_ok else 'positive'} number, "
+                        f"got {value!r}")
+        if fields[key].type == "int" and not isinstance(value, int):
+            raise _fail(path, f"[bus] {key}", f"must be an integer, got {value!r}")
+        values[key] = value
+    s = BusSettings(**values)
+    _check(path, "[bus] deadline_fraction", s.deadline_fraction < 1, "must be < 1", s.deadline_fraction)
+    return s
+
+
+def _plant(path, data) -> None:
+    """The ``[plant]`` table's shape (the FMU itself is opened by ``hil.plants``)."""
+    table = data.get("plant", {})
+    if not isinstance(table, dict):
+        raise _fail(path, "[plant]", "must be a table")
+    for key in table:
+        if key not in PLANT_KEYS:
+            raise _fail(path, f"[plant] {key}", f"unknown key (known: {', '.join(PLANT_KEYS)})")
+    if "fmu" in table and not isinstance(table["fmu"], str):
+        raise _fail(path, "[plant] fmu", f"must be a path string, got {table['fmu']!r}")
+    for key in ("mapping", "parameters"):
+        if key in table and not isinstance(table[key], dict):
+            raise _fail(path, f"[plant.{key}]", f"must be a table, got {table[key]!r}")
+    for role, name in table.get("mapping", {}).items():
+        if not isinstance(name, str):
+            raise _fail(path, f"[plant.mapping] {role}", f"must be an FMU variable name, got {name!r}")
+    for name, value in table.get("parameters", {}).items():
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise _fail(path, f"[plant.parameters] {name}", f"must be a number, got {value!r}")
+
+
+def _reality(path, data) -> None:
+    from .effects import effects_from_table
+
+    try:
+        effects_from_table(data.get("reality") or {}, f"{path}: [reality]")
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+
+
+def parse_set(items) -> dict:
+    """``["run.duration_s=600"]`` -> ``{"run.duration_s": 600}``; values are read as TOML scalars
+    (a value TOML cannot read stays a string)."""
+    out = {}
+    for item in items or []:
+        if "=" not in item:
+            raise ConfigError(f"--set {item!r}: expected TABLE.KEY=VALUE")
+        key, value = item.split("=", 1)
+        try:
+            out[key.strip()] = tomllib.loads(f"v = {value}")["v"]
+        except tomllib.TOMLDecodeError:
+            out[key.strip()] = value
+    return out
 
 
 def _check_strategy_options(path, scenario) -> None:

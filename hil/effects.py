@@ -1,0 +1,221 @@
+"""Every effect a "real" run can switch on that the nominal model lacks: the registry (names,
+parameters with units and defaults, level, whether the gap diagnosis offers it as a candidate), the
+parsing of ``--reality NAME:p=v,...`` and ``[reality]`` tables, and the wiring of a scenario's effects
+into a run (``Reality``).
+
+Levels: **plant** effects are physics, integrated by ``plant.reality.RealityPlant``; **sensor** effects
+wrap the sensor model (``plant.reality.RealitySensors``); the **bus** effect ``can`` (delay, jitter and
+loss of sensor frames) is ``CanReality`` below: frame j is sent at j*T and arrives at
+j*T + delay + jitter*U(0,1) unless lost (probability ``loss``); at its period k the TCU uses the
+newest frame that has arrived by k*T, re-stamped with its own step k.
+
+The truth (effects and parameters, and realised CAN figures) is written to the log under ONE metadata
+key, ``TRUTH_KEY``; the gap diagnosis reads logs only through ``hil.gap.data.read_real_log``, which drops
+that key.  ``parse_effect("load_transfer:bogie_height_m=1.5")`` and ``effects_from_table({...})`` give
+``{name: {param: value}}`` with defaults filled in; unknown names or parameters raise ``ValueError``
+with a one-line message.
+"""
+from __future__ import annotations
+
+import dataclasses
+import heapq
+import json
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from identifier import SensorReading
+from plant.reality import PLANT_ORDER, SENSOR_EFFECTS, RealityPlant, RealitySensors, fill_defaults
+
+from .errors import ConfigError
+
+TRUTH_KEY = "reality_truth"
+
+
+@dataclass(frozen=True)
+class EffectSpec:
+    name: str
+    level: str                         # "plant" | "sensor" | "bus"
+    params: dict                       # param -> default value
+    doc: str
+    units: dict = field(default_factory=dict)
+    candidate: bool = True             # offered to the diagnosis as an explanation
+
+
+EFFECTS: dict[str, EffectSpec] = {s.name: s for s in [
+    EffectSpec("load_transfer", "plant",
+               {"half_bogie_distance_m": None, "half_wheelbase_m": None, "coupler_height_m": None,
+                "bogie_height_m": None},
+               "axle load transfer under traction (L, L_b, Z, z; defaults from the scenario's [vehicle])",
+               {"half_bogie_distance_m": "m", "half_wheelbase_m": "m", "coupler_height_m": "m", "bogie_height_m": "m"}),
+    EffectSpec("torque_lag", "plant", {"tau_s": 0.005}, "first-order motor/inverter torque lag",
+               {"tau_s": "s"}),
+    EffectSpec("compliance", "plant",
+               {"stiffness_nm_rad": 3e5, "damping_ratio": 0.05, "backlash_rad": 0.0},
+               "drivetrain torsional compliance (motor side) with gear backlash (half-width)",
+               {"stiffness_nm_rad": "N·m/rad", "damping_ratio": "-", "backlash_rad": "rad"}),
+    EffectSpec("adhesion_lag", "plant", {"tau_s": 0.01}, "adhesion dynamics: mu relaxes to the curve with tau_s",
+               {"tau_s": "s"}),
+    EffectSpec("resistance", "plant", {"factor": 1.5}, "running resistance = factor x the Davis polynomial",
+               {"factor": "-"}),
+    EffectSpec("torque_ripple", "plant", {"amplitude": 0.02, "frequency_hz": 60.0, "phase_rad": 0.0},
+               "sinusoidal torque ripple (fraction of the torque)",
+               {"amplitude": "-", "frequency_hz": "Hz", "phase_rad": "rad"}, candidate=False),
+    EffectSpec("wheel_radius", "plant", {"error_percent": 0.2}, "true wheel radius = nominal x (1 + error)",
+               {"error_percent": "%"}, candidate=False),
+    EffectSpec("sensor_delay", "sensor", {"delay_ms": 3.0}, "speed sensors report values delay_ms old",
+               {"delay_ms": "ms"}),
+    EffectSpec("sensor_quantisation", "sensor", {"motor_quantum_rad_s": 0.05, "train_quantum_ms": 0.0},
+               "speed sensors quantised (on top of their noise)",
+               {"motor_quantum_rad_s": "rad/s", "train_quantum_ms": "m/s"}),
+    EffectSpec("can", "bus", {"delay_ms": 2.0, "jitter_ms": 0.0, "loss": 0.0},
+               "CAN sensor frames delayed (+ uniform jitter), lost with probability loss; the TCU uses the "
+               "newest frame it has", {"delay_ms": "ms", "jitter_ms": "ms", "loss": "-"}),
+]}
+
+
+def _number(text: str, where: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise ValueError(f"{where}: expected a number, got {text!r}") from None
+    if not math.isfinite(v):
+        raise ValueError(f"{where}: must be finite, got {text!r}")
+    return v
+
+
+def check_effect(name: str, params: dict, where: str = "reality") -> dict:
+    """Validated ``params`` of effect ``name`` with defaults filled in (None = from the scenario)."""
+    if name not in EFFECTS:
+        raise ValueError(f"{where}: unknown effect {name!r} (known: {', '.join(EFFECTS)})")
+    spec = EFFECTS[name]
+    out = dict(spec.params)
+    for k, v in params.items():
+        if k not in spec.params:
+            raise ValueError(f"{where} {name}: unknown parameter {k!r} (known: {', '.join(spec.params)})")
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            v = _number(str(v), f"{where} {name}.{k}")
+        if not math.isfinite(v):
+            raise ValueError(f"{where} {name}.{k}: must be finite, got {v!r}")
+        out[k] = float(v)
+    for k, v in out.items():
+        if v is not None and v < 0 and k not in ("phase_rad", "error_percent"):
+            raise ValueError(f"{where} {name}.{k}: must be >= 0, got {v}")
+    if name in ("torque_lag", "adhesion_lag") and out["tau_s"] <= 0:
+        raise ValueError(f"{where} {name}.tau_s: must be > 0, got {out['tau_s']}")
+    if name == "compliance" and out["stiffness_nm_rad"] <= 0:
+        raise ValueError(f"{where} compliance.stiffness_nm_rad: must be > 0, got {out['stiffness_nm_rad']}")
+    if name == "can" and not out["loss"] < 1:
+        raise ValueError(f"{where} can.loss: must be < 1, got {out['loss']}")
+    return out
+
+
+def parse_effect(text: str) -> tuple[str, dict]:
+    """``"NAME[:p=v,...]"`` -> (name, params with defaults)."""
+    name, _, rest = text.partition(":")
+    name = name.strip()
+    params = {}
+    for item in filter(None, (s.strip() for s in rest.split(","))):
+        if "=" not in item:
+            raise ValueError(f"--reality {text!r}: expected PARAM=VALUE, got {item!r}")
+        k, v = item.split("=", 1)
+        params[k.strip()] = _number(v.strip(), f"--reality {name}.{k.strip()}")
+    return name, check_effect(name, params, "--reality")
+
+
+def effects_from_table(table: dict, where: str = "[reality]") -> dict:
+    """A scenario's ``[reality]`` table ``{effect: {param: value}}`` -> validated effects."""
+    if not isinstance(table, dict):
+        raise ValueError(f"{where}: must be a table of effects")
+    out = {}
+    for name, params in table.items():
+        if params is True:
+            params = {}
+        if not isinstance(params, dict):
+            raise ValueError(f"{where} {name}: must be a table of parameters (or true)")
+        out[name] = check_effect(name, params, where)
+    return out
+
+
+class CanReality:
+    """``deliver(reading) -> reading the TCU uses this period``; call once per period, in order."""
+
+    def __init__(self, delay_ms: float, jitter_ms: float, loss: float, period_s: float, seed: int):
+        self.delay_s = delay_ms * 1e-3
+        self.jitter_s = jitter_ms * 1e-3
+        self.loss = loss
+        self.period_s = period_s
+        self._rng = np.random.default_rng([seed, 0xCA4])
+        self._queue: list[tuple[float, int, SensorReading]] = []   # (arrival time, send step, reading)
+        self._newest: SensorReading | None = None
+        self.delays_periods: list[int] = []   # realised (TCU step - send step) per period
+        self.lost = 0
+
+    def deliver(self, reading: SensorReading) -> SensorReading:
+        k = reading.step
+        t_now = k * self.period_s
+        if self._newest is None:
+            self._newest = reading               # the TCU starts with the initial value
+        if self._rng.random() < self.loss:
+            self.lost += 1
+        else:
+            arrival = t_now + self.delay_s + self.jitter_s * self._rng.random()
+            heapq.heappush(self._queue, (arrival, k, reading))
+        while self._queue and self._queue[0][0] <= t_now + 1e-9:
+            _, j, r = heapq.heappop(self._queue)
+            if r.step >= self._newest.step:
+                self._newest = r
+        self.delays_periods.append(k - self._newest.step)
+        return SensorReading(k, self._newest.motor_speed_rad_s, self._newest.train_speed_ms)
+
+    def realised(self) -> dict:
+        d = np.asarray(self.delays_periods, float)
+        return {"mean_delay_ms": float(d.mean() * self.period_s * 1e3) if d.size else 0.0,
+                "lost_frames": self.lost, "frames": len(self.delays_periods)}
+
+
+class Reality:
+    """What a scenario's ``[reality]`` table asks for, ready to plug into the loop."""
+
+    def __init__(self, scenario, seed: int):
+        raw = scenario.extra.get("reality") or {}
+        try:
+            effects = effects_from_table(raw, f"{scenario.path}: [reality]")
+        except ValueError as e:
+            raise ConfigError(str(e)) from None
+        cfg = scenario.plant_config()
+        self.effects = fill_defaults(effects, cfg)
+        self.active = bool(self.effects)
+        self.plant = RealityPlant(cfg, self.effects) \
+            if any(EFFECTS[n].level == "plant" for n in self.effects) else None
+        self.can = None
+        if "can" in self.effects:
+            c = self.effects["can"]
+            self.can = CanReality(c["delay_ms"], c["jitter_ms"], c["loss"], scenario.run.exchange_period_s, seed)
+        self._sensor_effects = {n: p for n, p in self.effects.items() if EFFECTS[n].level == "sensor"}
+        self.period_s = scenario.run.exchange_period_s
+
+    def wrap_sensors(self, sensors):
+        return RealitySensors(sensors, self._sensor_effects, self.period_s) if self._sensor_effects else sensors
+
+    def deliver(self, reading: SensorReading) -> SensorReading:
+        return self.can.deliver(reading) if self.can else reading
+
+    def truth(self) -> dict:
+        out = {"effects": json.dumps(self.effects)}
+        if self.can:
+            out["can_realised"] = json.dumps(self.can.realised())
+        return out
+
+    def record_truth(self, recorder) -> None:
+        """Write the truth under TRUTH_KEY (call at the end of the run: it holds realised figures)."""
+        if recorder is not None and self.active:
+            recorder.metadata(TRUTH_KEY, self.truth())
+
+
+def with_reality(scenario, effects: dict):
+    """The scenario with ``effects`` ({name: params}) merged into its ``[reality]`` table."""
+    table = dict(scenario.extra.get("reality") or {})
+    table.update({k: {p: v for p, v in params.items() if v is not None} for k, params in effects.items()})
+    return dataclasses.replace(scenario, extra={**scenario.extra, "reality": table})

@@ -1,0 +1,54 @@
+"""One exception tree for the whole ``hil`` package, each class carrying the exit code the command
+line ends with.  Library code raises these; ``hil.cli`` catches ``HilError`` once, prints its one-line
+message and exits with ``exit_code``.  Nothing here imports anything else of the project.
+
+    HilError                exit 2   something the user can fix (the base)
+      ConfigError           exit 2   a scenario file, a table, a --set or --out value
+      BusError              exit 2   a bus that cannot be opened here
+      LogError              exit 2   a file that is not a log this tool reads
+      PlantError            exit 2   an FMU or plant that cannot be loaded or run
+      PeerSilent            exit 3   the other side of the bus fell silent or died mid-run
+      PlantFault            exit 4   (TCU side) the plant reported a fault
+"""
+from __future__ import annotations
+
+EXIT_OK = 0
+EXIT_USAGE = 2
+EXIT_SILENT = 3
+EXIT_PLANT_FAULT = 4
+EXIT_INTERRUPTED = 130
+
+
+class HilError(Exception):
+    """An error whose message is one line a user can act on."""
+    exit_code = EXIT_USAGE
+
+
+class ConfigError(HilError, ValueError):
+    """A scenario, table or command-line value that cannot be used; the message names file and field."""
+
+
+#: the name the scenario loader's errors have always had
+ScenarioError = ConfigError
+
+
+class BusError(HilError, ValueError):
+    """A bus spec that names nothing usable here; the message names the bus and what is available."""
+
+
+class LogError(HilError, ValueError):
+    """A file that is not a log this tool can read."""
+
+
+class PlantError(HilError, ValueError):
+    """A plant (an FMU, its mapping or parameters) that cannot be loaded or run."""
+
+
+class PeerSilent(HilError, RuntimeError):
+    """The other side of the bus stopped sending (or its process ended) during a run."""
+    exit_code = EXIT_SILENT
+
+
+class PlantFault(HilError, RuntimeError):
+    """The TCU was told by the plant's heartbeat that the plant side failed."""
+    exit_code = EXIT_PLANT_FAULT

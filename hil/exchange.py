@@ -1,0 +1,334 @@
+"""The exchange loop: the ONLY plant-side loop of a HIL run, and ``run`` that wires it up.
+
+Per exchange period k the plant node senses, sends ``PlantSensor(k)`` and waits for ``TorqueCommand(k)``:
+
+- ``lockstep``: it waits as long as the TCU needs (deterministic; as fast as the bus allows);
+- ``realtime``: period k starts at ``t0 + k * period`` of the wall clock; the command must arrive
+  before ``deadline_fraction`` of the period, otherwise the deadline is missed and the torque being
+  applied is held.  Period jitter, lateness, round trip and misses go to ``/loop/timing``.
+
+The TCU on the other end is reached through one of three transports, chosen by ``run``:
+
+- ``inprocess`` (``bus="inprocess"``): a ``TcuNode`` answers in this thread, through the same DBC
+  encode/decode (``hil.link.InprocessTcuBus``): no second process, the same frames;
+- ``process`` (default): ``python -m hil.tcu_node`` as a child process on the bus;
+- ``external``: a TCU already on the bus (``hil tcu`` elsewhere, a real TCU) answers.
+
+Whatever the transport, the summary comes from the run's ``Trace``, fed by the frames the plant
+node received (results, samples, observer): an external TCU's run has fit metrics too.
+
+Faults: the TCU silent for longer than the limit, its process ending, or its heartbeat saying
+"fault" raise ``PeerSilent`` (exit 3); the log then holds the fault (an event and ``fault``
+metadata) and is closed, and the exception carries the partial summary (``.summary``) with a
+``fault`` field.  Ctrl-C and SIGTERM end the run as ``KeyboardInterrupt``, never mid-write.
+"""
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import gc
+import json
+import math
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from identifier.messages import TorqueCommand
+
+from .errors import BusError, PeerSilent
+from .frames import DBC_PATH, STATE_FAULT, STATE_FINISHED, FrameCodec, bus_load, format_bus_load
+from .link import MODES, die_with_parent, open_bus
+from .plant_node import PlantNode, PlantRig
+from .progress import Progress
+from .record import interrupts_between_writes, log_path, prepare_out_dir, start_recording, write_timing
+from .tcu_node import TcuNode
+from .trace import Trace, clean
+
+LOAD_WARN_PERCENT = 70.0
+CHILD_EXIT_TIMEOUT_S = 20.0
+TRANSPORTS = ("inprocess", "process", "external")
+
+
+@contextlib.contextmanager
+def collector_paused(active: bool = True):
+    """No garbage collection inside (when ``active``), as the real-time loops run: a full collection
+    over scipy's and casadi's objects costs whole periods.  The objects alive on entry are frozen
+    (never scanned again); on exit the collector is as it was."""
+    if not active:
+        yield
+        return
+    was_enabled = gc.isenabled()
+    gc.freeze()
+    gc.disable()
+    try:
+        yield
+    finally:
+        gc.unfreeze()
+        if was_enabled:
+            gc.enable()
+
+
+def _percentile(xs, q):
+    xs = [x for x in xs if x is not None and math.isfinite(x)]
+    return float(np.percentile(xs, q)) if xs else None
+
+
+class Timing:
+    """Per-period wall-clock figures of the loop, recorded and summarised."""
+
+    def __init__(self, period_s: float, mode: str):
+        self.period_s = period_s
+        self.mode = mode
+        self.period_us: list[float] = []
+        self.round_trip_us: list[float] = []
+        self.lateness_us: list[float] = []
+        self.missed = 0
+
+    def summary(self, late_commands: int) -> dict:
+        out = {"round_trip_p50_us": _percentile(self.round_trip_us, 50),
+               "round_trip_p99_us": _percentile(self.round_trip_us, 99)}
+        if self.mode == "realtime":
+            nominal = self.period_s * 1e6
+            jitter = [abs(p - nominal) for p in self.period_us if math.isfinite(p)]
+            out.update({"missed_deadlines": self.missed, "jitter_p99_us": _percentile(jitter, 99),
+                        "jitter_max_us": max(jitter) if jitter else None,
+                        "lateness_p99_us": _percentile(self.lateness_us, 99), "late_commands": late_commands})
+        return out
+
+
+def exchange(node: PlantNode, steps: int, mode: str, bar: Progress | None = None) -> Timing:
+    """The loop: ``steps`` exchange periods of sense -> send -> await the command -> apply."""
+    period = node.period_s
+    realtime = mode == "realtime"
+    timing = Timing(period, mode)
+    deadline_fraction = node.settings.deadline_fraction
+    with collector_paused(realtime):
+        t0 = time.perf_counter() + 0.005
+        prev = None
+        for k in range(steps):
+            if realtime:
+                t_k = t0 + k * period
+                while time.perf_counter() < t_k:          # handle frames until the period starts
+                    node.poll(t_k)
+                deadline = t_k + deadline_fraction * period
+            else:
+                t_k = deadline = None
+            start = time.perf_counter()
+            node.send_sensor()
+            command = node.await_command(k, deadline)
+            missed = command is None
+            if missed:
+                timing.missed += 1
+                timing.round_trip_us.append(math.nan)
+                command = TorqueCommand(k, node.rig.plant.state.torque_nm)    # hold the torque being applied
+            else:
+                timing.round_trip_us.append((time.perf_counter() - start) * 1e6)
+            node.rig.apply(command)
+            lateness = (start - t_k) * 1e6 if realtime else 0.0
+            period_us = math.nan if prev is None else (start - prev) * 1e6
+            prev = start
+            timing.period_us.append(period_us)
+            timing.lateness_us.append(lateness)
+            if node.rec:
+                write_timing(node.rec, k, k * period, period_us, timing.round_trip_us[-1], lateness, missed)
+            if bar is not None and k % 200 == 0:
+                bar.update(k)
+        node.awaited = steps
+    return timing
+
+
+# -- wiring ------------------------------------------------------------------------------------------
+def _child_command(scenario, strategy, seed, peer_spec, mode, set_args, report_path) -> list[str]:
+    cmd = [sys.executable, "-m", "hil.tcu_node", str(scenario.path), "--bus", peer_spec, "--strategy", strategy,
+           "--seed", str(seed), "--mode", mode, "--report", str(report_path)]
+    for item in set_args or []:
+        cmd += ["--set", item]
+    return cmd
+
+
+def _stop_child(child: subprocess.Popen | None) -> None:
+    if child is None or child.poll() is not None:
+        return
+    child.terminate()
+    try:
+        child.wait(5)
+    except subprocess.TimeoutExpired:
+        child.kill()
+        child.wait()
+
+
+def _read_report(path: Path) -> dict:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+
+
+def _set_rt_priority(priority: int, log):
+    """SCHED_FIFO for this process (the hub and TCU processes started after it inherit it); the old
+    policy, or None when refused."""
+    try:
+        old = (os.sched_getscheduler(0), os.sched_getparam(0))
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+        log(f"realtime: SCHED_FIFO priority {priority}")
+        return old
+    except (AttributeError, PermissionError, OSError) as e:
+        log(f"warning: cannot set SCHED_FIFO priority {priority} ({e}); running at normal priority")
+        return None
+
+
+def run(scenario, strategy: str = "nlls", seed: int | None = None, *, bus: str = "auto", mode: str = "lockstep",
+        external_tcu: bool = False, out_dir=None, record: bool = True, progress: bool | None = None,
+        set_args=None, plant=None, plant_label: str | None = None, log=None) -> dict:
+    """One HIL run; returns the summary (``hil run --json``).
+
+    ``bus="inprocess"``: the TCU node answers in this thread; otherwise it is a child process on the
+    bus, or (``external_tcu``) a TCU already there.  ``set_args``: the ``--set`` items that produced
+    ``scenario`` (the TCU process loads the scenario again with them).  ``plant``: a plant object
+    instead of the CasADi model (see ``hil.plants``; the caller closes it), named ``plant_label`` in the
+    summary and the log's name.  Raises ``BusError`` for a bus that cannot be used, ``PeerSilent``
+    (with ``.summary``) when the TCU falls silent or dies, ``KeyboardInterrupt`` on Ctrl-C or SIGTERM;
+    the log is closed in every case.
+    """
+    if mode not in MODES:
+        raise BusError(f"unknown mode {mode!r}; available: {', '.join(MODES)}")
+    log = log or (lambda text: print(text, file=sys.stderr))
+    seed = scenario.run.seed if seed is None else seed
+    settings = scenario.bus
+    period = scenario.run.exchange_period_s
+    transport = "inprocess" if bus == "inprocess" else ("external" if external_tcu else "process")
+    load = bus_load(FrameCodec(period).db, period, settings.heartbeat_period_s, settings.bitrate,
+                    settings.data_bitrate)
+    effects = sorted((scenario.extra.get("reality") or {}).keys())
+    path = None
+    if record:
+        path = log_path(scenario, strategy, seed, prepare_out_dir(out_dir), plant_label, effects)
+        if path.exists():
+            log(f"warning: replacing {path} (a log of an earlier run with the same scenario, strategy, seed, "
+                "plant and effects)")
+
+    trace = Trace(scenario)
+    old_sched = _set_rt_priority(settings.rt_priority, log) if mode == "realtime" and settings.rt_priority > 0 \
+        else None
+    child = handle = rec = node = summary = None
+    report_dir = tempfile.TemporaryDirectory(prefix="hil-tcu-") if transport == "process" else None
+    report_path = Path(report_dir.name) / "report.json" if report_dir else None
+    tcu = None
+    wall = 0.0
+    timing = None
+
+    def summarise(extra=None) -> dict:
+        s = trace.summary(strategy=strategy, seed=seed, bus=handle.name if handle else bus, mcap_path=path,
+                          extra={"mode": mode, "transport": transport, "plant": plant_label or "casadi",
+                                 "reality": {k: scenario.extra["reality"][k] for k in effects} or None,
+                                 "wall_s": wall, "sim_s": node.t_s if node else 0.0,
+                                 "sim_s_per_wall_s": node.t_s / wall if node and wall > 0 else None,
+                                 "bus_load_percent": load["load_percent"],
+                                 **(node.counters() if node else {}),
+                                 **(timing.summary(node.late_commands) if timing else {}), **(extra or {})})
+        return clean(s)
+
+    with interrupts_between_writes():   # SIGTERM ends a run like Ctrl-C, never mid-write
+        try:
+            if transport == "inprocess":
+                tcu = TcuNode(scenario, strategy, seed)
+                handle = open_bus("inprocess", inprocess_node=tcu)
+            else:
+                handle = open_bus(bus)
+                if external_tcu and handle.hub is not None:
+                    raise BusError("bus hub: a hub started here has no external TCU on it; start one with "
+                                   "python -m can_remote and give both sides --bus remote:ws://127.0.0.1:PORT/")
+                if handle.peer_spec is None and not external_tcu:
+                    raise BusError(f"bus {handle.name}: reachable only inside this process; a TCU process cannot "
+                                   "join it (use inprocess, hub or socketcan:<ch>)")
+            if transport == "process":
+                child = subprocess.Popen(
+                    _child_command(scenario, strategy, seed, handle.peer_spec, mode, set_args, report_path),
+                    stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, start_new_session=True,
+                    preexec_fn=die_with_parent, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+            log(format_bus_load(load) + f" on {handle.name}")
+            if load["load_percent"] > LOAD_WARN_PERCENT:
+                log(f"warning: bus load {load['load_percent']:.1f} % is above {LOAD_WARN_PERCENT:g} % "
+                    f"(raise [bus] bitrate/data_bitrate or the exchange period)")
+            if record:
+                rec = start_recording(
+                    scenario, strategy, seed, handle.name, mode, path,
+                    plant_meta=plant.metadata() if hasattr(plant, "metadata") else None,
+                    dbc={"name": DBC_PATH.name, "text": DBC_PATH.read_text()},
+                    bus_meta={"spec": bus, "name": handle.name, "dbc": DBC_PATH.name, "transport": transport,
+                              **{k: repr(v) for k, v in dataclasses.asdict(settings).items()},
+                              "load_percent": f"{load['load_percent']:.2f}"})
+            rig = PlantRig(scenario, seed, trace, rec, plant=plant)
+            node = PlantNode(rig, handle.bus, mode, strategy=strategy, watch=child, watch_silence=tcu is None)
+            if tcu is None:
+                node.wait_for_tcu()
+            bar = Progress(scenario.steps, f"{scenario.name} {strategy} {handle.name} {mode}", progress)
+            wall0 = time.perf_counter()
+            try:
+                timing = exchange(node, scenario.steps, mode, bar)
+            finally:
+                bar.close()
+            wall = time.perf_counter() - wall0
+            node.finish(STATE_FINISHED)
+            extra = {}
+            if tcu is not None:
+                node.drain()
+                extra = _tcu_counters(tcu.report())
+            elif child is not None:
+                node.drain_until(lambda: child.poll() is not None, CHILD_EXIT_TIMEOUT_S)
+                if child.poll() is None:
+                    _stop_child(child)
+                    raise PeerSilent(f"TCU process did not end within {CHILD_EXIT_TIMEOUT_S:g} s after the run")
+                report = _read_report(report_path)
+                if child.returncode != 0:
+                    why = report.get("error") or "no report"
+                    raise PeerSilent(f"TCU process ended with code {child.returncode} after the run: {why}")
+                extra = _tcu_counters(report)
+            else:
+                node.drain_until(lambda: False, 0.2)     # the external TCU's last status and heartbeat
+                extra = _tcu_counters(None)
+            summary = summarise(extra)
+            if rec:
+                summary["messages"] = rec.messages + 1   # + the summary itself
+        except PeerSilent as e:
+            if rec and node is not None:
+                rec.event(node.t_s, "ERROR", f"fault: {e}")
+                rec.metadata("fault", {"reason": str(e), "step": str(node.awaited), "t_s": repr(node.t_s)})
+            if node is not None:
+                node.finish(STATE_FAULT)
+            e.summary = summarise({"fault": str(e)})
+            raise
+        except KeyboardInterrupt:
+            if rec and node is not None:
+                rec.event(node.t_s, "ERROR", "run interrupted (SIGINT/SIGTERM)")   # one write: already atomic
+            if node is not None:
+                node.finish(STATE_FAULT)
+            raise
+        finally:
+            if rec:
+                with rec.atomic():
+                    if summary is None and node is not None:
+                        rec.event(node.t_s, "ERROR", "run aborted")
+                    if node is not None:
+                        node.rig.reality.record_truth(rec)
+                    rec.close(summary)
+            _stop_child(child)
+            if handle is not None:
+                handle.close()
+            if report_dir is not None:
+                report_dir.cleanup()
+            if old_sched is not None:
+                os.sched_setscheduler(0, *old_sched)
+    return summary
+
+
+def _tcu_counters(report: dict | None) -> dict:
+    """What only the TCU knows (None for an external TCU)."""
+    report = report or {}
+    return {"tcu_rejected_frames": report.get("rejected_frames"), "tcu_rejected_readings": report.get("rejected_readings"),
+            "tcu_events": report.get("events")}

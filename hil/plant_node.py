@@ -1,0 +1,261 @@
+"""The plant node: the plant with its sensors and effects (``PlantRig``), and the frames it sends and
+receives on a bus (``PlantNode``).
+
+``PlantRig.sense()`` measures the plant at the current step (true state and sensor reading recorded,
+stage tracked in the run's ``Trace``) and ``apply(command)`` advances it one exchange period; the
+benches use a rig on its own.  ``PlantNode`` wraps a rig for the bus: it sends ``PlantSensor`` and
+heartbeats, and every received frame goes through ``FrameCodec.classify`` and a step-sequence check
+before it counts.  Valid TCU frames are recorded decoded (``/tcu/*``) and fed to the ``Trace``
+(events, samples, observer); every frame, valid or not, is recorded raw on ``/can/frames`` with its
+status.  Rejected frames are counted by reason.  The loop that paces all this is ``hil.exchange``.
+"""
+from __future__ import annotations
+
+import time
+
+import can
+
+from identifier.messages import SensorReading, TorqueCommand
+from plant import SensorModel, WheelsetPlant
+
+from .effects import Reality
+from .errors import PeerSilent
+from .frames import STATE_FAULT, STATE_RUNNING, STATE_STARTING, TCU_IDS, FrameCodec, RejectCounter
+from .link import Sender, heartbeat_period_s, silence_limit_s
+from .record import (Recorder, write_command, write_frame, write_identification, write_plant_state, write_sensor,
+                     write_status)
+from .trace import Trace
+
+
+class PlantRig:
+    """Plant, sensors and effects of one run; ``sense()`` then ``apply(command)`` once per period.
+
+    ``plant``: anything with ``plant.Plant``'s interface (an FMU); default: the CasADi model, or the
+    reality plant when the scenario's ``[reality]`` table has plant-level effects."""
+
+    def __init__(self, scenario, seed: int, trace: Trace, recorder: Recorder | None = None, plant=None):
+        self.scenario = scenario
+        self.reality = Reality(scenario, seed)
+        self.plant = plant if plant is not None else (self.reality.plant or WheelsetPlant(scenario.plant_config()))
+        self.sensors = self.reality.wrap_sensors(SensorModel(scenario.sensors, seed))
+        self.trace = trace
+        self.recorder = recorder
+
+    @property
+    def step(self) -> int:
+        return self.plant.step_index
+
+    @property
+    def t_s(self) -> float:
+        return self.plant.t_s
+
+    def sense(self) -> SensorReading:
+        """The reading the TCU gets this period (after any CAN effect)."""
+        s = self.plant.state
+        k = self.plant.step_index
+        stage = self.trace.plant(k, s.t_s, s.creep_speed_kmh, s.mu)
+        omega, v = self.sensors.measure(s.motor_speed_rad_s, s.train_speed_ms)
+        if self.recorder:
+            write_plant_state(self.recorder, k, s, stage)
+            write_sensor(self.recorder, s.t_s, k, omega, v)
+        return self.reality.deliver(SensorReading(k, omega, v))
+
+    def apply(self, command: TorqueCommand) -> None:
+        self.plant.step(command.torque_nm)
+
+
+class PlantNode:
+    """A rig on a bus: sends sensor frames and heartbeats, receives everything, records it.
+
+    ``watch``: the TCU's process (``Popen``) when this run started it, so its death is noticed at
+    once; ``watch_silence``: apply the silence limit (not for the in-process node, which cannot be
+    silent)."""
+
+    def __init__(self, rig: PlantRig, bus: can.BusABC, mode: str, *, strategy: str, watch=None,
+                 watch_silence: bool = True):
+        scenario = rig.scenario
+        self.rig = rig
+        self.trace = rig.trace
+        self.rec = rig.recorder
+        self.period_s = scenario.run.exchange_period_s
+        self.codec = FrameCodec(self.period_s)
+        self.bus = bus
+        self.sender = Sender(bus)
+        self.mode = mode
+        self.settings = scenario.bus
+        self.strategy = strategy
+        self.watch = watch
+        self.watch_silence = watch_silence
+        self.silence_s = silence_limit_s(self.settings, mode, self.period_s)
+        self.heartbeat_s = heartbeat_period_s(self.settings, mode)
+        self.rejected = RejectCounter()
+        self.commands: dict[int, TorqueCommand] = {}
+        self.awaited = -1
+        self.last_status_step = -1
+        self.last_result_step = -1
+        self.last_sample_index = -1
+        self.tcu_state: int | None = None
+        self.last_tcu_rx: float | None = None
+        self.frames_tx = 0
+        self.frames_rx = 0
+        self.late_commands = 0
+        self.hb_counter = 0
+        self.next_hb = 0.0
+
+    @property
+    def t_s(self) -> float:
+        return self.rig.t_s
+
+    # -- sending -----------------------------------------------------------------------------
+    def send(self, msg: can.Message) -> None:
+        msg.timestamp = time.time()
+        self.sender.send(msg)
+        self.frames_tx += 1
+        if self.rec:
+            write_frame(self.rec, self.t_s, msg, "tx", "ok", time.time_ns())
+
+    def send_sensor(self) -> None:
+        """Sense the plant at its current step and send the reading; that step's command is awaited."""
+        self.awaited = self.rig.step
+        self.send(self.codec.sensor(self.rig.sense()))
+
+    def heartbeat(self, state: int) -> None:
+        self.send(self.codec.plant_heartbeat(self.hb_counter, state, max(self.awaited, 0)))
+        self.hb_counter += 1
+
+    def heartbeat_if_due(self, now: float) -> None:
+        if now >= self.next_hb:
+            self.heartbeat(STATE_RUNNING)
+            self.next_hb += self.heartbeat_s
+            if self.next_hb <= now:           # fell behind (or the first one): restart the schedule
+                self.next_hb = now + self.heartbeat_s
+
+    def finish(self, state: int) -> None:
+        """Tell the TCU the run is over (finished or fault); it then reports and exits."""
+        for _ in range(2):
+            try:
+                self.heartbeat(state)
+            except Exception:  # noqa: BLE001 - the bus may be gone on an abort
+                return
+
+    # -- receiving ---------------------------------------------------------------------------
+    def on_rx(self, msg: can.Message) -> None:
+        wall_ns = time.time_ns()
+        self.frames_rx += 1
+        frame, status = self.codec.classify(msg)
+        if frame is not None:
+            status = self._accept(frame)
+        if status not in ("ok", "late"):
+            self.rejected[status] += 1
+        elif msg.arbitration_id in TCU_IDS:
+            self.last_tcu_rx = time.monotonic()
+        if self.rec:
+            write_frame(self.rec, self.t_s, msg, "rx", status, wall_ns)
+
+    def _accept(self, frame) -> str:
+        """Sequence checks of a decoded frame; "ok" records and traces it."""
+        name, v, rec, current = frame.name, frame.value, self.rec, self.awaited
+        if name == "TorqueCommand":
+            if v.step < current:
+                self.late_commands += 1
+                return "late"
+            if v.step > current:
+                return "bad_sequence"
+            self.commands[v.step] = v
+            if rec:
+                write_command(rec, v, self.period_s)
+            return "ok"
+        if name == "TcuStatus":
+            st, obs = v
+            if not (self.last_status_step < st.step <= current):
+                return "bad_sequence"
+            self.last_status_step = st.step
+            self.trace.observer(obs)
+            if rec:
+                write_status(rec, st, obs, self.period_s)
+            return "ok"
+        if name == "TcuResult":
+            if not (self.last_result_step <= v.step <= current):
+                return "bad_sequence"
+            self.last_result_step = v.step
+            self.trace.event(v)
+            if rec:
+                write_identification(rec, v, self.strategy)
+            return "ok"
+        if name == "TcuSample":
+            if v.index != self.last_sample_index + 1 or not (0 <= v.step <= current):
+                return "bad_sequence"
+            self.last_sample_index = v.index
+            self.trace.sample(v.creep_speed_kmh, v.mu_hat)
+            self.trace.detected(v.detected_step)
+            return "ok"
+        if name == "TcuHeartbeat":
+            self.tcu_state = v.state
+            return "ok"
+        return "foreign"        # plant frames from another node on the bus
+
+    def poll(self, until: float | None) -> None:
+        """Receive one frame, or wait at most until ``until`` (perf_counter) or the next heartbeat."""
+        now = time.perf_counter()
+        self.heartbeat_if_due(now)
+        timeout = self.next_hb - now
+        if until is not None:
+            timeout = min(timeout, until - now)
+        msg = self.bus.recv(timeout=max(min(timeout, self.silence_s / 4), 0.0))
+        if msg is not None:
+            self.on_rx(msg)
+        self.check_alive()
+
+    def drain(self) -> None:
+        """Record what is still queued."""
+        while (msg := self.bus.recv(timeout=0.0)) is not None:
+            self.on_rx(msg)
+
+    def drain_until(self, done, timeout_s: float) -> None:
+        """Record the TCU's last frames until ``done()`` or ``timeout_s``."""
+        end = time.monotonic() + timeout_s
+        while not done() and time.monotonic() < end:
+            msg = self.bus.recv(timeout=0.01)
+            if msg is not None:
+                self.on_rx(msg)
+        self.drain()
+
+    # -- liveness ------------------------------------------------------------------------------
+    def check_alive(self) -> None:
+        if self.watch is not None and self.watch.poll() is not None:
+            raise PeerSilent(f"TCU process exited with code {self.watch.returncode} at step {self.awaited}")
+        if self.tcu_state == STATE_FAULT:
+            raise PeerSilent(f"TCU reported a fault at step {self.awaited}")
+        if not self.watch_silence or self.last_tcu_rx is None:
+            return
+        quiet = time.monotonic() - self.last_tcu_rx
+        if quiet > self.silence_s:
+            raise PeerSilent(f"TCU silent for {quiet * 1e3:.1f} ms (limit {self.silence_s * 1e3:.1f} ms) at step "
+                             f"{self.awaited}, t = {self.t_s:.4f} s")
+
+    def wait_for_tcu(self) -> None:
+        """Heartbeats 'starting' until the TCU shows up."""
+        t0 = time.monotonic()
+        while self.last_tcu_rx is None:
+            if time.monotonic() - t0 > self.settings.startup_timeout_s:
+                raise PeerSilent(f"no TCU answered within {self.settings.startup_timeout_s:g} s")
+            now = time.perf_counter()
+            if now >= self.next_hb:
+                self.heartbeat(STATE_STARTING)
+                self.next_hb = now + min(self.heartbeat_s, 0.05)
+            msg = self.bus.recv(timeout=min(self.heartbeat_s, 0.05))
+            if msg is not None:
+                self.on_rx(msg)
+            self.check_alive()
+
+    def await_command(self, k: int, deadline: float | None) -> TorqueCommand | None:
+        """The TCU's command for step ``k``, or None when ``deadline`` (perf_counter) passes first."""
+        while k not in self.commands:
+            if deadline is not None and time.perf_counter() >= deadline:
+                return None
+            self.poll(deadline)
+        return self.commands.pop(k)
+
+    def counters(self) -> dict:
+        return {"frames_tx": self.frames_tx, "frames_rx": self.frames_rx, "rejected_frames": dict(self.rejected),
+                "late_commands": self.late_commands}

@@ -1,0 +1,307 @@
+"""The run's MCAP log: where it goes (``log_path``), the recorder, and ONE writer per topic.
+
+Every part of a run that logs (the plant node for its states, sensors, frames and the TCU's decoded
+frames; the exchange loop for its timing) calls the ``write_*`` function of the topic, so a log has
+the same topics and fields whatever the transport.
+
+Streaming: protobuf channels, small chunks, unbuffered file.
+
+Why small chunks and no file buffering: a writer killed with SIGKILL leaves whatever reached the
+file.  With mcap's default 1 MiB chunks that is nothing; with ``CHUNK_SIZE`` bytes per chunk
+written straight to an unbuffered file, every finished chunk survives and can be read back with
+``mcap.stream_reader.StreamReader`` (see ``hil.logread``).  Memory stays flat because messages
+leave the process chunk by chunk; only the small chunk index grows with the run.
+"""
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import re
+import signal
+import threading
+from importlib import metadata as importlib_metadata
+from pathlib import Path
+
+from mcap.writer import CompressionType
+from mcap_protobuf.writer import Writer
+
+from identifier.messages import STAGE_NAMES
+
+from .errors import ConfigError
+from .schemas import TYPES
+
+CHUNK_SIZE = 32 * 1024
+PROFILE = "railway-hil"
+
+#: topic -> protobuf message name
+TOPICS = {
+    "/plant/state": "PlantState",
+    "/plant/sensor": "SensorReading",
+    "/tcu/command": "TorqueCommand",
+    "/tcu/observer": "ObserverSample",
+    "/tcu/status": "TcuStatus",
+    "/tcu/identification": "IdentificationEvent",
+    "/can/frames": "CanFrame",
+    "/loop/timing": "LoopTiming",
+    "/run/events": "RunEvent",
+    "/run/summary": "RunSummary",
+}
+
+VERSIONED_PACKAGES = ("numpy", "scipy", "casadi", "fmpy", "python-can", "cantools", "mcap",
+                      "mcap-protobuf-support", "protobuf", "rerun-sdk")
+
+
+def package_versions() -> dict[str, str]:
+    out = {}
+    for name in VERSIONED_PACKAGES:
+        try:
+            out[name] = importlib_metadata.version(name)
+        except importlib_metadata.PackageNotFoundError:
+            out[name] = "not installed"
+    try:
+        out["railway-hil"] = importlib_metadata.version("railway-hil")
+    except importlib_metadata.PackageNotFoundError:
+        out["railway-hil"] = "source tree"
+    return out
+
+
+def sim_time_ns(t_s: float) -> int:
+    return int(round(t_s * 1e9))
+
+
+class _InterruptGuard:
+    """Ctrl-C and SIGTERM never land inside a write: they raise ``KeyboardInterrupt`` right after it.
+
+    An interrupt raised halfway through mcap's chunk bookkeeping leaves a record the reader
+    rejects, and everything after it (the "run interrupted" event included) is lost.
+    """
+
+    depth = 0
+    pending = False
+
+    @classmethod
+    def handler(cls, signum, frame):
+        if cls.depth:
+            cls.pending = True
+        else:
+            raise KeyboardInterrupt
+
+    @classmethod
+    def leave(cls) -> None:
+        cls.depth -= 1
+        if cls.pending and not cls.depth:
+            cls.pending = False
+            raise KeyboardInterrupt
+
+
+class interrupts_between_writes:
+    """Context manager: SIGINT and SIGTERM end the run as ``KeyboardInterrupt``, never mid-write."""
+
+    def __enter__(self):
+        self.old = {}
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                self.old[sig] = signal.signal(sig, _InterruptGuard.handler)
+        return self
+
+    def __exit__(self, *exc):
+        for sig, old in self.old.items():
+            signal.signal(sig, old)
+
+
+class _DirectFile:
+    """A write-through file: every ``write`` reaches the kernel before it returns.
+
+    mcap wraps a raw (unbuffered) file in an 8 KiB ``BufferedWriter``, which would hold back the
+    newest chunks at a SIGKILL; this object is not a ``RawIOBase``, so mcap uses it as it is.
+    """
+
+    def __init__(self, path):
+        self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+        self._pos = 0
+
+    def write(self, data) -> int:
+        view = memoryview(data)
+        while view:
+            n = os.write(self._fd, view)
+            view = view[n:]
+        self._pos += len(data)
+        return len(data)
+
+    def tell(self) -> int:
+        return self._pos
+
+    def flush(self) -> None:
+        pass
+
+    def close(self) -> None:
+        os.close(self._fd)
+
+
+class Recorder:
+    """``write(topic, t_s, **fields)`` appends one message; ``close(summary)`` finishes the file."""
+
+    def __init__(self, path: str | os.PathLike, chunk_size: int = CHUNK_SIZE):
+        self.path = Path(path)
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._file = _DirectFile(self.path)
+        except OSError as e:
+            raise ConfigError(f"{self.path}: cannot write the log: {e.strerror or e}") from None
+        self._writer = Writer(self._file, chunk_size=chunk_size, compression=CompressionType.LZ4)
+        self._types = {topic: TYPES[name] for topic, name in TOPICS.items()}
+        self.messages = 0
+        self.closed = False
+
+    def write(self, topic: str, log_t_s: float, /, **fields) -> None:
+        msg = self._types[topic](**fields)
+        ns = sim_time_ns(log_t_s)
+        _InterruptGuard.depth += 1
+        try:
+            self._writer.write_message(topic, msg, log_time=ns, publish_time=ns)
+            self.messages += 1
+        finally:
+            _InterruptGuard.leave()
+
+    def metadata(self, name: str, data: dict) -> None:
+        with self.atomic():
+            self._writer.add_metadata(name, {k: v if isinstance(v, str) else json.dumps(v) for k, v in data.items()})
+
+    @contextlib.contextmanager
+    def atomic(self):
+        """A block of writes that Ctrl-C / SIGTERM cannot split (e.g. the last events and the footer)."""
+        _InterruptGuard.depth += 1
+        try:
+            yield self
+        finally:
+            _InterruptGuard.leave()
+
+    def event(self, t_s: float, level: str, text: str) -> None:
+        self.write("/run/events", t_s, t_s=t_s, level=level, text=text)
+
+    def close(self, summary: dict | None = None) -> None:
+        if self.closed:
+            return
+        with self.atomic():             # summary, metadata and footer go out together
+            if summary is not None:
+                fields = {k: summary[k] for k in ("identified", "rt_percent", "t_fault_s", "t_serious_s",
+                                                  "t_identified_s", "r2", "peak_mu_err_percent",
+                                                  "peak_creep_err_percent")
+                          if summary.get(k) is not None}
+                self.write("/run/summary", summary.get("sim_s", 0.0), json=json.dumps(summary), **fields)
+                self.metadata("summary", {"json": json.dumps(summary)})
+            self._writer.finish()
+            self._file.close()
+            self.closed = True
+
+
+# -- where a log goes -----------------------------------------------------------------------------------
+def slug(text: str, what: str) -> str:
+    """``text`` as a file-name part: letters, digits, ``.``, ``_``, ``-`` (anything else becomes ``_``),
+    at most 60 characters; refused in one line when nothing usable is left."""
+    out = re.sub(r"[^A-Za-z0-9._-]+", "_", str(text)).strip("._-")[:60]
+    if not out:
+        raise ConfigError(f"{what} {text!r}: cannot be part of a log file name (use letters, digits, . _ -)")
+    return out
+
+
+def log_path(scenario, strategy: str, seed: int, out_dir=None, plant: str | None = None, effects=()) -> Path:
+    """``<out>/<scenario>-<strategy>-<seed>[-<plant>][-real-<effect>+<effect>].mcap``, every part slugged
+    so the file stays inside ``out_dir`` (default ``logs``); ``plant`` is None for the CasADi model."""
+    parts = [slug(scenario.name, "scenario name"), slug(strategy, "strategy"), str(int(seed))]
+    if plant:
+        parts.append(slug(plant, "plant"))
+    if effects:
+        parts.append("real-" + "+".join(slug(e, "effect") for e in sorted(effects)))
+    return Path(out_dir or "logs") / ("-".join(parts) + ".mcap")
+
+
+def prepare_out_dir(out_dir) -> Path:
+    """The ``--out`` directory, created if needed; ConfigError (one line) when it cannot be."""
+    out = Path(out_dir or "logs")
+    if out.suffix.lower() in (".mcap", ".rrd"):
+        raise ConfigError(f"--out {out}: names a directory for the logs, not a log file")
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"--out {out}: exists and is not a directory")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise ConfigError(f"--out {out}: cannot create the directory: {e.strerror or e}") from None
+    if not os.access(out, os.W_OK | os.X_OK):
+        raise ConfigError(f"--out {out}: not writable")
+    return out
+
+
+def start_recording(scenario, strategy: str, seed: int, bus: str, mode: str, path, plant_meta=None,
+                    bus_meta=None, dbc=None) -> Recorder:
+    """A recorder with the metadata every run log carries: the scenario as written plus its --set
+    overrides (so replay and view rebuild exactly this scenario), versions, the run's settings."""
+    rec = Recorder(path)
+    try:
+        rec.metadata("scenario", {"name": scenario.name, "path": scenario.path, "toml": scenario.source_text,
+                                  "overrides": scenario.overrides})
+        rec.metadata("versions", package_versions())
+        rec.metadata("run", {"strategy": strategy, "seed": str(seed), "bus": bus, "mode": mode,
+                             "exchange_period_s": repr(scenario.run.exchange_period_s)})
+        if dbc is not None:
+            rec.metadata("dbc", dbc)
+        if bus_meta is not None:
+            rec.metadata("bus", bus_meta)
+        if plant_meta is not None:
+            rec.metadata("plant", plant_meta)
+    except BaseException:
+        rec.close()
+        raise
+    return rec
+
+
+# -- one writer per topic ----------------------------------------------------------------------------
+def write_plant_state(rec: Recorder, step: int, s, stage: str) -> None:
+    rec.write("/plant/state", s.t_s, step=step, t_s=s.t_s, motor_speed_rad_s=s.motor_speed_rad_s,
+              train_speed_ms=s.train_speed_ms, creep_speed_kmh=s.creep_speed_kmh, mu=s.mu,
+              load_torque_nm=s.load_torque_nm, torque_nm=s.torque_nm, fault_active=s.fault_active, stage=stage)
+
+
+def write_sensor(rec: Recorder, t_s: float, step: int, motor_speed_rad_s: float, train_speed_ms: float) -> None:
+    rec.write("/plant/sensor", t_s, step=step, t_s=t_s, motor_speed_rad_s=motor_speed_rad_s,
+              train_speed_ms=train_speed_ms)
+
+
+def write_command(rec: Recorder, command, period_s: float) -> None:
+    t = command.step * period_s
+    rec.write("/tcu/command", t, step=command.step, t_s=t, torque_nm=command.torque_nm)
+
+
+def write_status(rec: Recorder, status, observer, period_s: float) -> None:
+    """``/tcu/observer`` (when the TCU had a valid reading) and ``/tcu/status``."""
+    if observer is not None:
+        rec.write("/tcu/observer", observer.t_s, step=observer.step, t_s=observer.t_s,
+                  creep_speed_kmh=observer.creep_speed_kmh, mu_hat=observer.mu_hat,
+                  load_torque_nm=observer.load_torque_nm)
+    t = status.step * period_s
+    rec.write("/tcu/status", t, step=status.step, t_s=t, stage=status.stage, stage_name=STAGE_NAMES[status.stage],
+              correction=status.correction)
+
+
+def write_identification(rec: Recorder, e, strategy: str) -> None:
+    """``/tcu/identification`` and its line on ``/run/events``."""
+    rec.write("/tcu/identification", e.t_s, step=e.step, t_s=e.t_s, kind=e.kind, correction=e.correction,
+              params=list(e.params), j_ef=e.j_ef, samples=e.samples, strategy=strategy)
+    rec.event(e.t_s, "INFO", f"{e.kind} Q={e.correction} after {e.samples} samples: "
+              + ", ".join(f"{x:.5g}" for x in e.params))
+
+
+def write_frame(rec: Recorder, t_s: float, msg, direction: str, status: str, wall_ns: int) -> None:
+    rec.write("/can/frames", t_s, t_s=t_s, wall_time_ns=wall_ns,
+              send_time_ns=int(round((msg.timestamp or 0.0) * 1e9)), arbitration_id=msg.arbitration_id,
+              is_extended_id=bool(msg.is_extended_id), is_fd=bool(msg.is_fd),
+              is_error_frame=bool(msg.is_error_frame), is_remote_frame=bool(msg.is_remote_frame),
+              bitrate_switch=bool(msg.bitrate_switch), dlc=int(msg.dlc), data=bytes(msg.data),
+              direction=direction, status=status)
+
+
+def write_timing(rec: Recorder, step: int, t_s: float, period_us: float, round_trip_us: float, lateness_us: float,
+                 missed: bool) -> None:
+    rec.write("/loop/timing", t_s, step=step, t_s=t_s, period_us=period_us, round_trip_us=round_trip_us,
+              lateness_us=lateness_us, missed_deadline=missed)

@@ -1,0 +1,159 @@
+"""A run's trace and its summary, computed in one place for ``hil run``, ``hil replay`` and the benches.
+
+``Trace`` collects what a run leaves to judge it by: the true stages (``StageTracker``), the TCU's
+identification events, the samples its strategy used (as the TCU reported them), its slip detection
+step, and — in ONE window, ``0 <= step - fault_step <= LAG_WINDOW_S / period`` — the true mu and the
+observer's mu^ by step, for the observer-lag figure.  ``Trace.summary`` gives the ``hil run --json``
+object: stages, RT, fit metrics against the samples (the paper's), peak errors against the true
+curve, the observer lag.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from identifier.metrics import curve_rmse_vs_truth, fit_metrics, peak_errors, r2_vs_truth, rt_percent
+from plant import StageTracker
+
+#: how long after the fault the true mu and mu^ are kept for the observer-lag figure
+LAG_WINDOW_S = 0.3
+
+
+class Trace:
+    """Feed it as the run goes (``plant``, ``observer``, ``event``, ``sample``, ``detected``), then
+    ask for ``summary``.  Steps index exchange periods; times are ``step * period``."""
+
+    def __init__(self, scenario):
+        self.scenario = scenario
+        self.period_s = scenario.run.exchange_period_s
+        self.fault_step = int(round(scenario.run.fault_time_s / self.period_s))
+        self._window_steps = int(round(LAG_WINDOW_S / self.period_s))
+        self.tracker = StageTracker(scenario.run.fault_time_s, scenario.fault_curve.peak()[0])
+        self.events: list = []
+        self.samples_v: list[float] = []
+        self.samples_mu: list[float] = []
+        self.detected_step: int | None = None
+        self._truth_mu: dict[int, float] = {}
+        self._observer_mu: dict[int, float] = {}
+
+    def _in_window(self, step: int) -> bool:
+        return 0 <= step - self.fault_step <= self._window_steps
+
+    def plant(self, step: int, t_s: float, creep_speed_kmh: float, mu: float) -> str:
+        """The true state at ``step``; returns its stage (normal, early, serious)."""
+        stage = self.tracker.update(t_s, creep_speed_kmh)
+        if self._in_window(step):
+            self._truth_mu[step] = mu
+        return stage
+
+    def observer(self, obs) -> None:
+        if obs is not None and self._in_window(obs.step):
+            self._observer_mu[obs.step] = obs.mu_hat
+
+    def event(self, e) -> None:
+        self.events.append(e)
+
+    def sample(self, creep_speed_kmh: float, mu_hat: float) -> None:
+        self.samples_v.append(creep_speed_kmh)
+        self.samples_mu.append(mu_hat)
+
+    def detected(self, step: int | None) -> None:
+        if step is not None and self.detected_step is None:
+            self.detected_step = step
+
+    def observer_lag_ms(self) -> float | None:
+        """``observer_lag_ms`` over the window (up to the serious stage); None when a step of the
+        truth window has no mu^ (the TCU's side of the run is incomplete, e.g. a cut log)."""
+        steps = sorted(self._truth_mu)
+        if not steps or any(s not in self._observer_mu for s in steps):
+            return None
+        t = [s * self.period_s for s in steps]
+        return observer_lag_ms(t, [self._truth_mu[s] for s in steps], [self._observer_mu[s] for s in steps],
+                               self.scenario.run.fault_time_s,
+                               self.tracker.serious_time_s or self.scenario.run.duration_s, self.period_s)
+
+    def summary(self, *, strategy: str, seed: int, bus: str, mcap_path=None, extra=None) -> dict:
+        det = self.detected_step
+        return summarise(scenario=self.scenario, strategy=strategy, seed=seed, bus=bus, tracker=self.tracker,
+                         events=self.events, samples_v=np.asarray(self.samples_v, float),
+                         samples_mu=np.asarray(self.samples_mu, float),
+                         t_detected_s=None if det is None else det * self.period_s, mcap_path=mcap_path,
+                         extra={"observer_lag_ms": self.observer_lag_ms(), **(extra or {})})
+
+
+def observer_lag_ms(t_s, mu_true, mu_hat, t_from: float, t_to: float, period_s: float, max_lag_s=0.03) -> float:
+    """Shift (ms) of mu^ behind the true mu that best aligns them on [t_from, t_to]."""
+    t = np.asarray(t_s)
+    sel = np.flatnonzero((t >= t_from) & (t <= t_to))
+    if sel.size < 5:
+        return math.nan
+    mu_true, mu_hat = np.asarray(mu_true, float), np.asarray(mu_hat, float)
+    if not (np.all(np.isfinite(mu_true[sel])) and np.all(np.isfinite(mu_hat[sel]))):
+        return math.nan     # a plant that does not report its true mu (e.g. a foreign FMU)
+    best, best_err = 0, math.inf
+    for lag in range(0, int(round(max_lag_s / period_s)) + 1):
+        idx = sel[sel - lag >= 0]
+        if idx.size < 5:      # too little overlap left to judge this shift
+            break
+        err = float(np.mean((mu_hat[idx] - mu_true[idx - lag]) ** 2))
+        if err < best_err:
+            best, best_err = lag, err
+    return best * period_s * 1e3
+
+
+def fmt(x, spec: str = ".3g") -> str:
+    """A summary value for people: ``format(x, spec)``, "n/a" for a missing one."""
+    return "n/a" if x is None else format(x, spec)
+
+
+def clean(x):
+    """JSON-safe: NaN and inf become None."""
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    if isinstance(x, (np.floating,)):
+        return clean(float(x))
+    if isinstance(x, dict):
+        return {k: clean(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [clean(v) for v in x]
+    return x
+
+
+def summarise(*, scenario, strategy: str, seed: int, bus: str, tracker, events, samples_v, samples_mu,
+              t_detected_s, mcap_path, extra=None) -> dict:
+    """Summary of one run from the TCU's events and samples and the plant's stage tracker."""
+    confirmed = next((e for e in events if e.kind == "confirmed"), None)
+    corrections = [e for e in events if e.kind == "correction"]
+    last = confirmed or (corrections[-1] if corrections else None)
+    true_theta = scenario.fault_curve.params
+    out = {
+        "scenario": scenario.name, "strategy": strategy, "seed": seed, "bus": bus,
+        "identified": confirmed is not None,
+        "t_fault_s": scenario.run.fault_time_s,
+        "t_serious_s": tracker.serious_time_s,
+        "t_det_s": tracker.deterioration_time_s,
+        "t_detected_s": t_detected_s,
+        # a slip flagged before the fault is a false alarm: whatever it identified is not the fault curve
+        "false_alarm": t_detected_s is not None and t_detected_s < scenario.run.fault_time_s,
+        "t_identified_s": confirmed.t_s if confirmed else None,
+        "rt_percent": rt_percent(confirmed.t_s if confirmed else None, scenario.run.fault_time_s,
+                                 tracker.deterioration_time_s),
+        "params": list(last.params) if last else None,
+        "true_params": list(true_theta),
+        "corrections": len(corrections),
+        "samples": len(samples_v),
+        "mcap": str(mcap_path) if mcap_path else None,
+    }
+    if last is not None:
+        theta = np.asarray(last.params)
+        out.update(fit_metrics(samples_v, samples_mu, theta))
+        out.update(peak_errors(theta, true_theta))
+        v_peak = scenario.fault_curve.peak()[0]
+        out["curve_rmse_vs_truth"] = curve_rmse_vs_truth(theta, true_theta, 2.0 * v_peak)
+        out["r2_vs_truth"] = r2_vs_truth(theta, true_theta, 2.0 * v_peak)
+    else:
+        out.update({k: None for k in ("mse", "rmse", "mae", "r2", "peak_mu_err_percent", "peak_creep_err_percent",
+                                      "peak_mu", "peak_creep_kmh", "curve_rmse_vs_truth", "r2_vs_truth")})
+    out.update(extra or {})
+    return clean(out)
