@@ -204,10 +204,10 @@ def run(scenario, strategy: str = "nlls", seed: int | None = None, *, bus: str =
     transport = "inprocess" if bus == "inprocess" else ("external" if external_tcu else "process")
     load = bus_load(FrameCodec(period).db, period, settings.heartbeat_period_s, settings.bitrate,
                     settings.data_bitrate)
-    effects = sorted((scenario.extra.get("reality") or {}).keys())
+    reality = scenario.extra.get("reality") or None
     path = None
     if record:
-        path = log_path(scenario, strategy, seed, prepare_out_dir(out_dir), plant_label, effects)
+        path = log_path(scenario, strategy, seed, prepare_out_dir(out_dir), plant_label, reality)
         if path.exists():
             log(f"warning: replacing {path} (a log of an earlier run with the same scenario, strategy, seed, "
                 "plant and effects)")
@@ -225,7 +225,7 @@ def run(scenario, strategy: str = "nlls", seed: int | None = None, *, bus: str =
     def summarise(extra=None) -> dict:
         s = trace.summary(strategy=strategy, seed=seed, bus=handle.name if handle else bus, mcap_path=path,
                           extra={"mode": mode, "transport": transport, "plant": plant_label or "casadi",
-                                 "reality": {k: scenario.extra["reality"][k] for k in effects} or None,
+                                 "reality": reality,
                                  "wall_s": wall, "sim_s": node.t_s if node else 0.0,
                                  "sim_s_per_wall_s": node.t_s / wall if node and wall > 0 else None,
                                  "bus_load_percent": load["load_percent"],
@@ -316,7 +316,8 @@ def run(scenario, strategy: str = "nlls", seed: int | None = None, *, bus: str =
                         rec.event(node.t_s, "ERROR", "run aborted")
                     if node is not None:
                         node.rig.reality.record_truth(rec)
-                    rec.close(summary)
+                    # the effects stay under the truth key alone (hil.effects.TRUTH_KEY), hidden from hil gap
+                    rec.close(None if summary is None else {k: v for k, v in summary.items() if k != "reality"})
             _stop_child(child)
             if handle is not None:
                 handle.close()

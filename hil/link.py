@@ -140,7 +140,9 @@ class Hub:
                 "--port", str(self.port)]
         code = (f"import runpy, sys; sys.setswitchinterval({HUB_SWITCH_INTERVAL_S!r}); sys.argv = {argv!r}; "
                 "runpy.run_module('can_remote', run_name='__main__')")
-        self.proc = subprocess.Popen([sys.executable, "-c", code], preexec_fn=die_with_parent,
+        # its own session: a Ctrl-C at the terminal reaches the plant, which closes its bus and then
+        # stops the hub (a hub killed first breaks both clients' connections mid-shutdown)
+        self.proc = subprocess.Popen([sys.executable, "-c", code], preexec_fn=die_with_parent, start_new_session=True,
                                      stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         deadline = time.monotonic() + HUB_START_TIMEOUT_S
         while True:
@@ -182,7 +184,9 @@ class BusHandle:
             try:
                 self.bus.shutdown()
             except Exception:  # noqa: BLE001 - closing a dead connection must not hide the real error
-                pass
+                # python-can retries (and warns "was not properly shut down") at garbage collection
+                # unless the bus counts as shut down; there is nothing left to close
+                self.bus._is_shutdown = True
             self.bus = None
         if self.hub is not None:
             self.hub.stop()

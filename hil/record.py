@@ -15,6 +15,7 @@ leave the process chunk by chunk; only the small chunk index grows with the run.
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import os
 import re
@@ -206,14 +207,20 @@ def slug(text: str, what: str) -> str:
     return out
 
 
-def log_path(scenario, strategy: str, seed: int, out_dir=None, plant: str | None = None, effects=()) -> Path:
-    """``<out>/<scenario>-<strategy>-<seed>[-<plant>][-real-<effect>+<effect>].mcap``, every part slugged
-    so the file stays inside ``out_dir`` (default ``logs``); ``plant`` is None for the CasADi model."""
+def log_path(scenario, strategy: str, seed: int, out_dir=None, plant: str | None = None,
+             reality: dict | None = None) -> Path:
+    """``<out>/<scenario>-<strategy>-<seed>[-<plant>][-real-<digest>].mcap``, every part slugged so the
+    file stays inside ``out_dir`` (default ``logs``); ``plant`` is None for the CasADi model.
+
+    ``reality`` (the ``[reality]`` effects) adds a digest of the effects and their parameters, not
+    their names: a "real" run never takes a nominal run's name, and the name does not tell the gap
+    diagnosis what it is asked to find."""
     parts = [slug(scenario.name, "scenario name"), slug(strategy, "strategy"), str(int(seed))]
     if plant:
         parts.append(slug(plant, "plant"))
-    if effects:
-        parts.append("real-" + "+".join(slug(e, "effect") for e in sorted(effects)))
+    if reality:
+        digest = hashlib.sha256(json.dumps(reality, sort_keys=True, default=str).encode()).hexdigest()[:8]
+        parts.append(f"real-{digest}")
     return Path(out_dir or "logs") / ("-".join(parts) + ".mcap")
 
 

@@ -153,7 +153,8 @@ def test_identification_identical_with_fmu_and_casadi_plant(wheelset_fmu, tmp_pa
         runs[kind] = json.loads(r.stdout)
     a, b = runs.values()
     assert a["corrections"] > 0 and a["params"]
-    timing = {"wall_s", "mcap", "sim_s_per_wall_s", "messages", "frames_tx", "frames_rx"}
+    assert a["plant"] == "casadi" and b["plant"] == "fmu-wheelset"
+    timing = {"wall_s", "mcap", "sim_s_per_wall_s", "messages", "frames_tx", "frames_rx", "plant"}
     timing |= {k for k in a if k.startswith(("round_trip", "deadline", "jitter", "late", "period_"))}
     for key in set(a) | set(b):
         if key not in timing:

@@ -16,7 +16,7 @@ import time
 import can
 import pytest
 
-from hil.bus import open_bus, vcan_available
+from hil.link import open_bus, vcan_available
 from hil.frames import load_dbc
 from hil.logread import read_log
 
