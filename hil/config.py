@@ -16,7 +16,6 @@ import math
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 from identifier.settings import IdentifierSettings, VehicleModel
 from plant import FrictionCurve, PlantConfig, SensorConfig, WheelsetParams, equilibrium

@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from identifier import SensorReading
-from plant.reality import PLANT_ORDER, SENSOR_EFFECTS, RealityPlant, RealitySensors, fill_defaults
+from plant.reality import RealityPlant, RealitySensors, fill_defaults
 
 from .errors import ConfigError
 

@@ -143,30 +143,88 @@ def exchange(node: PlantNode, steps: int, mode: str, bar: Progress | None = None
 
 
 # -- wiring ------------------------------------------------------------------------------------------
-def _child_command(scenario, strategy, seed, peer_spec, mode, set_args, report_path) -> list[str]:
-    cmd = [sys.executable, "-m", "hil.tcu_node", str(scenario.path), "--bus", peer_spec, "--strategy", strategy,
-           "--seed", str(seed), "--mode", mode, "--report", str(report_path)]
-    for item in set_args or []:
-        cmd += ["--set", item]
-    return cmd
+class Tcu:
+    """The other end of the bus, by transport: ``inprocess`` (a ``TcuNode`` in this thread behind
+    ``InprocessTcuBus``), ``process`` (``python -m hil.tcu_node`` as a child) or ``external`` (one
+    already on the bus).  ``open`` opens the bus and starts what this run starts; ``finish`` collects
+    what only the TCU knows after the run; ``close`` stops the child and closes the bus."""
+
+    def __init__(self, transport: str):
+        self.transport = transport
+        self.node: TcuNode | None = None
+        self.child: subprocess.Popen | None = None
+        self.handle = None
+        self._report_dir = tempfile.TemporaryDirectory(prefix="hil-tcu-") if transport == "process" else None
+        self.report_path = Path(self._report_dir.name) / "report.json" if self._report_dir else None
+
+    def open(self, scenario, strategy, seed, bus: str, mode: str, set_args) -> None:
+        if self.transport == "inprocess":
+            self.node = TcuNode(scenario, strategy, seed)
+            self.handle = open_bus("inprocess", inprocess_node=self.node)
+            return
+        self.handle = open_bus(bus)
+        if self.transport == "external":
+            if self.handle.hub is not None:
+                raise BusError("bus hub: a hub started here has no external TCU on it; start one with "
+                               "python -m can_remote and give both sides --bus remote:ws://127.0.0.1:PORT/")
+            return
+        if self.handle.peer_spec is None:
+            raise BusError(f"bus {self.handle.name}: reachable only inside this process; a TCU process cannot "
+                           "join it (use inprocess, hub or socketcan:<ch>)")
+        cmd = [sys.executable, "-m", "hil.tcu_node", str(scenario.path), "--bus", self.handle.peer_spec,
+               "--strategy", strategy, "--seed", str(seed), "--mode", mode, "--report", str(self.report_path)]
+        for item in set_args or []:
+            cmd += ["--set", item]
+        self.child = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                      start_new_session=True, preexec_fn=die_with_parent,
+                                      env={**os.environ, "PYTHONUNBUFFERED": "1"})
+
+    def finish(self, node: PlantNode) -> dict:
+        """After the last period: the TCU's last frames recorded, its counters (None for an external
+        TCU); ``PeerSilent`` when its process does not end, or ends with an error."""
+        if self.node is not None:
+            node.drain()
+            return _tcu_counters(self.node.report())
+        if self.child is None:
+            node.drain_until(lambda: False, 0.2)     # the external TCU's last status and heartbeat
+            return _tcu_counters(None)
+        node.drain_until(lambda: self.child.poll() is not None, CHILD_EXIT_TIMEOUT_S)
+        if self.child.poll() is None:
+            self.stop_child()
+            raise PeerSilent(f"TCU process did not end within {CHILD_EXIT_TIMEOUT_S:g} s after the run")
+        try:
+            report = json.loads(self.report_path.read_text())
+        except (OSError, ValueError):
+            report = {}
+        if self.child.returncode != 0:
+            raise PeerSilent(f"TCU process ended with code {self.child.returncode} after the run: "
+                             f"{report.get('error') or 'no report'}")
+        return _tcu_counters(report)
+
+    def stop_child(self) -> None:
+        child = self.child
+        if child is None or child.poll() is not None:
+            return
+        child.terminate()
+        try:
+            child.wait(5)
+        except subprocess.TimeoutExpired:
+            child.kill()
+            child.wait()
+
+    def close(self) -> None:
+        self.stop_child()
+        if self.handle is not None:
+            self.handle.close()
+        if self._report_dir is not None:
+            self._report_dir.cleanup()
 
 
-def _stop_child(child: subprocess.Popen | None) -> None:
-    if child is None or child.poll() is not None:
-        return
-    child.terminate()
-    try:
-        child.wait(5)
-    except subprocess.TimeoutExpired:
-        child.kill()
-        child.wait()
-
-
-def _read_report(path: Path) -> dict:
-    try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError):
-        return {}
+def _tcu_counters(report: dict | None) -> dict:
+    """What only the TCU knows (None for an external TCU)."""
+    report = report or {}
+    return {"tcu_rejected_frames": report.get("rejected_frames"), "tcu_rejected_readings": report.get("rejected_readings"),
+            "tcu_events": report.get("events")}
 
 
 def _set_rt_priority(priority: int, log):
@@ -180,6 +238,14 @@ def _set_rt_priority(priority: int, log):
     except (AttributeError, PermissionError, OSError) as e:
         log(f"warning: cannot set SCHED_FIFO priority {priority} ({e}); running at normal priority")
         return None
+
+
+def _log_path(scenario, strategy, seed, out_dir, plant_label, log) -> Path:
+    path = log_path(scenario, strategy, seed, prepare_out_dir(out_dir), plant_label, scenario.extra.get("reality"))
+    if path.exists():
+        log(f"warning: replacing {path} (a log of an earlier run with the same scenario, strategy, seed, plant "
+            "and effects)")
+    return path
 
 
 def run(scenario, strategy: str = "nlls", seed: int | None = None, *, bus: str = "auto", mode: str = "lockstep",
@@ -201,73 +267,45 @@ def run(scenario, strategy: str = "nlls", seed: int | None = None, *, bus: str =
     seed = scenario.run.seed if seed is None else seed
     settings = scenario.bus
     period = scenario.run.exchange_period_s
-    transport = "inprocess" if bus == "inprocess" else ("external" if external_tcu else "process")
     load = bus_load(FrameCodec(period).db, period, settings.heartbeat_period_s, settings.bitrate,
                     settings.data_bitrate)
-    reality = scenario.extra.get("reality") or None
-    path = None
-    if record:
-        path = log_path(scenario, strategy, seed, prepare_out_dir(out_dir), plant_label, reality)
-        if path.exists():
-            log(f"warning: replacing {path} (a log of an earlier run with the same scenario, strategy, seed, "
-                "plant and effects)")
-
+    path = _log_path(scenario, strategy, seed, out_dir, plant_label, log) if record else None
+    tcu = Tcu("inprocess" if bus == "inprocess" else ("external" if external_tcu else "process"))
     trace = Trace(scenario)
+    rec = node = timing = summary = None
+    wall = 0.0
+
+    def summarise(extra: dict) -> dict:
+        return clean(trace.summary(
+            strategy=strategy, seed=seed, bus=tcu.handle.name if tcu.handle else bus, mcap_path=path,
+            extra={"mode": mode, "transport": tcu.transport, "plant": plant_label or "casadi",
+                   "reality": scenario.extra.get("reality") or None, "wall_s": wall,
+                   "sim_s": node.t_s if node else 0.0, "sim_s_per_wall_s": node.t_s / wall if node and wall else None,
+                   "bus_load_percent": load["load_percent"], **(node.counters() if node else {}),
+                   **(timing.summary(node.late_commands) if timing else {}), **extra}))
+
     old_sched = _set_rt_priority(settings.rt_priority, log) if mode == "realtime" and settings.rt_priority > 0 \
         else None
-    child = handle = rec = node = summary = None
-    report_dir = tempfile.TemporaryDirectory(prefix="hil-tcu-") if transport == "process" else None
-    report_path = Path(report_dir.name) / "report.json" if report_dir else None
-    tcu = None
-    wall = 0.0
-    timing = None
-
-    def summarise(extra=None) -> dict:
-        s = trace.summary(strategy=strategy, seed=seed, bus=handle.name if handle else bus, mcap_path=path,
-                          extra={"mode": mode, "transport": transport, "plant": plant_label or "casadi",
-                                 "reality": reality,
-                                 "wall_s": wall, "sim_s": node.t_s if node else 0.0,
-                                 "sim_s_per_wall_s": node.t_s / wall if node and wall > 0 else None,
-                                 "bus_load_percent": load["load_percent"],
-                                 **(node.counters() if node else {}),
-                                 **(timing.summary(node.late_commands) if timing else {}), **(extra or {})})
-        return clean(s)
-
     with interrupts_between_writes():   # SIGTERM ends a run like Ctrl-C, never mid-write
         try:
-            if transport == "inprocess":
-                tcu = TcuNode(scenario, strategy, seed)
-                handle = open_bus("inprocess", inprocess_node=tcu)
-            else:
-                handle = open_bus(bus)
-                if external_tcu and handle.hub is not None:
-                    raise BusError("bus hub: a hub started here has no external TCU on it; start one with "
-                                   "python -m can_remote and give both sides --bus remote:ws://127.0.0.1:PORT/")
-                if handle.peer_spec is None and not external_tcu:
-                    raise BusError(f"bus {handle.name}: reachable only inside this process; a TCU process cannot "
-                                   "join it (use inprocess, hub or socketcan:<ch>)")
-            if transport == "process":
-                child = subprocess.Popen(
-                    _child_command(scenario, strategy, seed, handle.peer_spec, mode, set_args, report_path),
-                    stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, start_new_session=True,
-                    preexec_fn=die_with_parent, env={**os.environ, "PYTHONUNBUFFERED": "1"})
-            log(format_bus_load(load) + f" on {handle.name}")
+            tcu.open(scenario, strategy, seed, bus, mode, set_args)
+            log(format_bus_load(load) + f" on {tcu.handle.name}")
             if load["load_percent"] > LOAD_WARN_PERCENT:
                 log(f"warning: bus load {load['load_percent']:.1f} % is above {LOAD_WARN_PERCENT:g} % "
                     f"(raise [bus] bitrate/data_bitrate or the exchange period)")
             if record:
                 rec = start_recording(
-                    scenario, strategy, seed, handle.name, mode, path,
+                    scenario, strategy, seed, tcu.handle.name, mode, path,
                     plant_meta=plant.metadata() if hasattr(plant, "metadata") else None,
                     dbc={"name": DBC_PATH.name, "text": DBC_PATH.read_text()},
-                    bus_meta={"spec": bus, "name": handle.name, "dbc": DBC_PATH.name, "transport": transport,
+                    bus_meta={"spec": bus, "name": tcu.handle.name, "dbc": DBC_PATH.name, "transport": tcu.transport,
                               **{k: repr(v) for k, v in dataclasses.asdict(settings).items()},
                               "load_percent": f"{load['load_percent']:.2f}"})
-            rig = PlantRig(scenario, seed, trace, rec, plant=plant)
-            node = PlantNode(rig, handle.bus, mode, strategy=strategy, watch=child, watch_silence=tcu is None)
-            if tcu is None:
+            node = PlantNode(PlantRig(scenario, seed, trace, rec, plant=plant), tcu.handle.bus, mode,
+                             strategy=strategy, watch=tcu.child, watch_silence=tcu.node is None)
+            if tcu.node is None:
                 node.wait_for_tcu()
-            bar = Progress(scenario.steps, f"{scenario.name} {strategy} {handle.name} {mode}", progress)
+            bar = Progress(scenario.steps, f"{scenario.name} {strategy} {tcu.handle.name} {mode}", progress)
             wall0 = time.perf_counter()
             try:
                 timing = exchange(node, scenario.steps, mode, bar)
@@ -275,24 +313,7 @@ def run(scenario, strategy: str = "nlls", seed: int | None = None, *, bus: str =
                 bar.close()
             wall = time.perf_counter() - wall0
             node.finish(STATE_FINISHED)
-            extra = {}
-            if tcu is not None:
-                node.drain()
-                extra = _tcu_counters(tcu.report())
-            elif child is not None:
-                node.drain_until(lambda: child.poll() is not None, CHILD_EXIT_TIMEOUT_S)
-                if child.poll() is None:
-                    _stop_child(child)
-                    raise PeerSilent(f"TCU process did not end within {CHILD_EXIT_TIMEOUT_S:g} s after the run")
-                report = _read_report(report_path)
-                if child.returncode != 0:
-                    why = report.get("error") or "no report"
-                    raise PeerSilent(f"TCU process ended with code {child.returncode} after the run: {why}")
-                extra = _tcu_counters(report)
-            else:
-                node.drain_until(lambda: False, 0.2)     # the external TCU's last status and heartbeat
-                extra = _tcu_counters(None)
-            summary = summarise(extra)
+            summary = summarise(tcu.finish(node))
             if rec:
                 summary["messages"] = rec.messages + 1   # + the summary itself
         except PeerSilent as e:
@@ -318,18 +339,7 @@ def run(scenario, strategy: str = "nlls", seed: int | None = None, *, bus: str =
                         node.rig.reality.record_truth(rec)
                     # the effects stay under the truth key alone (hil.effects.TRUTH_KEY), hidden from hil gap
                     rec.close(None if summary is None else {k: v for k, v in summary.items() if k != "reality"})
-            _stop_child(child)
-            if handle is not None:
-                handle.close()
-            if report_dir is not None:
-                report_dir.cleanup()
+            tcu.close()
             if old_sched is not None:
                 os.sched_setscheduler(0, *old_sched)
     return summary
-
-
-def _tcu_counters(report: dict | None) -> dict:
-    """What only the TCU knows (None for an external TCU)."""
-    report = report or {}
-    return {"tcu_rejected_frames": report.get("rejected_frames"), "tcu_rejected_readings": report.get("rejected_readings"),
-            "tcu_events": report.get("events")}

@@ -292,6 +292,21 @@ def test_silent_tcu_is_a_recorded_fault_and_exit_3(tmp_path):
     assert any(e.level == "ERROR" and "TCU silent" in e.text for e in events)
 
 
+def test_a_tcu_that_dies_mid_run_is_exit_3_and_json_still_prints_one_object(tmp_path):
+    proc, path = _start_long_run(tmp_path, "--json")
+    tcu = [p for p in children_of(proc.pid) if "hil.tcu_node" in cmdline(p)]
+    assert len(tcu) == 1
+    os.kill(tcu[0], signal.SIGKILL)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 3, err
+    assert "TCU process exited with code -9" in err and "Traceback" not in err
+    s = json.loads(out)                               # exactly one JSON object, with the fault in it
+    assert "TCU process exited" in s["fault"] and s["mcap"] == str(path) and s["identified"] is False
+    with open(path, "rb") as f:
+        meta = {m.name: m.metadata for m in make_reader(f).iter_metadata()}
+    assert "TCU process exited" in meta["fault"]["reason"]
+
+
 def test_ctrl_c_stops_plant_tcu_and_hub_and_closes_the_mcap(tmp_path):
     proc, path = _start_long_run(tmp_path)
     kids = children_of(proc.pid)
@@ -299,6 +314,7 @@ def test_ctrl_c_stops_plant_tcu_and_hub_and_closes_the_mcap(tmp_path):
     proc.send_signal(signal.SIGINT)
     out, err = proc.communicate(timeout=60)
     assert proc.returncode == 130 and "interrupted" in err and "Traceback" not in err
+    assert "not properly shut down" not in err and "Exception ignored" not in err, err
     wait_for(lambda: not any(alive(k) for k in kids), 10, "the hub and TCU to end")
     with open(path, "rb") as f:
         summary = make_reader(f).get_summary()

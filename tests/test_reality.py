@@ -174,3 +174,14 @@ def test_cli_reality_flag(tmp_path, ffcc_a_path):
     s = json.loads(r.stdout)
     truth = read_log(s["mcap"]).metadata[TRUTH_KEY]
     assert json.loads(truth["effects"]) == {"adhesion_lag": {"tau_s": 0.01}}
+
+
+def test_the_effect_registry_and_the_physics_name_the_same_effects():
+    """hil/effects.py says which effects exist and at which level; plant/reality.py integrates the plant
+    and sensor ones: the two lists must agree."""
+    from hil.effects import EFFECTS
+    from plant.reality import PLANT_ORDER, SENSOR_EFFECTS
+
+    assert {n for n, s in EFFECTS.items() if s.level == "plant"} == set(PLANT_ORDER)
+    assert {n for n, s in EFFECTS.items() if s.level == "sensor"} == set(SENSOR_EFFECTS)
+    assert {n for n, s in EFFECTS.items() if s.level == "bus"} == {"can"}

@@ -3,8 +3,6 @@ import json
 
 import pytest
 
-from hil.exchange import run
-from hil.config import load_scenario
 
 from .conftest import ROOT, SCENARIOS, hil, kill_run_when_log_reaches
 

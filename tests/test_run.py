@@ -83,6 +83,36 @@ def test_sigkill_leaves_a_readable_prefix(tmp_path):
     assert "scenario" in log.metadata
 
 
+@pytest.mark.parametrize("out, says", [("run.mcap", "names a directory for the logs, not a log file"),
+                                       ("/proc/no/such/dir", "cannot create the directory")])
+def test_an_unusable_out_is_one_line_and_writes_nothing(tmp_path, out, says):
+    r = subprocess.run(hil_command() + ["run", str(SCENARIOS / "ffcc_a.toml"), "--bus", "inprocess", "--out", out],
+                       cwd=tmp_path, capture_output=True, text=True, env=subprocess_env(), timeout=120)
+    assert r.returncode == 2 and says in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_log_names_keep_plant_and_reality_runs_apart_and_stay_inside_out(tmp_path):
+    """A --reality run never takes the nominal run's log name, and a scenario name with path parts
+    cannot put the log outside --out."""
+    scenario = tmp_path / "s.toml"
+    text = (SCENARIOS / "ffcc_a.toml").read_text()
+    assert 'name = "ffcc_a"' in text
+    scenario.write_text(text.replace('name = "ffcc_a"', 'name = "../../escaped/x"'))
+    out = tmp_path / "logs"
+    names = []
+    for extra in ([], ["--reality", "resistance:factor=1.2"]):
+        r = subprocess.run(hil_command() + ["run", str(scenario), "--bus", "inprocess", "--out", str(out), "--json",
+                                            "--no-rrd", "--set", "run.duration_s=0.1", "--set", "run.fault_time_s=0.05",
+                                            *extra], capture_output=True, text=True, env=subprocess_env(), timeout=120)
+        assert r.returncode == 0, r.stderr
+        names.append(json.loads(r.stdout)["mcap"])
+    assert len(set(names)) == 2 and "replacing" not in r.stderr
+    assert all(str(p).startswith(str(out) + "/") and "/" not in str(p)[len(str(out)) + 1:] for p in names), names
+    assert "resistance" not in names[1] and "-real-" in names[1]
+    assert not (tmp_path.parent / "escaped").exists()
+
+
 @pytest.mark.parametrize("delay_s", [0.15, 0.25, 0.4, 0.55, 0.7])
 def test_ctrl_c_during_start_up_is_one_line_not_a_traceback(tmp_path, delay_s):
     """SIGINT while hil is still importing numpy, scipy and casadi (the first ~second; a Ctrl-C inside
