@@ -4,7 +4,7 @@ from __future__ import annotations
 import json
 import sys
 
-from ..errors import ConfigError
+from ..errors import ConfigError, PlantError
 
 
 def register(sub) -> None:
@@ -55,7 +55,7 @@ def cmd_info(args) -> int:
     try:
         md = read_fmu(args.fmu)
     except FmuError as e:
-        raise ConfigError(str(e)) from None
+        raise PlantError(str(e)) from None
     problems = validate_fmu(args.fmu)
     info = {"fmu": args.fmu, "fmi_version": md.fmiVersion, "model_name": md.modelName,
             "generation_tool": md.generationTool,
