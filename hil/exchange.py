@@ -40,6 +40,7 @@ import numpy as np
 
 from identifier.messages import TorqueCommand
 
+from .effects import TRUTH_KEY
 from .errors import BusError, PeerSilent
 from .frames import DBC_PATH, STATE_FAULT, STATE_FINISHED, FrameCodec, bus_load, format_bus_load
 from .link import MODES, die_with_parent, open_bus
@@ -240,6 +241,14 @@ def _set_rt_priority(priority: int, log):
         return None
 
 
+def _recorded(summary: dict | None) -> dict | None:
+    """The summary as the log keeps it: a real run's effects stay under the truth key alone
+    (``hil.effects.TRUTH_KEY``), which ``hil gap`` never reads."""
+    if summary is None or not summary.get("reality"):
+        return summary
+    return {**summary, "reality": f"effects under the {TRUTH_KEY!r} metadata"}
+
+
 def _log_path(scenario, strategy, seed, out_dir, plant_label, log) -> Path:
     path = log_path(scenario, strategy, seed, prepare_out_dir(out_dir), plant_label, scenario.extra.get("reality"))
     if path.exists():
@@ -337,8 +346,7 @@ def run(scenario, strategy: str = "nlls", seed: int | None = None, *, bus: str =
                         rec.event(node.t_s, "ERROR", "run aborted")
                     if node is not None:
                         node.rig.reality.record_truth(rec)
-                    # the effects stay under the truth key alone (hil.effects.TRUTH_KEY), hidden from hil gap
-                    rec.close(None if summary is None else {k: v for k, v in summary.items() if k != "reality"})
+                    rec.close(_recorded(summary))
             tcu.close()
             if old_sched is not None:
                 os.sched_setscheduler(0, *old_sched)

@@ -183,10 +183,12 @@ class BusHandle:
         if self.bus is not None:
             try:
                 self.bus.shutdown()
-            except Exception:  # noqa: BLE001 - closing a dead connection must not hide the real error
+            except BaseException as e:  # noqa: BLE001 - closing a dead connection must not hide the real error
                 # python-can retries (and warns "was not properly shut down") at garbage collection
                 # unless the bus counts as shut down; there is nothing left to close
                 self.bus._is_shutdown = True
+                if not isinstance(e, Exception):
+                    raise
             self.bus = None
         if self.hub is not None:
             self.hub.stop()

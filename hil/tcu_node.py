@@ -221,6 +221,10 @@ def run_tcu(args) -> int:
     except PeerSilent as e:
         error = e
     finally:
+        # the plant stops this process with SIGTERM once its run is over: the bus is closed and the
+        # report written whole, not cut by the signal
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(sig, signal.SIG_IGN)
         handle.close()
         report = node.report()
         report["exit"] = error.exit_code if error is not None else code
