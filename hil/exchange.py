@@ -342,6 +342,8 @@ def run(scenario, strategy: str = "nlls", seed: int | None = None, *, bus: str =
         finally:
             if rec:
                 with rec.atomic():
+                    if node is not None:
+                        node.settle_results()        # a result whose status never came is still logged
                     if summary is None and node is not None:
                         rec.event(node.t_s, "ERROR", "run aborted")
                     if node is not None:

@@ -6,7 +6,8 @@ reason (unknown id, wrong length, error/remote frame, undecodable, non-finite or
 signal).  Rejected frames are counted by reason (``RejectCounter``) and never reach the identifier.
 
 Frame schedule per exchange period: PlantSensor (plant -> TCU), then TorqueCommand, TcuSample (0..n,
-one per sample the strategy took), TcuResult (0..n, only on an identification event) and TcuStatus
+one per sample the strategy took), TcuResult (0..n, only on an identification event, each followed by its
+TcuInterval when the strategy says how sure it is) and TcuStatus
 (TCU -> plant, in this order), heartbeats both ways every ``heartbeat_period_s`` of wall time.
 """
 from __future__ import annotations
@@ -25,10 +26,10 @@ DBC_NAME = "hil.dbc"
 DBC_PATH = Path(__file__).with_name(DBC_NAME)
 
 # frame ids (also in the DBC; checked against it at load)
-SENSOR_ID, COMMAND_ID, STATUS_ID, RESULT_ID, SAMPLE_ID = 0x100, 0x110, 0x120, 0x130, 0x140
+SENSOR_ID, COMMAND_ID, STATUS_ID, RESULT_ID, INTERVAL_ID, SAMPLE_ID = 0x100, 0x110, 0x120, 0x130, 0x131, 0x140
 PLANT_HEARTBEAT_ID, TCU_HEARTBEAT_ID = 0x701, 0x702
 PLANT_IDS = frozenset({SENSOR_ID, PLANT_HEARTBEAT_ID})
-TCU_IDS = frozenset({COMMAND_ID, STATUS_ID, RESULT_ID, SAMPLE_ID, TCU_HEARTBEAT_ID})
+TCU_IDS = frozenset({COMMAND_ID, STATUS_ID, RESULT_ID, INTERVAL_ID, SAMPLE_ID, TCU_HEARTBEAT_ID})
 
 # heartbeat states
 STATE_STARTING, STATE_RUNNING, STATE_FINISHED, STATE_FAULT = 0, 1, 2, 3
@@ -36,7 +37,9 @@ STATE_NAMES = {STATE_STARTING: "starting", STATE_RUNNING: "running", STATE_FINIS
                STATE_FAULT: "fault"}
 
 MAX_PARAMS = 6
-KINDS = ("correction", "confirmed")
+KINDS = ("correction", "confirmed", "unconfirmed")
+#: the coverage of the intervals a TCU sends with each result
+INTERVAL_LEVEL_PERCENT = 90
 #: signals allowed to be non-finite (J_EF is inf before the 2nd correction and NaN on confirmation)
 NON_FINITE_OK = frozenset({"JEf"})
 
@@ -53,6 +56,17 @@ class Heartbeat:
 
 
 @dataclass(frozen=True)
+class IntervalReport:
+    """The intervals that go with the result of (step, correction, kind)."""
+    step: int
+    correction: int
+    kind: str
+    level_percent: int
+    peak_mu_ci: tuple[float, float]
+    peak_creep_ci: tuple[float, float]
+
+
+@dataclass(frozen=True)
 class SampleReport:
     """One (creep, mu^) sample the TCU's strategy took, and when the TCU dates the slip's start."""
     step: int
@@ -66,7 +80,7 @@ class SampleReport:
 class Frame:
     """A received frame that passed validation: its DBC name and the decoded object."""
     name: str
-    value: object          # SensorReading | TorqueCommand | (TcuStatus, ObserverSample|None) | IdentificationEvent | SampleReport | Heartbeat
+    value: object          # SensorReading | TorqueCommand | (TcuStatus, ObserverSample|None) | IdentificationEvent | IntervalReport | SampleReport | Heartbeat
 
 
 class RejectCounter(Counter):
@@ -85,7 +99,7 @@ class FrameCodec:
         self.period_s = period_s
         self._by_id = {m.frame_id: m for m in self.db.messages}
         expected = {SENSOR_ID: "PlantSensor", COMMAND_ID: "TorqueCommand", STATUS_ID: "TcuStatus",
-                    RESULT_ID: "TcuResult", SAMPLE_ID: "TcuSample", PLANT_HEARTBEAT_ID: "PlantHeartbeat", TCU_HEARTBEAT_ID: "TcuHeartbeat"}
+                    RESULT_ID: "TcuResult", INTERVAL_ID: "TcuInterval", SAMPLE_ID: "TcuSample", PLANT_HEARTBEAT_ID: "PlantHeartbeat", TCU_HEARTBEAT_ID: "TcuHeartbeat"}
         for fid, name in expected.items():
             if fid not in self._by_id or self._by_id[fid].name != name:
                 raise ValueError(f"{DBC_NAME}: frame 0x{fid:X} must be {name}")
@@ -121,6 +135,16 @@ class FrameCodec:
         for i in range(MAX_PARAMS):
             values[f"Param{i}"] = e.params[i] if i < len(e.params) else 0.0
         return self._msg(RESULT_ID, values)
+
+    def interval(self, e: IdentificationEvent) -> can.Message | None:
+        """The TcuInterval frame of an event, or None when it carries no (finite) interval."""
+        values = (*e.peak_mu_ci, *e.peak_creep_ci)
+        if not all(math.isfinite(x) for x in values):
+            return None
+        return self._msg(INTERVAL_ID, {"IntervalStep": e.step, "IntervalCorrection": e.correction,
+                                       "IntervalKind": KINDS.index(e.kind), "IntervalLevel": INTERVAL_LEVEL_PERCENT,
+                                       "PeakMuLo": values[0], "PeakMuHi": values[1], "PeakCreepLo": values[2],
+                                       "PeakCreepHi": values[3]})
 
     def sample(self, r: SampleReport) -> can.Message:
         return self._msg(SAMPLE_ID, {"SampleStep": r.step, "SampleIndex": min(r.index, 65535),
@@ -185,6 +209,10 @@ class FrameCodec:
                                        int(v["ResultCorrection"]),
                                        tuple(float(v[f"Param{i}"]) for i in range(n)), float(v["JEf"]),
                                        int(v["ResultSamples"]))
+        if fid == INTERVAL_ID:
+            return IntervalReport(int(v["IntervalStep"]), int(v["IntervalCorrection"]), KINDS[int(v["IntervalKind"])],
+                                  int(v["IntervalLevel"]), (float(v["PeakMuLo"]), float(v["PeakMuHi"])),
+                                  (float(v["PeakCreepLo"]), float(v["PeakCreepHi"])))
         if fid == SAMPLE_ID:
             return SampleReport(int(v["SampleStep"]), int(v["SampleIndex"]), int(v["DetectedStep"]),
                                 float(v["SampleCreep"]), float(v["SampleMu"]))

@@ -171,6 +171,7 @@ class PlantNode:
                 return "bad_sequence"
             self.last_status_step = st.step
             self.trace.observer(obs)
+            self.settle_results(st.step)
             if rec:
                 write_status(rec, st, obs, self.period_s)
             return "ok"
@@ -178,10 +179,10 @@ class PlantNode:
             if not (self.last_result_step <= v.step <= current):
                 return "bad_sequence"
             self.last_result_step = v.step
-            self.trace.event(v)
-            if rec:
-                write_identification(rec, v, self.strategy)
+            self.trace.result(v)
             return "ok"
+        if name == "TcuInterval":
+            return "ok" if self.trace.interval(v) else "bad_sequence"
         if name == "TcuSample":
             if v.index != self.last_sample_index + 1 or not (0 <= v.step <= current):
                 return "bad_sequence"
@@ -193,6 +194,12 @@ class PlantNode:
             self.tcu_state = v.state
             return "ok"
         return "foreign"        # plant frames from another node on the bus
+
+    def settle_results(self, upto_step: int | None = None) -> None:
+        """Results up to ``upto_step`` (all: None) are final (their intervals came first): record them."""
+        for e in self.trace.settle(upto_step):
+            if self.rec:
+                write_identification(self.rec, e, self.strategy)
 
     def poll(self, until: float | None) -> None:
         """Receive one frame, or wait at most until ``until`` (perf_counter) or the next heartbeat."""
@@ -210,6 +217,7 @@ class PlantNode:
         """Record what is still queued."""
         while (msg := self.bus.recv(timeout=0.0)) is not None:
             self.on_rx(msg)
+        self.settle_results()
 
     def drain_until(self, done, timeout_s: float) -> None:
         """Record the TCU's last frames until ``done()`` or ``timeout_s``."""

@@ -180,14 +180,18 @@ def replay(src: ReplaySource, strategy: str | None = None, seed: int | None = No
             if frame is None:
                 continue
             if frame.name == "TcuResult":
-                trace.event(frame.value)
+                trace.result(frame.value)
+            elif frame.name == "TcuInterval":
+                trace.interval(frame.value)
             elif frame.name == "TcuSample":
                 trace.sample(frame.value.creep_speed_kmh, frame.value.mu_hat)
                 trace.detected(frame.value.detected_step)
             elif frame.name == "TcuStatus":
                 trace.observer(frame.value[1])
+                trace.settle(frame.value[0].step)
     wall = time.perf_counter() - wall0
     trace.detected(node.identifier.detector.detected_step)
+    trace.settle()
 
     # compare with the logged identification when it came from the same strategy and seed (a CAN
     # log does not say which strategy produced its results: compare anyway)

@@ -75,7 +75,13 @@ class TcuNode:
             self.events += len(out.events)
             c = self.codec
             # the command first: the plant waits for it; samples, results and status follow
-            return [c.command(out.command)] + self._new_samples(reading.step) + [c.result(e) for e in out.events] \
+            results = []
+            for e in out.events:
+                results.append(c.result(e))
+                interval = c.interval(e)
+                if interval is not None:
+                    results.append(interval)
+            return [c.command(out.command)] + self._new_samples(reading.step) + results \
                 + [c.status(out.status, out.observer)]
         if frame.name == "PlantHeartbeat":
             self.plant_state = frame.value.state

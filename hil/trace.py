@@ -9,6 +9,7 @@ curve, the observer lag.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -32,6 +33,7 @@ class Trace:
         self._window_steps = int(round(LAG_WINDOW_S / self.period_s))
         self.tracker = StageTracker(scenario.run.fault_time_s, scenario.fault_curve.peak()[0])
         self.events: list = []
+        self._pending: list = []          # results waiting for their interval frame
         self.samples_v: list[float] = []
         self.samples_mu: list[float] = []
         self.detected_step: int | None = None
@@ -52,8 +54,26 @@ class Trace:
         if obs is not None and self._in_window(obs.step):
             self._observer_mu[obs.step] = obs.mu_hat
 
-    def event(self, e) -> None:
-        self.events.append(e)
+    def result(self, e) -> None:
+        """An identification event as it arrives; final once ``settle`` passes its step (its interval,
+        sent right after it, may still come)."""
+        self._pending.append(e)
+
+    def interval(self, r) -> bool:
+        """Attach an ``IntervalReport`` to its pending result; False when none matches."""
+        for i, e in enumerate(self._pending):
+            if (e.step, e.correction, e.kind) == (r.step, r.correction, r.kind):
+                self._pending[i] = dataclasses.replace(e, peak_mu_ci=r.peak_mu_ci, peak_creep_ci=r.peak_creep_ci)
+                return True
+        return False
+
+    def settle(self, upto_step: int | None = None) -> list:
+        """The pending results of steps up to ``upto_step`` (all: None), now final: moved to ``events``
+        and returned (for the log)."""
+        done = [e for e in self._pending if upto_step is None or e.step <= upto_step]
+        self._pending = [e for e in self._pending if not (upto_step is None or e.step <= upto_step)]
+        self.events.extend(done)
+        return done
 
     def sample(self, creep_speed_kmh: float, mu_hat: float) -> None:
         self.samples_v.append(creep_speed_kmh)
@@ -75,6 +95,7 @@ class Trace:
                                self.tracker.serious_time_s or self.scenario.run.duration_s, self.period_s)
 
     def summary(self, *, strategy: str, seed: int, bus: str, mcap_path=None, extra=None) -> dict:
+        self.settle()
         det = self.detected_step
         return summarise(scenario=self.scenario, strategy=strategy, seed=seed, bus=bus, tracker=self.tracker,
                          events=self.events, samples_v=np.asarray(self.samples_v, float),
@@ -126,7 +147,7 @@ def summarise(*, scenario, strategy: str, seed: int, bus: str, tracker, events, 
     """Summary of one run from the TCU's events and samples and the plant's stage tracker."""
     confirmed = next((e for e in events if e.kind == "confirmed"), None)
     corrections = [e for e in events if e.kind == "correction"]
-    last = confirmed or (corrections[-1] if corrections else None)
+    last = confirmed or (events[-1] if events else None)
     truth = scenario.fault_curve
     out = {
         "scenario": scenario.name, "strategy": strategy, "seed": seed, "bus": bus,
@@ -141,6 +162,10 @@ def summarise(*, scenario, strategy: str, seed: int, bus: str, tracker, events, 
         "rt_percent": rt_percent(confirmed.t_s if confirmed else None, scenario.run.fault_time_s,
                                  tracker.deterioration_time_s),
         "params": list(last.params) if last else None,
+        # the TCU's own 90 % intervals of the peak for that curve ([lo, hi]; null when it gave none)
+        "peak_mu_ci": _interval(last.peak_mu_ci) if last else None,
+        "peak_creep_ci": _interval(last.peak_creep_ci) if last else None,
+        "unconfirmed": bool(events) and events[-1].kind == "unconfirmed",
         "true_params": list(truth.params) if hasattr(truth, "params") else None,
         "corrections": len(corrections),
         "samples": len(samples_v),
@@ -154,6 +179,10 @@ def summarise(*, scenario, strategy: str, seed: int, bus: str, tracker, events, 
         out.update({k: None for k in ("mse", "rmse", "mae", "r2", *TRUTH_KEYS)})
     out.update(extra or {})
     return clean(out)
+
+
+def _interval(ci) -> list[float] | None:
+    return [float(x) for x in ci] if all(math.isfinite(x) for x in ci) else None
 
 
 TRUTH_KEYS = ("peak_mu", "peak_creep_kmh", "peak_mu_err_percent", "peak_creep_err_percent", "curve_rmse_vs_truth",

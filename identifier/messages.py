@@ -5,7 +5,10 @@ The identifier consumes ``SensorReading`` and produces ``TorqueCommand``, ``TcuS
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
+
+NAN_INTERVAL = (math.nan, math.nan)
 
 # TCU identification stages as carried in the status frame
 STAGE_MONITORING, STAGE_IDENTIFYING, STAGE_CONFIRMED, STAGE_GAVE_UP = 0, 1, 2, 3
@@ -39,11 +42,13 @@ class ObserverSample:
 class IdentificationEvent:
     step: int
     t_s: float
-    kind: str                  # "correction" or "confirmed"
+    kind: str                  # "correction", "confirmed" or "unconfirmed" (gave up: best estimate)
     correction: int            # Q (the preliminary fit is 0)
     params: tuple[float, ...]  # lambda0, lambda1..n, tau1..n
     j_ef: float
     samples: int               # samples used so far
+    peak_mu_ci: tuple[float, float] = NAN_INTERVAL        # 90 % interval of the curve's peak mu (NaN: none)
+    peak_creep_ci: tuple[float, float] = NAN_INTERVAL     # 90 % interval of its peak creep, km/h
 
 
 @dataclass(frozen=True)

@@ -7,7 +7,7 @@ import cantools
 import numpy as np
 import pytest
 
-from hil.frames import (COMMAND_ID, DBC_PATH, PLANT_HEARTBEAT_ID, RESULT_ID, SENSOR_ID, STATUS_ID, TCU_HEARTBEAT_ID,
+from hil.frames import (IntervalReport, COMMAND_ID, DBC_PATH, PLANT_HEARTBEAT_ID, RESULT_ID, SENSOR_ID, STATUS_ID, TCU_HEARTBEAT_ID,
                         FrameCodec, bus_load, fd_frame_time_s, load_dbc)
 from hil.config import load_scenario
 from hil.tcu_node import TcuNode
@@ -61,6 +61,29 @@ def test_every_message_round_trips_exactly(codec):
         params = tuple(float(x) for x in rng.normal(size=5))
         e = IdentificationEvent(k, k * PERIOD, "correction", 7, params, 0.25, 300)
         assert codec.classify(codec.result(e))[0].value == e
+
+
+def test_intervals_and_samples_round_trip_and_pair_with_their_result(codec, ffcc_a):
+    """A result's 90 % intervals travel in a TcuInterval frame right after it; the trace pairs them by
+    (step, correction, kind) and a result is final once the status of its step arrived."""
+    from hil.frames import SampleReport
+    from hil.trace import Trace
+
+    e = IdentificationEvent(812, 812 * PERIOD, "unconfirmed", 3, (0.0, 0.6, -0.6, -0.5, -1.1), 0.5, 40,
+                            (0.141, 0.163), (1.05, 1.52))
+    r, i = codec.classify(codec.result(e))[0], codec.classify(codec.interval(e))[0]
+    assert r.value.kind == "unconfirmed" and i.name == "TcuInterval"
+    assert (i.value.peak_mu_ci, i.value.peak_creep_ci, i.value.level_percent) == ((0.141, 0.163), (1.05, 1.52), 90)
+    assert codec.interval(IdentificationEvent(1, PERIOD, "correction", 1, (0.0, 0.6, -0.6, -0.5, -1.1), 0.0, 9)) is None
+    s = SampleReport(812, 17, 790, 0.734, 0.1337)
+    assert codec.classify(codec.sample(s))[0].value == s
+    trace = Trace(ffcc_a)
+    trace.result(r.value)
+    other = IntervalReport(812, 2, "unconfirmed", 90, (0.0, 1.0), (0.0, 1.0))
+    assert not trace.interval(other) and trace.interval(i.value)
+    assert trace.settle(811) == [] and trace.events == []
+    assert trace.settle(812) == [e] and trace.events == [e]
+    assert trace.events[0].peak_mu_ci == (0.141, 0.163) and trace.events[0].peak_creep_ci == (1.05, 1.52)
 
 
 def test_result_frame_carries_inf_and_nan_scores(codec):
