@@ -1,5 +1,5 @@
 """``hil bench NAME``: benchmarks that print their figures.  Each lives in
-``hil/benchmarks/<name>.py`` with ``register(subparsers)``."""
+``hil/benchmarks/<name>.py`` with ``register(subparsers)``; modules without it are helpers."""
 from __future__ import annotations
 
 import importlib
@@ -13,4 +13,6 @@ def register(sub) -> None:
     bsub = p.add_subparsers(dest="benchmark", metavar="BENCHMARK")
     bsub.required = True
     for info in sorted(pkgutil.iter_modules(benchmarks.__path__), key=lambda m: m.name):
-        importlib.import_module(f"{benchmarks.__name__}.{info.name}").register(bsub)
+        module = importlib.import_module(f"{benchmarks.__name__}.{info.name}")
+        if hasattr(module, "register"):          # helper modules (e.g. judge) register no command
+            module.register(bsub)

@@ -1,0 +1,143 @@
+"""Judging an identification against the truth, per draw and over many: what ``hil bench identify``
+reports for every strategy (a helper module of the benchmarks; it registers no command).
+
+Per draw (``judge``):
+
+- ``confirmed``: the strategy confirmed a curve within the run;
+- ``correct``: confirmed, and its peak mu within ``TOL_PEAK_MU_PERCENT`` (3 %) and its peak creep within
+  ``TOL_PEAK_CREEP_PERCENT`` (10 %) of the true curve's;
+- ``before_serious``: confirmed before the true serious stage (the creep passing the true peak creep);
+- ``wrong_confirmation``: confirmed but not correct — the failure that matters: a TCU acting on a
+  wrong peak;
+- coverage: whether the 90 % intervals the strategy published hold the true peak mu and peak creep —
+  those at its confirmation, else the last ones it published before the true serious stage (None
+  when it published none);
+- ``ci_width_*_percent``: the full width of those intervals, in percent of the truth;
+- RT: (t_confirmed − t_fault) / T_det in percent, infinite when not confirmed.
+
+Over draws (``aggregate``): the fractions, coverages, median widths, and RT median and p90 with the
+unconfirmed draws counted as infinite (so a median over half unconfirmed draws is infinite, as it
+should be: that strategy does not answer in time in most cases).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+TOL_PEAK_MU_PERCENT = 3.0
+TOL_PEAK_CREEP_PERCENT = 10.0
+
+
+def _finite(ci) -> bool:
+    return ci is not None and all(x is not None and math.isfinite(x) for x in ci)
+
+
+def judge(summary: dict, events: list, true_peak_mu: float, true_peak_creep_kmh: float,
+          t_serious_s: float | None) -> dict:
+    """One draw's verdicts from a run summary (``hil.trace.summarise`` keys) and the strategy's events."""
+    confirmed = bool(summary.get("identified"))
+    mu_err, creep_err = summary.get("peak_mu_err_percent"), summary.get("peak_creep_err_percent")
+    correct = bool(confirmed and mu_err is not None and creep_err is not None
+                   and mu_err <= TOL_PEAK_MU_PERCENT and creep_err <= TOL_PEAK_CREEP_PERCENT)
+    t_conf = summary.get("t_identified_s")
+    before = bool(confirmed and t_serious_s is not None and t_conf is not None and t_conf < t_serious_s)
+    # the intervals judged: at the confirmation, else the last published before the serious stage
+    judged = None
+    for e in events:
+        if e.kind == "confirmed" or t_serious_s is None or e.t_s < t_serious_s:
+            if _finite(e.peak_mu_ci) and _finite(e.peak_creep_ci):
+                judged = e
+        if e.kind == "confirmed":
+            judged = e if _finite(e.peak_mu_ci) else judged
+            break
+    out = {"confirmed": confirmed, "correct": correct, "before_serious": before,
+           "correct_before_serious": correct and before, "wrong_confirmation": confirmed and not correct,
+           "true_peak_mu": true_peak_mu, "true_peak_creep_kmh": true_peak_creep_kmh,
+           "rt_percent_or_inf": summary["rt_percent"] if confirmed and summary.get("rt_percent") is not None
+           else math.inf,
+           "covers_peak_mu": None, "covers_peak_creep": None,
+           "ci_width_peak_mu_percent": None, "ci_width_peak_creep_percent": None,
+           "judged_ci_kind": None}
+    if judged is not None:
+        (m0, m1), (c0, c1) = judged.peak_mu_ci, judged.peak_creep_ci
+        out.update(covers_peak_mu=bool(m0 <= true_peak_mu <= m1), covers_peak_creep=bool(c0 <= true_peak_creep_kmh <= c1),
+                   ci_width_peak_mu_percent=(m1 - m0) / abs(true_peak_mu) * 100.0,
+                   ci_width_peak_creep_percent=(c1 - c0) / abs(true_peak_creep_kmh) * 100.0,
+                   judged_ci_kind=judged.kind)
+    return out
+
+
+def _fraction(values) -> float | None:
+    vals = [bool(v) for v in values if v is not None]
+    return float(np.mean(vals)) if vals else None
+
+
+def _median(values) -> float | None:
+    vals = [v for v in values if v is not None and not (isinstance(v, float) and math.isnan(v))]
+    return float(np.median(vals)) if vals else None
+
+
+def _quantile_or_inf(values, q: float) -> float:
+    """Quantile with infinities counted (numpy's percentile turns inf into nan on interpolation)."""
+    vals = np.sort(np.asarray(values, float))
+    if vals.size == 0:
+        return math.nan
+    k = int(math.ceil(q / 100.0 * vals.size)) - 1
+    return float(vals[min(max(k, 0), vals.size - 1)])
+
+
+def aggregate(per_draw: list[dict]) -> dict:
+    """The figures over draws (``per_draw``: ``judge`` outputs)."""
+    rts = [d["rt_percent_or_inf"] for d in per_draw]
+    return {
+        "draws": len(per_draw),
+        "confirmed_fraction": _fraction(d["confirmed"] for d in per_draw),
+        "confirmed_before_serious_fraction": _fraction(d["before_serious"] for d in per_draw),
+        "correct_fraction": _fraction(d["correct"] for d in per_draw),
+        "correct_before_serious_fraction": _fraction(d["correct_before_serious"] for d in per_draw),
+        "wrong_confirmation_fraction": _fraction(d["wrong_confirmation"] for d in per_draw),
+        "coverage_peak_mu": _fraction(d["covers_peak_mu"] for d in per_draw),
+        "coverage_peak_creep": _fraction(d["covers_peak_creep"] for d in per_draw),
+        "coverage_draws": sum(d["covers_peak_mu"] is not None for d in per_draw),
+        "ci_width_peak_mu_median_percent": _median([d["ci_width_peak_mu_percent"] for d in per_draw]),
+        "ci_width_peak_creep_median_percent": _median([d["ci_width_peak_creep_percent"] for d in per_draw]),
+        "rt_median_percent": _quantile_or_inf(rts, 50),
+        "rt_p90_percent": _quantile_or_inf(rts, 90),
+    }
+
+
+COLUMNS = (("strategy", None, "{}"), ("confirmed before serious", "confirmed_before_serious_fraction", "pct"),
+           ("correct", "correct_fraction", "pct"), ("correct before serious", "correct_before_serious_fraction", "pct"),
+           ("wrong confirmations", "wrong_confirmation_fraction", "pct"),
+           ("90 % CI covers peak μ", "coverage_peak_mu", "pct"), ("… peak creep", "coverage_peak_creep", "pct"),
+           ("CI width peak μ %", "ci_width_peak_mu_median_percent", ".1f"),
+           ("CI width peak creep %", "ci_width_peak_creep_median_percent", ".1f"),
+           ("RT median %", "rt_median_percent", ".1f"), ("RT p90 %", "rt_p90_percent", ".1f"),
+           ("oracle RT median %", "oracle_rt_median_percent", ".1f"), ("cost p99 µs", "cost_p99_us", ".0f"))
+#: the columns that fit an 80-column terminal
+NARROW = ("strategy", "correct", "wrong confirmations", "90 % CI covers peak μ", "… peak creep", "RT median %",
+          "oracle RT median %")
+
+
+def _cell(value, fmt: str) -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "n/a"
+    if fmt == "pct":
+        return f"{value * 100:.0f}%"
+    if isinstance(value, float) and math.isinf(value):
+        return "∞"
+    return format(value, fmt)
+
+
+def table(results: dict, wide: bool, markdown: bool) -> str:
+    """``results``: strategy -> aggregate (plus ``oracle_rt_median_percent`` and ``cost_p99_us``)."""
+    cols = [c for c in COLUMNS if wide or markdown or c[0] in NARROW]
+    rows = [[name] + [_cell(r.get(key), fmt) for _, key, fmt in cols[1:]] for name, r in results.items()]
+    head = [c[0] for c in cols]
+    if markdown:
+        return "\n".join(["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+                         + ["| " + " | ".join(r) + " |" for r in rows])
+    widths = [max(len(h), *(len(r[i]) for r in rows)) for i, h in enumerate(head)]
+    line = lambda cells: "  ".join(c.rjust(w) if i else c.ljust(w) for i, (c, w) in enumerate(zip(cells, widths)))  # noqa: E731
+    return "\n".join([line(head)] + [line(r) for r in rows])
