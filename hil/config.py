@@ -32,7 +32,8 @@ class BusSettings:
     bitrate: int = 1_000_000              # arbitration bit rate, bit/s (for the bus-load figure)
     data_bitrate: int = 5_000_000         # CAN FD data-phase bit rate, bit/s
     heartbeat_period_s: float = 0.002     # wall-clock period of the heartbeats, both ways
-    silence_periods: int = 3              # realtime: peer silent after this many heartbeat periods
+    silence_periods: int = 25             # realtime: peer silent after this many heartbeat periods (50 ms:
+                                          # what a general-purpose OS holds; a shorter stall never ends a run)
     lockstep_silence_s: float = 1.0       # lockstep: peer silent after this many wall seconds
     startup_timeout_s: float = 60.0       # wait for the other side's first frame
     deadline_fraction: float = 0.9        # realtime: the command is due this far into the period

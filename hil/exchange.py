@@ -51,6 +51,8 @@ from .tcu_node import TcuNode
 from .trace import Trace, clean
 
 LOAD_WARN_PERCENT = 70.0
+#: the log rows a run may hold back for writing (what a SIGKILL can lose beyond the unfinished chunk)
+RECORD_QUEUE_S, ROWS_PER_PERIOD = 0.5, 10
 CHILD_EXIT_TIMEOUT_S = 20.0
 TRANSPORTS = ("inprocess", "process", "external")
 
@@ -225,7 +227,7 @@ def _tcu_counters(report: dict | None) -> dict:
     """What only the TCU knows (None for an external TCU)."""
     report = report or {}
     return {"tcu_rejected_frames": report.get("rejected_frames"), "tcu_rejected_readings": report.get("rejected_readings"),
-            "tcu_events": report.get("events")}
+            "tcu_events": report.get("events"), "tcu_stale_skipped": report.get("stale_skipped")}
 
 
 def _set_rt_priority(priority: int, log):
@@ -310,6 +312,8 @@ def run(scenario, strategy: str = "nlls", seed: int | None = None, *, bus: str =
                     bus_meta={"spec": bus, "name": tcu.handle.name, "dbc": DBC_PATH.name, "transport": tcu.transport,
                               **{k: repr(v) for k, v in dataclasses.asdict(settings).items()},
                               "load_percent": f"{load['load_percent']:.2f}"})
+            if rec:      # rows are written while the plant waits for the TCU (Recorder.defer)
+                rec.defer(max(int(RECORD_QUEUE_S / period) * ROWS_PER_PERIOD, 1000), block_when_full=mode == "lockstep")
             node = PlantNode(PlantRig(scenario, seed, trace, rec, plant=plant), tcu.handle.bus, mode,
                              strategy=strategy, watch=tcu.child, watch_silence=tcu.node is None)
             if tcu.node is None:
@@ -325,6 +329,7 @@ def run(scenario, strategy: str = "nlls", seed: int | None = None, *, bus: str =
             summary = summarise(tcu.finish(node))
             if rec:
                 summary["messages"] = rec.messages + 1   # + the summary itself
+                summary["log_rows_dropped"] = rec.overflow     # real time: rows the full queue could not take
         except PeerSilent as e:
             if rec and node is not None:
                 rec.event(node.t_s, "ERROR", f"fault: {e}")

@@ -2,10 +2,15 @@
 thread-safe sender, and the timing rules both nodes share (heartbeat period, silence limit).
 
 Bus specs:
-  ``auto``               ``socketcan:vcan0`` when this kernel has it, otherwise ``hub``
+  ``auto``               ``socketcan:vcan0`` when this kernel has it, otherwise ``local``
   ``socketcan:<ch>``     SocketCAN (vcan0, can0 ...), CAN FD enabled
+  ``local``              a new relay-free local bus (``hil.localbus``: Unix sockets in a directory only
+                         this user can enter), removed at the end; processes join it as ``localbus:<dir>``
+  ``localbus:<dir>``     a node on an existing local bus
   ``hub``                a python-can-remote loopback hub that ``hil`` starts on 127.0.0.1 with a free
-                         port and stops at the end (processes connect with ``remote:ws://127.0.0.1:P/``)
+                         port and stops at the end (processes connect with ``remote:ws://127.0.0.1:P/``);
+                         for crossing machines.  Its HTTP side serves files to any local user: never
+                         the default
   ``remote:<url>``       an existing python-can-remote server
   ``inprocess``          no bus and no second process: the TCU node answers in the plant's thread,
                          still through the same DBC encode/decode (see ``InprocessTcuBus``)
@@ -26,7 +31,6 @@ import time
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
-
 import threading
 from typing import Callable
 
@@ -74,7 +78,7 @@ def vcan_available(channel: str = "vcan0") -> tuple[bool, str]:
 
 
 def available_here() -> str:
-    names = ["auto", "hub", "inprocess"]
+    names = ["auto", "local", "hub", "inprocess"]
     ok, _ = socketcan_support()
     if ok:
         names += [f"socketcan:{ch}" for ch in can_interfaces()]
@@ -104,6 +108,8 @@ class InprocessTcuBus(can.BusABC):
     def _recv_internal(self, timeout):
         if self._rx:
             return self._rx.popleft(), False
+        if timeout:               # nothing can arrive before the next send: wait without spinning
+            time.sleep(timeout)
         return None, False
 
     def shutdown(self) -> None:
@@ -178,6 +184,7 @@ class BusHandle:
     peer_spec: str | None         # what another process opens to reach this bus (None: in-process only)
     hub: Hub | None = None
     extra: dict = field(default_factory=dict)
+    cleanup: Callable[[], None] | None = None     # after the bus is closed (e.g. remove a local bus's directory)
 
     def close(self) -> None:
         if self.bus is not None:
@@ -193,6 +200,9 @@ class BusHandle:
         if self.hub is not None:
             self.hub.stop()
             self.hub = None
+        if self.cleanup is not None:
+            self.cleanup()
+            self.cleanup = None
 
     def __enter__(self):
         return self
@@ -202,10 +212,10 @@ class BusHandle:
 
 
 def resolve(spec: str) -> str:
-    """``auto`` -> ``socketcan:vcan0`` or ``hub``; other specs unchanged (checked by ``open_bus``)."""
+    """``auto`` -> ``socketcan:vcan0`` or ``local``; other specs unchanged (checked by ``open_bus``)."""
     if spec == "auto":
         ok, _ = vcan_available("vcan0")
-        return "socketcan:vcan0" if ok else "hub"
+        return "socketcan:vcan0" if ok else "local"
     return spec
 
 
@@ -244,6 +254,32 @@ def _open_hub(spec, name, channel, inprocess_node=None) -> BusHandle:
     return BusHandle(spec, "hub", bus, f"remote:{hub.url}", hub=hub)
 
 
+def _open_local(spec, name, channel, inprocess_node=None) -> BusHandle:
+    """``local``: a new local bus (``hil.localbus``) in a directory of its own, removed at close."""
+    from .localbus import create_channel, remove_channel
+
+    path = create_channel()
+    try:
+        handle = _open_localbus(spec, f"localbus:{path}", path)
+    except BaseException:
+        remove_channel(path)
+        raise
+    handle.name = "local"
+    handle.cleanup = lambda: remove_channel(path)
+    return handle
+
+
+def _open_localbus(spec, name, channel, inprocess_node=None) -> BusHandle:
+    """``localbus:<dir>``: a node on an existing local bus (another process's ``local``)."""
+    from .localbus import LocalBus
+
+    try:
+        bus = LocalBus(channel)
+    except (can.CanError, OSError) as e:
+        raise BusError(f"bus localbus:{channel}: cannot open: {e}") from None
+    return BusHandle(spec, name, bus, f"localbus:{channel}")
+
+
 def _open_refused(spec, name, channel, inprocess_node=None) -> BusHandle:
     raise BusError(f"bus {name}: udp_multicast sends through the real network interface; use hub or vcan "
                    f"(available here: {available_here()})")
@@ -264,6 +300,8 @@ Opener = Callable[..., BusHandle]
 #: ``interface:channel`` goes to python-can
 BACKENDS: dict[str, Opener] = {
     "inprocess": _open_inprocess,
+    "local": _open_local,
+    "localbus": _open_localbus,
     "hub": _open_hub,
     "udp_multicast": _open_refused,
     "virtual": _open_local_only,      # python-can's virtual bus lives inside one process

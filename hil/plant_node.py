@@ -27,6 +27,10 @@ from .record import (Recorder, write_command, write_frame, write_identification,
 from .trace import Trace
 
 
+#: the longest the plant node writes log rows before it looks at the bus again
+FLUSH_SLICE_S = 50e-6
+
+
 class PlantRig:
     """Plant, sensors and effects of one run; ``sense()`` then ``apply(command)`` once per period.
 
@@ -202,13 +206,21 @@ class PlantNode:
                 write_identification(self.rec, e, self.strategy)
 
     def poll(self, until: float | None) -> None:
-        """Receive one frame, or wait at most until ``until`` (perf_counter) or the next heartbeat."""
+        """Receive one frame, or wait at most until ``until`` (perf_counter) or the next heartbeat.
+
+        While nothing has arrived it writes queued log rows (``Recorder.flush``) in slices of at most
+        ``FLUSH_SLICE_S``, so the log is written while the TCU computes, not on the loop's path."""
         now = time.perf_counter()
         self.heartbeat_if_due(now)
         timeout = self.next_hb - now
         if until is not None:
             timeout = min(timeout, until - now)
-        msg = self.bus.recv(timeout=max(min(timeout, self.silence_s / 4), 0.0))
+        if self.rec is not None and self.rec.pending:
+            msg = self.bus.recv(timeout=0.0)
+            if msg is None:
+                self.rec.flush(now + max(min(FLUSH_SLICE_S, timeout), 0.0))
+        else:
+            msg = self.bus.recv(timeout=max(min(timeout, self.silence_s / 4), 0.0))
         if msg is not None:
             self.on_rx(msg)
         self.check_alive()

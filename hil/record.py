@@ -16,11 +16,13 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import collections
 import json
 import os
 import re
 import signal
 import threading
+import time
 from importlib import metadata as importlib_metadata
 from pathlib import Path
 
@@ -118,8 +120,8 @@ class _DirectFile:
     newest chunks at a SIGKILL; this object is not a ``RawIOBase``, so mcap uses it as it is.
     """
 
-    def __init__(self, path):
-        self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+    def __init__(self, fd: int):
+        self._fd = fd
         self._pos = 0
 
     def write(self, data) -> int:
@@ -140,34 +142,109 @@ class _DirectFile:
         os.close(self._fd)
 
 
+class McapFile:
+    """The log file itself: one protobuf message per row, LZ4 chunks of ``chunk_size`` bytes written
+    straight to the file descriptor ``fd``."""
+
+    def __init__(self, fd: int, chunk_size: int):
+        self._file = _DirectFile(fd)
+        self._writer = Writer(self._file, chunk_size=chunk_size, compression=CompressionType.LZ4)
+        self._types = {topic: TYPES[name] for topic, name in TOPICS.items()}
+
+    def write(self, topic: str, log_t_s: float, fields: dict) -> None:
+        ns = sim_time_ns(log_t_s)
+        self._writer.write_message(topic, self._types[topic](**fields), log_time=ns, publish_time=ns)
+
+    def metadata(self, name: str, data: dict) -> None:
+        self._writer.add_metadata(name, data)
+
+    def finish(self) -> None:
+        self._writer.finish()
+        self._file.close()
+
+
 class Recorder:
-    """``write(topic, t_s, **fields)`` appends one message; ``close(summary)`` finishes the file."""
+    """``write(topic, t_s, **fields)`` appends one message; ``close(summary)`` finishes the file.
+
+    Deferred writing (``defer(queue_limit, block_when_full)``): ``write`` only queues the row (about a
+    microsecond) and ``flush(until)`` encodes and writes queued rows while there is time; the plant
+    node does it while it waits for the TCU, so over two processes the log costs the loop almost
+    nothing.  A full queue either writes at once (``block_when_full``: lockstep, where nothing is
+    late) or drops the row and counts it (``overflow``: real time, where the loop must not wait).
+    Queued rows are what a SIGKILL can lose beyond the unfinished chunk, so ``queue_limit`` bounds
+    that loss.  (A writer process of its own was tried: the pickling and a third busy process on two
+    cores made lockstep slower.)"""
 
     def __init__(self, path: str | os.PathLike, chunk_size: int = CHUNK_SIZE):
         self.path = Path(path)
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            self._file = _DirectFile(self.path)
+            fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
         except OSError as e:
             raise ConfigError(f"{self.path}: cannot write the log: {e.strerror or e}") from None
-        self._writer = Writer(self._file, chunk_size=chunk_size, compression=CompressionType.LZ4)
-        self._types = {topic: TYPES[name] for topic, name in TOPICS.items()}
-        self.messages = 0
+        self._file = McapFile(fd, chunk_size)
+        self._written = 0
         self.closed = False
+        self._queue: collections.deque | None = None
+        self._queue_limit = 0
+        self._block_when_full = True
+        self.overflow = 0
+        self.queued_max = 0
+
+    def defer(self, queue_limit: int, block_when_full: bool) -> None:
+        """From now on ``write`` queues rows for ``flush`` (class docstring)."""
+        self._queue = collections.deque()
+        self._queue_limit = queue_limit
+        self._block_when_full = block_when_full
+
+    @property
+    def pending(self) -> int:
+        """Rows queued, not yet written."""
+        return len(self._queue) if self._queue is not None else 0
+
+    @property
+    def messages(self) -> int:
+        """Rows written or queued so far."""
+        return self._written + self.pending
 
     def write(self, topic: str, log_t_s: float, /, **fields) -> None:
-        msg = self._types[topic](**fields)
-        ns = sim_time_ns(log_t_s)
+        q = self._queue
+        if q is None:
+            self._write(topic, log_t_s, fields)
+            return
+        if len(q) >= self._queue_limit:
+            if not self._block_when_full:
+                self.overflow += 1
+                return
+            self.flush(max_rows=len(q) - self._queue_limit + 1)
+        q.append((topic, log_t_s, fields))
+        if len(q) > self.queued_max:
+            self.queued_max = len(q)
+
+    def flush(self, until: float | None = None, max_rows: int | None = None) -> int:
+        """Write queued rows, oldest first, until ``time.perf_counter()`` passes ``until`` (None: no
+        limit; at least one row is written) or ``max_rows`` are; returns how many were."""
+        q = self._queue
+        n = 0
+        while q and (max_rows is None or n < max_rows):
+            if until is not None and n and time.perf_counter() >= until:
+                break
+            self._write(*q.popleft())
+            n += 1
+        return n
+
+    def _write(self, topic: str, log_t_s: float, fields: dict) -> None:
         _InterruptGuard.depth += 1
         try:
-            self._writer.write_message(topic, msg, log_time=ns, publish_time=ns)
-            self.messages += 1
+            self._file.write(topic, log_t_s, fields)
+            self._written += 1
         finally:
             _InterruptGuard.leave()
 
     def metadata(self, name: str, data: dict) -> None:
         with self.atomic():
-            self._writer.add_metadata(name, {k: v if isinstance(v, str) else json.dumps(v) for k, v in data.items()})
+            self.flush()
+            self._file.metadata(name, {k: v if isinstance(v, str) else json.dumps(v) for k, v in data.items()})
 
     @contextlib.contextmanager
     def atomic(self):
@@ -184,7 +261,9 @@ class Recorder:
     def close(self, summary: dict | None = None) -> None:
         if self.closed:
             return
-        with self.atomic():             # summary, metadata and footer go out together
+        with self.atomic():             # the queued rows, summary, metadata and footer go out together
+            self.flush()
+            self._queue = None
             if summary is not None:
                 fields = {k: summary[k] for k in ("identified", "rt_percent", "t_fault_s", "t_serious_s",
                                                   "t_identified_s", "r2", "peak_mu_err_percent",
@@ -192,8 +271,7 @@ class Recorder:
                           if summary.get(k) is not None}
                 self.write("/run/summary", summary.get("sim_s", 0.0), json=json.dumps(summary), **fields)
                 self.metadata("summary", {"json": json.dumps(summary)})
-            self._writer.finish()
-            self._file.close()
+            self._file.finish()
             self.closed = True
 
 

@@ -28,7 +28,7 @@ import can
 from identifier import STRATEGIES, TractionIdentifier
 
 from .errors import EXIT_INTERRUPTED, EXIT_OK, BusError, ConfigError, HilError, PeerSilent, PlantFault
-from .frames import (PLANT_IDS, STATE_FAULT, STATE_FINISHED, STATE_NAMES, STATE_RUNNING, STATE_STARTING,
+from .frames import (PLANT_IDS, SENSOR_ID, STATE_FAULT, STATE_FINISHED, STATE_NAMES, STATE_RUNNING, STATE_STARTING,
                      FrameCodec, RejectCounter, SampleReport)
 from .link import Sender, heartbeat_period_s, silence_limit_s
 
@@ -50,6 +50,7 @@ class TcuNode:
         self.sensor_frames = 0
         self.events = 0
         self.samples_sent = 0
+        self.stale_skipped = 0       # sensor frames passed over after a stall (newest_sensor_only)
         self.plant_state: int | None = None
         self.finished = False
 
@@ -104,14 +105,42 @@ class TcuNode:
     def report(self) -> dict:
         ident = self.identifier
         return {"detected_step": ident.detector.detected_step, "events": self.events, "samples": self.samples_sent,
+                "stale_skipped": self.stale_skipped,
                 "sensor_frames": self.sensor_frames, "last_step": self.last_step, "resyncs": self.resyncs,
                 "rejected_frames": dict(self.rejected), "rejected_readings": ident.rejected_readings,
                 "plant_state": None if self.plant_state is None else STATE_NAMES.get(self.plant_state),
                 "confirmed": bool(ident.strategy.confirmed)}
 
 
+def newest_sensor_only(bus: can.BusABC, first: can.Message, node: TcuNode, limit: int = 1000) -> list[can.Message]:
+    """``first`` and whatever else is already queued, with the stale sensor readings left out
+    (counted in ``node.stale_skipped``): after a stall the TCU answers the plant's latest reading
+    instead of working through a backlog it can never catch up with (real time only: in lockstep
+    the plant sends one reading at a time, so a second one in the queue is not the plant's).
+
+    A reading is stale when it decodes, is in sequence (after the last step answered, within
+    ``MAX_STEP_GAP``) and a later frame of the batch carries a newer in-sequence step; anything else
+    (garbage, out-of-sequence or forged steps) stays in the batch for ``TcuNode.handle`` to judge
+    and count."""
+    batch = [first]
+    while len(batch) < limit and (msg := bus.recv(timeout=0.0)) is not None:
+        batch.append(msg)
+    steps = {}
+    for i, m in enumerate(batch):
+        if m.arbitration_id == SENSOR_ID and not m.is_extended_id:
+            frame, _ = node.codec.classify(m)
+            if frame is not None and node.last_step < frame.value.step <= node.last_step + MAX_STEP_GAP:
+                steps[i] = frame.value.step
+    if len(steps) < 2:
+        return batch
+    newest = max(steps.values())
+    stale = {i for i, step in steps.items() if step < newest}
+    node.stale_skipped += len(stale)
+    return [m for i, m in enumerate(batch) if i not in stale]
+
+
 def serve(bus: can.BusABC, node: TcuNode, *, silence_s: float, heartbeat_period_s: float,
-          startup_timeout_s: float, log=None) -> None:
+          startup_timeout_s: float, realtime: bool = False, log=None) -> None:
     """Answer frames until the plant says it finished; raises PeerSilent when the plant goes quiet
     for longer than ``silence_s`` (or never shows up within ``startup_timeout_s``)."""
     sender = Sender(bus)
@@ -149,16 +178,17 @@ def serve(bus: can.BusABC, node: TcuNode, *, silence_s: float, heartbeat_period_
                     raise PeerSilent(f"plant silent for {(now - last_plant) * 1e3:.0f} ms (limit "
                                      f"{silence_s * 1e3:.0f} ms) after step {node.last_step}")
                 continue
-            if msg.arbitration_id in PLANT_IDS and not msg.is_extended_id:
-                before = sum(node.rejected.values())
-                replies = node.handle(msg)
-                if sum(node.rejected.values()) == before:     # a valid plant frame: the plant lives
-                    last_plant = now
-                    state[0] = STATE_RUNNING
-            else:
-                replies = node.handle(msg)
-            for r in replies:
-                sender.send(r)
+            for msg in (newest_sensor_only(bus, msg, node) if realtime else (msg,)):
+                if msg.arbitration_id in PLANT_IDS and not msg.is_extended_id:
+                    before = sum(node.rejected.values())
+                    replies = node.handle(msg)
+                    if sum(node.rejected.values()) == before:     # a valid plant frame: the plant lives
+                        last_plant = now
+                        state[0] = STATE_RUNNING
+                else:
+                    replies = node.handle(msg)
+                for r in replies:
+                    sender.send(r)
         state[0] = STATE_FINISHED
     except BaseException:
         state[0] = STATE_FAULT
@@ -221,7 +251,8 @@ def run_tcu(args) -> int:
     try:
         serve(handle.bus, node, silence_s=silence_limit_s(settings, args.mode, period),
               heartbeat_period_s=heartbeat_period_s(settings, args.mode),
-              startup_timeout_s=settings.startup_timeout_s if args.wait is None else args.wait)
+              startup_timeout_s=settings.startup_timeout_s if args.wait is None else args.wait,
+              realtime=args.mode == "realtime")
         if node.plant_state == STATE_FAULT:
             error = PlantFault(f"the plant reported a fault after step {node.last_step}")
     except PeerSilent as e:

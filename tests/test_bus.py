@@ -112,7 +112,7 @@ def test_unknown_bus_is_one_clear_line():
     r = hil_run(["scenarios/ffcc_a.toml", "--bus", "nonsense"], check=False)
     assert r.returncode == 2
     lines = r.stderr.strip().splitlines()
-    assert len(lines) == 1 and "nonsense" in lines[0] and "available here: auto, hub, inprocess" in lines[0]
+    assert len(lines) == 1 and "nonsense" in lines[0] and "available here: auto, local, hub, inprocess" in lines[0]
 
 
 def test_unavailable_socketcan_channel_names_it_and_why():

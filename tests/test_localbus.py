@@ -1,0 +1,97 @@
+"""The relay-free local bus (``hil.localbus``) as any python-can program uses it: real sockets, real
+processes."""
+import os
+import stat
+import subprocess
+import sys
+import time
+
+import can
+import pytest
+
+from hil.localbus import create_channel, remove_channel
+
+from .conftest import subprocess_env
+
+
+@pytest.fixture
+def channel():
+    path = create_channel()
+    yield path
+    remove_channel(path)
+
+
+def frame(i: int, fd: bool = True) -> can.Message:
+    return can.Message(arbitration_id=0x100 + i % 7, data=i.to_bytes(4, "little") * (16 if fd else 2), is_fd=fd,
+                       bitrate_switch=fd, is_extended_id=False)
+
+
+def recv_all(bus, n, timeout=5.0):
+    out, end = [], time.monotonic() + timeout
+    while len(out) < n and time.monotonic() < end:
+        m = bus.recv(0.1)
+        if m is not None:
+            out.append(m)
+    return out
+
+
+def test_channel_is_closed_to_other_users_and_a_python_can_interface(channel):
+    assert stat.S_IMODE(os.stat(channel).st_mode) == 0o700
+    assert "localbus" in can.VALID_INTERFACES                    # registered through the can.interface entry point
+    a = can.Bus(interface="localbus", channel=channel)
+    b = can.Bus(interface="localbus", channel=channel)
+    try:
+        a.send(frame(3))
+        got = b.recv(2.0)
+        assert got is not None and got.arbitration_id == 0x103 and got.is_fd and got.bitrate_switch
+        assert bytes(got.data) == bytes(frame(3).data) and got.dlc == 64
+        assert a.recv(0.2) is None                               # no echo of its own frames
+        b.send(frame(4, fd=False))
+        got = a.recv(2.0)
+        assert got is not None and not got.is_fd and not got.bitrate_switch and got.dlc == 8
+    finally:
+        a.shutdown()
+        b.shutdown()
+    os.chmod(channel, 0o755)
+    with pytest.raises(can.CanInitializationError, match="mode 0700"):
+        can.Bus(interface="localbus", channel=channel)
+
+
+def test_three_nodes_see_every_frame_in_order_classic_and_fd(channel):
+    nodes = [can.Bus(interface="localbus", channel=channel) for _ in range(3)]
+    try:
+        time.sleep(0.05)
+        for i in range(300):
+            nodes[i % 3].send(frame(i, fd=i % 2 == 0))
+        for k, bus in enumerate(nodes):
+            got = [int.from_bytes(bytes(m.data[:4]), "little") for m in recv_all(bus, 200)]
+            assert sorted(got) == [i for i in range(300) if i % 3 != k]       # every other node's frames
+            for sender in {0, 1, 2} - {k}:                                    # each sender's order kept
+                assert [i for i in got if i % 3 == sender] == list(range(sender, 300, 3))
+            assert bus.recv(0.05) is None
+    finally:
+        for bus in nodes:
+            bus.shutdown()
+
+
+def test_a_node_that_dies_is_noticed_and_a_slow_one_never_blocks_the_sender(channel):
+    code = ("import can, time, sys; b = can.Bus(interface='localbus', channel=sys.argv[1]); "
+            "b.send(can.Message(arbitration_id=0x701, data=b'x' * 8, is_extended_id=False)); time.sleep(30)")
+    peer = subprocess.Popen([sys.executable, "-c", code, channel], env=subprocess_env())
+    bus = can.Bus(interface="localbus", channel=channel)
+    try:
+        assert bus.recv(20.0) is not None                      # the peer is there
+        t0 = time.perf_counter()
+        for i in range(20000):                                  # the peer reads nothing: its buffer fills
+            bus.send(frame(i))
+        assert time.perf_counter() - t0 < 10.0
+        assert sum(bus.dropped.values()) > 0                    # counted, not blocked
+        peer.kill()
+        peer.wait(10)
+        bus.recv(0.5)
+        bus.send(frame(1))
+        assert bus.peers_lost == 1
+    finally:
+        if peer.poll() is None:
+            peer.kill()
+        bus.shutdown()
