@@ -13,7 +13,8 @@ machine allows.  Sources, in order of preference:
 
 The summary is the one ``hil run --json`` prints (``hil.trace.Trace``), with the stages from
 the logged true plant state when present, plus ``matches_log`` (the replayed identification events
-equal the logged ones: count, kind, correction number, step and parameters bit for bit; ``None``
+equal the logged ones: count, kind, correction number and step exactly, parameters to ``PARAMS_RTOL``
+(the compiled kernels' last bits depend on the CPU they were built for); ``None``
 when the strategy or seed differ from the logged run's, or the log holds no identification record)
 and ``messages_read``.  A damaged log (run killed, file cut) replays up to the damage;
 ``damage`` says what was lost.
@@ -162,6 +163,24 @@ def _event_key(e: IdentificationEvent):
     return (e.step, e.kind, e.correction, tuple(e.params))
 
 
+#: parameters equal to this relative tolerance count as the same identification: the compiled
+#: kernels (identifier/kernels.py) are built for the machine's CPU with reassociated sums, so a log
+#: replayed on another CPU class may differ in the last bits (1 ulp measured between Zen 4 and Skylake)
+PARAMS_RTOL = 1e-9
+
+
+def events_match(replayed: list, logged: list) -> bool:
+    """Same count, step, kind and correction number, parameters equal to ``PARAMS_RTOL``."""
+    if len(replayed) != len(logged):
+        return False
+    for a, b in zip(replayed, logged):
+        if a[:3] != tuple(b[:3]) or len(a[3]) != len(b[3]):
+            return False
+        if any(not (x == y or abs(x - y) <= PARAMS_RTOL * max(abs(x), abs(y))) for x, y in zip(a[3], b[3])):
+            return False
+    return True
+
+
 def replay(src: ReplaySource, strategy: str | None = None, seed: int | None = None) -> dict:
     """Re-run the identifier on ``src``; the ``hil run --json`` summary plus replay fields."""
     scenario = src.scenario
@@ -201,7 +220,8 @@ def replay(src: ReplaySource, strategy: str | None = None, seed: int | None = No
         (src.kind == "can-log" and src.logged_strategy is None)
     if src.logged_events is not None and same_run:
         limit = math.inf if src.logged_last_step is None else src.logged_last_step
-        matches = [_event_key(e) for e in events if e.step <= limit] == [e for e in src.logged_events if e[0] <= limit]
+        matches = events_match([_event_key(e) for e in events if e.step <= limit],
+                               [e for e in src.logged_events if e[0] <= limit])
 
     readings = node.sensor_frames
     logged_corr = None if src.logged_events is None else sum(1 for e in src.logged_events if e[1] == "correction")

@@ -69,14 +69,15 @@ def test_logs_recorded_before_the_redesign_replay_to_the_same_identification(nam
     """tests/data holds two logs written by commit 7d64428, before hil/ was redesigned (FFCC-a,
     proposed, seed 1, fault at 0.15 s, 0.25 s long): one over the hub with its CAN frames, one by the
     old in-process loop that recorded no frames (the replay then reads /plant/sensor).  Both must
-    still replay to the identification they logged, bit for bit."""
+    still replay to the identification they logged: same steps, kinds and corrections, parameters to
+    1e-9 (the compiled kernels' last bits depend on the CPU class: 1 ulp between Zen 4 and Skylake)."""
     r = hil("replay", ROOT / "tests" / "data" / name, "--json")
     assert r.returncode == 0, r.stderr
     s = json.loads(r.stdout)
     assert s["source"] == source
     assert s["matches_log"] is True
     assert s["corrections"] == s["logged"]["corrections"] == 2
-    assert s["params"] == s["logged"]["params"]
+    assert s["params"] == pytest.approx(s["logged"]["params"], rel=1e-9)
     assert s["rt_percent"] == pytest.approx(34.667, abs=0.01)
 
 
