@@ -52,3 +52,19 @@ def peak(theta, grid=PEAK_GRID_KMH) -> tuple[float, float]:
             v = grid[i] + off * h
             return float(v), float(mu_model(np.array([v]), theta)[0])
     return float(grid[i]), float(mu[i])
+
+
+def peak_two_terms(theta) -> tuple[np.ndarray, np.ndarray]:
+    """(creep speed km/h, mu) of the maximum of two-term curves, in closed form, vectorised over
+    theta (..., 5): mu'(v) = l1 t1 e^(t1 v) + l2 t2 e^(t2 v) = 0 at v = ln(-l2 t2 / (l1 t1)) / (t1 - t2).
+    NaN where the curve has no interior maximum (the logarithm's argument <= 0, t1 = t2, or v < 0)."""
+    th = np.asarray(theta, float)
+    l0, l1, l2, t1, t2 = (th[..., i] for i in range(5))
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        v = np.log(-(l2 * t2) / (l1 * t1)) / (t1 - t2)
+        v = np.where(np.isfinite(v) & (v >= 0.0), v, np.nan)
+        mu = l0 + l1 * np.exp(t1 * v) + l2 * np.exp(t2 * v)
+        # a maximum, not a minimum: mu'' < 0
+        second = l1 * t1 * t1 * np.exp(t1 * v) + l2 * t2 * t2 * np.exp(t2 * v)
+    ok = second < 0
+    return np.where(ok, v, np.nan), np.where(ok, mu, np.nan)

@@ -783,6 +783,155 @@ def grid_best(a, b, tt, taus, lo, hi):
 _warmed = False
 
 
+# -- the bayes strategy (identifier/strategies/bayes.py): its cloud's step, move and intervals ---------
+# The same operations as its numpy reference (speed_likelihood.SpeedFilter, prior.phi_from_u /
+# theta_from_phi, bayes.weighted_quantiles) in branch-free loops around ``_exp``, so they vectorise.
+@njit(**_JIT)
+def bayes_step(l0, l1, l2, t1, t2, omega, m_prev, log_w, weights, creep_speed_kmh, y, torque_nm, dt_j,
+               torque_per_mu, inv_2s, gain):
+    """``SpeedFilter.step`` for every particle's curve M_j(v) = l0 + l1 e^(t1 v) + l2 e^(t2 v) at
+    ``creep_speed_kmh``, log w_j += log L_j, then the normalised weights; returns the ESS (-1.0 when
+    the weights are not finite)."""
+    n = omega.size
+    half = 0.5 * torque_per_mu
+    for j in range(n):
+        m_new = l0[j] + l1[j] * _exp(t1[j] * creep_speed_kmh) + l2[j] * _exp(t2[j] * creep_speed_kmh)
+        pred = omega[j] + dt_j * (torque_nm - half * (m_prev[j] + m_new))
+        e = y - pred
+        omega[j] = pred + gain * e
+        m_prev[j] = m_new
+        log_w[j] -= inv_2s * e * e
+    top = _top(log_w)
+    if not math.isfinite(top):
+        return -1.0
+    total = 0.0
+    for j in range(n):
+        w = _exp(log_w[j] - top)
+        weights[j] = w
+        total += w
+    sq = 0.0
+    for j in range(n):
+        w = weights[j] / total
+        weights[j] = w
+        sq += w * w
+    return 1.0 / sq
+
+
+@njit(**_JIT)
+def bayes_curves(ut, lo, hi, log_scale, phit, l0, l1, l2, t1, t2):
+    """phi = prior.phi_from_u(u) and theta = prior.theta_from_phi(phi) for every particle; ``ut`` and
+    ``phit`` are (5, N): a row per coordinate, so every loop runs over contiguous particles."""
+    p, n = ut.shape
+    for i in range(p):
+        span = hi[i] - lo[i]
+        row, src = phit[i], ut[i]
+        if log_scale[i]:
+            for j in range(n):
+                row[j] = _exp(lo[i] + span / (1.0 + _exp(-src[j])))
+        else:
+            for j in range(n):
+                row[j] = lo[i] + span / (1.0 + _exp(-src[j]))
+    mp, vp, m0, a, r = phit[0], phit[1], phit[2], phit[3], phit[4]
+    for j in range(n):
+        tau1 = -a[j] / vp[j]
+        e_a = _exp(-a[j])
+        e_ra = _exp((r[j] - 1.0) * a[j])
+        lam1 = (mp[j] - m0[j]) / ((e_a - 1.0) - (e_a - e_ra) / r[j])
+        lam2 = -(lam1 / r[j]) * e_ra
+        l0[j] = m0[j] - lam1 - lam2
+        l1[j] = lam1
+        l2[j] = lam2
+        t1[j] = tau1
+        t2[j] = r[j] * tau1
+
+
+@njit(**_JIT)
+def liu_west_move(ut, weights, idx, normals, a, h, out):
+    """Resampled particles ``ut[:, idx]`` moved by the Liu-West kernel: a u + (1 - a) mean + h chol(Cov) eps
+    (mean and covariance weighted by ``weights``, before resampling; a small ridge keeps a cloud
+    collapsed onto a few points factorable).  ``ut``, ``normals`` and ``out`` are (P, N)."""
+    p, n = ut.shape
+    mean = np.zeros(p)
+    for i in range(p):
+        m = 0.0
+        for j in range(n):
+            m += weights[j] * ut[i, j]
+        mean[i] = m
+    cov = np.zeros((p, p))
+    for i in range(p):
+        for k in range(i + 1):
+            c = 0.0
+            for j in range(n):
+                c += weights[j] * (ut[i, j] - mean[i]) * (ut[k, j] - mean[k])
+            cov[i, k] = c
+            cov[k, i] = c
+    ridge = 1e-12
+    for i in range(p):
+        ridge += 1e-9 * cov[i, i]
+    for i in range(p):
+        cov[i, i] += ridge
+    chol = np.linalg.cholesky(cov)
+    for i in range(p):
+        row = out[i]
+        src = ut[i]
+        shift = (1.0 - a) * mean[i]
+        for j in range(n):
+            row[j] = a * src[idx[j]] + shift
+        for k in range(i + 1):
+            c = h * chol[i, k]
+            z = normals[k]
+            for j in range(n):
+                row[j] += c * z[j]
+
+
+@njit(**_JIT)
+def weighted_moments(x, weights):
+    """(mean, variance) of the weighted sample (weights normalised)."""
+    m = 0.0
+    for j in range(x.size):
+        m += weights[j] * x[j]
+    v = 0.0
+    for j in range(x.size):
+        d = x[j] - m
+        v += weights[j] * d * d
+    return m, v
+
+
+@njit(**_JIT_EXACT)
+def weighted_quantiles_hist(x, weights, qs, bins, counts, out):
+    """The quantiles ``qs`` (ascending) of the weighted sample (x, weights), by a histogram of
+    ``bins`` equal bins over [min x, max x] and linear interpolation inside a bin: one pass over
+    the particles instead of a sort; the error is below a bin's width, (max - min) / bins."""
+    lo = x[0]
+    hi = x[0]
+    for j in range(x.size):
+        lo = min(lo, x[j])
+        hi = max(hi, x[j])
+    width = (hi - lo) / bins
+    if not width > 0.0:
+        for i in range(qs.size):
+            out[i] = lo
+        return
+    counts[:bins] = 0.0
+    total = 0.0
+    for j in range(x.size):
+        b = min(int((x[j] - lo) / width), bins - 1)
+        counts[b] += weights[j]
+        total += weights[j]
+    acc = 0.0
+    i = 0
+    for b in range(bins):
+        nxt = acc + counts[b]
+        while i < qs.size and nxt >= qs[i] * total:
+            frac = (qs[i] * total - acc) / counts[b] if counts[b] > 0.0 else 0.0
+            out[i] = lo + (b + frac) * width
+            i += 1
+        acc = nxt
+    while i < qs.size:
+        out[i] = hi
+        i += 1
+
+
 def warm_up() -> None:
     """Compile (or load from the cache) every kernel now, e.g. before the fault, not on the first
     sample; once per process."""
@@ -810,4 +959,12 @@ def warm_up() -> None:
     bounded_lm(x, lo, hi, v, np.full(6, 0.1), np.eye(6), 2, 1e-10)
     grid_best(np.tile(np.eye(3), (4, 1, 1)), np.ones((4, 3)), 1.0, np.full((4, 2), -0.5), lo, hi)
     grid_add(np.full((4, 2), -0.5), 1.0, 0.1, np.empty((4, 3)), np.zeros((4, 3, 3)), np.zeros((4, 3)))
+    c = np.full(4, 0.1)
+    bayes_step(c, c, -c, -c, -c, np.zeros(4), np.zeros(4), np.zeros(4), np.empty(4), 1.0, 0.0, 1.0, 1e-4, 1.0, 1.0, 0.5)
+    u16 = np.ascontiguousarray(np.random.default_rng(0).standard_normal((16, 5)).T)
+    bayes_curves(u16, np.zeros(5), np.ones(5), np.array([False, True, False, True, True]), np.empty((5, 16)),
+                 np.empty(16), np.empty(16), np.empty(16), np.empty(16), np.empty(16))
+    liu_west_move(u16, np.full(16, 1 / 16), np.arange(16), np.zeros((5, 16)), 0.9, 0.4, np.empty((5, 16)))
+    weighted_moments(u16[0], np.full(16, 1 / 16))
+    weighted_quantiles_hist(u16[0], np.full(16, 1 / 16), np.array([0.05, 0.5, 0.95]), 64, np.empty(64), np.empty(3))
     _warmed = True

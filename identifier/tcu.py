@@ -87,6 +87,7 @@ class TractionIdentifier:
         self._creep_history: deque[float] = deque(maxlen=lag_steps + 1)
         self._settle_steps = round(settings.settle_time_s / settings.period_s)
         self._observer_aware = bool(getattr(self.strategy, "observer_aware", False))
+        self._wants_readings = bool(getattr(self.strategy, "wants_readings", False))
         # the readings between the slip's first step and its detection (consecutive - 1 of them)
         self._recent: deque[Sample] = deque(maxlen=self.detector.consecutive + 1)
         self.rejected_readings = 0
@@ -124,8 +125,11 @@ class TractionIdentifier:
         if self.drill is not None and (self.detector.detected_step is None
                                        or reading.step - self.detector.detected_step < self._settle_steps - 1):
             self.drill.tick()       # monitoring, or settling: the strategy's first sample is still ahead
+        if self._wants_readings:
+            self.strategy.on_reading(reading.step, reading.motor_speed_rad_s, reading.train_speed_ms)
         if self._observer_aware:
-            sample = Sample(reading.step, t_s, creep, mu_hat, innovation)
+            sample = Sample(reading.step, t_s, creep, mu_hat, innovation, reading.motor_speed_rad_s,
+                            reading.train_speed_ms, torque)
             detected_before = self.detector.detected_step is not None
             if self.detector.update(reading.step, creep):
                 if not detected_before:     # just detected: the buffered readings since the slip's start first

@@ -1,5 +1,6 @@
 """Identification strategies by name."""
 from .base import Sample, Strategy
+from .bayes import BayesStrategy
 from .mdipf import MdipfRawStrategy, MdipfStrategy
 from .nlls import NllsStrategy, fit_curve
 from .observer_aware import NllsOaStrategy, ProposedOaStrategy
@@ -8,7 +9,10 @@ from .proposed import (ProposedFastStrategy, ProposedLatestStrategy, ProposedMu0
 
 STRATEGIES: dict[str, type[Strategy]] = {cls.name: cls for cls in (
     NllsStrategy, MdipfStrategy, ProposedStrategy, MdipfRawStrategy, ProposedRawStrategy, ProposedMu0Strategy,
-    ProposedFastStrategy, ProposedLatestStrategy, NllsOaStrategy, ProposedOaStrategy)}
+    ProposedFastStrategy, ProposedLatestStrategy, NllsOaStrategy, ProposedOaStrategy, BayesStrategy)}
+
+#: the strategy the README recommends to users (intervals, confirms only what the data support)
+RECOMMENDED = "bayes"
 
 
 def make_strategy(name: str, settings, seed: int = 0) -> Strategy:
@@ -19,5 +23,5 @@ def make_strategy(name: str, settings, seed: int = 0) -> Strategy:
     return cls(settings, seed)
 
 
-__all__ = ["Sample", "Strategy", "NllsStrategy", "MdipfStrategy", "ProposedStrategy", "ProposedMu0Strategy",
+__all__ = ["Sample", "Strategy", "BayesStrategy", "RECOMMENDED", "NllsStrategy", "MdipfStrategy", "ProposedStrategy", "ProposedMu0Strategy",
            "ProposedFastStrategy", "ProposedLatestStrategy", "NllsOaStrategy", "ProposedOaStrategy", "MdipfRawStrategy", "ProposedRawStrategy", "fit_curve", "STRATEGIES", "make_strategy"]

@@ -14,7 +14,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..evaluation import inside_confidence_band, j_ef, standard_error
-from ..messages import IdentificationEvent
+from ..curve import peak_two_terms
+from ..messages import NAN_INTERVAL, IdentificationEvent
 from ..settings import IdentifierSettings
 
 
@@ -25,6 +26,33 @@ class Sample:
     creep_speed_kmh: float
     mu_hat: float
     speed_innovation_rad_s: float = math.nan   # y(k) - omega^(k) before the observer update (observer-aware strategies)
+    motor_speed_rad_s: float = math.nan        # the reading itself (strategies that model the speed: bayes)
+    train_speed_ms: float = math.nan
+    torque_nm: float = math.nan                # the command answering this reading (held until the next)
+
+
+#: the level of the intervals every event publishes
+REPORT_LEVEL = 0.90
+
+
+def weighted_interval(x: np.ndarray, weights: np.ndarray, level: float) -> tuple[float, float]:
+    """Central interval at ``level`` of the weighted sample (x, weights), NaN entries of x dropped."""
+    ok = np.isfinite(x)
+    if not ok.any():
+        return NAN_INTERVAL
+    x, w = x[ok], weights[ok]
+    order = np.argsort(x)
+    cdf = np.cumsum(w[order])
+    qs = np.array([0.5 * (1.0 - level), 0.5 * (1.0 + level)]) * cdf[-1]
+    idx = np.minimum(np.searchsorted(cdf, qs, side="left"), x.size - 1)
+    lo, hi = x[order[idx]]
+    return float(lo), float(hi)
+
+
+def cloud_peak_intervals(thetas: np.ndarray, weights: np.ndarray, level: float):
+    """Peak mu and peak creep intervals of a weighted cloud of curves (N, 5) (closed-form peaks)."""
+    v, mu = peak_two_terms(thetas)
+    return weighted_interval(mu, weights, level), weighted_interval(v, weights, level)
 
 
 class Strategy(ABC):
@@ -137,8 +165,15 @@ class Strategy(ABC):
         self._candidate = (theta, self._standard_error(v, mu, theta))
 
     def _event(self, sample: Sample, kind: str, score: float) -> IdentificationEvent:
+        mu_ci, creep_ci = self.peak_intervals(REPORT_LEVEL)
         return IdentificationEvent(sample.step, sample.t_s, kind, self.corrections,
-                                   tuple(np.asarray(self.theta, float).tolist()), float(score), len(self._v))
+                                   tuple(np.asarray(self.theta, float).tolist()), float(score), len(self._v),
+                                   mu_ci, creep_ci)
+
+    def peak_intervals(self, level: float) -> tuple[tuple[float, float], tuple[float, float]]:
+        """Intervals at ``level`` for the current curve's peak mu and peak creep (km/h); NaN where a
+        strategy cannot say (the particle strategies: from their cloud; NLLS: from the fit)."""
+        return NAN_INTERVAL, NAN_INTERVAL
 
     # the multi-level evaluation's SE (eq. 29) and band (eq. 28-31); observer-aware strategies override
     def _standard_error(self, v, mu, theta) -> float:

@@ -102,7 +102,7 @@ from collections import deque
 import numpy as np
 
 from .. import pf
-from .base import Strategy
+from .base import Strategy, cloud_peak_intervals
 from .nlls import GridAccumulator, fit_curve, fit_curve_grid, fit_curve_lm
 
 DEFAULTS = {
@@ -610,6 +610,15 @@ class MdipfStrategy(Strategy):
             estimate = np.zeros_like(self.base)
         self._estimate_for_theta = estimate
         return estimate
+
+    def peak_intervals(self, level: float):
+        """From the weighted cloud: every particle's curve (the base its errors are relative to, plus
+        its error vector), its peak in closed form, weighted quantiles (a credible interval of the
+        filter's posterior; NaN before the filter opens or for other than two-term curves)."""
+        if not self.prelim_done or self._xt.shape[0] != 5:
+            return super().peak_intervals(level)
+        base = self.base - self._shift if self._recentre_pending else self.base
+        return cloud_peak_intervals(self._xt.T + base, self.weights, level)
 
     def _posterior_mean(self) -> np.ndarray:
         """chi^ = sum_j w_j chi_j (eq. 21), a new (P,) array."""

@@ -356,4 +356,52 @@ class NllsStrategy(Strategy):
 
     def correct(self, window_v, window_mu):
         v, mu = self.data()
-        return fit_curve(v, mu, self.theta)
+        theta = fit_curve(v, mu, self.theta)
+        self._fit_cov = fit_covariance(v, mu, theta)
+        return theta
+
+    def peak_intervals(self, level: float):
+        """A confidence interval from the fit (``fit_covariance``, ``peak_confidence``)."""
+        cov = getattr(self, "_fit_cov", None)
+        if cov is None or np.size(self.theta) != 5:
+            return super().peak_intervals(level)
+        return peak_confidence(self.theta, cov, level)
+
+
+def fit_covariance(creep_speed_kmh, mu_samples, theta) -> np.ndarray | None:
+    """The least-squares estimate's covariance, s^2 (J^T J)^+ with s^2 = SSR / (S - P) (the usual
+    linearisation at the optimum; None with no residual degrees of freedom)."""
+    v = np.asarray(creep_speed_kmh, float)
+    y = np.asarray(mu_samples, float)
+    theta = np.asarray(theta, float)
+    dof = v.size - theta.size
+    if dof <= 0:
+        return None
+    with np.errstate(over="ignore", invalid="ignore"):
+        r = y - mu_model(v, theta)
+        jac = jacobian(v, theta)
+    if not (np.all(np.isfinite(r)) and np.all(np.isfinite(jac))):
+        return None
+    return float(r @ r) / dof * np.linalg.pinv(jac.T @ jac)
+
+
+def peak_confidence(theta, cov, level: float):
+    """Peak mu and peak creep intervals by the delta method: the closed-form peak's gradient
+    (central differences) through ``cov``, +- z sd with z the normal quantile of ``level``."""
+    from statistics import NormalDist
+
+    from ..curve import peak_two_terms
+
+    theta = np.asarray(theta, float)
+    z = NormalDist().inv_cdf(0.5 * (1.0 + level))
+    steps = 1e-6 * np.maximum(np.abs(theta), 1e-3)
+    pts = np.vstack([theta + np.diag(steps), theta - np.diag(steps), theta[None, :]])
+    v, mu = peak_two_terms(pts)
+    out = []
+    for f in (mu, v):
+        grad = (f[:5] - f[5:10]) / (2.0 * steps)
+        sd = math.sqrt(max(float(grad @ cov @ grad), 0.0)) if np.all(np.isfinite(grad)) else math.nan
+        centre = float(f[10])
+        out.append((centre - z * sd, centre + z * sd) if math.isfinite(sd) and math.isfinite(centre)
+                   else (math.nan, math.nan))
+    return out[0], out[1]

@@ -1,0 +1,370 @@
+"""``bayes``: the posterior over the fault curve from every reading since the slip began, with
+intervals, confirming only what the data support (beyond the paper; the recommended strategy).
+
+Model (particle j carries one curve phi_j of the prior, identifier/prior.py, and a speed estimate):
+
+    omega(k+1) = omega(k) + (dt / J) (T_e(k) - c mbar_j(k)) + w(k),   w ~ N(0, q)     the wheelset (eq. A)
+    mbar_j(k)  = (M_j(v_s(k)) + M_j(v_s(k+1))) / 2                                     trapezoid over the period
+    y(k)       = omega(k) + n(k),                                     n ~ N(0, sigma_y^2)  the motor-speed sensor
+
+with J the equivalent inertia, c the torque per unit mu, T_e the TCU's own command and v_s the creep
+from the measured motor speed and the train speed smoothed by a straight-line fit.  For each particle
+a scalar Kalman filter gives the exact Gaussian likelihood of the motor-speed readings (the prediction
+error e_j with variance S shared by all particles):
+
+    omega^-_j = omega^_j + (dt / J) (T_e - c mbar_j)          P- = P + q          predict
+    e_j = y - omega^-_j,   S = P- + sigma_y^2                                      innovation
+    log w_j += -e_j^2 / (2 S)                                                      weigh
+    K = P- / S,   omega^_j = omega^-_j + K e_j,   P = (1 - K) P-                   update
+
+So the load-torque observer's transient needs no settle time and no lag pairing: the model is of the
+speed itself (``observer_aware``: every sample from the detected slip start on).  sigma_y is
+measured before the fault from second differences of the motor speed (Var(y(k+1) - 2 y(k) + y(k-1))
+= 6 sigma_y^2 for a smooth speed), so the likelihood's scale is the sensor's, not a tuning knob; q
+covers the creep's own noise in M (its slope times the creep noise) and ``model_mu_std`` of model
+error, both in mu units.
+
+When the effective sample size falls below ``ess_fraction`` N the cloud is resampled (systematic) and
+moved by the Liu-West kernel in the prior's unconstrained coordinates u (identifier/prior.py):
+u_j <- a u_j + (1 - a) u_mean + h eps, eps ~ N(0, Cov(u)), a = (3 delta - 1) / (2 delta),
+h^2 = 1 - a^2: the cloud's mean and covariance are kept while it regains diversity.
+
+Intervals: weighted quantiles of peak_mu and peak_creep_kmh over the cloud, a credible interval.
+Every ``report_samples`` samples a correction event publishes the posterior's curve (weighted
+medians of peak mu and peak creep, weighted means of the rest in u) with its 90 % intervals.
+Confirmation: at every sample, when the interval at ``confirm_level`` (98 %) has a half-width within
+``tol_peak_mu`` (3 %) of its centre for peak mu and ``tol_peak_creep`` (10 %) for peak creep, and
+keeps that tolerance away from the prior box's edges (a posterior piled against an edge says the
+truth lies outside what the prior can represent, not that it is known); the event carries the curve
+and its 90 % intervals.  When the creep passes the prior's highest peak creep
+(the TCU then knows the serious stage has begun without having pinned the curve) or after
+``max_samples``, an ``unconfirmed`` event reports the best estimate and its intervals instead.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..messages import IdentificationEvent
+from ..prior import NAMES, CurvePrior, theta_from_phi
+from ..speed_likelihood import SpeedFilter
+from .base import Sample, Strategy
+from .mdipf import load_kernels
+
+
+def _kernels():
+    return load_kernels()
+
+KMH_PER_MS = 3.6
+#: bins of the compiled quantiles' histogram (kernels.weighted_quantiles_hist): its error is below
+#: (max - min) / QUANTILE_BINS, e.g. 0.0013 km/h of peak creep over the default prior
+QUANTILE_BINS = 2048
+
+DEFAULTS = {
+    "particles": 2000,
+    **{name: None for name in NAMES},    # prior box sides, e.g. peak_mu = [0.05, 0.25]; None: prior.DEFAULT_BOX
+    "confirm_level": 0.98,               # the interval that must be within tolerance to confirm
+    "report_level": 0.90,                # the interval published with every event
+    "tol_peak_mu": 0.03,                 # half-width / centre allowed at confirmation
+    "tol_peak_creep": 0.10,
+    "model_mu_std": 3e-4,                # model error per period, mu units (process noise q)
+    "ess_fraction": 0.5,
+    "liu_west_delta": 0.98,
+    "report_samples": 5,                 # a correction event every this many samples
+    "min_samples": 5,                    # no confirmation before this many
+    "max_samples": 400,
+    "baseline_readings": 100,            # readings before the slip used for sigma_y and the train speed fit
+    "sigma_y_fallback": 0.005,           # rad/s, when there is no baseline (samples fed without readings)
+    "moves_drawn_ahead": 24,             # resample-moves whose random numbers are drawn at construction
+    "compiled": True,                    # the cloud's passes by identifier/kernels.py (numba); False: numpy
+}
+
+
+def weighted_quantiles(x: np.ndarray, w: np.ndarray, qs) -> np.ndarray:
+    """Quantiles ``qs`` of the weighted sample (x, w) (w normalised), by the inverse of the weighted
+    empirical distribution function."""
+    order = np.argsort(x)
+    cdf = np.cumsum(w[order])
+    idx = np.searchsorted(cdf, np.asarray(qs, float) * cdf[-1], side="left")
+    return x[order[np.minimum(idx, x.size - 1)]]
+
+
+class BaselineStats:
+    """What the readings before the slip tell: the motor-speed noise (second differences) and the
+    train speed as a straight line in the step (least squares over the last ``size`` readings)."""
+
+    def __init__(self, size: int):
+        self.size = size
+        self.steps: list[int] = []
+        self.motor: list[float] = []
+        self.train: list[float] = []
+
+    def add(self, step: int, motor_speed_rad_s: float, train_speed_ms: float) -> None:
+        self.steps.append(step)
+        self.motor.append(motor_speed_rad_s)
+        self.train.append(train_speed_ms)
+        if len(self.steps) > 2 * self.size:          # keep it bounded over a long run
+            del self.steps[:self.size], self.motor[:self.size], self.train[:self.size]
+
+    def motor_noise_rad_s(self) -> float:
+        y = np.asarray(self.motor[-self.size:])
+        if y.size < 8:
+            return math.nan
+        d2 = y[2:] - 2.0 * y[1:-1] + y[:-2]
+        return float(np.sqrt(np.mean(d2 * d2) / 6.0))
+
+    def train_speed_line(self) -> tuple[float, float, float]:
+        """(step0, v at step0, slope per step) of the least-squares line through the last readings."""
+        k = np.asarray(self.steps[-self.size:], float)
+        v = np.asarray(self.train[-self.size:])
+        if k.size < 2:
+            return (k[-1] if k.size else 0.0), (v[-1] if v.size else math.nan), 0.0
+        k0 = float(k.mean())
+        dk = k - k0
+        slope = float(dk @ (v - v.mean()) / max(dk @ dk, 1e-12))
+        return k0, float(v.mean()), slope
+
+
+class BayesStrategy(Strategy):
+    """Particle posterior over the prior's curves with a Kalman likelihood of the motor speed
+    (module docstring).  ``compiled`` (default) runs the cloud's step, move and intervals by
+    ``identifier/kernels.py``; False runs the numpy reference (``speed_likelihood``, ``prior``)."""
+
+    name = "bayes"
+    observer_aware = True           # every sample from the detected slip start, no settle, no lag pairing
+    wants_readings = True           # TractionIdentifier.on_sensor passes every reading to ``on_reading``
+
+    def __init__(self, settings, seed: int = 0):
+        super().__init__(settings, seed)
+        unknown = set(self.options) - set(DEFAULTS) - {"window_samples", "k_pe", "c_lw", "c_up"}
+        if unknown:
+            raise ValueError(f"{self.name}: unknown option(s) {', '.join(sorted(unknown))}")
+        o = {**DEFAULTS, **self.options}
+        self.opts = o
+        self.prior = CurvePrior.from_options({k: v for k, v in o.items() if k in NAMES and v is not None})
+        self.n_particles = n = int(o["particles"])
+        if not 10 <= n <= 1_000_000:
+            raise ValueError(f"{self.name}: particles must be in [10, 1000000], got {o['particles']}")
+        for key in ("confirm_level", "report_level"):
+            if not 0.5 < float(o[key]) < 1.0:
+                raise ValueError(f"{self.name}: {key} must be in (0.5, 1), got {o[key]}")
+        for key in ("tol_peak_mu", "tol_peak_creep", "model_mu_std"):
+            if not float(o[key]) > 0:
+                raise ValueError(f"{self.name}: {key} must be > 0, got {o[key]}")
+        veh = settings.vehicle
+        self.period_s = settings.period_s
+        self.creep_per_motor_speed = KMH_PER_MS * veh.wheel_radius_m / veh.gear_ratio   # km/h per rad/s
+        self.filter = SpeedFilter(settings.period_s, veh.equivalent_inertia_kgm2, veh.torque_per_mu_nm, math.nan,
+                                  math.nan)
+        self._compiled = bool(o.get("compiled", True)) and load_kernels().AVAILABLE
+        if self._compiled:
+            _kernels().warm_up()
+        # the cloud, a row per coordinate: u (unconstrained prior coordinates), phi, theta; weights
+        self.u = np.ascontiguousarray(self.prior.sample_u(n, self.rng).T)
+        self.phi = np.empty((len(NAMES), n))
+        self._theta = np.empty((5, n))
+        self._bounds = self.prior.bounds()
+        self._qs = np.empty(5)
+        self._q_out = np.empty(5)
+        self._counts = np.empty(QUANTILE_BINS)
+        self._set_curves()
+        self.log_w = np.zeros(n)
+        self.weights = np.full(n, 1.0 / n)
+        # the moves' random numbers, drawn now (before the fault, when the TCU is idle)
+        self._normals = self.rng.standard_normal((int(o["moves_drawn_ahead"]), len(NAMES), n))
+        self._uniforms = self.rng.random(len(self._normals))
+        self._u_spare = np.empty_like(self.u)
+        self._idx = np.empty(n, np.intp)
+        self.baseline = BaselineStats(int(o["baseline_readings"]))
+        self.omega = None                      # per-particle speed estimate (after the first sample)
+        self._prev: Sample | None = None
+        self.samples_seen: list[Sample] = []    # what the likelihood used (the offline oracle replays them)
+        self._m_prev: np.ndarray | None = None
+        self._line = None
+        self.resamples = 0
+        self.peak_mu_ci = self.peak_creep_ci = (math.nan, math.nan)
+
+    # -- the cloud -----------------------------------------------------------------------------
+    def _set_curves(self) -> None:
+        """phi and theta of every particle from u."""
+        if self._compiled:
+            _kernels().bayes_curves(self.u, *self._bounds, self.phi, *self._theta)
+        else:
+            self.phi[:] = self.prior.phi_from_u(self.u.T).T
+            self._theta[:] = theta_from_phi(self.phi.T).T
+
+    def _mu_at(self, creep_speed_kmh: float) -> np.ndarray:
+        """M_j(v_s) for every particle j."""
+        l0, l1, l2, t1, t2 = self._theta
+        return l0 + l1 * np.exp(t1 * creep_speed_kmh) + l2 * np.exp(t2 * creep_speed_kmh)
+
+    # -- readings and samples --------------------------------------------------------------------
+    def on_reading(self, step: int, motor_speed_rad_s: float, train_speed_ms: float) -> None:
+        """Every reading before the slip: the baseline of the noise and of the train speed."""
+        if self._prev is None:
+            self.baseline.add(step, motor_speed_rad_s, train_speed_ms)
+
+    def creep_for_likelihood(self, s: Sample) -> float:
+        """v_s from the measured motor speed and the smoothed train speed (km/h)."""
+        k0, v0, slope = self._line
+        return self.creep_per_motor_speed * s.motor_speed_rad_s - KMH_PER_MS * (v0 + slope * (s.step - k0))
+
+    def add_sample(self, sample: Sample) -> list[IdentificationEvent]:
+        if self.confirmed or self.gave_up:
+            return []
+        if not all(math.isfinite(x) for x in (sample.creep_speed_kmh, sample.motor_speed_rad_s, sample.train_speed_ms,
+                                               sample.torque_nm)):
+            return []           # (mu^ is not used: it is kept for the paper's fit metrics only)
+        self._v.append(sample.creep_speed_kmh)
+        self._mu.append(sample.mu_hat)
+        self.samples_seen.append(sample)
+        if self._prev is None:
+            self._open(sample)
+        else:
+            self._step(sample)
+        self._prev = sample
+        return self._evaluate(sample)
+
+    def _open(self, s: Sample) -> None:
+        """The first sample of the slip: the baseline is final; every particle starts at y."""
+        f = self.filter
+        sigma_y = self.baseline.motor_noise_rad_s()
+        f.sigma_y_rad_s = sigma_y if math.isfinite(sigma_y) and sigma_y > 0 else float(self.opts["sigma_y_fallback"])
+        self._line = self.baseline.train_speed_line() if self.baseline.steps else (s.step, s.train_speed_ms, 0.0)
+        # q: model error plus the creep noise carried into M (steepest prior slope x creep noise)
+        creep_noise_kmh = self.creep_per_motor_speed * f.sigma_y_rad_s
+        l0, l1, l2, t1, t2 = self._theta
+        slope = float(np.max(np.abs(l1 * t1 + l2 * t2)))
+        mu_std = math.hypot(float(self.opts["model_mu_std"]), min(slope, 1.0) * creep_noise_kmh / math.sqrt(2.0))
+        f.q_var = (self.period_s * f.torque_per_mu_nm / f.inertia_kgm2 * mu_std) ** 2
+        self.omega = f.open(s.motor_speed_rad_s, self.n_particles)
+        self._m_prev = self._mu_at(self.creep_for_likelihood(s))
+
+    def _step(self, s: Sample) -> None:
+        """One period of every particle's speed filter (speed_likelihood), then resampling if needed."""
+        prev, f = self._prev, self.filter
+        periods = max(s.step - prev.step, 1)
+        creep = self.creep_for_likelihood(s)
+        if self._compiled:
+            dt_j, innov_var, gain = f.gains(periods)
+            ess = _kernels().bayes_step(*self._theta, self.omega, self._m_prev, self.log_w, self.weights, creep,
+                                        s.motor_speed_rad_s, prev.torque_nm, dt_j, f.torque_per_mu_nm,
+                                        0.5 / innov_var, gain)
+        else:
+            m_new = self._mu_at(creep)
+            self.log_w += f.step(self.omega, self._m_prev, m_new, periods, prev.torque_nm, s.motor_speed_rad_s)
+            self._m_prev = m_new
+            w = np.exp(self.log_w - self.log_w.max())
+            self.weights = w / w.sum()
+            ess = 1.0 / float(self.weights @ self.weights)
+        if ess < float(self.opts["ess_fraction"]) * self.n_particles:
+            self._resample_move(creep)
+
+    def _resample_move(self, creep_speed_kmh: float) -> None:
+        """Systematic resampling, then the Liu-West move in u (module docstring)."""
+        n = self.n_particles
+        k = self.resamples % len(self._normals)
+        delta = float(self.opts["liu_west_delta"])
+        a = (3.0 * delta - 1.0) / (2.0 * delta)
+        h = math.sqrt(max(1.0 - a * a, 0.0))
+        if self._compiled:
+            K = _kernels()
+            K.systematic_resample(self.weights, float(self._uniforms[k]), self._idx)
+            K.liu_west_move(self.u, self.weights, self._idx, self._normals[k], a, h, self._u_spare)
+            self.u, self._u_spare = self._u_spare, self.u
+            idx = self._idx
+        else:
+            positions = (self._uniforms[k] + np.arange(n)) / n
+            idx = np.minimum(np.searchsorted(np.cumsum(self.weights), positions), n - 1)
+            mean = self.u @ self.weights
+            d = self.u - mean[:, None]
+            cov = (d * self.weights) @ d.T
+            cov += (1e-12 + 1e-9 * np.trace(cov)) * np.eye(len(mean))
+            self.u = a * self.u[:, idx] + ((1.0 - a) * mean)[:, None] + h * np.linalg.cholesky(cov) @ self._normals[k]
+        self.omega = self.omega[idx]
+        self._set_curves()
+        self._m_prev = self._mu_at(creep_speed_kmh)
+        self.log_w.fill(0.0)
+        self.weights.fill(1.0 / n)
+        self.resamples += 1
+
+    # -- intervals and decisions -----------------------------------------------------------------
+    def quantiles(self, col: int, qs) -> np.ndarray:
+        """Weighted quantiles ``qs`` (ascending) of phi's coordinate ``col`` over the cloud."""
+        if not self._compiled:
+            return weighted_quantiles(self.phi[col], self.weights, qs)
+        k = len(qs)
+        self._qs[:k] = qs
+        _kernels().weighted_quantiles_hist(self.phi[col], self.weights, self._qs[:k], QUANTILE_BINS, self._counts,
+                                           self._q_out[:k])
+        return self._q_out[:k].copy()
+
+    def intervals(self, level: float) -> tuple[tuple[float, float], tuple[float, float]]:
+        """Central credible intervals of peak mu and peak creep (km/h) at ``level``."""
+        qs = (0.5 * (1.0 - level), 0.5 * (1.0 + level))
+        mu, creep = self.quantiles(0, qs), self.quantiles(1, qs)
+        return (float(mu[0]), float(mu[1])), (float(creep[0]), float(creep[1]))
+
+    def estimate(self) -> np.ndarray:
+        """The posterior's curve: weighted medians of peak mu and peak creep, weighted means of the rest in u."""
+        phi = self.prior.phi_from_u(self.u @ self.weights)
+        phi[0] = self.quantiles(0, (0.5,))[0]
+        phi[1] = self.quantiles(1, (0.5,))[0]
+        return theta_from_phi(phi)
+
+    def _spread_within(self, col: int, tol: float) -> bool:
+        """Cheap pre-check: the weighted standard deviation within ``tol`` of the mean (a cloud spread
+        wider than that cannot have a central 98 % interval of half-width tol x centre)."""
+        if self._compiled:
+            mean, var = _kernels().weighted_moments(self.phi[col], self.weights)
+        else:
+            x = self.phi[col]
+            mean = float(self.weights @ x)
+            var = float(self.weights @ (x - mean) ** 2)
+        return var <= (tol * mean) ** 2
+
+    def _within_tolerance(self) -> bool:
+        o = self.opts
+        tols = (float(o["tol_peak_mu"]), float(o["tol_peak_creep"]))
+        if not all(self._spread_within(col, tol) for col, tol in enumerate(tols)):
+            return False
+        box = self.prior.box
+        for (lo, hi), tol, name in zip(self.intervals(float(o["confirm_level"])), tols, NAMES):
+            if hi - lo > tol_width(lo, hi, tol):
+                return False
+            box_lo, box_hi = box[name]
+            if hi >= box_hi - tol * box_hi or lo <= box_lo + tol * box_lo:
+                return False        # piled against the prior's edge: the data point outside what it can say
+        return True
+
+    def _evaluate(self, s: Sample) -> list[IdentificationEvent]:
+        n = len(self._v)
+        o = self.opts
+        if n >= int(o["min_samples"]) and self._within_tolerance():
+            return [self._publish(s, "confirmed")]
+        if s.creep_speed_kmh > self.prior.upper_peak_creep_kmh() or n >= int(o["max_samples"]):
+            return [self._publish(s, "unconfirmed")]
+        if n % int(o["report_samples"]) == 0:
+            return [self._publish(s, "correction")]
+        return []
+
+    def _publish(self, s: Sample, kind: str) -> IdentificationEvent:
+        self.theta = self.estimate()
+        self.peak_mu_ci, self.peak_creep_ci = self.intervals(float(self.opts["report_level"]))
+        if kind == "confirmed":
+            self.confirmed = True
+        elif kind == "unconfirmed":
+            self.gave_up = True
+        else:
+            self.corrections += 1
+        return IdentificationEvent(s.step, s.t_s, kind, self.corrections, tuple(float(x) for x in self.theta),
+                                   math.nan, len(self._v), self.peak_mu_ci, self.peak_creep_ci)
+
+    def correct(self, window_v, window_mu):          # the window loop of Strategy is not used here
+        raise NotImplementedError
+
+
+def tol_width(lo: float, hi: float, tol: float) -> float:
+    """The full width allowed for an interval [lo, hi]: twice ``tol`` times its centre."""
+    return 2.0 * tol * abs(0.5 * (lo + hi))

@@ -1,0 +1,186 @@
+"""The recommended strategy (``bayes``) on synthetic slips the test integrates itself: its intervals
+cover the truth about as often as they say, it does not confirm a curve far from its prior's mass,
+and its compiled passes are its numpy reference's."""
+import math
+import secrets
+
+import numpy as np
+import pytest
+
+from identifier import IdentifierSettings, VehicleModel
+from identifier.prior import CurvePrior, theta_from_phi
+from identifier.strategies import Sample, make_strategy
+
+PERIOD_S = 1e-3
+INERTIA = 16.6            # kg m^2 (Table 1's J_eq)
+TORQUE_PER_MU = 21400.0   # N m per unit mu
+GEAR, RADIUS = 2.788, 0.4375
+
+
+def settings(**options) -> IdentifierSettings:
+    vehicle = VehicleModel(INERTIA, TORQUE_PER_MU, GEAR, RADIUS)
+    return IdentifierSettings(PERIOD_S, vehicle, 0.0, (0.0, 1.0, -1.0, -0.54, -1.2), options={"bayes": options})
+
+
+def curve(theta):
+    l0, l1, l2, t1, t2 = theta
+    return lambda v: l0 + l1 * math.exp(t1 * v) + l2 * math.exp(t2 * v)
+
+
+def slip(mu_of, mu_required: float, rng, creep0_kmh=0.15, train_ms=10.0, sigma_y=0.005, sigma_t=0.002,
+         baseline=100, max_creep_kmh=None):
+    """(readings before the fault, samples after it): the wheelset J dw/dt = T - c mu(v_s) integrated
+    here by RK4 with 10 sub-steps per period, torque T = c mu_required, speeds measured with noise."""
+    to_kmh = 3.6 * RADIUS / GEAR
+    torque = TORQUE_PER_MU * mu_required
+    omega = (creep0_kmh / 3.6 + train_ms) * GEAR / RADIUS
+    pre = [(k, omega + sigma_y * rng.standard_normal(), train_ms + sigma_t * rng.standard_normal())
+           for k in range(baseline)]
+    f = lambda w: (torque - TORQUE_PER_MU * mu_of(to_kmh * w - 3.6 * train_ms)) / INERTIA  # noqa: E731
+    samples, h = [], PERIOD_S / 10
+    limit = max_creep_kmh or 4.0
+    for k in range(baseline, baseline + 400):
+        y = omega + sigma_y * rng.standard_normal()
+        v_t = train_ms + sigma_t * rng.standard_normal()
+        creep = to_kmh * y - 3.6 * v_t
+        samples.append(Sample(k, k * PERIOD_S, creep, math.nan, math.nan, y, v_t, torque))
+        if to_kmh * omega - 3.6 * train_ms > limit:
+            break
+        for _ in range(10):
+            k1 = f(omega)
+            k2 = f(omega + h / 2 * k1)
+            k3 = f(omega + h / 2 * k2)
+            k4 = f(omega + h * k3)
+            omega += h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+    return pre, samples
+
+
+def run(strategy, pre, samples):
+    for k, y, v_t in pre:
+        strategy.on_reading(k, y, v_t)
+    events = []
+    for s in samples:
+        strategy.on_reading(s.step, s.motor_speed_rad_s, s.train_speed_ms)
+        events += strategy.add_sample(s)
+        if strategy.confirmed or strategy.gave_up:
+            break
+    return events
+
+
+def draw_curve(rng, prior: CurvePrior):
+    """A curve from the prior itself (where a Bayesian interval is calibrated by construction)."""
+    u = prior.sample_u(1, rng)
+    phi = prior.phi_from_u(u)[0]
+    return phi, theta_from_phi(phi)
+
+
+def test_intervals_cover_the_truth_about_as_often_as_they_say():
+    seed = secrets.randbits(31)
+    print("seed", seed)
+    rng = np.random.default_rng(seed)
+    prior = CurvePrior.from_options({})
+    trials, covered_mu, covered_creep = 30, 0, 0
+    for i in range(trials):
+        phi, theta = draw_curve(rng, prior)
+        pre, samples = slip(curve(theta), phi[0] * 1.06, rng, creep0_kmh=0.3 * phi[1])
+        strat = make_strategy("bayes", settings(particles=1000), seed=i)
+        events = run(strat, pre, samples)
+        assert events and events[-1].kind in ("confirmed", "unconfirmed")
+        e = events[-1]
+        covered_mu += e.peak_mu_ci[0] <= phi[0] <= e.peak_mu_ci[1]
+        covered_creep += e.peak_creep_ci[0] <= phi[1] <= e.peak_creep_ci[1]
+    print("90 % intervals covered peak mu", covered_mu, "peak creep", covered_creep, "of", trials)
+    # 90 % intervals: 27 expected; below 21 of 30 has probability < 0.3 % if they are calibrated
+    assert covered_mu >= 21 and covered_creep >= 21
+
+
+def test_a_curve_outside_the_prior_is_not_confirmed_wrongly():
+    """A rail whose peak creep (5 km/h) is beyond the prior's box: the strategy may not confirm a
+    curve it cannot represent as if it were sure; it either reports unconfirmed when the creep
+    passes the prior's bound, or its confirmed interval is honest about the peak mu it saw."""
+    seed = secrets.randbits(31)
+    print("seed", seed)
+    rng = np.random.default_rng(seed)
+    theta = theta_from_phi(np.array([0.12, 5.0, 0.0, 0.8, 2.0]))
+    pre, samples = slip(curve(theta), 0.125, rng, creep0_kmh=1.0, max_creep_kmh=6.0)
+    strat = make_strategy("bayes", settings(particles=1000), seed=1)
+    events = run(strat, pre, samples)
+    last = events[-1]
+    assert last.kind == "unconfirmed", (last.kind, last.peak_creep_ci)
+    assert last.peak_creep_ci[1] <= 3.0 + 1e-9          # it says where its prior ends, not a made-up 5
+    assert strat.gave_up and not strat.confirmed
+
+
+def test_unconfirmed_when_the_creep_passes_the_prior_bound_with_the_best_estimate():
+    seed = secrets.randbits(31)
+    print("seed", seed)
+    rng = np.random.default_rng(seed)
+    theta = theta_from_phi(np.array([0.15, 1.2, 0.0, 0.7, 2.1]))
+    pre, samples = slip(curve(theta), 0.2, rng)          # a hard slip: far past the peak in a few ms
+    strat = make_strategy("bayes", settings(particles=1000, confirm_level=0.999999, tol_peak_mu=1e-6), seed=2)
+    events = run(strat, pre, samples)
+    assert events[-1].kind == "unconfirmed"
+    assert all(math.isfinite(x) for x in events[-1].params)
+    assert all(math.isfinite(x) for x in events[-1].peak_mu_ci + events[-1].peak_creep_ci)
+
+
+def test_compiled_and_numpy_paths_agree():
+    """The same seed through the compiled passes and the numpy reference gives the same decisions at
+    the same samples (the kernels add in another order, use their own exp and interpolate quantiles
+    in a histogram: equal to a bin's width, not to the bit)."""
+    seed = secrets.randbits(31)
+    print("seed", seed)
+    theta = theta_from_phi(np.array([0.14, 1.1, 0.005, 0.9, 2.4]))
+    runs = []
+    for path in (True, False):
+        rng = np.random.default_rng(seed)
+        pre, samples = slip(curve(theta), 0.15, rng)
+        strat = make_strategy("bayes", settings(particles=500, compiled=path), seed=3)
+        runs.append(run(strat, pre, samples))
+    a, b = runs
+    assert [(e.kind, e.step) for e in a[:3]] == [(e.kind, e.step) for e in b[:3]]
+    bin_kmh = (3.0 - 0.4) / 2048
+    assert np.all(np.abs(np.subtract(a[0].peak_creep_ci, b[0].peak_creep_ci)) <= 2 * bin_kmh)
+    np.testing.assert_allclose(a[0].params, b[0].params, rtol=1e-2)
+
+
+def test_kernels_equal_their_numpy_reference():
+    from identifier import kernels
+    from identifier.speed_likelihood import SpeedFilter
+
+    if not kernels.AVAILABLE:
+        pytest.skip("numba not installed: the numpy path runs")
+    seed = secrets.randbits(31)
+    print("seed", seed)
+    rng = np.random.default_rng(seed)
+    prior = CurvePrior.from_options({})
+    n = 300
+    u = np.ascontiguousarray(prior.sample_u(n, rng).T)
+    phi, th = np.empty((5, n)), np.empty((5, n))
+    kernels.bayes_curves(u, *prior.bounds(), phi, *th)
+    np.testing.assert_allclose(phi, prior.phi_from_u(u.T).T, rtol=1e-12)
+    np.testing.assert_allclose(th, theta_from_phi(phi.T).T, rtol=1e-9, atol=1e-12)
+    f = SpeedFilter(PERIOD_S, INERTIA, TORQUE_PER_MU, 0.005, 1e-6)
+    omega_ref = f.open(300.0, n) + rng.normal(0, 0.01, n)
+    omega = omega_ref.copy()
+    m_prev = th[0] + th[1] * np.exp(th[3] * 0.5) + th[2] * np.exp(th[4] * 0.5)
+    m_new = th[0] + th[1] * np.exp(th[3] * 0.55) + th[2] * np.exp(th[4] * 0.55)
+    p_var = f.p_var
+    ll = f.step(omega_ref, m_prev.copy(), m_new, 1, 3000.0, 300.01)
+    f.p_var = p_var
+    dt_j, s, k = f.gains(1)
+    log_w, w = np.zeros(n), np.empty(n)
+    ess = kernels.bayes_step(*th, omega, m_prev.copy(), log_w, w, 0.55, 300.01, 3000.0, dt_j, TORQUE_PER_MU,
+                             0.5 / s, k)
+    np.testing.assert_allclose(omega, omega_ref, rtol=1e-13)
+    np.testing.assert_allclose(log_w, ll, rtol=1e-9, atol=1e-12)
+    ref_w = np.exp(ll - ll.max())
+    ref_w /= ref_w.sum()
+    np.testing.assert_allclose(w, ref_w, rtol=1e-9, atol=1e-15)
+    assert ess == pytest.approx(1.0 / (ref_w @ ref_w), rel=1e-9)
+    from identifier.strategies.bayes import weighted_quantiles
+    qs = np.array([0.01, 0.05, 0.5, 0.95, 0.99])
+    out = np.empty(5)
+    kernels.weighted_quantiles_hist(phi[1], ref_w, qs, 4096, np.empty(4096), out)
+    exact = weighted_quantiles(phi[1], ref_w, qs)
+    assert np.all(np.abs(out - exact) <= 2 * (phi[1].max() - phi[1].min()) / 4096 + 1e-12)
