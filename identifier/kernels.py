@@ -885,6 +885,20 @@ def liu_west_move(ut, weights, idx, normals, a, h, out):
 
 
 @njit(**_JIT)
+def bayes_mu_at(l0, l1, l2, t1, t2, creep_speed_kmh, out):
+    """out_j = M_j(v_s) for every particle's curve."""
+    for j in range(out.size):
+        out[j] = l0[j] + l1[j] * _exp(t1[j] * creep_speed_kmh) + l2[j] * _exp(t2[j] * creep_speed_kmh)
+
+
+@njit(**_JIT)
+def take(x, idx, out):
+    """out = x[idx] (resampling a per-particle vector)."""
+    for j in range(idx.size):
+        out[j] = x[idx[j]]
+
+
+@njit(**_JIT)
 def weighted_moments(x, weights):
     """(mean, variance) of the weighted sample (weights normalised)."""
     m = 0.0
@@ -966,5 +980,7 @@ def warm_up() -> None:
                  np.empty(16), np.empty(16), np.empty(16), np.empty(16), np.empty(16))
     liu_west_move(u16, np.full(16, 1 / 16), np.arange(16), np.zeros((5, 16)), 0.9, 0.4, np.empty((5, 16)))
     weighted_moments(u16[0], np.full(16, 1 / 16))
+    bayes_mu_at(u16[0], u16[1], u16[2], u16[3], u16[4], 0.5, np.empty(16))
+    take(u16[0], np.arange(16), np.empty(16))
     weighted_quantiles_hist(u16[0], np.full(16, 1 / 16), np.array([0.05, 0.5, 0.95]), 64, np.empty(64), np.empty(3))
     _warmed = True

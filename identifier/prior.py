@@ -29,6 +29,7 @@ log-uniform).  Particles live in unconstrained coordinates u (a logit per box si
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -55,6 +56,17 @@ def theta_from_phi(phi: np.ndarray) -> np.ndarray:
     l1 = (mp - m0) / d
     l2 = -(l1 / r) * e_ra
     return np.stack([m0 - l1 - l2, l1, l2, t1, t2], axis=-1)
+
+
+def theta_from_phi_floats(phi) -> tuple[float, ...]:
+    """``theta_from_phi`` for one curve, in Python floats (a handful of numpy calls on 5-element
+    arrays cost more than the arithmetic: this runs on the TCU's sample)."""
+    mp, vp, m0, a, r = (float(x) for x in phi)
+    t1 = -a / vp
+    e_a, e_ra = math.exp(-a), math.exp((r - 1.0) * a)
+    l1 = (mp - m0) / ((e_a - 1.0) - (e_a - e_ra) / r)
+    l2 = -(l1 / r) * e_ra
+    return (m0 - l1 - l2, l1, l2, t1, r * t1)
 
 
 @dataclass(frozen=True)
@@ -93,6 +105,17 @@ class CurvePrior:
         lo, hi, log = self.bounds()
         s = lo + (hi - lo) / (1.0 + np.exp(-np.asarray(u, float)))
         return np.where(log, np.exp(s), s)
+
+    def phi_from_u_floats(self, u) -> list[float]:
+        """``phi_from_u`` for one particle, in Python floats."""
+        out = []
+        for name, x in zip(NAMES, u):
+            lo, hi = self.box[name]
+            if LOG_SCALE[name]:
+                lo, hi = math.log(lo), math.log(hi)
+            s = lo + (hi - lo) / (1.0 + math.exp(-float(x)))
+            out.append(math.exp(s) if LOG_SCALE[name] else s)
+        return out
 
     def sample_u(self, n: int, rng) -> np.ndarray:
         """n draws from the prior, in u: logit of a uniform (so phi is uniform in its box side)."""

@@ -38,6 +38,7 @@ import numpy as np
 
 from ..errors import ConfigError
 from .judge import TOL_PEAK_CREEP_PERCENT, TOL_PEAK_MU_PERCENT, judge
+from .judge import quantile_or_inf as judge_quantile
 from .judge import aggregate as judge_aggregate
 from .judge import table as judge_table
 from ..exchange import collector_paused
@@ -68,6 +69,10 @@ def register(sub) -> None:
     p.add_argument("--wide", action="store_true", help="with --family: every column, not only those of an 80-column "
                    "terminal")
     p.add_argument("--markdown", action="store_true", help="with --family: the full table as markdown")
+    p.add_argument("--oracle-draws", type=int, default=None, help="curves the offline oracle draws from the family "
+                   "per run (hil/benchmarks/oracle.py; default 100000 with --family, 0 otherwise; 0: no oracle)")
+    p.add_argument("--oracle-family", default="exp", help="with --cases: the family whose prior the oracle knows "
+                   "(default exp, the paper's form)")
     p.add_argument("--cases", default="ffcc_a,ffcc_b", help="scenario names (scenarios/NAME.toml) or TOML paths")
     p.add_argument("--strategies", default=",".join(STRATEGIES), help="comma-separated (default: all)")
     p.add_argument("--seeds", type=int, default=20, help="seeds 1..N (default 20)")
@@ -355,6 +360,12 @@ def cmd_identify(args) -> int:
     seeds = list(range(args.first_seed, args.first_seed + args.seeds))
     per_seed = {s: {c: [] for c in cases} for s in strategies}
     first_runs = {c: {} for c in cases}
+    oracle_rts = {c: [] for c in cases}
+    if args.oracle_draws:
+        from plant import families
+        if args.oracle_family not in families.FAMILIES:
+            raise ConfigError(f"--oracle-family {args.oracle_family!r}: unknown family (known: "
+                              f"{', '.join(families.FAMILIES)})")
     bar = Progress(len(cases) * len(seeds) * (len(strategies) + 1), "bench identify", None)
     done = 0
     for c in cases:
@@ -362,15 +373,25 @@ def cmd_identify(args) -> int:
             data = generate(scenarios[c], seed)
             done += 1
             bar.update(done, f"{c} seed {seed}")
+            idents = {}
             for strat in strategies:
                 summary, ident = replay(data, strat, args.particles)
+                idents[strat] = ident
                 per_seed[strat][c].append(summary)
                 if seed == seeds[0]:
                     first_runs[c][strat] = (summary, ident, data)
                 done += 1
                 bar.update(done, f"{c} seed {seed} {strat}")
+            if args.oracle_draws:
+                o = run_oracle(data, idents, args.oracle_family, [seed, 1], args.oracle_draws)
+                oracle_rts[c].append(o["oracle_rt_percent"])
+                for strat in strategies:
+                    per_seed[strat][c][-1]["oracle_rt_percent"] = o["oracle_rt_percent"]
     bar.close()
     results = {s: {c: aggregate(per_seed[s][c]) for c in cases} for s in strategies}
+    for per_case in results.values():
+        for c, r in per_case.items():
+            r["oracle_rt_median_percent"] = judge_quantile(oracle_rts[c], 50) if oracle_rts[c] else None
     for s, per_case in results.items():
         for c, r in per_case.items():
             for e in r["drill_errors"]:     # the drill never stops a run, but a stopped drill is news
@@ -383,6 +404,25 @@ def cmd_identify(args) -> int:
     else:
         print(table(results, cases, len(seeds)))
     return 0
+
+
+#: curves the oracle draws per run in --family mode (its ESS is reported beside it)
+ORACLE_DRAWS = 100_000
+
+
+def run_oracle(data: CaseData, idents: dict, family: str, seed, draws: int) -> dict:
+    """The information limit on this run's samples (hil/benchmarks/oracle.py): the samples the
+    ``bayes`` strategy received (from its identifier when it was benched, else a replay of its own)."""
+    from .oracle import oracle, oracle_rt_percent
+
+    ident = idents.get("bayes")
+    if ident is None:
+        ident = replay(data, "bayes", None)[1]
+    sc = data.scenario
+    o = oracle(ident.strategy, family, sc.run.fault_time_s, seed, draws)
+    t_det = None if data.tracker.serious_time_s is None else data.tracker.serious_time_s - sc.run.fault_time_s
+    o["oracle_rt_percent"] = oracle_rt_percent(o, sc.run.fault_time_s, t_det)
+    return o
 
 
 def recommended() -> str:
@@ -416,15 +456,20 @@ def cmd_family(args, strategies: list[str], overrides: dict) -> int:
     costs = {s: [] for s in strategies}
     bar = Progress(args.draws * (len(strategies) + 1), f"bench identify {args.family}", None)
     done = 0
+    oracle_draws = ORACLE_DRAWS if args.oracle_draws is None else args.oracle_draws
+    oracle_rts, oracle_detail = [], []
+    base_text = base.read_text()
     for i in range(args.draws):
-        text = families.draw_scenario_text(base.read_text(), args.family, seed, i)
+        text = families.draw_scenario_text(base_text, args.family, seed, i)
         sc = parse_scenario(text, f"{args.family} draw {i} of seed {seed}", overrides)
         data = generate(sc, i + 1)
         v_true, mu_true = sc.fault_curve.peak()
         done += 1
         bar.update(done, f"draw {i}")
+        idents = {}
         for strat in strategies:
             summary, ident = replay(data, strat, args.particles)
+            idents[strat] = ident
             d = judge(summary, ident.events_seen, mu_true, v_true, data.tracker.serious_time_s)
             d.update(draw=i, t_det_s=summary["t_det_s"], peak_mu_ci=summary.get("peak_mu_ci"),
                      peak_creep_ci=summary.get("peak_creep_ci"))
@@ -432,17 +477,29 @@ def cmd_family(args, strategies: list[str], overrides: dict) -> int:
             costs[strat].append(summary.get("cost_p99_us"))
             done += 1
             bar.update(done, f"draw {i} {strat}")
+        if oracle_draws:
+            o = run_oracle(data, idents, args.family, [seed, i], oracle_draws)
+            o.update(draw=i, true_peak_mu=mu_true, true_peak_creep_kmh=v_true)
+            oracle_rts.append(o["oracle_rt_percent"])
+            oracle_detail.append(o)
     bar.close()
     results = {}
+    oracle_median = judge_quantile(oracle_rts, 50) if oracle_rts else None
     for strat in strategies:
         r = judge_aggregate(per_draw[strat])
         r["cost_p99_us"] = _median(costs[strat])
-        r["oracle_rt_median_percent"] = None
+        r["oracle_rt_median_percent"] = oracle_median
+        r["rt_median_over_oracle"] = (r["rt_median_percent"] / oracle_median
+                                      if oracle_median and math.isfinite(oracle_median) else None)
         r["draws_detail"] = per_draw[strat]
         results[strat] = r
     family = {"name": args.family, "draws": args.draws, "spec": families.describe(args.family)}
+    oracle_summary = {"draws_per_run": oracle_draws, "rt_median_percent": oracle_median,
+                      "rt_p90_percent": judge_quantile(oracle_rts, 90) if oracle_rts else None,
+                      "runs": oracle_detail}
     if args.json:
-        print(json.dumps(clean({"family": family, "seed": seed, "recommended": recommended(), "results": results})))
+        print(json.dumps(clean({"family": family, "seed": seed, "recommended": recommended(), "results": results,
+                                "oracle": oracle_summary})))
     else:
         print(f"family {args.family}: {args.draws} draws, seed {seed}; recommended strategy: {recommended()}")
         print(judge_table(results, args.wide, args.markdown))

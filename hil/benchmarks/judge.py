@@ -78,7 +78,7 @@ def _median(values) -> float | None:
     return float(np.median(vals)) if vals else None
 
 
-def _quantile_or_inf(values, q: float) -> float:
+def quantile_or_inf(values, q: float) -> float:
     """Quantile with infinities counted (numpy's percentile turns inf into nan on interpolation)."""
     vals = np.sort(np.asarray(values, float))
     if vals.size == 0:
@@ -102,8 +102,8 @@ def aggregate(per_draw: list[dict]) -> dict:
         "coverage_draws": sum(d["covers_peak_mu"] is not None for d in per_draw),
         "ci_width_peak_mu_median_percent": _median([d["ci_width_peak_mu_percent"] for d in per_draw]),
         "ci_width_peak_creep_median_percent": _median([d["ci_width_peak_creep_percent"] for d in per_draw]),
-        "rt_median_percent": _quantile_or_inf(rts, 50),
-        "rt_p90_percent": _quantile_or_inf(rts, 90),
+        "rt_median_percent": quantile_or_inf(rts, 50),
+        "rt_p90_percent": quantile_or_inf(rts, 90),
     }
 
 

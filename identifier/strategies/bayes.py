@@ -47,7 +47,7 @@ import math
 import numpy as np
 
 from ..messages import IdentificationEvent
-from ..prior import NAMES, CurvePrior, theta_from_phi
+from ..prior import NAMES, CurvePrior, theta_from_phi, theta_from_phi_floats
 from ..speed_likelihood import SpeedFilter
 from .base import Sample, Strategy
 from .mdipf import load_kernels
@@ -196,6 +196,10 @@ class BayesStrategy(Strategy):
 
     def _mu_at(self, creep_speed_kmh: float) -> np.ndarray:
         """M_j(v_s) for every particle j."""
+        if self._compiled:
+            out = np.empty(self.n_particles)
+            _kernels().bayes_mu_at(*self._theta, creep_speed_kmh, out)
+            return out
         l0, l1, l2, t1, t2 = self._theta
         return l0 + l1 * np.exp(t1 * creep_speed_kmh) + l2 * np.exp(t2 * creep_speed_kmh)
 
@@ -239,6 +243,7 @@ class BayesStrategy(Strategy):
         mu_std = math.hypot(float(self.opts["model_mu_std"]), min(slope, 1.0) * creep_noise_kmh / math.sqrt(2.0))
         f.q_var = (self.period_s * f.torque_per_mu_nm / f.inertia_kgm2 * mu_std) ** 2
         self.omega = f.open(s.motor_speed_rad_s, self.n_particles)
+        self._omega_spare = np.empty_like(self.omega)
         self._m_prev = self._mu_at(self.creep_for_likelihood(s))
 
     def _step(self, s: Sample) -> None:
@@ -282,7 +287,11 @@ class BayesStrategy(Strategy):
             cov = (d * self.weights) @ d.T
             cov += (1e-12 + 1e-9 * np.trace(cov)) * np.eye(len(mean))
             self.u = a * self.u[:, idx] + ((1.0 - a) * mean)[:, None] + h * np.linalg.cholesky(cov) @ self._normals[k]
-        self.omega = self.omega[idx]
+        if self._compiled:
+            _kernels().take(self.omega, idx, self._omega_spare)
+            self.omega, self._omega_spare = self._omega_spare, self.omega
+        else:
+            self.omega = self.omega[idx]
         self._set_curves()
         self._m_prev = self._mu_at(creep_speed_kmh)
         self.log_w.fill(0.0)
@@ -306,12 +315,21 @@ class BayesStrategy(Strategy):
         mu, creep = self.quantiles(0, qs), self.quantiles(1, qs)
         return (float(mu[0]), float(mu[1])), (float(creep[0]), float(creep[1]))
 
+    def summary(self, level: float) -> tuple[np.ndarray, tuple[float, float], tuple[float, float]]:
+        """The posterior's curve (weighted medians of peak mu and peak creep, the rest from the
+        weighted mean in u) and the central intervals at ``level``: one quantile pass per coordinate."""
+        qs = (0.5 * (1.0 - level), 0.5, 0.5 * (1.0 + level))
+        mu, creep = self.quantiles(0, qs), self.quantiles(1, qs)
+        u_mean = _kernels().weighted_mean(self.u, self.weights, np.empty(len(NAMES))) if self._compiled \
+            else self.u @ self.weights
+        phi = self.prior.phi_from_u_floats(u_mean)
+        phi[0], phi[1] = float(mu[1]), float(creep[1])
+        theta = np.array(theta_from_phi_floats(phi))
+        return theta, (float(mu[0]), float(mu[2])), (float(creep[0]), float(creep[2]))
+
     def estimate(self) -> np.ndarray:
-        """The posterior's curve: weighted medians of peak mu and peak creep, weighted means of the rest in u."""
-        phi = self.prior.phi_from_u(self.u @ self.weights)
-        phi[0] = self.quantiles(0, (0.5,))[0]
-        phi[1] = self.quantiles(1, (0.5,))[0]
-        return theta_from_phi(phi)
+        """The posterior's curve (``summary``)."""
+        return self.summary(0.9)[0]
 
     def _spread_within(self, col: int, tol: float) -> bool:
         """Cheap pre-check: the weighted standard deviation within ``tol`` of the mean (a cloud spread
@@ -350,8 +368,7 @@ class BayesStrategy(Strategy):
         return []
 
     def _publish(self, s: Sample, kind: str) -> IdentificationEvent:
-        self.theta = self.estimate()
-        self.peak_mu_ci, self.peak_creep_ci = self.intervals(float(self.opts["report_level"]))
+        self.theta, self.peak_mu_ci, self.peak_creep_ci = self.summary(float(self.opts["report_level"]))
         if kind == "confirmed":
             self.confirmed = True
         elif kind == "unconfirmed":
