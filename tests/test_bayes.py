@@ -184,3 +184,26 @@ def test_kernels_equal_their_numpy_reference():
     kernels.weighted_quantiles_hist(phi[1], ref_w, qs, 4096, np.empty(4096), out)
     exact = weighted_quantiles(phi[1], ref_w, qs)
     assert np.all(np.abs(out - exact) <= 2 * (phi[1].max() - phi[1].min()) / 4096 + 1e-12)
+
+
+def test_unconfirmed_is_reported_on_the_bus_recorded_and_replayed(tmp_path):
+    """A real run (plant and TCU over the in-process bus, FFCC-a) with a prior that ends below the
+    true peak creep (1.27 km/h): the TCU must answer 'unconfirmed' with its best estimate and
+    intervals, ``hil run --json`` says so, the MCAP records it, and a replay reproduces it."""
+    import json
+
+    from .conftest import SCENARIOS, hil
+
+    prior = ["--set", "identifier.options.bayes.peak_creep_kmh=[0.4, 0.9]"]
+    r = hil("run", SCENARIOS / "ffcc_a.toml", "--strategy", "bayes", "--bus", "inprocess", "--out", tmp_path,
+            "--no-rrd", "--json", *prior)
+    assert r.returncode == 0, r.stderr
+    s = json.loads(r.stdout)
+    assert s["unconfirmed"] is True and s["identified"] is False
+    (m0, m1), (c0, c1) = s["peak_mu_ci"], s["peak_creep_ci"]
+    assert 0 < m0 <= m1 and 0.4 <= c0 <= c1 <= 0.9
+    rp = hil("replay", s["mcap"], "--json")
+    assert rp.returncode == 0, rp.stderr
+    rs = json.loads(rp.stdout)
+    assert rs["matches_log"] is True and rs["unconfirmed"] is True
+    assert rs["peak_creep_ci"] == pytest.approx(s["peak_creep_ci"], rel=1e-9)

@@ -9,10 +9,12 @@ from identifier import pf
 from identifier.curve import mu_model
 from identifier.metrics import peak_errors
 from identifier.strategies import Sample, Strategy
+from identifier.strategies.mdipf import MdipfStrategy
 
 FFCC_A = np.array([-0.005, 0.585, -0.580, -0.525, -1.100])
 NFCC_0 = (0.0, 1.0, -1.0, -0.54, -1.2)
-PF_STRATEGIES = [s for s in STRATEGIES if not s.startswith("nlls")]
+# the MDIPF family (prelim + filter over error vectors); bayes has tests of its own (tests/test_bayes.py)
+PF_STRATEGIES = [s for s in STRATEGIES if issubclass(STRATEGIES[s], MdipfStrategy)]
 # observer-aware strategies model the observer's transient: fed with static (v, mu) pairs in random order
 # they are fitting the wrong model; tests/test_observer_aware.py feeds them a simulated plant + observer
 STATIC_STRATEGIES = [s for s in STRATEGIES if not STRATEGIES[s].observer_aware]
