@@ -272,8 +272,8 @@ def parse_scenario(text: str, path: str = "<scenario>", overrides: dict | None =
         _check(path, f"[sensors] {f.name}", getattr(sensors, f.name) >= 0, "must be >= 0", getattr(sensors, f.name))
 
     normal = _curve(path, data, "normal")
-    fault = _curve(path, data, "fault", lambda: train_speed_before_fault(
-        vehicle, run.mu_required, run.initial_train_speed_ms, run.fault_time_s))
+    fault = _curve(path, data, "fault", lambda: float(train_speed_before_fault(
+        vehicle, run.mu_required, run.initial_train_speed_ms, run.fault_time_s)))
     try:
         normal.creep_for_mu(run.mu_required)
     except ValueError:
