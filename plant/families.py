@@ -22,7 +22,7 @@ Every family draws, for each curve (v in km/h, the creep speed; all at the train
   and HEADROOM = 0.9: a fault makes the rail worse, and a mu_required between the fault peak and
   NFCC-0 must exist on NFCC-0's stable side below the fault's peak creep (else the wheelset is past the
   fault peak at the fault: no early stage).  The rule removes the corner v_p < 0.95 km/h with high mu_p
-  (about 11 % of the box); the joint density is uniform x log-uniform on what is left.
+  (7.7 % of the box); the joint density is uniform x log-uniform on what is left.
 * the shape:
 
   ``exp``     mu(0) = mu_0 uniform in [0, 0.02]; the asymptote ratio q = lambda0 / mu_p uniform in
@@ -34,8 +34,9 @@ Every family draws, for each curve (v in km/h, the creep speed; all at the train
               solves lambda0 = q mu_p (one root: lambda0 / mu_p rises monotonically from -inf to 1 with x).
               mu'(v) = lambda1 x/v_p e^(-x v/v_p) (e^((y-x)(1 - v/v_p)) - 1): positive below v_p, negative
               above, so every curve rises monotonically to its one peak at v_p and falls after it.
-              The drawn curves keep tau in [-6.5, -0.13] /(km/h) and |lambda_i| < 1.7 (the identifier's
-              box: |lambda_i| <= 5, tau in [-10, -0.001]).  mu(3 v_p) / mu_p spans about 0.42-0.82.
+              The drawn curves keep tau in about [-6.8, -0.13] /(km/h), |lambda_i| < 1.7 and
+              lambda0 in [0, 0.175] (inside the identifier's box: |lambda_i| <= 5, tau in [-10, -0.001]).
+              mu(3 v_p) / mu_p spans about 0.42-0.81 (FFCC-a: 0.43).
   ``polach``  mu(0) = 0 (the law's); A uniform in [0.1, 0.6]; b = B w_p log-uniform in [0.05, 1] (B the
               friction decrease rate in s/m, w_p = v_p / 3.6 the peak slip velocity: b is how much of
               the friction decrease has happened at the peak); k_A uniform in [0.3, 1] and
@@ -45,10 +46,12 @@ Every family draws, for each curve (v in km/h, the creep speed; all at the train
               dimensionless stiffness k solves d mu / du = 0 at u = 1 (one root, by bisection in log k),
               then mu_static = (pi/2) mu_p / (h(1) (E(1)/(1+E(1)^2) + arctan(r E(1)))), B = b / w_p and
               the law's stiffness = k v_t mu_static / (k_A w_p) at the train speed v_t.  Every curve of
-              these ranges rises monotonically to its peak at v_p, and the peak is global (checked on
-              200 000 draws, tests/test_families.py on fresh ones); far past the peak the law's mu
-              recovers slightly towards A mu_static (< mu_p) as arctan saturates.  mu(3 v_p) / mu_p
-              spans about 0.43-0.98.
+              these ranges rises monotonically to its peak at v_p, and the peak is global up to
+              75 v_p (checked on 200 000 draws; tests/test_families.py checks fresh ones); far past the
+              peak the law's mu recovers slightly towards A mu_static (< mu_p) as arctan saturates.
+              mu(3 v_p) / mu_p spans about 0.44-0.98; mu_static 0.05-0.9, stiffness 1-1000 at 10 m/s
+              (peak creepages of 1-8 % at 10 m/s: a wet or contaminated rail's low stiffness, well
+              below dry-rail values).
 
 The curve depends on nothing else: not on the base scenario, not on mu_required, not on T_det.
 ``sample_curves(family, n, rng, train_speed_ms)`` draws n curves from exactly this distribution,
@@ -62,7 +65,8 @@ mu_required and the deterioration time
 After the curve, the draw's stream gives one more number z uniform in [0, 1): the target deterioration
 time T* = T_lo (T_hi / T_lo)^z, log-uniform in [T_lo, T_hi] with (T_lo, T_hi) = ``TDET_S`` = (20, 150) ms,
 unless the curve cannot slip that fast from any admissible mu_required (possible only for v_p above
-NFCC-0's peak creep and high mu_p): then T_lo is the fastest it can (at mu_required = NFCC-0's peak).
+NFCC-0's peak creep and high mu_p; about 5 % of curves on ffcc_a's base, up to ~56 ms): then T_lo is
+the fastest it can (at mu_required = NFCC-0's peak), always below T_hi on ffcc_a's base.
 T_det runs from the fault until the creep first reaches the fault curve's peak creep (plant.stages).
 mu_required then solves T_det(mu_required) = T* on (mu_p, N_base(min(v_p, v_Nbase))): above the fault
 peak so the wheelset slips, and below NFCC-0 at the fault's peak creep (on NFCC-0's stable side, so the
