@@ -526,7 +526,7 @@ def draw(family: str, seed: int, index: int, base: Base | None = None) -> Draw:
                 mu_required, target, predicted, mp, vp, float(batch.mu0[0]), shape, base.name)
 
 
-# -- scenario text ------------------------------------------------------------------------------------------------------
+# -- scenario text ---------------------------------------------------------------------------------------------------
 _BARE_KEY = re.compile(r"^[A-Za-z0-9_-]+$")
 
 
@@ -640,7 +640,8 @@ def describe(family: str) -> dict:
         "shape": {law: shapes[law] for law in laws},
         "curve_at": "the train speed at the fault (plant.model.train_speed_before_fault)",
         "t_det_target_s": {"distribution": "log-uniform", "range": list(TDET_S),
-                           "lower_end": "raised to the fastest T_det any admissible mu_required gives, when above 20 ms"},
+                           "lower_end": "raised to the fastest T_det any admissible mu_required gives, "
+                                        "when above 20 ms"},
         "mu_required": "solves predicted T_det = target on (peak mu, NFCC-0 at min(peak creep, NFCC-0's peak creep))",
         "rng": "np.random.default_rng([seed, index, tag]), tag " + str(FAMILY_TAG[family]),
     }

@@ -139,8 +139,9 @@ def train_speed_before_fault(p: WheelsetParams, mu_required: float, initial_trai
 
         M dv_t/dt = n_driven * mu_required * T_W * g - R(v_t)
 
-    integrated by RK4 at ``step_s`` (``mu_required`` may be a numpy array: one speed per value).  (The plant's own creep drifts by ~1e-5 km/h before the fault as
-    the running resistance grows, which moves this by far less than the plant's own step error.)
+    integrated by RK4 at ``step_s`` (``mu_required`` may be a numpy array: one speed per value).  The
+    plant's own creep drifts by ~1e-5 km/h before the fault as the running resistance grows; its train
+    speed at the fault agrees with this to 1e-6 m/s (tests/test_families.py).
     Polach curves take their truth at this speed at the fault time (hil/config.py, plant/families.py).
     """
     n = max(int(math.ceil(t_s / step_s)), 1) if t_s > 0 else 0

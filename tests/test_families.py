@@ -269,7 +269,8 @@ def test_draws_parse_and_slip_within_the_band(family, draws):
         assert (d.law == "polach") == isinstance(sc.fault_curve, PolachCurve)
         # everything else is the base's
         ref = parse_scenario(BASE_TEXT, "ffcc_a.toml")
-        assert (sc.vehicle, sc.normal_curve, sc.sensors, sc.bus) == (ref.vehicle, ref.normal_curve, ref.sensors, ref.bus)
+        assert (sc.vehicle, sc.normal_curve, sc.sensors, sc.bus) == \
+            (ref.vehicle, ref.normal_curve, ref.sensors, ref.bus)
         assert sc.run.fault_time_s == ref.run.fault_time_s and sc.run.duration_s == ref.run.duration_s
         v_peak, mu_peak = sc.fault_curve.peak()
         assert v_peak == pytest.approx(d.peak_creep_kmh, rel=1e-4) and mu_peak == pytest.approx(d.peak_mu, rel=1e-9)
