@@ -1,6 +1,7 @@
 """Scenario files (TOML) and every table in them, loaded and checked in one place.
 
-Tables: ``name``/``description``, ``[vehicle]``, ``[curves.normal]``/``[curves.fault]``, ``[run]``,
+Tables: ``name``/``description``, ``[vehicle]``, ``[curves.normal]``/``[curves.fault]`` (``model = "exp"``,
+the default, or, for the fault curve only, ``model = "polach"``: plant/friction.py), ``[run]``,
 ``[sensors]``, ``[identifier]`` (+ ``[identifier.options.NAME]``), ``[bus]`` (``BusSettings``),
 ``[plant]`` (an FMU instead of the CasADi model) and ``[reality]`` (effects the nominal model lacks,
 checked against ``hil.effects``).  ``parse_set`` turns ``--set TABLE.KEY=VALUE`` items into the
@@ -18,7 +19,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from identifier.settings import IdentifierSettings, VehicleModel
-from plant import FrictionCurve, PlantConfig, SensorConfig, WheelsetParams, equilibrium
+from plant import (FrictionCurve, PlantConfig, PolachCurve, SensorConfig, WheelsetParams, equilibrium,
+                   train_speed_before_fault)
 
 from .errors import ConfigError, ScenarioError
 
@@ -59,7 +61,7 @@ class Scenario:
     description: str
     vehicle: WheelsetParams
     normal_curve: FrictionCurve
-    fault_curve: FrictionCurve
+    fault_curve: FrictionCurve | PolachCurve         # [curves.fault] model = "exp" (default) or "polach"
     run: RunConfig
     sensors: SensorConfig
     identifier: dict = field(default_factory=dict)   # overrides of IdentifierSettings defaults
@@ -148,7 +150,15 @@ def _check(path, where, ok: bool, msg: str, value):
         raise _fail(path, where, f"{msg}, got {value!r}")
 
 
-def _curve(path, data, key) -> FrictionCurve:
+EXP_KEYS = ("model", "lambda0", "lambdas", "taus")
+POLACH_KEYS = ("model",) + PolachCurve.KEYS
+CURVE_MODELS = ("exp", "polach")
+
+
+def _curve(path, data, key, polach_speed=None) -> FrictionCurve | PolachCurve:
+    """``[curves.KEY]``: ``model = "exp"`` (the default: lambda0, lambdas, taus) or ``model = "polach"``
+    (plant/friction.py PolachCurve's keys; ``reference_train_speed_ms`` optional, default
+    ``polach_speed()``: the train speed at the fault).  ``polach_speed`` None: this curve must be exp."""
     curves = data.get("curves")
     if not isinstance(curves, dict):
         raise _fail(path, "[curves]", "missing table")
@@ -156,9 +166,26 @@ def _curve(path, data, key) -> FrictionCurve:
         raise _fail(path, f"[curves.{key}]", "missing table")
     t = curves[key]
     where = f"[curves.{key}]"
+    model = _coerce(path, f"{where} model", t.get("model", "exp"), str)
+    if model not in CURVE_MODELS:
+        raise _fail(path, f"{where} model", f"unknown friction law {model!r} (known: {', '.join(CURVE_MODELS)})")
+    if model == "polach":
+        if polach_speed is None:
+            raise _fail(path, f"{where} model", "must be 'exp' (the exponential form: the equilibrium and the "
+                        "identifier's initial guess need it), got 'polach'")
+        curve = _polach_curve(path, t, key, where, polach_speed)
+    else:
+        curve = _exp_curve(path, t, key, where)
+    v_peak, mu_peak = curve.peak()
+    _check(path, where, mu_peak > 0 and 0 < v_peak < 29, "must rise to a positive peak inside 0-29 km/h",
+           (v_peak, mu_peak))
+    return curve
+
+
+def _exp_curve(path, t, key, where) -> FrictionCurve:
     for k in t:
-        if k not in ("lambda0", "lambdas", "taus"):
-            raise _fail(path, f"{where} {k}", "unknown key (known: lambda0, lambdas, taus)")
+        if k not in EXP_KEYS:
+            raise _fail(path, f"{where} {k}", f"unknown key (known: {', '.join(EXP_KEYS)})")
     for k in ("lambda0", "lambdas", "taus"):
         if k not in t:
             raise _fail(path, f"{where} {k}", "missing field")
@@ -172,11 +199,32 @@ def _curve(path, data, key) -> FrictionCurve:
            t["taus"])
     _check(path, f"{where} taus", all(x < 0 for x in lists["taus"]), "must all be negative (decaying terms)",
            t["taus"])
-    curve = FrictionCurve(lam0, lists["lambdas"], lists["taus"], key)
-    v_peak, mu_peak = curve.peak()
-    _check(path, where, mu_peak > 0 and 0 < v_peak < 29, "must rise to a positive peak inside 0-29 km/h",
-           (v_peak, mu_peak))
-    return curve
+    return FrictionCurve(lam0, lists["lambdas"], lists["taus"], key)
+
+
+def _polach_curve(path, t, key, where, polach_speed) -> PolachCurve:
+    for k in t:
+        if k not in POLACH_KEYS:
+            raise _fail(path, f"{where} {k}", f"unknown key for model 'polach' (known: {', '.join(POLACH_KEYS)})")
+    v = {}
+    for k in PolachCurve.KEYS:
+        if k not in t:
+            if k == "reference_train_speed_ms":
+                continue
+            raise _fail(path, f"{where} {k}", "missing field")
+        v[k] = _coerce(path, f"{where} {k}", t[k], float)
+    _check(path, f"{where} mu_static", v["mu_static"] > 0, "must be > 0", v["mu_static"])
+    _check(path, f"{where} A", 0 < v["A"] <= 1, "must be in (0, 1]", v["A"])
+    _check(path, f"{where} B_s_per_m", v["B_s_per_m"] >= 0, "must be >= 0", v["B_s_per_m"])
+    _check(path, f"{where} k_A", 0 < v["k_A"] <= 1, "must be in (0, 1]", v["k_A"])
+    _check(path, f"{where} k_S", 0 < v["k_S"] <= v["k_A"], "must be in (0, k_A]", v["k_S"])
+    _check(path, f"{where} stiffness", v["stiffness"] > 0, "must be > 0", v["stiffness"])
+    if "reference_train_speed_ms" in v:
+        _check(path, f"{where} reference_train_speed_ms", v["reference_train_speed_ms"] > 0, "must be > 0",
+               v["reference_train_speed_ms"])
+    else:
+        v["reference_train_speed_ms"] = polach_speed()
+    return PolachCurve(**v, name=key)
 
 
 def parse_scenario(text: str, path: str = "<scenario>", overrides: dict | None = None) -> Scenario:
@@ -225,7 +273,8 @@ def parse_scenario(text: str, path: str = "<scenario>", overrides: dict | None =
         _check(path, f"[sensors] {f.name}", getattr(sensors, f.name) >= 0, "must be >= 0", getattr(sensors, f.name))
 
     normal = _curve(path, data, "normal")
-    fault = _curve(path, data, "fault")
+    fault = _curve(path, data, "fault", lambda: float(train_speed_before_fault(
+        vehicle, run.mu_required, run.initial_train_speed_ms, run.fault_time_s)))
     try:
         normal.creep_for_mu(run.mu_required)
     except ValueError:

@@ -3,7 +3,8 @@
 States: motor angular speed ``omega_m`` (rad/s) and train speed ``v_t`` (m/s).
 
     v_s   = 3.6 * (omega_m / R_g * r - v_t)                 creep speed, km/h (eq. 1)
-    mu    = curve(v_s)   NFCC-0 before t_f, the fault curve after
+    mu    = curve(v_s, v_t)   NFCC-0 before t_f, the fault curve after (exponential curves ignore
+                              v_t; Polach's law uses it through the creepage, plant/friction.py)
     T_L   = mu * T_W * g * r / (eta * R_g)                  load torque at the motor shaft
     J_eq * d(omega_m)/dt = T_e - T_L                        (Appendix A)
     M * dv_t/dt = mu * T_W * g + (n_driven - 1) * mu_req * T_W * g - R(v_t)
@@ -13,13 +14,14 @@ sub-steps, so Python pays its call overhead once per period rather than once per
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Protocol
 
 import casadi as ca
 import numpy as np
 
-from .friction import FrictionCurve
+from .friction import FrictionCurve, PolachCurve
 from .params import KMH_PER_MS, WheelsetParams
 
 
@@ -27,7 +29,7 @@ from .params import KMH_PER_MS, WheelsetParams
 class PlantConfig:
     params: WheelsetParams
     normal_curve: FrictionCurve          # NFCC-0
-    fault_curve: FrictionCurve           # FFCC, active from fault_time_s
+    fault_curve: FrictionCurve | PolachCurve   # FFCC, active from fault_time_s
     mu_required: float                   # demanded adhesion before the fault
     fault_time_s: float
     initial_train_speed_ms: float
@@ -77,7 +79,8 @@ def dynamics(cfg: PlantConfig, x, torque, t):
     p = cfg.params
     omega_m, v_t = x[0], x[1]
     v_s = creep_speed_kmh(p, omega_m, v_t)
-    mu = ca.if_else(t >= cfg.fault_time_s, cfg.fault_curve.mu_casadi(v_s), cfg.normal_curve.mu_casadi(v_s))
+    mu = ca.if_else(t >= cfg.fault_time_s, cfg.fault_curve.mu_casadi(v_s, v_t),
+                    cfg.normal_curve.mu_casadi(v_s, v_t))
     load_torque = mu * p.torque_per_mu_nm
     other_axles_n = (p.driven_axles - 1) * cfg.mu_required * p.normal_force_n
     d_omega = (torque - load_torque) / p.equivalent_inertia_kgm2
@@ -127,6 +130,37 @@ def equilibrium(cfg: PlantConfig) -> tuple[np.ndarray, float]:
     accel0 = (p.driven_axles * cfg.mu_required * p.normal_force_n - p.running_resistance_n(v_t0)) / p.train_mass_kg
     torque0 = cfg.mu_required * p.torque_per_mu_nm + p.equivalent_inertia_kgm2 * p.gear_ratio / p.wheel_radius_m * accel0
     return np.array([omega_m0, v_t0]), float(torque0)
+
+
+def train_speed_before_fault(p: WheelsetParams, mu_required: float, initial_train_speed_ms: float,
+                             t_s: float, step_s: float = 0.01) -> float:
+    """Train speed (m/s) at ``t_s`` before the fault, from the equilibrium start: every driven axle holds
+    ``mu_required`` (the faulty one too, its creep held by the equilibrium torque), so
+
+        M dv_t/dt = n_driven * mu_required * T_W * g - R(v_t)
+
+    integrated by RK4 at ``step_s`` (``mu_required`` may be a numpy array: one speed per value).  The
+    plant's own creep drifts by ~1e-5 km/h before the fault as the running resistance grows; its train
+    speed at the fault agrees with this to 1e-6 m/s (tests/test_families.py).
+    Polach curves take their truth at this speed at the fault time (hil/config.py, plant/families.py).
+    """
+    n = max(int(math.ceil(t_s / step_s)), 1) if t_s > 0 else 0
+    v = initial_train_speed_ms + 0.0 * mu_required       # numpy arrays of mu_required work too
+    if n == 0:
+        return v
+    h = t_s / n
+    drive = p.driven_axles * mu_required * p.normal_force_n
+
+    def accel(v_):
+        return (drive - p.running_resistance_n(v_)) / p.train_mass_kg
+
+    for _ in range(n):
+        k1 = accel(v)
+        k2 = accel(v + h / 2 * k1)
+        k3 = accel(v + h / 2 * k2)
+        k4 = accel(v + h * k3)
+        v += h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+    return v
 
 
 def bind_buffer(fn: ca.Function, args, results):
@@ -187,7 +221,7 @@ class WheelsetPlant:
         p = self.cfg.params
         v_s = float(creep_speed_kmh(p, self.x0[0], self.x0[1]))
         self._creep_out[0] = v_s
-        self._mu_out[0] = float(self.cfg.normal_curve.mu(v_s))
+        self._mu_out[0] = float(self.cfg.normal_curve.mu_at(v_s, self.x0[1]))
         self.state = self._observe(self.equilibrium_torque_nm)
         return self.state
 

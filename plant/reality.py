@@ -117,7 +117,8 @@ class RealityModel:
         radius = p.wheel_radius_m * (1 + e["wheel_radius"]["error_percent"] / 100) if "wheel_radius" in e \
             else p.wheel_radius_m
         v_s = KMH_PER_MS * (omega_wheel / p.gear_ratio * radius - v_t)
-        mu_curve = ca.if_else(t >= cfg.fault_time_s, cfg.fault_curve.mu_casadi(v_s), cfg.normal_curve.mu_casadi(v_s))
+        mu_curve = ca.if_else(t >= cfg.fault_time_s, cfg.fault_curve.mu_casadi(v_s, v_t),
+                              cfg.normal_curve.mu_casadi(v_s, v_t))
         if "adhesion_lag" in e:
             mu = x[self._i("mu_state")]
             dx[self._i("mu_state")] = (mu_curve - mu) / e["adhesion_lag"]["tau_s"]
@@ -165,7 +166,7 @@ class RealityModel:
             x[self._i("torque_actual")] = torque0
         v_s = float(creep_speed_kmh(p, x0_nominal[0], x0_nominal[1]))
         curve = cfg.fault_curve if t0 >= cfg.fault_time_s else cfg.normal_curve
-        mu0 = float(curve.mu(v_s))
+        mu0 = float(curve.mu_at(v_s, x0_nominal[1]))
         if "adhesion_lag" in e:
             x[self._i("mu_state")] = mu0
         if "compliance" in e:

@@ -10,7 +10,8 @@ platform; the sources travel inside the FMU too.
 Everything that differs between scenarios is an FMU parameter -- Table 1 (``WheelsetParams``), both
 friction curves, the fault time, the demanded adhesion, the integration step and the initial state --
 so one FMU serves every scenario whose curves have at most ``n_terms`` exponential terms (fewer
-terms are padded with lambda = 0).
+terms are padded with lambda = 0).  Only exponential curves: a scenario whose fault curve follows
+Polach's law (``[curves.fault] model = "polach"``) is refused with one line (``FmuExportError``).
 """
 from __future__ import annotations
 
@@ -83,6 +84,15 @@ def model_param_names(n_terms: int) -> list[str]:
             + curve_param_names("normal_curve", n_terms) + curve_param_names("fault_curve", n_terms))
 
 
+def _exponential_only(cfg: PlantConfig) -> None:
+    """The FMU's parameters are the exponential form's: refuse any other friction law in one line."""
+    for which, curve in (("normal", cfg.normal_curve), ("fault", cfg.fault_curve)):
+        if not isinstance(curve, FrictionCurve):
+            model = getattr(curve, "model", type(curve).__name__)
+            raise FmuExportError(f"{which} curve: model = {model!r} cannot be exported; the FMU holds exponential "
+                                 "curves only (model = 'exp': mu = lambda0 + sum lambda_i exp(tau_i v_s))")
+
+
 def _padded(curve: FrictionCurve, n_terms: int, which: str) -> list[float]:
     if curve.n_terms > n_terms:
         raise FmuExportError(f"{which} curve {curve.name!r} has {curve.n_terms} exponential terms; this FMU "
@@ -93,6 +103,7 @@ def _padded(curve: FrictionCurve, n_terms: int, which: str) -> list[float]:
 
 def parameter_values(cfg: PlantConfig, n_terms: int) -> dict[str, float]:
     """Every FMU parameter for a numeric plant configuration, by name (what FmuPlant sets)."""
+    _exponential_only(cfg)
     x0, _ = equilibrium(cfg)
     values = [float(getattr(cfg.params, f.name)) for f in dataclasses.fields(WheelsetParams)]
     values += [cfg.mu_required, cfg.fault_time_s]
@@ -336,6 +347,7 @@ def export_fmu(cfg: PlantConfig, path, *, n_terms: int | None = None, descriptio
     if fmi_version not in WRAPPERS:
         raise FmuExportError(f"FMI version {fmi_version!r}: only 2 and 3 can be exported")
     path = Path(path)
+    _exponential_only(cfg)
     n_terms = n_terms or max(cfg.normal_curve.n_terms, cfg.fault_curve.n_terms)
     values = parameter_values(cfg, n_terms)
     _, torque0 = equilibrium(cfg)
