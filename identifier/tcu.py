@@ -28,11 +28,17 @@ class SlipDetector:
     Mean and standard deviation come from the last ``baseline_samples`` readings before the
     detection, so a slow drift of the operating point does not trigger it, and the noise-scaled
     threshold keeps false alarms negligible over long runs (a single 4-sigma outlier is not a slip).
+    A reading more than ``hold_sigmas`` std above the mean does not join the baseline: otherwise a
+    slip whose creep rises gently lifts its own baseline's mean and std as fast as it rises and is
+    never detected (measured on drawn fault curves: creep 0.33 -> 0.60 km/h within 20 ms, std
+    0.007 -> 0.095 km/h, no detection in the whole run).
     """
 
-    def __init__(self, threshold_kmh: float, baseline_samples: int, sigmas: float = 6.0, consecutive: int = 2):
+    def __init__(self, threshold_kmh: float, baseline_samples: int, sigmas: float = 6.0, consecutive: int = 2,
+                 hold_sigmas: float = 3.0):
         self.threshold_kmh = threshold_kmh
         self.sigmas = sigmas
+        self.hold_sigmas = hold_sigmas
         self.consecutive = consecutive
         self._history: deque[float] = deque(maxlen=baseline_samples)
         # the baseline's running sum and sum of squares (Python floats: a numpy mean and std of 50
@@ -51,13 +57,16 @@ class SlipDetector:
         if n == h.maxlen:
             mean = self._sum / n
             std = math.sqrt(max(self._sum_sq / n - mean * mean, 0.0))
-            if creep_speed_kmh - mean > max(self.threshold_kmh, self.sigmas * std):
+            rise = creep_speed_kmh - mean
+            if rise > max(self.threshold_kmh, self.sigmas * std):
                 self._above += 1
                 if self._above >= self.consecutive:
                     self.detected_step = step - self.consecutive + 1   # the slip began at the first one
                     return True
                 return False        # a candidate is not part of the baseline
             self._above = 0
+            if rise > self.hold_sigmas * std:
+                return False        # held out of the baseline (class docstring)
             oldest = h[0]
             self._sum -= oldest
             self._sum_sq -= oldest * oldest

@@ -256,45 +256,75 @@ class CurveBatch:
         return PolachCurve(ms, A, B, ka, ks, c, float(self.train_speed_ms), name)
 
 
-def _uniform(rng, lo_hi, n):
-    lo, hi = lo_hi
-    return lo + (hi - lo) * rng.random(n)
+#: each law's curve coordinates in the order they are drawn: (name, (low, high), log-uniform?); a curve
+#: is a point z of the unit cube, each coordinate mapped onto its range (``from_unit``), restricted by
+#: the joint peak rule (``peak_allowed``)
+LATENT = {
+    LAW_EXP: (("peak_mu", PEAK_MU, False), ("peak_creep_kmh", PEAK_CREEP_KMH, True), ("mu0", EXP_MU0, False),
+              ("asymptote_ratio", EXP_ASYMPTOTE_RATIO, False), ("term_ratio", EXP_TERM_RATIO, True)),
+    LAW_POLACH: (("peak_mu", PEAK_MU, False), ("peak_creep_kmh", PEAK_CREEP_KMH, True), ("A", POLACH_A, False),
+                 ("b_at_peak", POLACH_B_AT_PEAK, True), ("k_A", POLACH_K_A, False),
+                 ("ks_ratio", POLACH_KS_RATIO, False)),
+}
 
 
-def _log_uniform(rng, lo_hi, n):
+def from_unit(z, lo_hi, log: bool):
+    """A coordinate's value from its unit-interval number: uniform, or log-uniform, on ``lo_hi``."""
     lo, hi = lo_hi
-    return np.exp(math.log(lo) + (math.log(hi) - math.log(lo)) * rng.random(n))
+    if log:
+        return np.exp(math.log(lo) + (math.log(hi) - math.log(lo)) * z)
+    return lo + (hi - lo) * z
+
+
+def peak_allowed(z_peak_mu, z_peak_creep):
+    """The joint peak rule on unit numbers (module docstring)."""
+    return from_unit(z_peak_mu, PEAK_MU, False) <= peak_mu_cap(from_unit(z_peak_creep, PEAK_CREEP_KMH, True))
 
 
 def _peaks(rng, n):
-    """(mu_p, v_p) uniform x log-uniform on the box, restricted to mu_p <= peak_mu_cap(v_p) by rejection."""
-    mp, vp = np.empty(n), np.empty(n)
+    """Unit numbers of (mu_p, v_p) for n curves, restricted to the joint peak rule by rejection."""
+    zm, zv = np.empty(n), np.empty(n)
     todo = np.arange(n)
     while todo.size:
-        m = _uniform(rng, PEAK_MU, todo.size)
-        v = _log_uniform(rng, PEAK_CREEP_KMH, todo.size)
-        ok = m <= peak_mu_cap(v)
-        mp[todo[ok]], vp[todo[ok]] = m[ok], v[ok]
+        m = rng.random(todo.size)
+        v = rng.random(todo.size)
+        ok = peak_allowed(m, v)
+        zm[todo[ok]], zv[todo[ok]] = m[ok], v[ok]
         todo = todo[~ok]
-    return mp, vp
+    return zm, zv
+
+
+def latent_values(law: int, z: np.ndarray) -> list[np.ndarray]:
+    """The coordinates' values from unit numbers z (n, d)."""
+    return [from_unit(z[:, i], lo_hi, log) for i, (_, lo_hi, log) in enumerate(LATENT[law])]
+
+
+def curves_of_law(law: int, z: np.ndarray, train_speed_ms: float):
+    """(peak_mu, peak_creep_kmh, mu0, exp_params, polach_params, shape) of the curves at unit numbers z."""
+    n = z.shape[0]
+    nan5, nan6 = np.full((n, 5), np.nan), np.full((n, 6), np.nan)
+    if law == LAW_EXP:
+        mp, vp, mu0, q, rho = latent_values(law, z)
+        ep = np.column_stack(exp_coefficients(mp, vp, mu0, q, rho))
+        return mp, vp, mu0, ep, nan6, {"asymptote_ratio": q, "term_ratio": rho}
+    mp, vp, A, b, k_A, r = latent_values(law, z)
+    pp = np.column_stack(polach_parameters(mp, vp, A, b, k_A, r, train_speed_ms))
+    return mp, vp, np.zeros(n), nan5, pp, {"A": A, "b_at_peak": b, "k_A": k_A, "ks_ratio": r}
 
 
 def _sample_law(law: int, n: int, rng, train_speed_ms: float):
     """(peak_mu, peak_creep_kmh, mu0, exp_params, polach_params, shape) for n curves of one law."""
-    mp, vp = _peaks(rng, n)
-    nan5, nan6 = np.full((n, 5), np.nan), np.full((n, 6), np.nan)
-    if law == LAW_EXP:
-        mu0 = _uniform(rng, EXP_MU0, n)
-        q = _uniform(rng, EXP_ASYMPTOTE_RATIO, n)
-        rho = _log_uniform(rng, EXP_TERM_RATIO, n)
-        ep = np.column_stack(exp_coefficients(mp, vp, mu0, q, rho))
-        return mp, vp, mu0, ep, nan6, {"asymptote_ratio": q, "term_ratio": rho}
-    A = _uniform(rng, POLACH_A, n)
-    b = _log_uniform(rng, POLACH_B_AT_PEAK, n)
-    k_A = _uniform(rng, POLACH_K_A, n)
-    r = _uniform(rng, POLACH_KS_RATIO, n)
-    pp = np.column_stack(polach_parameters(mp, vp, A, b, k_A, r, train_speed_ms))
-    return mp, vp, np.zeros(n), nan5, pp, {"A": A, "b_at_peak": b, "k_A": k_A, "ks_ratio": r}
+    zm, zv = _peaks(rng, n)
+    rest = [rng.random(n) for _ in LATENT[law][2:]]
+    return curves_of_law(law, np.column_stack([zm, zv, *rest]), train_speed_ms)
+
+
+def batch_of_law(family: str, law: int, z: np.ndarray, train_speed_ms: float) -> "CurveBatch":
+    """The curves at unit numbers z (n, d) of one law, as a batch (the oracle moves curves in z)."""
+    mp, vp, mu0, ep, pp, shape = curves_of_law(law, z, train_speed_ms)
+    full = {k: np.full(z.shape[0], np.nan) for k in SHAPE_KEYS}
+    full.update(shape)
+    return CurveBatch(family, float(train_speed_ms), np.full(z.shape[0], law), mp, vp, mu0, ep, pp, full)
 
 
 SHAPE_KEYS = ("asymptote_ratio", "term_ratio", "A", "b_at_peak", "k_A", "ks_ratio")

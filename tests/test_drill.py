@@ -4,6 +4,8 @@ import dataclasses
 import math
 from collections import deque
 
+import secrets
+
 import numpy as np
 import pytest
 
@@ -85,7 +87,7 @@ def test_a_failing_drill_stops_and_says_why_without_raising(ffcc_a_run):
     assert drill.strategy is None
 
 
-def reference_detection(creep, threshold, baseline, sigmas=6.0, consecutive=2):
+def reference_detection(creep, threshold, baseline, sigmas=6.0, consecutive=2, hold_sigmas=3.0):
     """The detector with numpy's mean and std of the baseline window at every reading."""
     hist, above = deque(maxlen=baseline), 0
     for step, c in enumerate(creep):
@@ -97,8 +99,24 @@ def reference_detection(creep, threshold, baseline, sigmas=6.0, consecutive=2):
                     return step - consecutive + 1
                 continue
             above = 0
+            if c - base.mean() > hold_sigmas * base.std():
+                continue
         hist.append(c)
     return None
+
+
+def test_a_slip_whose_creep_rises_gently_is_detected():
+    """Creep rising by less than the detection threshold per reading once lifted the baseline with
+    it (its mean and std followed the rise) and was never detected."""
+    seed = secrets.randbits(31)
+    print("seed", seed)
+    rng = np.random.default_rng(seed)
+    n, slip_at = 1500, 600
+    creep = 0.33 + 0.007 * rng.standard_normal(n)
+    creep[slip_at:] += 0.004 * np.arange(n - slip_at) + 1e-4 * np.arange(n - slip_at) ** 2
+    detector = SlipDetector(0.03, 50)
+    found = next((detector.detected_step for step, c in enumerate(creep) if detector.update(step, float(c))), None)
+    assert found is not None and slip_at <= found <= slip_at + 25, found
 
 
 @pytest.mark.parametrize("seed", range(6))

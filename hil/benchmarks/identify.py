@@ -70,7 +70,7 @@ def register(sub) -> None:
                    "terminal")
     p.add_argument("--markdown", action="store_true", help="with --family: the full table as markdown")
     p.add_argument("--oracle-draws", type=int, default=None, help="curves the offline oracle draws from the family "
-                   "per run (hil/benchmarks/oracle.py; default 100000 with --family, 0 otherwise; 0: no oracle)")
+                   "per run (hil/benchmarks/oracle.py; default 4000 with --family, 0 otherwise; 0: no oracle)")
     p.add_argument("--oracle-family", default="exp", help="with --cases: the family whose prior the oracle knows "
                    "(default exp, the paper's form)")
     p.add_argument("--cases", default="ffcc_a,ffcc_b", help="scenario names (scenarios/NAME.toml) or TOML paths")
@@ -373,17 +373,15 @@ def cmd_identify(args) -> int:
             data = generate(scenarios[c], seed)
             done += 1
             bar.update(done, f"{c} seed {seed}")
-            idents = {}
             for strat in strategies:
                 summary, ident = replay(data, strat, args.particles)
-                idents[strat] = ident
                 per_seed[strat][c].append(summary)
                 if seed == seeds[0]:
                     first_runs[c][strat] = (summary, ident, data)
                 done += 1
                 bar.update(done, f"{c} seed {seed} {strat}")
             if args.oracle_draws:
-                o = run_oracle(data, idents, args.oracle_family, [seed, 1], args.oracle_draws)
+                o = run_oracle(data, args.oracle_family, [seed, 1], args.oracle_draws)
                 oracle_rts[c].append(o["oracle_rt_percent"])
                 for strat in strategies:
                     per_seed[strat][c][-1]["oracle_rt_percent"] = o["oracle_rt_percent"]
@@ -406,20 +404,29 @@ def cmd_identify(args) -> int:
     return 0
 
 
-#: curves the oracle draws per run in --family mode (its ESS is reported beside it)
-ORACLE_DRAWS = 100_000
+#: curves the oracle carries per run in --family mode (hil/benchmarks/oracle.py)
+ORACLE_DRAWS = 4000
 
 
-def run_oracle(data: CaseData, idents: dict, family: str, seed, draws: int) -> dict:
-    """The information limit on this run's samples (hil/benchmarks/oracle.py): the samples the
-    ``bayes`` strategy received (from its identifier when it was benched, else a replay of its own)."""
+def run_oracle(data: CaseData, family: str, seed, draws: int) -> dict:
+    """The information limit on this run's samples (hil/benchmarks/oracle.py): every sample the
+    ``bayes`` strategy would receive from the slip's start until the creep passes its prior's highest
+    peak creep (a copy of it that never confirms collects them; its filter settings are the oracle's)."""
     from .oracle import oracle, oracle_rt_percent
 
-    ident = idents.get("bayes")
-    if ident is None:
-        ident = replay(data, "bayes", None)[1]
+    from identifier import TractionIdentifier
+
+    options = {"tol_peak_mu": 1e-12, "particles": 10, "compiled": False}
     sc = data.scenario
-    o = oracle(ident.strategy, family, sc.run.fault_time_s, seed, draws)
+    sc_settings = sc.identifier_settings()
+    opts = {k: dict(v) if isinstance(v, dict) else v for k, v in sc_settings.options.items()}
+    opts["bayes"] = {**opts.get("bayes", {}), **options}
+    ident = TractionIdentifier(dataclasses.replace(sc_settings, options=opts), "bayes", data.seed)
+    for r in data.readings:
+        ident.on_sensor(r)
+        if ident.strategy.gave_up:
+            break
+    o = oracle(ident.strategy, family, seed, draws)
     t_det = None if data.tracker.serious_time_s is None else data.tracker.serious_time_s - sc.run.fault_time_s
     o["oracle_rt_percent"] = oracle_rt_percent(o, sc.run.fault_time_s, t_det)
     return o
@@ -466,10 +473,8 @@ def cmd_family(args, strategies: list[str], overrides: dict) -> int:
         v_true, mu_true = sc.fault_curve.peak()
         done += 1
         bar.update(done, f"draw {i}")
-        idents = {}
         for strat in strategies:
             summary, ident = replay(data, strat, args.particles)
-            idents[strat] = ident
             d = judge(summary, ident.events_seen, mu_true, v_true, data.tracker.serious_time_s)
             d.update(draw=i, t_det_s=summary["t_det_s"], peak_mu_ci=summary.get("peak_mu_ci"),
                      peak_creep_ci=summary.get("peak_creep_ci"))
@@ -478,7 +483,7 @@ def cmd_family(args, strategies: list[str], overrides: dict) -> int:
             done += 1
             bar.update(done, f"draw {i} {strat}")
         if oracle_draws:
-            o = run_oracle(data, idents, args.family, [seed, i], oracle_draws)
+            o = run_oracle(data, args.family, [seed, i], oracle_draws)
             o.update(draw=i, true_peak_mu=mu_true, true_peak_creep_kmh=v_true)
             oracle_rts.append(o["oracle_rt_percent"])
             oracle_detail.append(o)

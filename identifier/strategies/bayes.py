@@ -60,6 +60,9 @@ KMH_PER_MS = 3.6
 #: bins of the compiled quantiles' histogram (kernels.weighted_quantiles_hist): its error is below
 #: (max - min) / QUANTILE_BINS, e.g. 0.0013 km/h of peak creep over the default prior
 QUANTILE_BINS = 2048
+#: the steepest dmu/dv_s the creep noise is taken through into the process noise (1 per km/h: above
+#: what the prior's curves reach where the samples are, ~0.3 at zero creep for FFCC-a)
+MAX_SLOPE_PER_KMH = 1.0
 
 DEFAULTS = {
     "particles": 2000,
@@ -74,7 +77,7 @@ DEFAULTS = {
     "report_samples": 5,                 # a correction event every this many samples
     "min_samples": 5,                    # no confirmation before this many
     "max_samples": 400,
-    "baseline_readings": 100,            # readings before the slip used for sigma_y and the train speed fit
+    "baseline_readings": 400,            # readings before the slip used for sigma_y and the train speed fit
     "sigma_y_fallback": 0.005,           # rad/s, when there is no baseline (samples fed without readings)
     "moves_drawn_ahead": 24,             # resample-moves whose random numbers are drawn at construction
     "compiled": True,                    # the cloud's passes by identifier/kernels.py (numba); False: numpy
@@ -236,11 +239,9 @@ class BayesStrategy(Strategy):
         sigma_y = self.baseline.motor_noise_rad_s()
         f.sigma_y_rad_s = sigma_y if math.isfinite(sigma_y) and sigma_y > 0 else float(self.opts["sigma_y_fallback"])
         self._line = self.baseline.train_speed_line() if self.baseline.steps else (s.step, s.train_speed_ms, 0.0)
-        # q: model error plus the creep noise carried into M (steepest prior slope x creep noise)
+        # q: model error plus the creep noise carried into M (a slope of MAX_SLOPE_PER_KMH x the creep noise)
         creep_noise_kmh = self.creep_per_motor_speed * f.sigma_y_rad_s
-        l0, l1, l2, t1, t2 = self._theta
-        slope = float(np.max(np.abs(l1 * t1 + l2 * t2)))
-        mu_std = math.hypot(float(self.opts["model_mu_std"]), min(slope, 1.0) * creep_noise_kmh / math.sqrt(2.0))
+        mu_std = math.hypot(float(self.opts["model_mu_std"]), MAX_SLOPE_PER_KMH * creep_noise_kmh / math.sqrt(2.0))
         f.q_var = (self.period_s * f.torque_per_mu_nm / f.inertia_kgm2 * mu_std) ** 2
         self.omega = f.open(s.motor_speed_rad_s, self.n_particles)
         self._omega_spare = np.empty_like(self.omega)
