@@ -788,12 +788,14 @@ _warmed = False
 # theta_from_phi, bayes.weighted_quantiles) in branch-free loops around ``_exp``, so they vectorise.
 @njit(**_JIT)
 def bayes_step(l0, l1, l2, t1, t2, omega, m_prev, log_w, weights, creep_speed_kmh, y, torque_nm, dt_j,
-               torque_per_mu, inv_2s, gain):
+               torque_per_mu, inv_2s, gain, out):
     """``SpeedFilter.step`` for every particle's curve M_j(v) = l0 + l1 e^(t1 v) + l2 e^(t2 v) at
-    ``creep_speed_kmh``, log w_j += log L_j, then the normalised weights; returns the ESS (-1.0 when
-    the weights are not finite)."""
+    ``creep_speed_kmh``, log w_j += log L_j, then the normalised weights.  ``out[0]``: the ESS (-1.0
+    when the weights are not finite); ``out[1]``: the normalised innovation squared e^2 / S averaged
+    with the weights before this step."""
     n = omega.size
     half = 0.5 * torque_per_mu
+    nis = 0.0
     for j in range(n):
         m_new = l0[j] + l1[j] * _exp(t1[j] * creep_speed_kmh) + l2[j] * _exp(t2[j] * creep_speed_kmh)
         pred = omega[j] + dt_j * (torque_nm - half * (m_prev[j] + m_new))
@@ -801,9 +803,12 @@ def bayes_step(l0, l1, l2, t1, t2, omega, m_prev, log_w, weights, creep_speed_km
         omega[j] = pred + gain * e
         m_prev[j] = m_new
         log_w[j] -= inv_2s * e * e
+        nis += weights[j] * e * e
+    out[1] = 2.0 * inv_2s * nis
+    out[0] = -1.0
     top = _top(log_w)
     if not math.isfinite(top):
-        return -1.0
+        return
     total = 0.0
     for j in range(n):
         w = _exp(log_w[j] - top)
@@ -814,7 +819,7 @@ def bayes_step(l0, l1, l2, t1, t2, omega, m_prev, log_w, weights, creep_speed_km
         w = weights[j] / total
         weights[j] = w
         sq += w * w
-    return 1.0 / sq
+    out[0] = 1.0 / sq
 
 
 @njit(**_JIT)
@@ -974,7 +979,8 @@ def warm_up() -> None:
     grid_best(np.tile(np.eye(3), (4, 1, 1)), np.ones((4, 3)), 1.0, np.full((4, 2), -0.5), lo, hi)
     grid_add(np.full((4, 2), -0.5), 1.0, 0.1, np.empty((4, 3)), np.zeros((4, 3, 3)), np.zeros((4, 3)))
     c = np.full(4, 0.1)
-    bayes_step(c, c, -c, -c, -c, np.zeros(4), np.zeros(4), np.zeros(4), np.empty(4), 1.0, 0.0, 1.0, 1e-4, 1.0, 1.0, 0.5)
+    bayes_step(c, c, -c, -c, -c, np.zeros(4), np.zeros(4), np.zeros(4), np.full(4, 0.25), 1.0, 0.0, 1.0, 1e-4, 1.0, 1.0,
+               0.5, np.empty(2))
     u16 = np.ascontiguousarray(np.random.default_rng(0).standard_normal((16, 5)).T)
     bayes_curves(u16, np.zeros(5), np.ones(5), np.array([False, True, False, True, True]), np.empty((5, 16)),
                  np.empty(16), np.empty(16), np.empty(16), np.empty(16), np.empty(16))

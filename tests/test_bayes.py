@@ -170,8 +170,11 @@ def test_kernels_equal_their_numpy_reference():
     f.p_var = p_var
     dt_j, s, k = f.gains(1)
     log_w, w = np.zeros(n), np.empty(n)
-    ess = kernels.bayes_step(*th, omega, m_prev.copy(), log_w, w, 0.55, 300.01, 3000.0, dt_j, TORQUE_PER_MU,
-                             0.5 / s, k)
+    w.fill(1.0 / n)
+    out = np.empty(2)
+    kernels.bayes_step(*th, omega, m_prev.copy(), log_w, w, 0.55, 300.01, 3000.0, dt_j, TORQUE_PER_MU, 0.5 / s, k, out)
+    ess, nis = out
+    assert nis == pytest.approx(float(np.mean(-2.0 * ll)), rel=1e-9)
     np.testing.assert_allclose(omega, omega_ref, rtol=1e-13)
     np.testing.assert_allclose(log_w, ll, rtol=1e-9, atol=1e-12)
     ref_w = np.exp(ll - ll.max())

@@ -30,6 +30,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -68,7 +69,9 @@ def register(sub) -> None:
                    "TCU settings every draw keeps (default ffcc_a)")
     p.add_argument("--wide", action="store_true", help="with --family: every column, not only those of an 80-column "
                    "terminal")
-    p.add_argument("--markdown", action="store_true", help="with --family: the full table as markdown")
+    p.add_argument("--markdown", action="store_true", help="with --family: the whole report as markdown")
+    p.add_argument("--report", metavar="DIR", default=None, help="with --family: also write DIR/identification.md "
+                   "(the markdown report) and DIR/identification.json (what --json prints)")
     p.add_argument("--oracle-draws", type=int, default=None, help="curves the offline oracle draws from the family "
                    "per run (hil/benchmarks/oracle.py; default 4000 with --family, 0 otherwise; 0: no oracle)")
     p.add_argument("--oracle-family", default="exp", help="with --cases: the family whose prior the oracle knows "
@@ -464,6 +467,7 @@ def cmd_family(args, strategies: list[str], overrides: dict) -> int:
     bar = Progress(args.draws * (len(strategies) + 1), f"bench identify {args.family}", None)
     done = 0
     oracle_draws = ORACLE_DRAWS if args.oracle_draws is None else args.oracle_draws
+    load_before = os.getloadavg()
     oracle_rts, oracle_detail = [], []
     base_text = base.read_text()
     for i in range(args.draws):
@@ -502,13 +506,62 @@ def cmd_family(args, strategies: list[str], overrides: dict) -> int:
     oracle_summary = {"draws_per_run": oracle_draws, "rt_median_percent": oracle_median,
                       "rt_p90_percent": judge_quantile(oracle_rts, 90) if oracle_rts else None,
                       "runs": oracle_detail}
+    document = {"family": family, "seed": seed, "recommended": recommended(), "results": results,
+                "oracle": oracle_summary}
+    if args.report:
+        out = Path(args.report)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "identification.json").write_text(json.dumps(clean(document)) + "\n")
+        (out / "identification.md").write_text(family_markdown(args, seed, results, oracle_summary, load_before))
+        print(f"bench identify: wrote {out / 'identification.md'} and {out / 'identification.json'}", file=sys.stderr)
     if args.json:
-        print(json.dumps(clean({"family": family, "seed": seed, "recommended": recommended(), "results": results,
-                                "oracle": oracle_summary})))
+        print(json.dumps(clean(document)))
     else:
-        print(f"family {args.family}: {args.draws} draws, seed {seed}; recommended strategy: {recommended()}")
-        print(judge_table(results, args.wide, args.markdown))
+        if args.markdown:
+            print(family_markdown(args, seed, results, oracle_summary, load_before))
+        else:
+            print(f"family {args.family}: {args.draws} draws, seed {seed}; recommended strategy: {recommended()}")
+            print(judge_table(results, args.wide, args.markdown))
+            print(f"oracle (the family's exact prior, hil/benchmarks/oracle.py): RT median "
+                  f"{_f(oracle_median, '.1f')} %, p90 {_f(oracle_summary['rt_p90_percent'], '.1f')} %; before the "
+                  f"serious stage in {_pct(_fraction_below(oracle_rts, 100.0))} of draws")
     return 0
+
+
+def _fraction_below(values, limit: float):
+    vals = [v for v in values if v is not None]
+    return sum(v < limit for v in vals) / len(vals) if vals else None
+
+
+def family_markdown(args, seed: int, results: dict, oracle_summary: dict, load_before) -> str:
+    """The whole report of a --family run as a markdown document (what docs/identification.md holds)."""
+    import platform
+
+    from plant import families
+
+    rts = [o.get("oracle_rt_percent") for o in oracle_summary["runs"]]
+    load_after = os.getloadavg()
+    spec = families.describe(args.family)
+    lines = [f"# hil bench identify --family {args.family} --draws {args.draws} --seed {seed}", "",
+             f"Written by `hil bench identify --family {args.family} --draws {args.draws} --seed {seed} "
+             f"--strategies {','.join(results)} --markdown` on {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, "
+             f"{platform.machine()}, {os.cpu_count()} cores, load average {load_before[0]:.2f} before / "
+             f"{load_after[0]:.2f} after.  The draws' seed is drawn at run time unless given (repeat these with --seed {seed}).",
+             "", f"Family `{args.family}` (plant/families.py):", "", "```json", json.dumps(spec, indent=1), "```", "",
+             f"Recommended strategy: `{recommended()}`.  Verdicts per draw (hil/benchmarks/judge.py): *correct* = "
+             f"confirmed with peak mu within {TOL_PEAK_MU_PERCENT:g} % and peak creep within "
+             f"{TOL_PEAK_CREEP_PERCENT:g} % of the truth; *wrong* = confirmed otherwise; coverage = the truth inside "
+             "the 90 % intervals at the confirmation (else the last published before the serious stage); RT with "
+             "unconfirmed draws counted as infinite.", "",
+             judge_table(results, True, True), "",
+             "## The information limit (oracle)", "",
+             f"An offline sequential Monte Carlo posterior over the family's own curves, with the same likelihood "
+             f"({oracle_summary['draws_per_run']} curves per run; hil/benchmarks/oracle.py): the first time its 98 % "
+             f"intervals are within the tolerance.  RT median {_f(oracle_summary['rt_median_percent'], '.1f')} %, "
+             f"p90 {_f(oracle_summary['rt_p90_percent'], '.1f')} %; within tolerance before the serious stage in "
+             f"{_pct(_fraction_below(rts, 100.0))} of draws, never in {_pct(sum(r is None or r == math.inf for r in rts) / max(len(rts), 1))}.",
+             ""]
+    return "\n".join(lines)
 
 
 # -- figures (paper figs 7-9 / 11-13 and 14-15), first seed -----------------------------------

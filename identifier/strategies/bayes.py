@@ -32,17 +32,21 @@ h^2 = 1 - a^2: the cloud's mean and covariance are kept while it regains diversi
 Intervals: weighted quantiles of peak_mu and peak_creep_kmh over the cloud, a credible interval.
 Every ``report_samples`` samples a correction event publishes the posterior's curve (weighted
 medians of peak mu and peak creep, weighted means of the rest in u) with its 90 % intervals.
-Confirmation: at every sample, when the interval at ``confirm_level`` (98 %) has a half-width within
-``tol_peak_mu`` (3 %) of its centre for peak mu and ``tol_peak_creep`` (10 %) for peak creep, and
-keeps that tolerance away from the prior box's edges (a posterior piled against an edge says the
-truth lies outside what the prior can represent, not that it is known); the event carries the curve
-and its 90 % intervals.  When the creep passes the prior's highest peak creep
+Confirmation: at every sample, when (1) the interval at ``confirm_level`` (98 %) lies where the
+estimate (the weighted median) would be judged correct, i.e. within ``tol_peak_mu`` (3 %) for peak mu
+and ``tol_peak_creep`` (10 %) for peak creep (``within_tolerance``); (2) it keeps that tolerance away
+from the prior box's edges (a posterior piled against an edge says the truth lies outside what the
+prior can represent, not that it is known); (3) the fit holds: the normalised innovations squared,
+averaged with the weights over the last ``fit_window`` samples, stay below ``fit_nis_max`` (a law of
+another form than the prior's, fitted by its nearest exponential curve, leaves structured residuals
+that a narrow interval alone would hide).  The event carries the curve and its 90 % intervals.  When the creep passes the prior's highest peak creep
 (the TCU then knows the serious stage has begun without having pinned the curve) or after
 ``max_samples``, an ``unconfirmed`` event reports the best estimate and its intervals instead.
 """
 from __future__ import annotations
 
 import math
+from collections import deque
 
 import numpy as np
 
@@ -77,6 +81,8 @@ DEFAULTS = {
     "report_samples": 5,                 # a correction event every this many samples
     "min_samples": 5,                    # no confirmation before this many
     "max_samples": 400,
+    "fit_window": 20,                    # samples of the fit check (fit_ok)
+    "fit_nis_max": 2.0,                  # the largest mean normalised innovation squared that confirms
     "baseline_readings": 400,            # readings before the slip used for sigma_y and the train speed fit
     "sigma_y_fallback": 0.005,           # rad/s, when there is no baseline (samples fed without readings)
     "moves_drawn_ahead": 24,             # resample-moves whose random numbers are drawn at construction
@@ -182,6 +188,8 @@ class BayesStrategy(Strategy):
         self.baseline = BaselineStats(int(o["baseline_readings"]))
         self.omega = None                      # per-particle speed estimate (after the first sample)
         self._prev: Sample | None = None
+        self._step_out = np.empty(2)
+        self._nis_recent: deque[float] = deque(maxlen=int(o["fit_window"]))
         self.samples_seen: list[Sample] = []    # what the likelihood used (the offline oracle replays them)
         self._m_prev: np.ndarray | None = None
         self._line = None
@@ -254,16 +262,22 @@ class BayesStrategy(Strategy):
         creep = self.creep_for_likelihood(s)
         if self._compiled:
             dt_j, innov_var, gain = f.gains(periods)
-            ess = _kernels().bayes_step(*self._theta, self.omega, self._m_prev, self.log_w, self.weights, creep,
-                                        s.motor_speed_rad_s, prev.torque_nm, dt_j, f.torque_per_mu_nm,
-                                        0.5 / innov_var, gain)
+            _kernels().bayes_step(*self._theta, self.omega, self._m_prev, self.log_w, self.weights, creep,
+                                  s.motor_speed_rad_s, prev.torque_nm, dt_j, f.torque_per_mu_nm, 0.5 / innov_var,
+                                  gain, self._step_out)
+            ess, nis = self._step_out
         else:
             m_new = self._mu_at(creep)
-            self.log_w += f.step(self.omega, self._m_prev, m_new, periods, prev.torque_nm, s.motor_speed_rad_s)
+            ll = f.step(self.omega, self._m_prev, m_new, periods, prev.torque_nm, s.motor_speed_rad_s)
+            nis = -2.0 * float(self.weights @ ll)
+            self.log_w += ll
             self._m_prev = m_new
             w = np.exp(self.log_w - self.log_w.max())
             self.weights = w / w.sum()
             ess = 1.0 / float(self.weights @ self.weights)
+        # the fit's check: the recent normalised innovations squared (about 1 when a curve of the prior
+        # explains the speed; well above when none does, e.g. a law of another form)
+        self._nis_recent.append(float(nis))
         if ess < float(self.opts["ess_fraction"]) * self.n_particles:
             self._resample_move(creep)
 
@@ -343,19 +357,28 @@ class BayesStrategy(Strategy):
             var = float(self.weights @ (x - mean) ** 2)
         return var <= (tol * mean) ** 2
 
+    def fit_ok(self) -> bool:
+        """The recent normalised innovations squared, averaged over ``fit_window`` samples, at most
+        ``fit_nis_max``: some curve of the prior explains the speed as well as the noise allows."""
+        recent = self._nis_recent
+        return len(recent) == recent.maxlen and sum(recent) / len(recent) <= float(self.opts["fit_nis_max"])
+
     def _within_tolerance(self) -> bool:
+        """The confirmation rule (module docstring)."""
         o = self.opts
         tols = (float(o["tol_peak_mu"]), float(o["tol_peak_creep"]))
         if not all(self._spread_within(col, tol) for col, tol in enumerate(tols)):
             return False
-        box = self.prior.box
-        for (lo, hi), tol, name in zip(self.intervals(float(o["confirm_level"])), tols, NAMES):
-            if hi - lo > tol_width(lo, hi, tol):
+        level = float(o["confirm_level"])
+        qs = (0.5 * (1.0 - level), 0.5, 0.5 * (1.0 + level))
+        for col, (tol, name) in enumerate(zip(tols, NAMES)):
+            lo, mid, hi = self.quantiles(col, qs)
+            if not within_tolerance(lo, mid, hi, tol):
                 return False
-            box_lo, box_hi = box[name]
+            box_lo, box_hi = self.prior.box[name]
             if hi >= box_hi - tol * box_hi or lo <= box_lo + tol * box_lo:
                 return False        # piled against the prior's edge: the data point outside what it can say
-        return True
+        return self.fit_ok()
 
     def _evaluate(self, s: Sample) -> list[IdentificationEvent]:
         n = len(self._v)
@@ -383,6 +406,8 @@ class BayesStrategy(Strategy):
         raise NotImplementedError
 
 
-def tol_width(lo: float, hi: float, tol: float) -> float:
-    """The full width allowed for an interval [lo, hi]: twice ``tol`` times its centre."""
-    return 2.0 * tol * abs(0.5 * (lo + hi))
+def within_tolerance(lo: float, estimate: float, hi: float, tol: float) -> bool:
+    """Every value of [lo, hi] would find ``estimate`` within ``tol`` of itself (relative): lo >=
+    estimate / (1 + tol) and hi <= estimate / (1 - tol).  So when the truth is in the interval, the
+    estimate is correct by the bench's own measure (|estimate - truth| <= tol truth)."""
+    return estimate > 0 and lo >= estimate / (1.0 + tol) and hi <= estimate / (1.0 - tol)
