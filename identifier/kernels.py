@@ -787,10 +787,11 @@ _warmed = False
 # The same operations as its numpy reference (speed_likelihood.SpeedFilter, prior.phi_from_u /
 # theta_from_phi, bayes.weighted_quantiles) in branch-free loops around ``_exp``, so they vectorise.
 @njit(**_JIT)
-def bayes_step(l0, l1, l2, t1, t2, omega, m_prev, log_w, weights, creep_speed_kmh, y, torque_nm, dt_j,
+def bayes_step(l0, l1, l2, t1, t2, omega, m_prev, log_w, ll_total, weights, creep_speed_kmh, y, torque_nm, dt_j,
                torque_per_mu, inv_2s, gain, out):
     """``SpeedFilter.step`` for every particle's curve M_j(v) = l0 + l1 e^(t1 v) + l2 e^(t2 v) at
-    ``creep_speed_kmh``, log w_j += log L_j, then the normalised weights.  ``out[0]``: the ESS (-1.0
+    ``creep_speed_kmh``, log w_j and the particle's whole log-likelihood += log L_j, then the normalised
+    weights.  ``out[0]``: the ESS (-1.0
     when the weights are not finite); ``out[1]``: the normalised innovation squared e^2 / S averaged
     with the weights before this step."""
     n = omega.size
@@ -803,6 +804,7 @@ def bayes_step(l0, l1, l2, t1, t2, omega, m_prev, log_w, weights, creep_speed_km
         omega[j] = pred + gain * e
         m_prev[j] = m_new
         log_w[j] -= inv_2s * e * e
+        ll_total[j] -= inv_2s * e * e
         nis += weights[j] * e * e
     out[1] = 2.0 * inv_2s * nis
     out[0] = -1.0
@@ -820,6 +822,29 @@ def bayes_step(l0, l1, l2, t1, t2, omega, m_prev, log_w, weights, creep_speed_km
         weights[j] = w
         sq += w * w
     out[0] = 1.0 / sq
+
+
+@njit(**_JIT)
+def bayes_rerun(l0, l1, l2, t1, t2, creep, y, torque, dt_j, gain, inv_2s, torque_per_mu, ll, omega, m_last):
+    """Every particle's speed filter over the samples so far, afresh (``SpeedFilter`` from the first
+    sample: omega = y[0]): its whole log-likelihood, its speed estimate and M at the last sample.
+    ``dt_j``, ``gain``, ``inv_2s``: the filter's shared constants of each step (index k: from sample
+    k - 1 to k), the same for every particle.  Particles are the inner loop, so it vectorises."""
+    n = l0.size
+    half = 0.5 * torque_per_mu
+    for j in range(n):
+        omega[j] = y[0]
+        ll[j] = 0.0
+        m_last[j] = l0[j] + l1[j] * _exp(t1[j] * creep[0]) + l2[j] * _exp(t2[j] * creep[0])
+    for k in range(1, creep.size):
+        v, yk, tq, d, g, s = creep[k], y[k], torque[k - 1], dt_j[k], gain[k], inv_2s[k]
+        for j in range(n):
+            m_new = l0[j] + l1[j] * _exp(t1[j] * v) + l2[j] * _exp(t2[j] * v)
+            pred = omega[j] + d * (tq - half * (m_last[j] + m_new))
+            e = yk - pred
+            omega[j] = pred + g * e
+            m_last[j] = m_new
+            ll[j] -= s * e * e
 
 
 @njit(**_JIT)
@@ -979,8 +1004,10 @@ def warm_up() -> None:
     grid_best(np.tile(np.eye(3), (4, 1, 1)), np.ones((4, 3)), 1.0, np.full((4, 2), -0.5), lo, hi)
     grid_add(np.full((4, 2), -0.5), 1.0, 0.1, np.empty((4, 3)), np.zeros((4, 3, 3)), np.zeros((4, 3)))
     c = np.full(4, 0.1)
-    bayes_step(c, c, -c, -c, -c, np.zeros(4), np.zeros(4), np.zeros(4), np.full(4, 0.25), 1.0, 0.0, 1.0, 1e-4, 1.0, 1.0,
-               0.5, np.empty(2))
+    bayes_step(c, c, -c, -c, -c, np.zeros(4), np.zeros(4), np.zeros(4), np.zeros(4), np.full(4, 0.25), 1.0, 0.0, 1.0,
+               1e-4, 1.0, 1.0, 0.5, np.empty(2))
+    bayes_rerun(c, c, -c, -c, -c, np.ones(3), np.zeros(3), np.ones(3), np.full(3, 1e-4), np.full(3, 0.5),
+                np.ones(3), 1.0, np.empty(4), np.empty(4), np.empty(4))
     u16 = np.ascontiguousarray(np.random.default_rng(0).standard_normal((16, 5)).T)
     bayes_curves(u16, np.zeros(5), np.ones(5), np.array([False, True, False, True, True]), np.empty((5, 16)),
                  np.empty(16), np.empty(16), np.empty(16), np.empty(16), np.empty(16))

@@ -172,8 +172,11 @@ def test_kernels_equal_their_numpy_reference():
     log_w, w = np.zeros(n), np.empty(n)
     w.fill(1.0 / n)
     out = np.empty(2)
-    kernels.bayes_step(*th, omega, m_prev.copy(), log_w, w, 0.55, 300.01, 3000.0, dt_j, TORQUE_PER_MU, 0.5 / s, k, out)
+    ll_total = np.full(n, -3.0)
+    kernels.bayes_step(*th, omega, m_prev.copy(), log_w, ll_total, w, 0.55, 300.01, 3000.0, dt_j, TORQUE_PER_MU,
+                       0.5 / s, k, out)
     ess, nis = out
+    np.testing.assert_allclose(ll_total, ll - 3.0, rtol=1e-9)
     assert nis == pytest.approx(float(np.mean(-2.0 * ll)), rel=1e-9)
     np.testing.assert_allclose(omega, omega_ref, rtol=1e-13)
     np.testing.assert_allclose(log_w, ll, rtol=1e-9, atol=1e-12)
@@ -210,3 +213,37 @@ def test_unconfirmed_is_reported_on_the_bus_recorded_and_replayed(tmp_path):
     rs = json.loads(rp.stdout)
     assert rs["matches_log"] is True and rs["unconfirmed"] is True
     assert rs["peak_creep_ci"] == pytest.approx(s["peak_creep_ci"], rel=1e-9)
+
+
+def test_the_compiled_rerun_equals_the_numpy_filter():
+    """kernels.bayes_rerun (a move's fresh filter run over every sample) against SpeedFilter's steps."""
+    from identifier import kernels
+    from identifier.speed_likelihood import SpeedFilter
+
+    if not kernels.AVAILABLE:
+        pytest.skip("numba not installed: the numpy path runs")
+    seed = secrets.randbits(31)
+    print("seed", seed)
+    rng = np.random.default_rng(seed)
+    prior = CurvePrior.from_options({})
+    n, steps = 50, 40
+    th = theta_from_phi(prior.phi_from_u(prior.sample_u(n, rng))).T.copy()
+    creep = np.sort(rng.uniform(0.3, 1.5, steps))
+    y = 300.0 + np.cumsum(rng.normal(0.01, 0.005, steps))
+    torque = np.full(steps, 3200.0)
+    f = SpeedFilter(PERIOD_S, INERTIA, TORQUE_PER_MU, 0.005, 2e-6)
+    omega_ref = f.open(y[0], n)
+    m_prev = th[0][:, None] + th[1][:, None] * np.exp(th[3][:, None] * creep) + th[2][:, None] * np.exp(th[4][:, None] * creep)
+    ll_ref = np.zeros(n)
+    dt_j, gain, inv_2s = np.full(steps, np.nan), np.full(steps, np.nan), np.full(steps, np.nan)
+    for k in range(1, steps):
+        p_var = f.p_var
+        dt_j[k], s, gain[k] = f.gains(1)
+        inv_2s[k] = 0.5 / s
+        f.p_var = p_var
+        ll_ref += f.step(omega_ref, m_prev[:, k - 1], m_prev[:, k], 1, torque[k - 1], y[k])
+    ll, omega, m_last = np.empty(n), np.empty(n), np.empty(n)
+    kernels.bayes_rerun(*th, creep, y, torque, dt_j, gain, inv_2s, TORQUE_PER_MU, ll, omega, m_last)
+    np.testing.assert_allclose(ll, ll_ref, rtol=1e-8)
+    np.testing.assert_allclose(omega, omega_ref, rtol=1e-12)
+    np.testing.assert_allclose(m_last, m_prev[:, -1], rtol=1e-12)

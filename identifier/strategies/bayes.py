@@ -25,9 +25,14 @@ covers the creep's own noise in M (its slope times the creep noise) and ``model_
 error, both in mu units.
 
 When the effective sample size falls below ``ess_fraction`` N the cloud is resampled (systematic) and
-moved by the Liu-West kernel in the prior's unconstrained coordinates u (identifier/prior.py):
-u_j <- a u_j + (1 - a) u_mean + h eps, eps ~ N(0, Cov(u)), a = (3 delta - 1) / (2 delta),
-h^2 = 1 - a^2: the cloud's mean and covariance are kept while it regains diversity.
+every particle takes ``moves`` Metropolis steps in the prior's unconstrained coordinates u
+(identifier/prior.py; resample-move, Gilks and Berzuini 2001): u' = u + L eps, L L^T = Cov(u) 2.38^2 / 5,
+each proposal's filter run afresh over every sample so far (``kernels.bayes_rerun``), accepted with
+min(1, L(u') p(u') / (L(u) p(u))).  This leaves the posterior exact in distribution; the Liu-West
+kernel it replaced (a Gaussian shrink-and-jitter, no likelihood) drifted off the posterior's
+curved ridge between peak mu and peak creep over the ~30 moves of a slow slip and confirmed curves
+whose likelihood was far below the truth's.  The price is the rerun: O(N x samples) on the samples
+that resample.
 
 Intervals: weighted quantiles of peak_mu and peak_creep_kmh over the cloud, a credible interval.
 Every ``report_samples`` samples a correction event publishes the posterior's curve (weighted
@@ -77,7 +82,7 @@ DEFAULTS = {
     "tol_peak_creep": 0.10,
     "model_mu_std": 3e-4,                # model error per period, mu units (process noise q)
     "ess_fraction": 0.5,
-    "liu_west_delta": 0.98,
+    "moves": 2,                          # Metropolis steps per particle after each resampling
     "report_samples": 5,                 # a correction event every this many samples
     "min_samples": 5,                    # no confirmation before this many
     "max_samples": 400,
@@ -85,9 +90,15 @@ DEFAULTS = {
     "fit_nis_max": 2.0,                  # the largest mean normalised innovation squared that confirms
     "baseline_readings": 400,            # readings before the slip used for sigma_y and the train speed fit
     "sigma_y_fallback": 0.005,           # rad/s, when there is no baseline (samples fed without readings)
-    "moves_drawn_ahead": 24,             # resample-moves whose random numbers are drawn at construction
+    "normals_drawn_ahead": 16,           # proposal draws made at construction (reused cyclically)
     "compiled": True,                    # the cloud's passes by identifier/kernels.py (numba); False: numpy
 }
+
+
+def _log_prior_u(u: np.ndarray) -> np.ndarray:
+    """log p(u) of the prior in its unconstrained coordinates, per particle (u: (5, N)): each coordinate
+    is the logit of a uniform, so log p = sum log(s (1 - s)) with s = sigmoid(u)."""
+    return -np.sum(np.abs(u) + 2.0 * np.log1p(np.exp(-np.abs(u))), axis=0)
 
 
 def weighted_quantiles(x: np.ndarray, w: np.ndarray, qs) -> np.ndarray:
@@ -180,11 +191,13 @@ class BayesStrategy(Strategy):
         self._set_curves()
         self.log_w = np.zeros(n)
         self.weights = np.full(n, 1.0 / n)
-        # the moves' random numbers, drawn now (before the fault, when the TCU is idle)
-        self._normals = self.rng.standard_normal((int(o["moves_drawn_ahead"]), len(NAMES), n))
-        self._uniforms = self.rng.random(len(self._normals))
-        self._u_spare = np.empty_like(self.u)
+        # the moves' normal numbers, drawn now (before the fault, when the TCU is idle); reused cyclically
+        self._normals = self.rng.standard_normal((int(o["normals_drawn_ahead"]), len(NAMES), n))
         self._idx = np.empty(n, np.intp)
+        self.ll = np.zeros(n)                  # every particle's whole log-likelihood (its current curve)
+        self._log = np.full((6, 256), np.nan)  # per sample: creep, y, torque, dt/J, gain, 1/(2S) (``_record``)
+        self._count = 0
+        self.accepted = 0
         self.baseline = BaselineStats(int(o["baseline_readings"]))
         self.omega = None                      # per-particle speed estimate (after the first sample)
         self._prev: Sample | None = None
@@ -252,63 +265,107 @@ class BayesStrategy(Strategy):
         mu_std = math.hypot(float(self.opts["model_mu_std"]), MAX_SLOPE_PER_KMH * creep_noise_kmh / math.sqrt(2.0))
         f.q_var = (self.period_s * f.torque_per_mu_nm / f.inertia_kgm2 * mu_std) ** 2
         self.omega = f.open(s.motor_speed_rad_s, self.n_particles)
-        self._omega_spare = np.empty_like(self.omega)
-        self._m_prev = self._mu_at(self.creep_for_likelihood(s))
+        creep = self.creep_for_likelihood(s)
+        self._m_prev = self._mu_at(creep)
+        self._record(creep, s, math.nan, math.nan, math.nan)
+
+    def _record(self, creep: float, s: Sample, dt_j: float, gain: float, inv_2s: float) -> None:
+        """What a move needs to run a particle's filter afresh: this sample and the step's constants."""
+        k = self._count
+        if k == self._log.shape[1]:
+            self._log = np.hstack([self._log, np.full_like(self._log, np.nan)])
+        self._log[:, k] = (creep, s.motor_speed_rad_s, s.torque_nm, dt_j, gain, inv_2s)
+        self._count = k + 1
 
     def _step(self, s: Sample) -> None:
-        """One period of every particle's speed filter (speed_likelihood), then resampling if needed."""
+        """One period of every particle's speed filter (speed_likelihood), then resample-move if needed."""
         prev, f = self._prev, self.filter
         periods = max(s.step - prev.step, 1)
         creep = self.creep_for_likelihood(s)
+        dt_j, innov_var, gain = f.gains(periods)
         if self._compiled:
-            dt_j, innov_var, gain = f.gains(periods)
-            _kernels().bayes_step(*self._theta, self.omega, self._m_prev, self.log_w, self.weights, creep,
+            _kernels().bayes_step(*self._theta, self.omega, self._m_prev, self.log_w, self.ll, self.weights, creep,
                                   s.motor_speed_rad_s, prev.torque_nm, dt_j, f.torque_per_mu_nm, 0.5 / innov_var,
                                   gain, self._step_out)
             ess, nis = self._step_out
         else:
             m_new = self._mu_at(creep)
-            ll = f.step(self.omega, self._m_prev, m_new, periods, prev.torque_nm, s.motor_speed_rad_s)
+            pred = self.omega + dt_j * (prev.torque_nm - f.torque_per_mu_nm * 0.5 * (self._m_prev + m_new))
+            e = s.motor_speed_rad_s - pred                             # the SpeedFilter step, its gains as above
+            self.omega = pred + gain * e
+            ll = -0.5 / innov_var * e * e
             nis = -2.0 * float(self.weights @ ll)
             self.log_w += ll
+            self.ll += ll
             self._m_prev = m_new
             w = np.exp(self.log_w - self.log_w.max())
             self.weights = w / w.sum()
             ess = 1.0 / float(self.weights @ self.weights)
+        self._record(creep, s, dt_j, gain, 0.5 / innov_var)
         # the fit's check: the recent normalised innovations squared (about 1 when a curve of the prior
         # explains the speed; well above when none does, e.g. a law of another form)
         self._nis_recent.append(float(nis))
         if ess < float(self.opts["ess_fraction"]) * self.n_particles:
-            self._resample_move(creep)
+            self._resample_move()
 
-    def _resample_move(self, creep_speed_kmh: float) -> None:
-        """Systematic resampling, then the Liu-West move in u (module docstring)."""
-        n = self.n_particles
-        k = self.resamples % len(self._normals)
-        delta = float(self.opts["liu_west_delta"])
-        a = (3.0 * delta - 1.0) / (2.0 * delta)
-        h = math.sqrt(max(1.0 - a * a, 0.0))
+    def _rerun(self, theta: np.ndarray):
+        """(log-likelihood, speed estimate, M at the last sample) of every particle of ``theta`` (5, N)
+        over all samples so far, afresh."""
+        creep, y, torque, dt_j, gain, inv_2s = (np.ascontiguousarray(r[:self._count]) for r in self._log)
+        n = theta.shape[1]
         if self._compiled:
-            K = _kernels()
-            K.systematic_resample(self.weights, float(self._uniforms[k]), self._idx)
-            K.liu_west_move(self.u, self.weights, self._idx, self._normals[k], a, h, self._u_spare)
-            self.u, self._u_spare = self._u_spare, self.u
+            ll, omega, m_last = np.empty(n), np.empty(n), np.empty(n)
+            _kernels().bayes_rerun(*theta, creep, y, torque, dt_j, gain, inv_2s, self.filter.torque_per_mu_nm, ll,
+                                   omega, m_last)
+            return ll, omega, m_last
+        l0, l1, l2, t1, t2 = (row[:, None] for row in theta)
+        m = l0 + l1 * np.exp(t1 * creep) + l2 * np.exp(t2 * creep)                  # (N, S)
+        omega, ll = np.full(n, y[0]), np.zeros(n)
+        c = self.filter.torque_per_mu_nm
+        for k in range(1, creep.size):
+            pred = omega + dt_j[k] * (torque[k - 1] - c * 0.5 * (m[:, k - 1] + m[:, k]))
+            e = y[k] - pred
+            omega = pred + gain[k] * e
+            ll -= inv_2s[k] * e * e
+        return ll, omega, m[:, -1].copy()
+
+    def _resample_move(self) -> None:
+        """Systematic resampling, then ``moves`` Metropolis steps per particle in u (module docstring):
+        a Gaussian random walk with the cloud's covariance x 2.38^2 / 5, each proposal's likelihood over
+        every sample so far run afresh, accepted with min(1, L' p(u') / (L p(u)))."""
+        n = self.n_particles
+        k = self.resamples
+        if self._compiled:
+            _kernels().systematic_resample(self.weights, float(self.rng.random()), self._idx)
             idx = self._idx
         else:
-            positions = (self._uniforms[k] + np.arange(n)) / n
-            idx = np.minimum(np.searchsorted(np.cumsum(self.weights), positions), n - 1)
-            mean = self.u @ self.weights
-            d = self.u - mean[:, None]
-            cov = (d * self.weights) @ d.T
-            cov += (1e-12 + 1e-9 * np.trace(cov)) * np.eye(len(mean))
-            self.u = a * self.u[:, idx] + ((1.0 - a) * mean)[:, None] + h * np.linalg.cholesky(cov) @ self._normals[k]
-        if self._compiled:
-            _kernels().take(self.omega, idx, self._omega_spare)
-            self.omega, self._omega_spare = self._omega_spare, self.omega
-        else:
-            self.omega = self.omega[idx]
+            idx = np.minimum(np.searchsorted(np.cumsum(self.weights), (self.rng.random() + np.arange(n)) / n), n - 1)
+        self.u = self.u[:, idx]
+        self.ll = self.ll[idx]
+        self.omega = self.omega[idx]
         self._set_curves()
-        self._m_prev = self._mu_at(creep_speed_kmh)
+        self._m_prev = self._m_prev[idx]
+        cov = np.cov(self.u) * (2.38 ** 2 / self.u.shape[0])
+        chol = np.linalg.cholesky(cov + (1e-12 + 1e-9 * np.trace(cov)) * np.eye(len(cov)))
+        phi_p, theta_p = np.empty_like(self.phi), np.empty_like(self._theta)
+        for m in range(int(self.opts["moves"])):
+            normals = self._normals[(k * int(self.opts["moves"]) + m) % len(self._normals)]
+            prop = self.u + chol @ normals
+            if self._compiled:
+                _kernels().bayes_curves(prop, *self._bounds, phi_p, *theta_p)
+            else:
+                phi_p[:] = self.prior.phi_from_u(prop.T).T
+                theta_p[:] = theta_from_phi(phi_p.T).T
+            ll_p, omega_p, m_p = self._rerun(theta_p)
+            log_ratio = ll_p - self.ll + _log_prior_u(prop) - _log_prior_u(self.u)
+            accept = np.log(self.rng.random(n)) < log_ratio
+            self.u = np.where(accept, prop, self.u)
+            self.phi = np.where(accept, phi_p, self.phi)
+            self._theta = np.where(accept, theta_p, self._theta)
+            self.ll = np.where(accept, ll_p, self.ll)
+            self.omega = np.where(accept, omega_p, self.omega)
+            self._m_prev = np.where(accept, m_p, self._m_prev)
+            self.accepted += int(accept.sum())
         self.log_w.fill(0.0)
         self.weights.fill(1.0 / n)
         self.resamples += 1

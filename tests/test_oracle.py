@@ -1,0 +1,37 @@
+"""The information limit of ``hil bench identify`` (hil/benchmarks/oracle.py) on real plant runs of
+drawn fault curves: it knows the family's prior, so its intervals must cover the truth as they say,
+and it may not be later than the strategy that uses a broader prior on the same samples."""
+import secrets
+
+import numpy as np
+
+from hil.benchmarks.identify import generate, replay, run_oracle
+from hil.config import parse_scenario
+from plant import families
+
+from .conftest import SCENARIOS
+
+
+def test_the_oracle_covers_the_truth_and_is_not_later_than_bayes():
+    seed = secrets.randbits(31)
+    print("seed", seed)
+    base = (SCENARIOS / "ffcc_a.toml").read_text()
+    covered, runs, not_later = 0, 0, 0
+    for i in range(5):
+        sc = parse_scenario(families.draw_scenario_text(base, "exp", seed, i), f"draw {i}")
+        data = generate(sc, i + 1)
+        o = run_oracle(data, "exp", [seed, i], 2000)
+        if o["oracle_t_confirmed_s"] is None:
+            continue
+        runs += 1
+        v_true, mu_true = sc.fault_curve.peak()
+        (m0, m1), (c0, c1) = o["oracle_peak_mu_ci"], o["oracle_peak_creep_ci"]
+        covered += (m0 <= mu_true <= m1) and (c0 <= v_true <= c1)
+        summary, _ = replay(data, "bayes", None)
+        t_bayes = summary.get("t_identified_s")
+        not_later += t_bayes is None or o["oracle_t_confirmed_s"] <= t_bayes + 1e-9
+        assert o["oracle_ess"] >= 30
+    print("oracle confirmed", runs, "of 5; both 90 % intervals covered", covered, "; not later than bayes", not_later)
+    assert runs >= 3
+    assert covered >= runs - 2          # each covers with probability ~0.81 (two 90 % intervals)
+    assert not_later >= runs - 1        # a broader prior cannot know more, up to the oracle's own sampling
