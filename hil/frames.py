@@ -141,10 +141,13 @@ class FrameCodec:
         values = (*e.peak_mu_ci, *e.peak_creep_ci)
         if not all(math.isfinite(x) for x in values):
             return None
+        signals = {"PeakMuLo": values[0], "PeakMuHi": values[1], "PeakCreepLo": values[2], "PeakCreepHi": values[3]}
+        limits = {name: (lo, hi) for name, _, lo, hi in self._limits[INTERVAL_ID]}
+        if not all(limits[k][0] <= v <= limits[k][1] for k, v in signals.items()):
+            return None            # beyond the DBC's ranges: sent as no interval rather than as a frame to reject
         return self._msg(INTERVAL_ID, {"IntervalStep": e.step, "IntervalCorrection": e.correction,
                                        "IntervalKind": KINDS.index(e.kind), "IntervalLevel": INTERVAL_LEVEL_PERCENT,
-                                       "PeakMuLo": values[0], "PeakMuHi": values[1], "PeakCreepLo": values[2],
-                                       "PeakCreepHi": values[3]})
+                                       **signals})
 
     def sample(self, r: SampleReport) -> can.Message:
         return self._msg(SAMPLE_ID, {"SampleStep": r.step, "SampleIndex": min(r.index, 65535),

@@ -404,4 +404,10 @@ def peak_confidence(theta, cov, level: float):
         centre = float(f[10])
         out.append((centre - z * sd, centre + z * sd) if math.isfinite(sd) and math.isfinite(centre)
                    else (math.nan, math.nan))
-    return out[0], out[1]
+    # a linearisation far from the data can reach past what is physical: say "anywhere there" instead
+    (m0, m1), (c0, c1) = out
+    return (max(m0, 0.0), min(m1, 1.0)), (max(c0, 0.0), min(c1, PEAK_CREEP_MAX_KMH))
+
+
+#: the largest peak creep an interval reports (curve.PEAK_GRID_KMH's end would do; 30 km/h as plant.friction)
+PEAK_CREEP_MAX_KMH = 30.0
