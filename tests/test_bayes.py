@@ -38,8 +38,8 @@ def slip(mu_of, mu_required: float, rng, creep0_kmh=0.15, train_ms=10.0, sigma_y
            for k in range(baseline)]
     f = lambda w: (torque - TORQUE_PER_MU * mu_of(to_kmh * w - 3.6 * train_ms)) / INERTIA  # noqa: E731
     samples, h = [], PERIOD_S / 10
-    limit = max_creep_kmh or 4.0
-    for k in range(baseline, baseline + 400):
+    limit = max_creep_kmh or 6.0        # past the default prior's highest peak creep (5 km/h)
+    for k in range(baseline, baseline + 1000):
         y = omega + sigma_y * rng.standard_normal()
         v_t = train_ms + sigma_t * rng.standard_normal()
         creep = to_kmh * y - 3.6 * v_t
@@ -79,7 +79,7 @@ def test_intervals_cover_the_truth_about_as_often_as_they_say():
     print("seed", seed)
     rng = np.random.default_rng(seed)
     prior = CurvePrior.from_options({})
-    trials, covered_mu, covered_creep = 30, 0, 0
+    trials, covered_mu, covered_creep = 60, 0, 0
     for i in range(trials):
         phi, theta = draw_curve(rng, prior)
         pre, samples = slip(curve(theta), phi[0] * 1.06, rng, creep0_kmh=0.3 * phi[1])
@@ -90,8 +90,9 @@ def test_intervals_cover_the_truth_about_as_often_as_they_say():
         covered_mu += e.peak_mu_ci[0] <= phi[0] <= e.peak_mu_ci[1]
         covered_creep += e.peak_creep_ci[0] <= phi[1] <= e.peak_creep_ci[1]
     print("90 % intervals covered peak mu", covered_mu, "peak creep", covered_creep, "of", trials)
-    # 90 % intervals: 27 expected; below 21 of 30 has probability < 0.3 % if they are calibrated
-    assert covered_mu >= 21 and covered_creep >= 21
+    # 90 % intervals: 54 expected if calibrated; the bench measures 0.84-0.9 on these draws, where fewer
+    # than 42 of 60 has probability ~0.5 %: this guards against a gross miscalibration, the bench measures it
+    assert covered_mu >= 42 and covered_creep >= 42
 
 
 def test_a_curve_outside_the_prior_is_not_confirmed_wrongly():
