@@ -112,3 +112,39 @@ def test_data_limit_recovers_a_curve_its_samples_determine_and_not_one_they_do_n
     # nothing to say: too few samples, or samples through the observer's transient
     assert data_limit(wide[:4], mu_model(wide[:4], FFCC_A), FFCC_A)["lsq_truth_ok_peaks"] is None
     assert data_limit(wide, mu_model(wide, FFCC_A), FFCC_A, observer_aware=True)["lsq_truth_r2_vs_truth"] is None
+
+
+def test_family_mode_draws_at_run_time_prints_its_seed_and_judges_against_the_oracle(tmp_path):
+    """--family without --seed: the seed is drawn now and printed; --json has the issue's keys; the
+    same --seed gives the same draws and verdicts; --report writes the markdown and the JSON."""
+    args = ["--family", "default", "--draws", "3", "--strategies", "bayes,proposed", "--oracle-draws", "300"]
+    p = run(args + ["--json"], tmp_path)
+    assert p.returncode == 0, p.stderr
+    out = json.loads(p.stdout)
+    seed = out["seed"]
+    assert f"seed {seed}" in p.stderr                              # printed, so the run can be repeated
+    assert out["recommended"] == "bayes" and out["family"]["name"] == "default"
+    for strat in ("bayes", "proposed"):
+        r = out["results"][strat]
+        for key in ("confirmed_before_serious_fraction", "correct_fraction", "correct_before_serious_fraction",
+                    "wrong_confirmation_fraction", "coverage_peak_mu", "coverage_peak_creep",
+                    "ci_width_peak_mu_median_percent", "ci_width_peak_creep_median_percent", "rt_median_percent",
+                    "rt_p90_percent", "oracle_rt_median_percent"):
+            assert key in r, key
+        assert len(r["draws_detail"]) == 3
+        for d in r["draws_detail"]:
+            assert d["wrong_confirmation"] == (d["confirmed"] and not d["correct"])
+            assert 0.05 <= d["true_peak_mu"] <= 0.25 and 0.4 <= d["true_peak_creep_kmh"] <= 3.0
+    assert len(out["oracle"]["runs"]) == 3
+    again = run(args + ["--json", "--seed", str(seed), "--report", str(tmp_path / "rep")], tmp_path)
+    assert again.returncode == 0, again.stderr
+    out2 = json.loads(again.stdout)
+    assert [d["true_peak_mu"] for d in out2["results"]["bayes"]["draws_detail"]] == \
+        [d["true_peak_mu"] for d in out["results"]["bayes"]["draws_detail"]]
+    assert [d["correct"] for d in out2["results"]["bayes"]["draws_detail"]] == \
+        [d["correct"] for d in out["results"]["bayes"]["draws_detail"]]
+    md = (tmp_path / "rep" / "identification.md").read_text()
+    assert f"--seed {seed}" in md and "| bayes |" in md and "oracle" in md
+    assert json.loads((tmp_path / "rep" / "identification.json").read_text())["seed"] == seed
+    bad = run(["--family", "nonesuch", "--draws", "2"], tmp_path)
+    assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "nonesuch" in bad.stderr
