@@ -245,6 +245,7 @@ def parse_scenario(text: str, path: str = "<scenario>", overrides: dict | None =
         if key not in known:
             raise _fail(path, key, f"unknown key (known: {', '.join(sorted(known))})")
     name = _coerce(path, "name", data.get("name", Path(path).stem), str)
+    _check(path, "name", name.isprintable(), "must be printable text (no control characters)", name[:80])
     description = _coerce(path, "description", data.get("description", ""), str)
     vehicle = WheelsetParams(**_table(path, data, "vehicle", WheelsetParams, required=False))
     for f in dataclasses.fields(vehicle):

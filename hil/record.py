@@ -276,12 +276,20 @@ class Recorder:
 
 
 # -- where a log goes -----------------------------------------------------------------------------------
+#: the longest slug a log name part takes (a scenario name beyond it is cut)
+SLUG_MAX = 60
+
+
 def slug(text: str, what: str) -> str:
-    """``text`` as a file-name part: letters, digits, ``.``, ``_``, ``-`` (anything else becomes ``_``),
-    at most 60 characters; refused in one line when nothing usable is left."""
-    out = re.sub(r"[^A-Za-z0-9._-]+", "_", str(text)).strip("._-")[:60]
+    """``text`` as a file-name part: letters, digits, ``.``, ``_``, ``-`` (any run of other characters
+    becomes one ``_``, a run of dots one ``.``), at most ``SLUG_MAX`` characters, never starting or ending
+    with ``.``, ``_`` or ``-``: it holds no path separator and is never ``.`` or ``..``, so a log named
+    from it stays in its directory.  Refused in one line when nothing usable is left (empty, only dots)."""
+    out = re.sub(r"\.{2,}", ".", re.sub(r"[^A-Za-z0-9._-]+", "_", str(text))).strip("._-")
+    out = out[:SLUG_MAX].rstrip("._-")
     if not out:
-        raise ConfigError(f"{what} {text!r}: cannot be part of a log file name (use letters, digits, . _ -)")
+        shown = repr(str(text)[:80]) + ("..." if len(str(text)) > 80 else "")
+        raise ConfigError(f"{what} {shown}: cannot be part of a log file name (use letters, digits, . _ -)")
     return out
 
 
