@@ -13,8 +13,8 @@ changed anywhere).
 
 Every skipped stretch is reported with its byte range and what was wrong (``LogContents.damaged``,
 ``damage``).  The channels and schemas of a ``railway-hil`` log (header profile ``PROFILE``) are
-registered in ``hil.record.TOPICS`` order, so when the damaged part held them they are rebuilt from
-``hil.record.TOPICS`` and ``hil.schemas``.  A log closed properly after a run that did not finish
+registered in ``hil.schemas.TOPICS`` order, so when the damaged part held them they are rebuilt from
+``hil.schemas``.  A log closed properly after a run that did not finish
 (a fault, an interrupt) is not damaged: ``ended_early`` says why it ended.
 """
 from __future__ import annotations
@@ -33,10 +33,9 @@ from mcap.stream_reader import breakup_chunk
 from mcap_protobuf.decoder import DecoderFactory
 
 from .errors import LogError
+from .schemas import PROFILE, TOPICS, TYPES
 
 MAGIC = b"\x89MCAP0\r\n"
-#: the header profile of the logs ``hil run`` writes (channels registered in ``hil.record.TOPICS`` order)
-PROFILE = "railway-hil"
 _OPCODES = {int(op) for op in Opcode}
 _RECORD_HEAD = 9                      # opcode (1 byte) + length (8 bytes)
 _FOOTER_LENGTH = 8 + 8 + 4
@@ -55,7 +54,7 @@ class LogContents:
     damaged: list = field(default_factory=list)      # (first byte, end byte, what) of every skipped stretch
     skipped_bytes: int = 0
     ended_early: str = ""                            # closed properly, but the run did not finish: why
-    rebuilt_channels: int = 0                        # channels rebuilt from hil.record.TOPICS
+    rebuilt_channels: int = 0                        # channels rebuilt from hil.schemas.TOPICS
 
     def topic(self, name: str) -> list:
         return [m for t, _, m in self.messages if t == name]
@@ -206,9 +205,6 @@ class _Reader:
         """The channel (and its schema) ``hil.record`` registers as number ``channel_id``, for a
         ``railway-hil`` log whose channel records were lost; None for another log."""
         from mcap_protobuf.schema import build_file_descriptor_set
-
-        from .record import TOPICS
-        from .schemas import TYPES
 
         if self.profile != PROFILE or not 1 <= channel_id <= len(TOPICS):
             return None
@@ -372,7 +368,7 @@ def read_log(path, topics: set[str] | None = None) -> LogContents:
         out.damage = (f"damaged in {len(out.damaged)} place(s) of {size} bytes, {out.skipped_bytes} bytes skipped: "
                       + "; ".join(parts) + more)
         if out.rebuilt_channels:
-            out.damage += f"; {out.rebuilt_channels} channel(s) rebuilt from hil.record.TOPICS"
+            out.damage += f"; {out.rebuilt_channels} channel(s) rebuilt from hil.schemas.TOPICS"
     if "summary" not in out.metadata:
         out.complete = False
         if not out.damaged:

@@ -33,24 +33,9 @@ from mcap_protobuf.schema import build_file_descriptor_set
 from identifier.messages import STAGE_NAMES
 
 from .errors import ConfigError
-from .logread import PROFILE
-from .schemas import TYPES
+from .schemas import PROFILE, TOPICS, TYPES
 
 CHUNK_SIZE = 32 * 1024
-
-#: topic -> protobuf message name
-TOPICS = {
-    "/plant/state": "PlantState",
-    "/plant/sensor": "SensorReading",
-    "/tcu/command": "TorqueCommand",
-    "/tcu/observer": "ObserverSample",
-    "/tcu/status": "TcuStatus",
-    "/tcu/identification": "IdentificationEvent",
-    "/can/frames": "CanFrame",
-    "/loop/timing": "LoopTiming",
-    "/run/events": "RunEvent",
-    "/run/summary": "RunSummary",
-}
 
 VERSIONED_PACKAGES = ("numpy", "scipy", "casadi", "fmpy", "python-can", "cantools", "mcap",
                       "mcap-protobuf-support", "protobuf", "rerun-sdk")

@@ -133,7 +133,7 @@ def test_damage_in_the_middle_of_a_cut_log_is_stepped_over(log, tmp_path):
 
 def test_channels_lost_with_the_first_chunk_are_rebuilt(log, tmp_path):
     """The first chunk holds every schema and channel record; damaged there and cut (no summary to
-    repeat them), a railway-hil log's channels are rebuilt from hil.record.TOPICS."""
+    repeat them), a railway-hil log's channels are rebuilt from hil.schemas.TOPICS."""
     data, chunks = log
     rng = _seed()
     a, b, _ = chunks[0]
@@ -142,7 +142,7 @@ def test_channels_lost_with_the_first_chunk_are_rebuilt(log, tmp_path):
     cut = chunks[-2][0] + 10
     got = _read(tmp_path, bytes(bad[:cut]))
     assert _got(got) == _expect(chunks, lambda x, y: x != a and y <= cut)
-    assert got.rebuilt_channels >= 5 and "rebuilt from hil.record.TOPICS" in got.damage
+    assert got.rebuilt_channels >= 5 and "rebuilt from hil.schemas.TOPICS" in got.damage
     states = got.topic("/plant/state")
     assert states and all(s.t_s == pytest.approx(s.step * 1e-3) for s in states)
 
