@@ -37,6 +37,9 @@ class BusSettings:
     silence_periods: int = 25             # realtime: peer silent after this many heartbeat periods (50 ms:
                                           # what a general-purpose OS holds; a shorter stall never ends a run)
     lockstep_silence_s: float = 1.0       # lockstep: peer silent after this many wall seconds
+    lockstep_progress_s: float = 5.0      # lockstep: no command for the pending step after this many wall
+                                          # seconds: the sensor frame is sent again, after as many more the
+                                          # run ends (exit 3) naming the step and the likely cause
     startup_timeout_s: float = 60.0       # wait for the other side's first frame
     deadline_fraction: float = 0.9        # realtime: the command is due this far into the period
     rt_priority: int = 0                  # realtime: SCHED_FIFO priority for plant, hub and TCU (0: off)
@@ -121,7 +124,8 @@ IDENTIFIER_RANGES = {
 #: [bus] field -> (lowest, highest) accepted
 BUS_RANGES = {
     "bitrate": (1_000, 100_000_000), "data_bitrate": (1_000, 100_000_000), "heartbeat_period_s": (1e-4, 10.0),
-    "silence_periods": (1, 1_000_000), "lockstep_silence_s": (1e-3, 86_400.0), "startup_timeout_s": (1e-3, 86_400.0),
+    "silence_periods": (1, 1_000_000), "lockstep_silence_s": (1e-3, 86_400.0),
+    "lockstep_progress_s": (1e-3, 86_400.0), "startup_timeout_s": (1e-3, 86_400.0),
     "deadline_fraction": (1e-3, 0.999), "rt_priority": (0, 99),
 }
 #: the PlantSensor signals' ranges in hil/hil.dbc (motor speed rad/s, train speed m/s); a scenario whose

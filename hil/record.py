@@ -150,8 +150,8 @@ class McapFile:
 
     def write(self, topic: str, log_t_s: float, fields: dict) -> None:
         ns = sim_time_ns(log_t_s)
-        self._writer.add_message(self._channels[topic], log_time=ns, data=self._types[topic](**fields).SerializeToString(),
-                                 publish_time=ns)
+        data = self._types[topic](**fields).SerializeToString()
+        self._writer.add_message(self._channels[topic], log_time=ns, data=data, publish_time=ns)
 
     def metadata(self, name: str, data: dict) -> None:
         self._writer.add_metadata(name, data)
