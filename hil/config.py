@@ -37,6 +37,9 @@ class BusSettings:
     silence_periods: int = 25             # realtime: peer silent after this many heartbeat periods (50 ms:
                                           # what a general-purpose OS holds; a shorter stall never ends a run)
     lockstep_silence_s: float = 1.0       # lockstep: peer silent after this many wall seconds
+    lockstep_progress_s: float = 5.0      # lockstep: no command for the pending step after this many wall
+                                          # seconds: the sensor frame is sent again, after as many more the
+                                          # run ends (exit 3) naming the step and the likely cause
     startup_timeout_s: float = 60.0       # wait for the other side's first frame
     deadline_fraction: float = 0.9        # realtime: the command is due this far into the period
     rt_priority: int = 0                  # realtime: SCHED_FIFO priority for plant, hub and TCU (0: off)
@@ -89,13 +92,71 @@ class Scenario:
 
 
 # -- validation ---------------------------------------------------------------------------------
+#: [vehicle] field -> (lowest, highest) accepted: wide around any railway vehicle, narrow enough that the
+#: plant's equations (divisions by the gear ratio, the efficiency, the inertia) stay finite
+VEHICLE_RANGES = {
+    "axle_load_kg": (100.0, 1e6), "motor_inertia_kgm2": (1e-4, 1e5), "wheelset_inertia_kgm2": (1e-3, 1e6),
+    "wheel_radius_m": (0.05, 5.0), "train_mass_kg": (100.0, 1e8), "gravity_ms2": (0.1, 100.0),
+    "gear_ratio": (0.05, 100.0), "efficiency": (0.01, 1.0), "half_bogie_distance_m": (1e-3, 1e3),
+    "half_wheelbase_m": (1e-3, 1e3), "coupler_height_m": (1e-3, 1e3), "bogie_height_m": (1e-3, 1e3),
+    "driven_axles": (1, 10_000), "davis_a_n": (0.0, 1e8), "davis_b_n_per_ms": (0.0, 1e8),
+    "davis_c_n_per_ms2": (0.0, 1e8),
+}
+#: a run of more integration steps (duration_s / integration_step_s) is refused at load
+MAX_INTEGRATION_STEPS = 100_000_000
+#: a strategy (or the drill) with more particles is refused at load
+MAX_PARTICLES = 1_000_000
+#: strategy options that size arrays at construction -> the largest value accepted
+OPTION_CAPS = {"particles": MAX_PARTICLES, "noise_block": 1024, "moves_drawn_ahead": 1024, "prelim_grid": 64,
+               "prelim_iterations": 10_000, "projection_iterations": 1000, "max_samples": 1_000_000,
+               "baseline_readings": 1_000_000, "fit_window": 1_000_000, "report_samples": 1_000_000,
+               "window_samples": 100_000}
+#: a strategy's particles x noise_block (transition-noise draws made ahead, 5 doubles each) above this
+#: is refused at load (8e8 doubles: 6.4 GB)
+MAX_NOISE_DRAWS = 100_000_000
+#: [identifier] field -> (lowest, highest) accepted
+IDENTIFIER_RANGES = {
+    "observer_pole_rad_s": (1e-3, 1e6), "detection_creep_rise_kmh": (0.0, 100.0), "baseline_samples": (2, 1_000_000),
+    "settle_time_s": (0.0, 3600.0), "window_samples": (1, 100_000), "k_pe": (0.0, 1e6), "c_lw": (0.0, 1e6),
+    "c_up": (0.0, 1e6), "max_corrections": (1, 1_000_000),
+    "drill_particles": (None, MAX_PARTICLES),       # 0 or >= 2: IdentifierSettings says so
+}
+#: [bus] field -> (lowest, highest) accepted
+BUS_RANGES = {
+    "bitrate": (1_000, 100_000_000), "data_bitrate": (1_000, 100_000_000), "heartbeat_period_s": (1e-4, 10.0),
+    "silence_periods": (1, 1_000_000), "lockstep_silence_s": (1e-3, 86_400.0),
+    "lockstep_progress_s": (1e-3, 86_400.0), "startup_timeout_s": (1e-3, 86_400.0),
+    "deadline_fraction": (1e-3, 0.999), "rt_priority": (0, 99),
+}
+#: the PlantSensor signals' ranges in hil/hil.dbc (motor speed rad/s, train speed m/s); a scenario whose
+#: speeds at the start, with six standard deviations of sensor noise, leave them is refused at load
+DBC_MOTOR_SPEED_RAD_S = 2000.0
+DBC_TRAIN_SPEED_MS = 200.0
+
+
+def _in_range(path, where, value, bounds) -> None:
+    """``bounds`` (lo, hi); lo None: only the ceiling is checked here (the floor elsewhere)."""
+    lo, hi = bounds
+    if lo is None:
+        _check(path, where, value <= hi, f"must be at most {hi:g}", value)
+    else:
+        _check(path, where, lo <= value <= hi, f"must be in [{lo:g}, {hi:g}]", value)
+
+
 _IDENTIFIER_FIELDS = {f.name: f for f in dataclasses.fields(IdentifierSettings)
                       if f.name not in ("period_s", "vehicle", "torque_demand_nm", "initial_guess")}
 _OPTIONAL_TABLES = ("plant", "reality", "bus")
 PLANT_KEYS = ("fmu", "mapping", "parameters")
 
 
+#: the longest message part ``_fail`` keeps (a huge value quoted in it is cut)
+MESSAGE_MAX = 300
+
+
 def _fail(path, where, msg) -> ScenarioError:
+    msg = str(msg).replace("\n", " ")
+    if len(msg) > MESSAGE_MAX:
+        msg = msg[:MESSAGE_MAX] + "..."
     return ScenarioError(f"{path}: {where}: {msg}")
 
 
@@ -232,6 +293,8 @@ def parse_scenario(text: str, path: str = "<scenario>", overrides: dict | None =
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise ScenarioError(f"{path}: not valid TOML: {e}") from None
+    except RecursionError:
+        raise ScenarioError(f"{path}: not a scenario: arrays or tables nested too deep to read") from None
     for dotted, value in (overrides or {}).items():
         *tables, key = dotted.split(".")
         node = data
@@ -245,15 +308,11 @@ def parse_scenario(text: str, path: str = "<scenario>", overrides: dict | None =
         if key not in known:
             raise _fail(path, key, f"unknown key (known: {', '.join(sorted(known))})")
     name = _coerce(path, "name", data.get("name", Path(path).stem), str)
+    _check(path, "name", name.isprintable(), "must be printable text (no control characters)", name[:80])
     description = _coerce(path, "description", data.get("description", ""), str)
     vehicle = WheelsetParams(**_table(path, data, "vehicle", WheelsetParams, required=False))
     for f in dataclasses.fields(vehicle):
-        value = getattr(vehicle, f.name)
-        if f.name not in ("davis_a_n", "davis_b_n_per_ms", "davis_c_n_per_ms2"):
-            _check(path, f"[vehicle] {f.name}", value > 0, "must be > 0", value)
-        else:
-            _check(path, f"[vehicle] {f.name}", value >= 0, "must be >= 0", value)
-    _check(path, "[vehicle] efficiency", vehicle.efficiency <= 1, "must be <= 1", vehicle.efficiency)
+        _in_range(path, f"[vehicle] {f.name}", getattr(vehicle, f.name), VEHICLE_RANGES[f.name])
 
     run = RunConfig(**_table(path, data, "run", RunConfig))
     _check(path, "[run] mu_required", 0 < run.mu_required < 1, "must be in (0, 1)", run.mu_required)
@@ -266,12 +325,25 @@ def parse_scenario(text: str, path: str = "<scenario>", overrides: dict | None =
     ratio = run.exchange_period_s / run.integration_step_s
     _check(path, "[run] exchange_period_s", run.exchange_period_s > 0 and abs(ratio - round(ratio)) < 1e-6
            and round(ratio) >= 1, "must be a positive whole multiple of integration_step_s", run.exchange_period_s)
-    _check(path, "[run] seed", run.seed >= 0, "must be >= 0", run.seed)
+    _check(path, "[run] seed", 0 <= run.seed < 2 ** 63, "must be in [0, 2^63)", run.seed)
+    _check(path, "[run] initial_train_speed_ms", run.initial_train_speed_ms < DBC_TRAIN_SPEED_MS,
+           f"must be below {DBC_TRAIN_SPEED_MS:g} (the PlantSensor frame's range)", run.initial_train_speed_ms)
+    steps = run.duration_s / run.integration_step_s
+    if steps > MAX_INTEGRATION_STEPS:
+        raise _fail(path, "[run] duration_s", f"{run.duration_s:g} s at integration_step_s {run.integration_step_s:g} "
+                    f"is {steps:.3g} integration steps; more than {MAX_INTEGRATION_STEPS:.0e} are refused")
 
     sensors = SensorConfig(**_table(path, data, "sensors", SensorConfig, required=False))
     for f in dataclasses.fields(sensors):
         _check(path, f"[sensors] {f.name}", getattr(sensors, f.name) >= 0, "must be >= 0", getattr(sensors, f.name))
+    _check_dbc_ranges(path, vehicle, run, sensors)
 
+    curves = data.get("curves")
+    if curves is not None and not isinstance(curves, dict):
+        raise _fail(path, "[curves]", f"must be a table holding [curves.normal] and [curves.fault], got {curves!r}")
+    for key in ("normal", "fault"):
+        if curves is not None and key in curves and not isinstance(curves[key], dict):
+            raise _fail(path, f"[curves.{key}]", f"must be a table, got {curves[key]!r}")
     normal = _curve(path, data, "normal")
     fault = _curve(path, data, "fault", lambda: float(train_speed_before_fault(
         vehicle, run.mu_required, run.initial_train_speed_ms, run.fault_time_s)))
@@ -291,6 +363,8 @@ def parse_scenario(text: str, path: str = "<scenario>", overrides: dict | None =
         typ = _IDENTIFIER_FIELDS[key].type
         identifier[key] = value if key == "options" and isinstance(value, dict) else \
             _coerce(path, f"[identifier] {key}", value, typ)
+        if key in IDENTIFIER_RANGES:
+            _in_range(path, f"[identifier] {key}", identifier[key], IDENTIFIER_RANGES[key])
     bus = _bus(path, data)
     _plant(path, data)
     _reality(path, data)
@@ -301,8 +375,8 @@ def parse_scenario(text: str, path: str = "<scenario>", overrides: dict | None =
         scenario.identifier_settings()
         from identifier.observer import LoadTorqueObserver
         LoadTorqueObserver(1.0, run.exchange_period_s, scenario.identifier_settings().observer_pole_rad_s)
-    except ValueError as e:
-        raise _fail(path, "[identifier]", str(e)) from None
+    except (ValueError, ArithmeticError) as e:
+        raise _fail(path, "[identifier]", e) from None
     _check_strategy_options(path, scenario)
     return scenario
 
@@ -323,10 +397,9 @@ def _bus(path, data) -> BusSettings:
                         f"got {value!r}")
         if fields[key].type == "int" and not isinstance(value, int):
             raise _fail(path, f"[bus] {key}", f"must be an integer, got {value!r}")
+        _in_range(path, f"[bus] {key}", value, BUS_RANGES[key])
         values[key] = value
-    s = BusSettings(**values)
-    _check(path, "[bus] deadline_fraction", s.deadline_fraction < 1, "must be < 1", s.deadline_fraction)
-    return s
+    return BusSettings(**values)
 
 
 def _plant(path, data) -> None:
@@ -380,23 +453,72 @@ def _check_strategy_options(path, scenario) -> None:
 
     options = scenario.identifier.get("options", {})
     for name, opts in options.items():
+        where = f"[identifier.options.{name}]"
         if name not in STRATEGIES:
-            raise _fail(path, f"[identifier.options.{name}]", f"unknown strategy (known: {', '.join(STRATEGIES)})")
+            raise _fail(path, where, f"unknown strategy (known: {', '.join(STRATEGIES)})")
         if not isinstance(opts, dict):
-            raise _fail(path, f"[identifier.options.{name}]", "must be a table")
+            raise _fail(path, where, "must be a table")
+        known = strategy_option_keys(STRATEGIES[name])
+        for key, value in opts.items():
+            if key not in known:
+                raise _fail(path, f"{where} {key}", f"unknown option (known: {', '.join(sorted(known))})")
+            if key in OPTION_CAPS:
+                if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
+                        or value != int(value):
+                    raise _fail(path, f"{where} {key}", f"must be a whole number, got {value!r}")
+                _in_range(path, f"{where} {key}", value, (0, OPTION_CAPS[key]))
+        draws = opts.get("particles", 0) * opts.get("noise_block", 0)
+        if draws > MAX_NOISE_DRAWS:
+            raise _fail(path, where, f"particles x noise_block is {draws:.3g} noise draws held at once; more than "
+                        f"{MAX_NOISE_DRAWS:.0e} are refused")
         try:
             STRATEGIES[name](scenario.identifier_settings(), 0)
-        except (ValueError, TypeError) as e:
-            raise _fail(path, f"[identifier.options.{name}]", str(e)) from None
+        except (ValueError, TypeError, ArithmeticError) as e:
+            raise _fail(path, where, e) from None
+
+
+#: the options every strategy takes (the shared evaluation constants)
+SHARED_OPTIONS = ("window_samples", "k_pe", "c_lw", "c_up")
+
+
+def strategy_option_keys(cls) -> set[str]:
+    """The keys ``[identifier.options.NAME]`` may hold for strategy class ``cls``: its ``defaults``
+    (or ``option_keys``, or its module's ``DEFAULTS``) and ``SHARED_OPTIONS``; a strategy with none of
+    them (``nlls``) takes the shared ones only."""
+    import sys
+
+    own = getattr(cls, "defaults", None)
+    if own is None:
+        own = getattr(cls, "option_keys", None)
+    if own is None:
+        own = getattr(sys.modules[cls.__module__], "DEFAULTS", None)
+    return set(own or ()) | set(SHARED_OPTIONS)
+
+
+def _check_dbc_ranges(path, vehicle, run, sensors) -> None:
+    """The speeds at the start, with six standard deviations of sensor noise, must fit the PlantSensor
+    frame's ranges (hil/hil.dbc); otherwise the TCU would reject the plant's frames."""
+    motor = run.initial_train_speed_ms * vehicle.gear_ratio / vehicle.wheel_radius_m
+    for where, value, noise, limit in (
+            ("[sensors] motor_speed_noise_rad_s", motor, sensors.motor_speed_noise_rad_s, DBC_MOTOR_SPEED_RAD_S),
+            ("[sensors] train_speed_noise_ms", run.initial_train_speed_ms, sensors.train_speed_noise_ms,
+             DBC_TRAIN_SPEED_MS)):
+        if abs(value) + 6 * noise > limit:
+            raise _fail(path, where, f"{noise:g}: six of it around the starting speed {value:.4g} leave the "
+                        f"PlantSensor frame's range +-{limit:g} (hil/hil.dbc)")
 
 
 def load_scenario(path, overrides: dict | None = None) -> Scenario:
     """Load and validate a scenario file; raises ScenarioError with a one-line message."""
     p = Path(path)
     try:
-        text = p.read_text()
+        text = p.read_bytes().decode("utf-8")
     except FileNotFoundError:
         raise ScenarioError(f"{path}: no such scenario file") from None
+    except IsADirectoryError:
+        raise ScenarioError(f"{path}: is a directory, not a scenario file") from None
+    except UnicodeDecodeError as e:
+        raise ScenarioError(f"{path}: not UTF-8 text (byte {e.start}: {e.reason}); a scenario is a TOML file") from None
     except OSError as e:
-        raise ScenarioError(f"{path}: cannot read: {e.strerror}") from None
+        raise ScenarioError(f"{path}: cannot read: {e.strerror or e}") from None
     return parse_scenario(text, str(path), overrides)

@@ -8,6 +8,7 @@ message and exits with ``exit_code``.  Nothing here imports anything else of the
       LogError              exit 2   a file that is not a log this tool reads
       PlantError            exit 2   an FMU or plant that cannot be loaded or run
       PeerSilent            exit 3   the other side of the bus fell silent or died mid-run
+        NoProgress          exit 3   (lockstep) the other side lives but the pending step gets no answer
       PlantFault            exit 4   (TCU side) the plant reported a fault
 """
 from __future__ import annotations
@@ -47,6 +48,12 @@ class PlantError(HilError, ValueError):
 class PeerSilent(HilError, RuntimeError):
     """The other side of the bus stopped sending (or its process ended) during a run."""
     exit_code = EXIT_SILENT
+
+
+class NoProgress(PeerSilent):
+    """Lockstep: the TCU keeps its heartbeat but the step the plant waits for gets no command (the
+    sensor frame rejected or lost, or the TCU moved to another step); the message names the step and
+    the likely cause."""
 
 
 class PlantFault(HilError, RuntimeError):

@@ -17,8 +17,9 @@ The TCU on the other end is reached through one of three transports, chosen by `
 Whatever the transport, the summary comes from the run's ``Trace``, fed by the frames the plant
 node received (results, samples, observer): an external TCU's run has fit metrics too.
 
-Faults: the TCU silent for longer than the limit, its process ending, or its heartbeat saying
-"fault" raise ``PeerSilent`` (exit 3); the log then holds the fault (an event and ``fault``
+Faults: the TCU silent for longer than the limit, its process ending, its heartbeat saying "fault",
+or (lockstep) no command for the pending step within ``[bus] lockstep_progress_s`` twice (``NoProgress``,
+from ``PlantNode.await_command``) raise ``PeerSilent`` (exit 3); the log then holds the fault (an event and ``fault``
 metadata) and is closed, and the exception carries the partial summary (``.summary``) with a
 ``fault`` field.  Ctrl-C and SIGTERM end the run as ``KeyboardInterrupt``, never mid-write.
 """

@@ -19,7 +19,7 @@ from identifier.messages import SensorReading, TorqueCommand
 from plant import SensorModel, WheelsetPlant
 
 from .effects import Reality
-from .errors import PeerSilent
+from .errors import NoProgress, PeerSilent
 from .frames import STATE_FAULT, STATE_RUNNING, STATE_STARTING, TCU_IDS, FrameCodec, RejectCounter
 from .link import Sender, heartbeat_period_s, silence_limit_s
 from .record import (Recorder, write_command, write_frame, write_identification, write_plant_state, write_sensor,
@@ -91,6 +91,7 @@ class PlantNode:
         self.watch = watch
         self.watch_silence = watch_silence
         self.silence_s = silence_limit_s(self.settings, mode, self.period_s)
+        self.progress_s = self.settings.lockstep_progress_s if mode == "lockstep" else None
         self.heartbeat_s = heartbeat_period_s(self.settings, mode)
         self.rejected = RejectCounter()
         self.commands: dict[int, TorqueCommand] = {}
@@ -99,6 +100,8 @@ class PlantNode:
         self.last_result_step = -1
         self.last_sample_index = -1
         self.tcu_state: int | None = None
+        self.tcu_step: int | None = None       # the last step the TCU's heartbeat says it took
+        self._sensor_msg: can.Message | None = None
         self.last_tcu_rx: float | None = None
         self.frames_tx = 0
         self.frames_rx = 0
@@ -121,7 +124,14 @@ class PlantNode:
     def send_sensor(self) -> None:
         """Sense the plant at its current step and send the reading; that step's command is awaited."""
         self.awaited = self.rig.step
-        self.send(self.codec.sensor(self.rig.sense()))
+        self._sensor_msg = self.codec.sensor(self.rig.sense())
+        self.send(self._sensor_msg)
+
+    def resend_sensor(self) -> None:
+        """The pending step's sensor frame once more (lockstep progress deadline, ``await_command``)."""
+        m = self._sensor_msg
+        self.send(can.Message(arbitration_id=m.arbitration_id, data=bytes(m.data), is_extended_id=m.is_extended_id,
+                              is_fd=m.is_fd, bitrate_switch=m.bitrate_switch))
 
     def heartbeat(self, state: int) -> None:
         self.send(self.codec.plant_heartbeat(self.hb_counter, state, max(self.awaited, 0)))
@@ -196,6 +206,7 @@ class PlantNode:
             return "ok"
         if name == "TcuHeartbeat":
             self.tcu_state = v.state
+            self.tcu_step = v.step
             return "ok"
         return "foreign"        # plant frames from another node on the bus
 
@@ -269,12 +280,56 @@ class PlantNode:
             self.check_alive()
 
     def await_command(self, k: int, deadline: float | None) -> TorqueCommand | None:
-        """The TCU's command for step ``k``, or None when ``deadline`` (perf_counter) passes first."""
+        """The TCU's command for step ``k``, or None when ``deadline`` (perf_counter) passes first.
+
+        Lockstep (no deadline): when ``progress_s`` wall seconds pass without the command while the TCU
+        lives, the sensor frame is sent once more; after ``progress_s`` more, ``NoProgress`` (exit 3)
+        names the step and the likely cause."""
+        give_up = resent = None
+        if deadline is None and self.progress_s is not None:
+            give_up, resent = time.monotonic() + self.progress_s, False
+        rejected_before = dict(self.rejected)
         while k not in self.commands:
             if deadline is not None and time.perf_counter() >= deadline:
                 return None
             self.poll(deadline)
+            if give_up is not None and k not in self.commands and time.monotonic() > give_up:
+                if resent:
+                    cause = self._no_progress_cause(k, rejected_before)
+                    raise NoProgress(f"no command for step {k} within {2 * self.progress_s:g} s although the TCU "
+                                     f"is alive (its sensor frame sent twice): {cause}")
+                self.resend_sensor()
+                give_up, resent = time.monotonic() + self.progress_s, True
         return self.commands.pop(k)
+
+    def _no_progress_cause(self, k: int, rejected_before: dict) -> str:
+        """The likely reason step ``k`` got no command: the sensor frame itself (the TCU validates it
+        against the DBC as this side can), the TCU's heartbeat step, the frames rejected here."""
+        frame, status = self.codec.classify(self._sensor_msg)
+        if frame is None:
+            kind, _, signal = status.partition(":")
+            m = self.codec.db.get_message_by_frame_id(self._sensor_msg.arbitration_id)
+            value = m.decode(bytes(self._sensor_msg.data), decode_choices=False).get(signal) if signal else None
+            if kind == "out_of_range":
+                s = m.get_signal_by_name(signal)
+                return (f"TCU rejected the sensor frame: {signal} {value:.6g} is out of the DBC range "
+                        f"[{s.minimum:g}, {s.maximum:g}]")
+            if kind == "non_finite":
+                return f"TCU rejected the sensor frame: {signal} is {value}, not a finite number"
+            return f"TCU rejected the sensor frame: {status}"
+        new = {r: n - rejected_before.get(r, 0) for r, n in self.rejected.items() if n > rejected_before.get(r, 0)}
+        here = (" (frames rejected here meanwhile: " + ", ".join(f"{r} x{n}" for r, n in sorted(new.items())) + ")"
+                if new else "")
+        if self.tcu_step is None:
+            return f"no command for step {k}{here}"
+        if self.tcu_step > k:
+            return (f"the TCU's heartbeat says it is at step {self.tcu_step}, past the plant's step {k}: it took a "
+                    f"sensor frame this plant did not send (another node on the bus?) and now rejects the plant's "
+                    f"frames as out of sequence{here}")
+        if self.tcu_step == k:
+            return f"the TCU took step {k} but its command did not arrive or was rejected here{here}"
+        return f"the TCU's heartbeat says its last step is {self.tcu_step}: the sensor frame of step {k} did not " \
+               f"reach it or was rejected there{here}"
 
     def counters(self) -> dict:
         return {"frames_tx": self.frames_tx, "frames_rx": self.frames_rx, "rejected_frames": dict(self.rejected),

@@ -8,8 +8,8 @@ Streaming: protobuf channels, small chunks, unbuffered file.
 
 Why small chunks and no file buffering: a writer killed with SIGKILL leaves whatever reached the
 file.  With mcap's default 1 MiB chunks that is nothing; with ``CHUNK_SIZE`` bytes per chunk
-written straight to an unbuffered file, every finished chunk survives and can be read back with
-``mcap.stream_reader.StreamReader`` (see ``hil.logread``).  Memory stays flat because messages
+written straight to an unbuffered file, every finished chunk survives and can be read back (see
+``hil.logread``, which also steps over damaged chunks).  Memory stays flat because messages
 leave the process chunk by chunk; only the small chunk index grows with the run.
 """
 from __future__ import annotations
@@ -26,30 +26,16 @@ import time
 from importlib import metadata as importlib_metadata
 from pathlib import Path
 
-from mcap.writer import CompressionType
-from mcap_protobuf.writer import Writer
+from mcap.writer import LIBRARY_IDENTIFIER, CompressionType
+from mcap.writer import Writer as McapWriter
+from mcap_protobuf.schema import build_file_descriptor_set
 
 from identifier.messages import STAGE_NAMES
 
 from .errors import ConfigError
-from .schemas import TYPES
+from .schemas import PROFILE, TOPICS, TYPES
 
 CHUNK_SIZE = 32 * 1024
-PROFILE = "railway-hil"
-
-#: topic -> protobuf message name
-TOPICS = {
-    "/plant/state": "PlantState",
-    "/plant/sensor": "SensorReading",
-    "/tcu/command": "TorqueCommand",
-    "/tcu/observer": "ObserverSample",
-    "/tcu/status": "TcuStatus",
-    "/tcu/identification": "IdentificationEvent",
-    "/can/frames": "CanFrame",
-    "/loop/timing": "LoopTiming",
-    "/run/events": "RunEvent",
-    "/run/summary": "RunSummary",
-}
 
 VERSIONED_PACKAGES = ("numpy", "scipy", "casadi", "fmpy", "python-can", "cantools", "mcap",
                       "mcap-protobuf-support", "protobuf", "rerun-sdk")
@@ -144,16 +130,28 @@ class _DirectFile:
 
 class McapFile:
     """The log file itself: one protobuf message per row, LZ4 chunks of ``chunk_size`` bytes written
-    straight to the file descriptor ``fd``."""
+    straight to the file descriptor ``fd``.
+
+    The header's profile is ``PROFILE`` and every topic's schema and channel are registered before
+    the first message, in ``TOPICS`` order (ids 1, 2, ...), so a reader can rebuild them from
+    ``TOPICS`` when the chunk that held them is damaged (``hil.logread``)."""
 
     def __init__(self, fd: int, chunk_size: int):
         self._file = _DirectFile(fd)
-        self._writer = Writer(self._file, chunk_size=chunk_size, compression=CompressionType.LZ4)
-        self._types = {topic: TYPES[name] for topic, name in TOPICS.items()}
+        self._writer = McapWriter(self._file, chunk_size=chunk_size, compression=CompressionType.LZ4)
+        self._writer.start(profile=PROFILE, library=f"{LIBRARY_IDENTIFIER} railway-hil")
+        self._types, self._channels = {}, {}
+        for topic, name in TOPICS.items():
+            cls = TYPES[name]
+            schema_id = self._writer.register_schema(cls.DESCRIPTOR.full_name, "protobuf",
+                                                     build_file_descriptor_set(cls).SerializeToString())
+            self._channels[topic] = self._writer.register_channel(topic, "protobuf", schema_id)
+            self._types[topic] = cls
 
     def write(self, topic: str, log_t_s: float, fields: dict) -> None:
         ns = sim_time_ns(log_t_s)
-        self._writer.write_message(topic, self._types[topic](**fields), log_time=ns, publish_time=ns)
+        data = self._types[topic](**fields).SerializeToString()
+        self._writer.add_message(self._channels[topic], log_time=ns, data=data, publish_time=ns)
 
     def metadata(self, name: str, data: dict) -> None:
         self._writer.add_metadata(name, data)
@@ -276,12 +274,20 @@ class Recorder:
 
 
 # -- where a log goes -----------------------------------------------------------------------------------
+#: the longest slug a log name part takes (a scenario name beyond it is cut)
+SLUG_MAX = 60
+
+
 def slug(text: str, what: str) -> str:
-    """``text`` as a file-name part: letters, digits, ``.``, ``_``, ``-`` (anything else becomes ``_``),
-    at most 60 characters; refused in one line when nothing usable is left."""
-    out = re.sub(r"[^A-Za-z0-9._-]+", "_", str(text)).strip("._-")[:60]
+    """``text`` as a file-name part: letters, digits, ``.``, ``_``, ``-`` (any run of other characters
+    becomes one ``_``, a run of dots one ``.``), at most ``SLUG_MAX`` characters, never starting or ending
+    with ``.``, ``_`` or ``-``: it holds no path separator and is never ``.`` or ``..``, so a log named
+    from it stays in its directory.  Refused in one line when nothing usable is left (empty, only dots)."""
+    out = re.sub(r"\.{2,}", ".", re.sub(r"[^A-Za-z0-9._-]+", "_", str(text))).strip("._-")
+    out = out[:SLUG_MAX].rstrip("._-")
     if not out:
-        raise ConfigError(f"{what} {text!r}: cannot be part of a log file name (use letters, digits, . _ -)")
+        shown = repr(str(text)[:80]) + ("..." if len(str(text)) > 80 else "")
+        raise ConfigError(f"{what} {shown}: cannot be part of a log file name (use letters, digits, . _ -)")
     return out
 
 

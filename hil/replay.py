@@ -16,8 +16,8 @@ the logged true plant state when present, plus ``matches_log`` (the replayed ide
 equal the logged ones: count, kind, correction number and step exactly, parameters to ``PARAMS_RTOL``
 (the compiled kernels' last bits depend on the CPU they were built for); ``None``
 when the strategy or seed differ from the logged run's, or the log holds no identification record)
-and ``messages_read``.  A damaged log (run killed, file cut) replays up to the damage;
-``damage`` says what was lost.
+and ``messages_read``.  A damaged log (run killed, file cut, bytes changed) replays what survived
+(``hil.logread`` skips damaged chunks); ``damage`` says what was lost and where.
 """
 from __future__ import annotations
 
@@ -58,6 +58,7 @@ class ReplaySource:
     messages_read: int = 0
     complete: bool = True
     damage: str = ""
+    ended_early: str = ""                       # a log closed properly whose run did not finish: why
 
 
 def _msg_from_record(r) -> can.Message:
@@ -94,7 +95,7 @@ def load_mcap(path, scenario_file=None) -> ReplaySource:
     kind = "mcap-frames"
     if not frames:
         if not sensor:
-            what = f"damaged ({log.damage}) before any" if log.cut else "no"
+            what = f"damaged ({log.damage}) before any" if log.damage else "no"
             raise LogError(f"{path}: {what} sensor data (no PlantSensor frames on /can/frames, no /plant/sensor)")
         codec = FrameCodec(scenario.run.exchange_period_s)
         frames = [codec.sensor(r) for r in sensor]
@@ -102,7 +103,8 @@ def load_mcap(path, scenario_file=None) -> ReplaySource:
     compare = has_ident_topic or bool(status_steps)
     src = ReplaySource(str(path), kind, scenario, frames, logged_strategy=run.get("strategy"), logged_seed=seed,
                        logged_events=events if compare else None, truth=truth,
-                       messages_read=log.message_count, complete=log.complete, damage=log.damage)
+                       messages_read=log.message_count, complete=log.complete, damage=log.damage,
+                       ended_early=log.ended_early)
     if not log.complete:
         # a cut log: results and status of the last steps may be missing; compare up to the last status - 1
         src.logged_last_step = (max(status_steps) - 1) if status_steps else -1
@@ -243,7 +245,9 @@ def damage_warning(src: ReplaySource) -> str | None:
     if src.complete:
         return None
     period = src.scenario.run.exchange_period_s
-    return (f"warning: {src.path} is damaged ({src.damage}); recovered {src.messages_read} messages, "
+    what = (f"is damaged ({src.damage})" if src.damage else
+            f"holds a run that did not finish ({src.ended_early or 'no summary'}; the log was closed properly)")
+    return (f"warning: {src.path} {what}; recovered {src.messages_read} messages, "
             f"{len(src.frames)} sensor frames (about {len(src.frames) * period:.3f} s of the run); "
-            "replaying up to the damage")
+            + ("replaying what survived the damage" if src.damage else "replaying what was recorded"))
 

@@ -1,4 +1,5 @@
-"""Protobuf message types for the MCAP channels, built at run time (no protoc step).
+"""The log's channels (``TOPICS``, ``PROFILE``) and their protobuf message types, built at run time
+(no protoc step).
 
 Protobuf channels decode in Rerun (``rerun run.mcap``) and Foxglove into plottable fields; a JSON
 channel would arrive in Rerun as raw bytes.  Field numbers are fixed here: never renumber them.
@@ -8,6 +9,24 @@ from __future__ import annotations
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 
 PACKAGE = "hil"
+#: the header profile of the logs ``hil run`` writes: their channels are ``TOPICS``, registered in this
+#: order (channel and schema ids 1, 2, ...) before the first message (``hil.record.McapFile``)
+PROFILE = "railway-hil"
+
+#: topic -> protobuf message name (the log's channels, in the order they are registered)
+TOPICS = {
+    "/plant/state": "PlantState",
+    "/plant/sensor": "SensorReading",
+    "/tcu/command": "TorqueCommand",
+    "/tcu/observer": "ObserverSample",
+    "/tcu/status": "TcuStatus",
+    "/tcu/identification": "IdentificationEvent",
+    "/can/frames": "CanFrame",
+    "/loop/timing": "LoopTiming",
+    "/run/events": "RunEvent",
+    "/run/summary": "RunSummary",
+}
+
 _T = descriptor_pb2.FieldDescriptorProto
 _TYPES = {"double": _T.TYPE_DOUBLE, "int64": _T.TYPE_INT64, "uint32": _T.TYPE_UINT32, "bool": _T.TYPE_BOOL,
           "string": _T.TYPE_STRING, "bytes": _T.TYPE_BYTES, "int32": _T.TYPE_INT32}

@@ -67,7 +67,7 @@ class LogData:
         self.topics = by_topic
         if not by_topic.get("/plant/state") and not by_topic.get("/tcu/observer"):
             raise LogError(f"{path}: no /plant/state or /tcu/observer messages"
-                           + (f" before the damage ({log.damage})" if log.cut else ""))
+                           + (f" outside the damage ({log.damage})" if log.damage else ""))
 
     def arrays(self, topic: str, *fields: str) -> list[np.ndarray]:
         msgs = self.topics.get(topic, [])
@@ -227,8 +227,8 @@ def build_recording(data: LogData, application_id: str = "railway_hil"):
     if t_serious is not None:
         texts.append((t_serious, "WARN", f"serious stage starts (creep >= {v_peak:.3f} km/h, "
                                          f"T_det = {1e3 * (t_serious - t_f):.1f} ms)"))
-    if data.log.cut or not data.log.complete:
-        texts.append((float(t_all.max()) if t_all.size else 0.0, "ERROR", f"log incomplete: {data.log.damage}"))
+    if not data.log.complete:
+        texts.append((float(t_all.max()) if t_all.size else 0.0, "ERROR", f"log incomplete: {data.log.problem()}"))
     texts.sort(key=lambda x: x[0])
     if texts:
         rr.send_columns("/events", indexes=[rr.TimeColumn(TIME_TIMELINE, duration=[x[0] for x in texts])],

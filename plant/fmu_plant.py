@@ -14,15 +14,24 @@ FMI 2.0 Co-Simulation goes through fmpy's ``FMU2Slave`` (its raw ctypes calls on
 one step is a few microseconds); FMI 3.0 Co-Simulation through ``FMU3Slave``.  Model Exchange only
 FMUs are refused: the loop needs the FMU to integrate itself.
 
-Loading an FMU runs its native code inside this process: only load FMUs you trust.
+Loading an FMU runs its native code inside this process: only load FMUs you trust.  Before that, an
+FMU is treated as data (``archive_problems``): its ``modelIdentifier`` must be a plain name (the
+binary loaded is ``binaries/<platform>/<modelIdentifier>.so`` inside the unpacked FMU, never a path
+elsewhere), every archive member must stay inside the folder it is unpacked to, and the unpacked size
+is capped (``max_extracted_bytes``); ``extract_fmu`` unpacks only such an archive and counts the bytes
+it writes.
 """
 from __future__ import annotations
 
 import ctypes
 import math
 import os
+import posixpath
+import re
 import shutil
+import tempfile
 import weakref
+import xml.etree.ElementTree as ET
 import zipfile
 from pathlib import Path
 
@@ -42,33 +51,171 @@ class FmuError(ValueError):
     """An FMU that cannot serve as the plant; the message is one line naming the file and the problem."""
 
 
+#: the most an FMU may unpack to, in bytes, unless the environment variable ``MAX_BYTES_ENV`` says otherwise
+MAX_EXTRACTED_BYTES = 512 * 1024 ** 2
+MAX_BYTES_ENV = "HIL_FMU_MAX_BYTES"
+#: the most members an FMU archive may hold
+MAX_MEMBERS = 100_000
+#: the largest modelDescription.xml read
+MAX_MODEL_DESCRIPTION_BYTES = 64 * 1024 ** 2
+#: what a modelIdentifier may be: a file-name stem without separators (FMI: a C identifier)
+_IDENTIFIER = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+
+
+def max_extracted_bytes() -> int:
+    """``MAX_EXTRACTED_BYTES``, or the environment's ``HIL_FMU_MAX_BYTES`` (bytes) when set; FmuError
+    (one line) when that is not a positive whole number."""
+    raw = os.environ.get(MAX_BYTES_ENV)
+    if raw is None or raw.strip() == "":
+        return MAX_EXTRACTED_BYTES
+    try:
+        value = int(raw)
+    except ValueError:
+        value = 0
+    if value <= 0:
+        raise FmuError(f"{MAX_BYTES_ENV}={raw!r}: must be a positive number of bytes")
+    return value
+
+
+def _member_problem(name: str) -> str | None:
+    if "\\" in name or "\0" in name:
+        return "holds a backslash or NUL"
+    if name.startswith("/") or re.match(r"[A-Za-z]:", name):
+        return "is an absolute path"
+    norm = posixpath.normpath(name)
+    if norm == ".." or norm.startswith("../"):
+        return "leaves the FMU's folder"
+    return None
+
+
+def archive_problems(path, md=None) -> list[str]:
+    """What makes the zip archive ``path`` unsafe to unpack or load, one short sentence each: member
+    paths that are absolute or climb out (``..``), more than ``MAX_MEMBERS`` members, a total unpacked
+    size (as the archive declares it) above ``max_extracted_bytes()``, and, given its model description
+    ``md``, a ``modelIdentifier`` that is not a plain name.  Reads only the archive's directory."""
+    problems = []
+    with zipfile.ZipFile(path) as z:
+        infos = z.infolist()
+    if len(infos) > MAX_MEMBERS:
+        problems.append(f"{len(infos)} archive members (at most {MAX_MEMBERS})")
+    bad = [(i.filename, why) for i in infos if (why := _member_problem(i.filename))]
+    for name, why in bad[:5]:
+        problems.append(f"archive member {name[:120]!r} {why}")
+    if len(bad) > 5:
+        problems.append(f"... and {len(bad) - 5} more such members")
+    total, cap = sum(i.file_size for i in infos), max_extracted_bytes()
+    if total > cap:
+        problems.append(f"unpacks to {total / 1024 ** 2:.0f} MiB, more than the {cap / 1024 ** 2:.0f} MiB allowed "
+                        f"({MAX_BYTES_ENV} sets it)")
+    if md is not None:
+        for kind in ("coSimulation", "modelExchange"):
+            ident = getattr(getattr(md, kind, None), "modelIdentifier", None)
+            if ident is not None and not _IDENTIFIER.fullmatch(ident):
+                problems.append(f"{kind} modelIdentifier {ident[:120]!r} is not a plain name (it names the "
+                                "binary to load; a path there would load code from outside the FMU)")
+    return problems
+
+
+def extract_fmu(path, dest=None) -> str:
+    """Unpack the FMU ``path`` into ``dest`` (default: a new temporary folder) after
+    ``archive_problems`` found nothing, writing at most the declared size of each member and at most
+    ``max_extracted_bytes()`` in all; FmuError (one line, the partial folder removed) otherwise."""
+    problems = archive_problems(path)
+    if problems:
+        raise FmuError(f"{path}: refused: {'; '.join(problems)}")
+    made = dest is None
+    root = Path(tempfile.mkdtemp(prefix="hil-fmu-") if made else dest).resolve()
+    budget = max_extracted_bytes()
+    try:
+        with zipfile.ZipFile(path) as z:
+            for info in z.infolist():
+                target = (root / posixpath.normpath(info.filename)).resolve()
+                if target != root and root not in target.parents:
+                    raise FmuError(f"{path}: refused: archive member {info.filename!r} leaves the FMU's folder")
+                if info.is_dir():
+                    target.mkdir(parents=True, exist_ok=True)
+                    continue
+                target.parent.mkdir(parents=True, exist_ok=True)
+                with z.open(info) as src, open(target, "wb") as dst:
+                    left = info.file_size
+                    while chunk := src.read(1 << 20):
+                        left -= len(chunk)
+                        budget -= len(chunk)
+                        if left < 0 or budget < 0:
+                            raise FmuError(f"{path}: refused: archive member {info.filename!r} unpacks to more "
+                                           "than it declares or than the size allowed")
+                        dst.write(chunk)
+    except FmuError:
+        if made:
+            shutil.rmtree(root, ignore_errors=True)
+        raise
+    except (OSError, zipfile.BadZipFile, EOFError, RuntimeError) as e:
+        if made:
+            shutil.rmtree(root, ignore_errors=True)
+        raise FmuError(f"{path}: cannot unpack the FMU: {e}") from None
+    return str(root)
+
+
+def _fmi_version(path, z: zipfile.ZipFile) -> str:
+    """The ``fmiVersion`` attribute of the archive's modelDescription.xml root, read before fmpy does
+    (fmpy fails on FMI 1.0 with a message about int())."""
+    info = z.getinfo("modelDescription.xml")
+    if info.file_size > MAX_MODEL_DESCRIPTION_BYTES:
+        raise FmuError(f"{path}: modelDescription.xml unpacks to {info.file_size / 1024 ** 2:.0f} MiB "
+                       f"(at most {MAX_MODEL_DESCRIPTION_BYTES / 1024 ** 2:.0f} MiB)")
+    try:
+        with z.open(info) as f:
+            for _, element in ET.iterparse(f, events=("start",)):
+                return str(element.get("fmiVersion") or "")
+    except (ET.ParseError, zipfile.BadZipFile, OSError, EOFError, RuntimeError) as e:
+        raise FmuError(f"{path}: unreadable modelDescription.xml: {e}") from None
+    return ""
+
+
 def _real_types(fmi_version: str) -> tuple[str, ...]:
     return ("Real",) if fmi_version.startswith("2") else ("Float64",)
 
 
-def read_fmu(path) -> "fmpy.model_description.ModelDescription":  # noqa: F821
-    """Model description of a Co-Simulation FMU with a binary for this platform, or FmuError."""
+def read_model_description(path) -> "fmpy.model_description.ModelDescription":  # noqa: F821
+    """The model description of the FMI 2.0 or 3.0 FMU ``path`` (a zip archive), or FmuError naming
+    what it is instead (missing, a folder, not a zip, no or a huge modelDescription.xml, FMI 1.0)."""
     import fmpy
 
     path = Path(path)
-    if not path.is_file():
+    if path.is_dir():
+        raise FmuError(f"{path}: is a folder; an FMU is a single .fmu file (a zip archive)")
+    if not path.exists():
         raise FmuError(f"{path}: no such FMU file")
+    if not path.is_file():
+        raise FmuError(f"{path}: not a regular file; an FMU is a .fmu file (a zip archive)")
     if not zipfile.is_zipfile(path):
         raise FmuError(f"{path}: not an FMU (not a zip archive)")
     try:
         with zipfile.ZipFile(path) as z:
-            names = set(z.namelist())
+            if "modelDescription.xml" not in set(z.namelist()):
+                raise FmuError(f"{path}: not an FMU (no modelDescription.xml in the archive)")
+            version = _fmi_version(path, z)
     except zipfile.BadZipFile as e:
         raise FmuError(f"{path}: not an FMU (broken zip archive: {e})") from None
-    if "modelDescription.xml" not in names:
-        raise FmuError(f"{path}: not an FMU (no modelDescription.xml in the archive)")
+    if not version.startswith(("2", "3")):
+        raise FmuError(f"{path}: FMI {version or '(no version)'} is not supported (need FMI 2.0 or 3.0 "
+                       "Co-Simulation)")
     try:
-        md = fmpy.read_model_description(str(path), validate=False)
+        return fmpy.read_model_description(str(path), validate=False)
     except Exception as e:  # fmpy raises plain Exceptions for XML and schema problems
         raise FmuError(f"{path}: unreadable modelDescription.xml: {str(e).splitlines()[0] if str(e) else e!r}") \
             from None
-    if not md.fmiVersion.startswith(("2", "3")):
-        raise FmuError(f"{path}: FMI {md.fmiVersion} is not supported (need FMI 2.0 or 3.0 Co-Simulation)")
+
+
+def read_fmu(path) -> "fmpy.model_description.ModelDescription":  # noqa: F821
+    """Model description of a Co-Simulation FMU with a binary for this platform and nothing
+    ``archive_problems`` objects to, or FmuError."""
+    import fmpy
+
+    md = read_model_description(path)
+    problems = archive_problems(path, md)
+    if problems:
+        raise FmuError(f"{path}: refused: {'; '.join(problems)}")
     if md.coSimulation is None:
         kinds = [k for k, v in (("Model Exchange", md.modelExchange),
                                 ("Scheduled Execution", getattr(md, "scheduledExecution", None))) if v is not None]
@@ -158,8 +305,6 @@ class FmuPlant:
 
     def __init__(self, path, cfg: PlantConfig, mapping: dict | None = None, parameters: dict | None = None,
                  instance_name: str = "plant"):
-        import fmpy
-
         self.path = Path(path)
         self.cfg = cfg
         self.md = md = read_fmu(self.path)
@@ -184,7 +329,7 @@ class FmuPlant:
         self._param_names = list(params)
         self._param_vrs = [by_name[n].valueReference for n in params]
         self._param_values = list(params.values())
-        self._unzipdir = fmpy.extract(str(self.path))
+        self._unzipdir = extract_fmu(self.path)
         self._finalizer = weakref.finalize(self, shutil.rmtree, self._unzipdir, True)
         self._log: list[str] = []
         self._fmu = None

@@ -339,3 +339,135 @@ def test_plant_table_relative_fmu_path_and_plant_spec(wheelset_fmu, tmp_path):
         make_plant(_scenario_with(tmp_path, '\n[plant]\nfmu = "wheelset.fmu"\n[plant.mapping]\ntorque_nm = 3\n'))
     with pytest.raises(ConfigError, match=r"\[reality\] plant effects \(torque_lag\).*cannot be combined"):
         make_plant(_scenario_with(tmp_path, '\n[plant]\nfmu = "wheelset.fmu"\n[reality]\ntorque_lag = true\n'))
+
+
+# -- FMUs are data until trusted ------------------------------------------------------------------------------
+def _files_under(root: Path) -> set[Path]:
+    return {p for p in root.rglob("*")}
+
+
+def _hil_fmu(args, tmp_path, **env):
+    """``hil ARGS`` with TMPDIR in ``tmp_path/tmp`` (where an FMU would be unpacked), output captured."""
+    tmpdir = tmp_path / "tmp"
+    tmpdir.mkdir(exist_ok=True)
+    return subprocess.run(hil_command() + [str(a) for a in args], capture_output=True, text=True,
+                          env={**subprocess_env(), "TMPDIR": str(tmpdir), **env}, timeout=120)
+
+
+@pytest.fixture(scope="module")
+def marker_library(tmp_path_factory):
+    """A shared library that, once loaded, creates the file ``loaded`` beside itself: what an FMU with a
+    path for a modelIdentifier would make hil run."""
+    if shutil.which("gcc") is None:
+        pytest.skip("no gcc")
+    d = tmp_path_factory.mktemp("evil")
+    (d / "evil.c").write_text('#include <stdio.h>\n__attribute__((constructor)) static void hit(void) '
+                              f'{{ FILE *f = fopen("{d}/loaded", "w"); if (f) fclose(f); }}\n')
+    subprocess.run(["gcc", "-shared", "-fPIC", "-o", str(d / "evil.so"), str(d / "evil.c")], check=True)
+    return d
+
+
+def test_a_model_identifier_that_is_a_path_is_refused_and_nothing_runs(wheelset_fmu, marker_library, tmp_path):
+    cfg = load_scenario(SCENARIOS / "ffcc_a.toml").plant_config()
+    ident = fmpy.read_model_description(str(wheelset_fmu)).coSimulation.modelIdentifier
+    for i, evil in enumerate([str(marker_library / "evil"), "../../evil"]):
+        fmu = _rezip(wheelset_fmu, tmp_path / f"evil{i}.fmu",
+                     edit_md=lambda md: md.replace(f'modelIdentifier="{ident}"', f'modelIdentifier="{evil}"'))
+        with pytest.raises(FmuError) as e:
+            FmuPlant(fmu, cfg)
+        msg = str(e.value)
+        assert "\n" not in msg and f"coSimulation modelIdentifier '{evil}' is not a plain name" in msg, msg
+        r = _hil_fmu(["run", SCENARIOS / "ffcc_a.toml", "--bus", "inprocess", "--plant", f"fmu:{fmu}", "--out",
+                      tmp_path / "out"], tmp_path)
+        assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "is not a plain name" in r.stderr
+        info = _hil_fmu(["fmu", "info", fmu], tmp_path)
+        assert info.returncode == 0 and "safety: 1 problem(s); hil refuses to unpack or load this FMU" in info.stdout
+        assert f"modelIdentifier '{evil}' is not a plain name" in info.stdout, info.stdout
+    assert not (marker_library / "loaded").exists()
+    assert list((tmp_path / "tmp").iterdir()) == [] and not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("member", ["../x", "../../escaped/x", "/abs/x", "resources/../../x"])
+def test_an_archive_member_outside_the_fmu_is_refused_before_unpacking(wheelset_fmu, tmp_path, member):
+    cfg = load_scenario(SCENARIOS / "ffcc_a.toml").plant_config()
+    work = tmp_path / "a" / "b"
+    work.mkdir(parents=True)
+    fmu = work / "slip.fmu"
+    shutil.copy(wheelset_fmu, fmu)
+    with zipfile.ZipFile(fmu, "a") as z:
+        z.writestr(member, b"written outside")
+    before = _files_under(tmp_path)
+    with pytest.raises(FmuError, match=r"refused: archive member .* (leaves the FMU's folder|is an absolute path)"):
+        FmuPlant(fmu, cfg)
+    r = _hil_fmu(["run", SCENARIOS / "ffcc_a.toml", "--bus", "inprocess", "--plant", f"fmu:{fmu}", "--out",
+                  work / "out"], tmp_path)
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "refused: archive member" in r.stderr
+    info = _hil_fmu(["fmu", "info", fmu], tmp_path)
+    assert info.returncode == 0 and "safety: 1 problem(s)" in info.stdout, info.stdout
+    assert _files_under(tmp_path) - before == {tmp_path / "tmp"}        # nothing unpacked anywhere
+
+
+def test_a_zip_bomb_is_refused_before_unpacking(wheelset_fmu, tmp_path):
+    """Three members of 200 MiB of zeros (0.6 MB in the archive) declare more than the 512 MiB cap."""
+    fmu = tmp_path / "bomb.fmu"
+    shutil.copy(wheelset_fmu, fmu)
+    zeros = bytes(1 << 20)
+    with zipfile.ZipFile(fmu, "a", zipfile.ZIP_DEFLATED) as z:
+        for i in range(3):
+            with z.open(f"resources/zeros{i}", "w", force_zip64=True) as f:
+                for _ in range(200):
+                    f.write(zeros)
+    assert fmu.stat().st_size < 2_000_000
+    r = _hil_fmu(["run", SCENARIOS / "ffcc_a.toml", "--bus", "inprocess", "--plant", f"fmu:{fmu}", "--out",
+                  tmp_path / "out"], tmp_path)
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(lines) == 1, r.stderr
+    assert "refused: unpacks to 600 MiB, more than the 512 MiB allowed (HIL_FMU_MAX_BYTES sets it)" in lines[0]
+    assert list((tmp_path / "tmp").iterdir()) == [] and not (tmp_path / "out").exists()
+    info = _hil_fmu(["fmu", "info", fmu, "--json"], tmp_path)
+    assert info.returncode == 0 and json.loads(info.stdout)["safety_problems"] == [
+        "unpacks to 600 MiB, more than the 512 MiB allowed (HIL_FMU_MAX_BYTES sets it)"]
+
+
+def test_the_unpacked_size_cap_is_settable_and_counted_while_unpacking(wheelset_fmu, tmp_path, monkeypatch):
+    from plant.fmu_plant import extract_fmu
+
+    cfg = load_scenario(SCENARIOS / "ffcc_a.toml").plant_config()
+    size = sum(i.file_size for i in zipfile.ZipFile(wheelset_fmu).infolist())
+    monkeypatch.setenv("HIL_FMU_MAX_BYTES", str(size - 1))
+    with pytest.raises(FmuError, match="refused: unpacks to .* MiB allowed"):
+        FmuPlant(wheelset_fmu, cfg)
+    monkeypatch.setenv("HIL_FMU_MAX_BYTES", "lots")
+    with pytest.raises(FmuError, match="HIL_FMU_MAX_BYTES='lots': must be a positive number of bytes"):
+        FmuPlant(wheelset_fmu, cfg)
+    monkeypatch.setenv("HIL_FMU_MAX_BYTES", str(size))
+    dest = tmp_path / "unpacked"
+    assert extract_fmu(wheelset_fmu, dest) == str(dest.resolve())
+    assert sum(p.stat().st_size for p in dest.rglob("*") if p.is_file()) == size
+    # a member that inflates to more than it declares: zipfile stops at the declared size, the CRC fails
+    liar = tmp_path / "liar.fmu"
+    shutil.copy(wheelset_fmu, liar)
+    with zipfile.ZipFile(liar, "a", zipfile.ZIP_DEFLATED) as z:
+        z.writestr("resources/lie", bytes(4096))
+    data = bytearray(liar.read_bytes())
+    cd = data.rfind(b"PK\x01\x02")                                                   # last central entry
+    name_at = data.rfind(b"resources/lie")
+    assert cd < name_at
+    data[cd + 24:cd + 28] = (16).to_bytes(4, "little")                                # declared size 16 B
+    liar.write_bytes(bytes(data))
+    monkeypatch.delenv("HIL_FMU_MAX_BYTES")
+    with pytest.raises(FmuError, match="liar.fmu: cannot unpack the FMU: Bad CRC-32|unpacks to more than it declares"):
+        extract_fmu(liar, tmp_path / "liar")
+
+
+def test_a_folder_and_an_fmi1_fmu_get_the_right_line(wheelset_fmu, tmp_path):
+    folder = tmp_path / "unzipped.fmu"
+    folder.mkdir()
+    fmi1 = _rezip(wheelset_fmu, tmp_path / "fmi1.fmu", edit_md=lambda md: md.replace('fmiVersion="2.0"',
+                                                                                         'fmiVersion="1.0"'))
+    for fmu, says in ((folder, "unzipped.fmu: is a folder; an FMU is a single .fmu file (a zip archive)"),
+                      (fmi1, "fmi1.fmu: FMI 1.0 is not supported (need FMI 2.0 or 3.0 Co-Simulation)")):
+        for args in (["run", SCENARIOS / "ffcc_a.toml", "--bus", "inprocess", "--plant", f"fmu:{fmu}", "--out",
+                      tmp_path / "out"], ["fmu", "info", fmu]):
+            r = _hil_fmu(args, tmp_path)
+            assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and says in r.stderr, r.stderr

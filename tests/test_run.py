@@ -124,3 +124,30 @@ def test_ctrl_c_during_start_up_is_one_line_not_a_traceback(tmp_path, delay_s):
     _, err = p.communicate(timeout=120)
     assert p.returncode == 130, err
     assert "Traceback" not in err and err.strip().splitlines()[-1].endswith("interrupted")
+
+
+@pytest.mark.parametrize("name, refused", [("../../elsewhere/pwned", False), ("{tmp}/abs/pwned", False),
+                                           ("a\\u0000b", True), ("../" * 100, True), ("x" * 300, False),
+                                           ("/../..", True)])
+def test_no_scenario_name_puts_a_file_outside_out(tmp_path, name, refused):
+    """Path parts, an absolute path, a NUL, 300 characters: the logs (.mcap and .rrd) land in --out under
+    a slug of the name, or the name is refused in one line and nothing is written."""
+    scenario = tmp_path / "s.toml"
+    name = name.replace("{tmp}", str(tmp_path))
+    scenario.write_text((SCENARIOS / "ffcc_a.toml").read_text().replace('name = "ffcc_a"', f'name = "{name}"'))
+    out = tmp_path / "a" / "b" / "out"
+    (tmp_path / "a").mkdir()
+    r = subprocess.run(hil_command() + ["run", str(scenario), "--bus", "inprocess", "--out", str(out), "--seed", "5",
+                                        "--set", "run.duration_s=0.2", "--set", "run.fault_time_s=0.1"],
+                       cwd=tmp_path / "a", capture_output=True, text=True, env=subprocess_env(), timeout=150)
+    written = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*") if p.is_file())
+    if refused:
+        assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+        assert "name" in r.stderr and written == [scenario.relative_to(tmp_path)]
+        return
+    assert r.returncode == 0, r.stderr
+    logs = [p for p in written if p.parts[:3] == ("a", "b", "out")]
+    assert sorted(p.suffix for p in logs) == [".mcap", ".rrd"], written
+    assert set(written) == {scenario.relative_to(tmp_path), *logs}, written
+    stem = logs[0].stem
+    assert stem.endswith("-nlls-5") and len(stem) <= 60 + len("-nlls-5") and ".." not in stem

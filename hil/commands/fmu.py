@@ -50,10 +50,11 @@ def cmd_info(args) -> int:
     import fmpy
     from fmpy.validation import validate_fmu
 
-    from plant.fmu_plant import FmuError, describe_variables, read_fmu
+    from plant.fmu_plant import FmuError, archive_problems, describe_variables, read_model_description
 
     try:
-        md = read_fmu(args.fmu)
+        md = read_model_description(args.fmu)
+        refused = archive_problems(args.fmu, md)
     except FmuError as e:
         raise PlantError(str(e)) from None
     problems = validate_fmu(args.fmu)
@@ -61,13 +62,17 @@ def cmd_info(args) -> int:
             "generation_tool": md.generationTool,
             "kinds": [k for k, v in (("CoSimulation", md.coSimulation), ("ModelExchange", md.modelExchange)) if v],
             "platforms": fmpy.supported_platforms(args.fmu), "variables": describe_variables(md),
-            "validation_problems": problems}
+            "safety_problems": refused, "validation_problems": problems}
     if args.json:
         print(json.dumps(info))
         return 0
     print(f"{args.fmu}: FMI {md.fmiVersion} {' + '.join(info['kinds'])}, model {md.modelName!r} "
           f"by {md.generationTool!r}, platforms {', '.join(info['platforms'])}")
     print(f"  {info['variables']}")
+    print("  safety: " + ("no problems (loading it still runs its code: only load FMUs you trust)" if not refused
+                          else f"{len(refused)} problem(s); hil refuses to unpack or load this FMU"))
+    for p in refused:
+        print("    " + p)
     print("  fmpy.validation: " + ("no problems" if not problems else f"{len(problems)} problem(s)"))
     for p in problems:
         print("    " + str(p).replace("\n", "\n    "))

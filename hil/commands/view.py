@@ -22,7 +22,7 @@ def cmd_view(args) -> int:
 
     out, data = write_rrd(args.log, args.save)
     if not data.log.complete:
-        print(f"hil view: warning: {args.log}: {data.log.damage}; the recording shows what was read "
+        print(f"hil view: warning: {args.log}: {data.log.problem()}; the recording shows what was read "
               f"({data.log.message_count} messages)", file=sys.stderr)
     print(f"recording: {out}")
     if args.spawn:

@@ -1,0 +1,105 @@
+"""No endless lockstep run: when the TCU lives (heartbeats) but the pending step gets no command, the
+plant resends the sensor frame once, then ends the run with exit 3 and one line naming the step and
+the likely cause; the log is closed with the fault.  Real runs: a scenario whose motor speed leaves
+the DBC's range mid-run (the TCU must reject the frame), and a third node on the local bus that forges
+one sensor frame 50 steps ahead."""
+import re
+import subprocess
+import time
+
+import can
+import pytest
+
+from hil.frames import SENSOR_ID, FrameCodec
+from hil.localbus import create_channel, remove_channel
+from hil.logread import read_log
+from identifier.messages import SensorReading
+
+from .conftest import ROOT, SCENARIOS, hil_command, subprocess_env
+
+#: FFCC-a on a train already at 87 m/s with a gear ratio of 10 and no running resistance: the motor
+#: starts near 1990 rad/s and accelerates past the PlantSensor frame's 2000 rad/s within the run
+FAST = {"gear_ratio = 2.788": "gear_ratio = 10.0", "initial_train_speed_ms = 10.0": "initial_train_speed_ms = 87.0",
+        "davis_a_n = 2600.0": "davis_a_n = 0.0", "davis_b_n_per_ms = 350.0": "davis_b_n_per_ms = 0.0",
+        "davis_c_n_per_ms2 = 70.0": "davis_c_n_per_ms2 = 0.0"}
+
+
+def _fast_scenario(tmp_path):
+    text = (SCENARIOS / "ffcc_a.toml").read_text()
+    for old, new in FAST.items():
+        assert old in text
+        text = text.replace(old, new)
+    path = tmp_path / "fast.toml"
+    path.write_text(text)
+    return path
+
+
+@pytest.mark.parametrize("bus", ["inprocess", "local"])
+def test_a_sensor_frame_out_of_the_dbc_range_ends_the_run_with_exit_3(tmp_path, bus):
+    scenario = _fast_scenario(tmp_path)
+    t0 = time.monotonic()
+    r = subprocess.run(hil_command() + ["run", str(scenario), "--bus", bus, "--out", str(tmp_path), "--no-rrd",
+                                        "--set", "bus.lockstep_progress_s=0.5"],
+                       capture_output=True, text=True, env=subprocess_env(), timeout=150, cwd=ROOT)
+    took = time.monotonic() - t0
+    assert r.returncode == 3, r.stderr
+    assert "Traceback" not in r.stderr
+    last = r.stderr.strip().splitlines()[-1]
+    m = re.fullmatch(r"hil run: error: no command for step (\d+) within 1 s although the TCU is alive \(its sensor "
+                     r"frame sent twice\): TCU rejected the sensor frame: MotorSpeed 2000\.\d+ is out of the DBC "
+                     r"range \[-2000, 2000\]; fault recorded, log closed", last)
+    assert m, last
+    assert took < 60
+    log = read_log(tmp_path / "ffcc_a-nlls-1.mcap")
+    step = int(m.group(1))
+    assert not log.damage and log.ended_early.startswith(f"fault at step {step}: no command for step {step}")
+    states = log.topic("/plant/state")
+    assert states[-1].step == step and states[-1].motor_speed_rad_s > 2000 > states[-2].motor_speed_rad_s - 0.5
+    sent = [f for f in log.topic("/can/frames") if f.arbitration_id == SENSOR_ID and f.direction == "tx"]
+    assert len(sent) == step + 2                     # every step once, the stuck one twice
+
+
+def test_a_forged_sensor_frame_from_a_third_node_ends_the_run_naming_it(tmp_path):
+    """A third node on the local bus sends one PlantSensor 50 steps ahead: the TCU takes it and then
+    rejects the plant's own frames as out of sequence; the plant's wait ends at the progress deadline."""
+    channel = create_channel()
+    proc = None
+    spy = can.Bus(interface="localbus", channel=channel)
+    try:
+        proc = subprocess.Popen(hil_command() + ["run", "scenarios/ffcc_a.toml", "--bus", f"localbus:{channel}",
+                                                 "--out", str(tmp_path), "--no-rrd", "--set", "run.duration_s=60",
+                                                 "--set", "run.fault_time_s=55", "--set", "bus.lockstep_progress_s=0.5"],
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=subprocess_env(),
+                                cwd=ROOT)
+        codec = FrameCodec(1e-3)
+        end = time.monotonic() + 120
+        forged = None
+        while time.monotonic() < end and proc.poll() is None:
+            msg = spy.recv(0.5)
+            if msg is None or msg.arbitration_id != SENSOR_ID:
+                continue
+            frame, _ = codec.classify(msg)
+            if frame is not None and frame.value.step >= 300:
+                r = frame.value
+                forged = r.step + 50
+                spy.send(codec.sensor(SensorReading(forged, r.motor_speed_rad_s, r.train_speed_ms)))
+                break
+        assert forged is not None, "the run never reached step 300"
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc is not None and proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+        spy.shutdown()
+        remove_channel(channel)
+    assert proc.returncode == 3, err
+    assert "Traceback" not in err
+    last = err.strip().splitlines()[-1]
+    m = re.search(r"no command for step (\d+) within 1 s although the TCU is alive .*: the TCU's heartbeat says it is "
+                  r"at step (\d+), past the plant's step (\d+): it took a sensor frame this plant did not send "
+                  r"\(another node on the bus\?\)", last)
+    assert m and last.startswith("hil run: error: "), last
+    stuck, tcu_step = int(m.group(1)), int(m.group(2))
+    assert tcu_step == forged and forged - 50 <= stuck < forged, (stuck, forged)    # stuck before the forged step
+    log = read_log(tmp_path / "ffcc_a-nlls-1.mcap")
+    assert log.ended_early.startswith(f"fault at step {stuck}") and not log.damage
