@@ -167,7 +167,7 @@ def _event_key(e: IdentificationEvent):
 
 #: parameters equal to this relative tolerance count as the same identification: the compiled
 #: kernels (identifier/kernels.py) are built for the machine's CPU with reassociated sums, so a log
-#: replayed on another CPU class may differ in the last bits (1 ulp measured between Zen 4 and Skylake)
+#: replayed on another CPU class may differ in the last bits
 PARAMS_RTOL = 1e-9
 
 

@@ -798,7 +798,7 @@ def bayes_step(l0, l1, l2, t1, t2, omega, m_prev, log_w, ll_total, weights, cree
     half = 0.5 * torque_per_mu
     nis = 0.0
     for j in range(n):       # (SpeedFilter.step written out here and in bayes_rerun: a shared helper
-        #                          returning a tuple stopped the loop vectorising, 42 against 8 us at N = 2000)
+        #                          returning a tuple stops the loop vectorising)
         m_new = l0[j] + l1[j] * _exp(t1[j] * creep_speed_kmh) + l2[j] * _exp(t2[j] * creep_speed_kmh)
         pred = omega[j] + dt_j * (torque_nm - half * (m_prev[j] + m_new))
         e = y - pred

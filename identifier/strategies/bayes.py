@@ -28,11 +28,10 @@ When the effective sample size falls below ``ess_fraction`` N the cloud is resam
 every particle takes ``moves`` Metropolis steps in the prior's unconstrained coordinates u
 (identifier/prior.py; resample-move, Gilks and Berzuini 2001): u' = u + L eps, L L^T = Cov(u) 2.38^2 / 5,
 each proposal's filter run afresh over every sample so far (``kernels.bayes_rerun``), accepted with
-min(1, L(u') p(u') / (L(u) p(u))).  This leaves the posterior exact in distribution; the Liu-West
-kernel it replaced (a Gaussian shrink-and-jitter, no likelihood) drifted off the posterior's
-curved ridge between peak mu and peak creep over the ~30 moves of a slow slip and confirmed curves
-whose likelihood was far below the truth's.  The price is the rerun: O(N x samples) on the samples
-that resample.
+min(1, L(u') p(u') / (L(u) p(u))).  This leaves the posterior exact in distribution; a Liu-West
+kernel (a Gaussian shrink-and-jitter, no likelihood) drifts off the posterior's curved ridge between
+peak mu and peak creep over the many moves of a slow slip and confirms curves whose likelihood is
+far below the truth's.  The price is the rerun: O(N x samples) on the samples that resample.
 
 Intervals: weighted quantiles of peak_mu and peak_creep_kmh over the cloud, a credible interval.
 Every ``report_samples`` samples a correction event publishes the posterior's curve (weighted
@@ -44,7 +43,8 @@ from the prior box's edges (a posterior piled against an edge says the truth lie
 prior can represent, not that it is known); (3) the fit holds: the normalised innovations squared,
 averaged with the weights over the last ``fit_window`` samples, stay below ``fit_nis_max`` (a law of
 another form than the prior's, fitted by its nearest exponential curve, leaves structured residuals
-that a narrow interval alone would hide).  The event carries the curve and its 90 % intervals.  When the creep passes the prior's highest peak creep
+that a narrow interval alone would hide).  It does not catch every such law: the README gives the
+bench's wrong confirmations, all on Polach curves.  The event carries the curve and its 90 % intervals.  When the creep passes the prior's highest peak creep
 (the TCU then knows the serious stage has begun without having pinned the curve) or after
 ``max_samples``, an ``unconfirmed`` event reports the best estimate and its intervals instead.
 """
