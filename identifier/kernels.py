@@ -877,56 +877,10 @@ def bayes_curves(ut, lo, hi, log_scale, phit, l0, l1, l2, t1, t2):
 
 
 @njit(**_JIT)
-def liu_west_move(ut, weights, idx, normals, a, h, out):
-    """Resampled particles ``ut[:, idx]`` moved by the Liu-West kernel: a u + (1 - a) mean + h chol(Cov) eps
-    (mean and covariance weighted by ``weights``, before resampling; a small ridge keeps a cloud
-    collapsed onto a few points factorable).  ``ut``, ``normals`` and ``out`` are (P, N)."""
-    p, n = ut.shape
-    mean = np.zeros(p)
-    for i in range(p):
-        m = 0.0
-        for j in range(n):
-            m += weights[j] * ut[i, j]
-        mean[i] = m
-    cov = np.zeros((p, p))
-    for i in range(p):
-        for k in range(i + 1):
-            c = 0.0
-            for j in range(n):
-                c += weights[j] * (ut[i, j] - mean[i]) * (ut[k, j] - mean[k])
-            cov[i, k] = c
-            cov[k, i] = c
-    ridge = 1e-12
-    for i in range(p):
-        ridge += 1e-9 * cov[i, i]
-    for i in range(p):
-        cov[i, i] += ridge
-    chol = np.linalg.cholesky(cov)
-    for i in range(p):
-        row = out[i]
-        src = ut[i]
-        shift = (1.0 - a) * mean[i]
-        for j in range(n):
-            row[j] = a * src[idx[j]] + shift
-        for k in range(i + 1):
-            c = h * chol[i, k]
-            z = normals[k]
-            for j in range(n):
-                row[j] += c * z[j]
-
-
-@njit(**_JIT)
 def bayes_mu_at(l0, l1, l2, t1, t2, creep_speed_kmh, out):
     """out_j = M_j(v_s) for every particle's curve."""
     for j in range(out.size):
         out[j] = l0[j] + l1[j] * _exp(t1[j] * creep_speed_kmh) + l2[j] * _exp(t2[j] * creep_speed_kmh)
-
-
-@njit(**_JIT)
-def take(x, idx, out):
-    """out = x[idx] (resampling a per-particle vector)."""
-    for j in range(idx.size):
-        out[j] = x[idx[j]]
 
 
 @njit(**_JIT)
@@ -1012,9 +966,7 @@ def warm_up() -> None:
     u16 = np.ascontiguousarray(np.random.default_rng(0).standard_normal((16, 5)).T)
     bayes_curves(u16, np.zeros(5), np.ones(5), np.array([False, True, False, True, True]), np.empty((5, 16)),
                  np.empty(16), np.empty(16), np.empty(16), np.empty(16), np.empty(16))
-    liu_west_move(u16, np.full(16, 1 / 16), np.arange(16), np.zeros((5, 16)), 0.9, 0.4, np.empty((5, 16)))
     weighted_moments(u16[0], np.full(16, 1 / 16))
     bayes_mu_at(u16[0], u16[1], u16[2], u16[3], u16[4], 0.5, np.empty(16))
-    take(u16[0], np.arange(16), np.empty(16))
     weighted_quantiles_hist(u16[0], np.full(16, 1 / 16), np.array([0.05, 0.5, 0.95]), 64, np.empty(64), np.empty(3))
     _warmed = True
