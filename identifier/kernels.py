@@ -785,7 +785,7 @@ _warmed = False
 
 # -- the bayes strategy (identifier/strategies/bayes.py): its cloud's step, move and intervals ---------
 # The same operations as its numpy reference (speed_likelihood.SpeedFilter, prior.phi_from_u /
-# theta_from_phi, bayes.weighted_quantiles) in branch-free loops around ``_exp``, so they vectorise.
+# theta_from_phi, pf.weighted_quantiles) in branch-free loops around ``_exp``, so they vectorise.
 @njit(**_JIT)
 def bayes_step(l0, l1, l2, t1, t2, omega, m_prev, log_w, ll_total, weights, creep_speed_kmh, y, torque_nm, dt_j,
                torque_per_mu, inv_2s, gain, out):

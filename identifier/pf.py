@@ -239,3 +239,22 @@ def project_to_box(particles: np.ndarray, lo: np.ndarray, hi: np.ndarray, base_t
         raise ValueError(f"unknown projection {method!r} (known: {', '.join(PROJECTORS)})")
     out[:, edge] = z
     return out.T
+
+
+def weighted_quantiles(x: np.ndarray, w: np.ndarray, qs) -> np.ndarray:
+    """Quantiles ``qs`` of the weighted sample (x, w), by the inverse of the weighted empirical
+    distribution function (the smallest x whose cumulative weight reaches q)."""
+    order = np.argsort(x)
+    cdf = np.cumsum(w[order])
+    idx = np.searchsorted(cdf, np.asarray(qs, float) * cdf[-1], side="left")
+    return x[order[np.minimum(idx, x.size - 1)]]
+
+
+def weighted_interval(x: np.ndarray, w: np.ndarray, level: float) -> tuple[float, float]:
+    """The central interval at ``level`` of the weighted sample (x, w), NaN entries of x dropped
+    ((NaN, NaN) when nothing is left)."""
+    ok = np.isfinite(x)
+    if not ok.any():
+        return (float("nan"), float("nan"))
+    lo, hi = weighted_quantiles(x[ok], w[ok], (0.5 * (1.0 - level), 0.5 * (1.0 + level)))
+    return float(lo), float(hi)

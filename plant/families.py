@@ -312,11 +312,17 @@ def curves_of_law(law: int, z: np.ndarray, train_speed_ms: float):
     return mp, vp, np.zeros(n), nan5, pp, {"A": A, "b_at_peak": b, "k_A": k_A, "ks_ratio": r}
 
 
-def _sample_law(law: int, n: int, rng, train_speed_ms: float):
-    """(peak_mu, peak_creep_kmh, mu0, exp_params, polach_params, shape) for n curves of one law."""
+def unit_points(law: int, n: int, rng) -> np.ndarray:
+    """n curves of one law as unit numbers z (n, d): the family's prior in its unit cube (uniform under
+    the joint peak rule); ``curves_of_law`` maps them to curves."""
     zm, zv = _peaks(rng, n)
     rest = [rng.random(n) for _ in LATENT[law][2:]]
-    return curves_of_law(law, np.column_stack([zm, zv, *rest]), train_speed_ms)
+    return np.column_stack([zm, zv, *rest])
+
+
+def _sample_law(law: int, n: int, rng, train_speed_ms: float):
+    """(peak_mu, peak_creep_kmh, mu0, exp_params, polach_params, shape) for n curves of one law."""
+    return curves_of_law(law, unit_points(law, n, rng), train_speed_ms)
 
 
 def batch_of_law(family: str, law: int, z: np.ndarray, train_speed_ms: float) -> "CurveBatch":

@@ -189,7 +189,7 @@ def test_kernels_equal_their_numpy_reference():
     ref_w /= ref_w.sum()
     np.testing.assert_allclose(w, ref_w, rtol=1e-9, atol=1e-15)
     assert ess == pytest.approx(1.0 / (ref_w @ ref_w), rel=1e-9)
-    from identifier.strategies.bayes import weighted_quantiles
+    from identifier.pf import weighted_quantiles
     qs = np.array([0.01, 0.05, 0.5, 0.95, 0.99])
     out = np.empty(5)
     kernels.weighted_quantiles_hist(phi[1], ref_w, qs, 4096, np.empty(4096), out)

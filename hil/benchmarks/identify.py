@@ -407,10 +407,6 @@ def cmd_identify(args) -> int:
     return 0
 
 
-#: curves the oracle carries per run in --family mode (hil/benchmarks/oracle.py)
-ORACLE_DRAWS = 4000
-
-
 def run_oracle(data: CaseData, family: str, seed, draws: int) -> dict:
     """The information limit on this run's samples (hil/benchmarks/oracle.py): every sample the
     ``bayes`` strategy would receive from the slip's start until the creep passes its prior's highest
@@ -466,6 +462,8 @@ def cmd_family(args, strategies: list[str], overrides: dict) -> int:
     costs = {s: [] for s in strategies}
     bar = Progress(args.draws * (len(strategies) + 1), f"bench identify {args.family}", None)
     done = 0
+    from .oracle import DRAWS as ORACLE_DRAWS
+
     oracle_draws = ORACLE_DRAWS if args.oracle_draws is None else args.oracle_draws
     load_before = os.getloadavg()
     oracle_rts, oracle_detail = [], []

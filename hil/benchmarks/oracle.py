@@ -27,17 +27,12 @@ import math
 
 import numpy as np
 
+from identifier.pf import weighted_interval
+
 DRAWS = 4000
 MOVES = 3
 #: the least effective sample size at which the oracle's interval counts
 MIN_ESS = 30
-
-
-def weighted_interval(x: np.ndarray, w: np.ndarray, level: float) -> tuple[float, float]:
-    from identifier.strategies.bayes import weighted_quantiles
-
-    lo, hi = weighted_quantiles(x, w, (0.5 * (1.0 - level), 0.5 * (1.0 + level)))
-    return float(lo), float(hi)
 
 
 class _Cloud:
@@ -97,14 +92,12 @@ def oracle(strategy, family: str, seed, draws: int = DRAWS, confirm_level: float
     v_t = samples[0].train_speed_ms
     creep = [strategy.creep_for_likelihood(s) for s in samples]
     # the family's prior: its own sampler decides each curve's law, the clouds hold each law's curves
-    prior = families.sample_curves(family, draws, rng, v_t)
+    laws = families.sample_curves(family, draws, rng, v_t).law
     clouds = []
     for law in (families.LAW_EXP, families.LAW_POLACH):
-        n = int(np.sum(prior.law == law))
+        n = int(np.sum(laws == law))
         if n:
-            zm, zv = families._peaks(rng, n)
-            z = np.column_stack([zm, zv, rng.random((n, len(families.LATENT[law]) - 2))])
-            clouds.append(_Cloud(family, law, z, strategy.filter, creep, samples, v_t))
+            clouds.append(_Cloud(family, law, families.unit_points(law, n, rng), strategy.filter, creep, samples, v_t))
     for i in range(1, len(samples)):
         for c in clouds:
             c.advance(i)

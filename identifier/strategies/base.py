@@ -15,6 +15,7 @@ import numpy as np
 
 from ..evaluation import inside_confidence_band, j_ef, standard_error
 from ..curve import peak_two_terms
+from ..pf import weighted_interval
 from ..messages import NAN_INTERVAL, IdentificationEvent
 from ..settings import IdentifierSettings
 
@@ -33,20 +34,6 @@ class Sample:
 
 #: the level of the intervals every event publishes
 REPORT_LEVEL = 0.90
-
-
-def weighted_interval(x: np.ndarray, weights: np.ndarray, level: float) -> tuple[float, float]:
-    """Central interval at ``level`` of the weighted sample (x, weights), NaN entries of x dropped."""
-    ok = np.isfinite(x)
-    if not ok.any():
-        return NAN_INTERVAL
-    x, w = x[ok], weights[ok]
-    order = np.argsort(x)
-    cdf = np.cumsum(w[order])
-    qs = np.array([0.5 * (1.0 - level), 0.5 * (1.0 + level)]) * cdf[-1]
-    idx = np.minimum(np.searchsorted(cdf, qs, side="left"), x.size - 1)
-    lo, hi = x[order[idx]]
-    return float(lo), float(hi)
 
 
 def cloud_peak_intervals(thetas: np.ndarray, weights: np.ndarray, level: float):

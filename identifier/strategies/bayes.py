@@ -57,13 +57,10 @@ import numpy as np
 
 from ..messages import IdentificationEvent
 from ..prior import NAMES, CurvePrior, theta_from_phi, theta_from_phi_floats
+from ..pf import weighted_quantiles
 from ..speed_likelihood import SpeedFilter
 from .base import Sample, Strategy
 from .mdipf import load_kernels
-
-
-def _kernels():
-    return load_kernels()
 
 KMH_PER_MS = 3.6
 #: bins of the compiled quantiles' histogram (kernels.weighted_quantiles_hist): its error is below
@@ -99,15 +96,6 @@ def _log_prior_u(u: np.ndarray) -> np.ndarray:
     """log p(u) of the prior in its unconstrained coordinates, per particle (u: (5, N)): each coordinate
     is the logit of a uniform, so log p = sum log(s (1 - s)) with s = sigmoid(u)."""
     return -np.sum(np.abs(u) + 2.0 * np.log1p(np.exp(-np.abs(u))), axis=0)
-
-
-def weighted_quantiles(x: np.ndarray, w: np.ndarray, qs) -> np.ndarray:
-    """Quantiles ``qs`` of the weighted sample (x, w) (w normalised), by the inverse of the weighted
-    empirical distribution function."""
-    order = np.argsort(x)
-    cdf = np.cumsum(w[order])
-    idx = np.searchsorted(cdf, np.asarray(qs, float) * cdf[-1], side="left")
-    return x[order[np.minimum(idx, x.size - 1)]]
 
 
 class BaselineStats:
@@ -177,9 +165,9 @@ class BayesStrategy(Strategy):
         self.creep_per_motor_speed = KMH_PER_MS * veh.wheel_radius_m / veh.gear_ratio   # km/h per rad/s
         self.filter = SpeedFilter(settings.period_s, veh.equivalent_inertia_kgm2, veh.torque_per_mu_nm, math.nan,
                                   math.nan)
-        self._compiled = bool(o.get("compiled", True)) and load_kernels().AVAILABLE
+        self._compiled = bool(o.get("compiled", True)) and loadload_kernels().AVAILABLE
         if self._compiled:
-            _kernels().warm_up()
+            load_kernels().warm_up()
         # the cloud, a row per coordinate: u (unconstrained prior coordinates), phi, theta; weights
         self.u = np.ascontiguousarray(self.prior.sample_u(n, self.rng).T)
         self.phi = np.empty((len(NAMES), n))
@@ -213,7 +201,7 @@ class BayesStrategy(Strategy):
     def _set_curves(self) -> None:
         """phi and theta of every particle from u."""
         if self._compiled:
-            _kernels().bayes_curves(self.u, *self._bounds, self.phi, *self._theta)
+            load_kernels().bayes_curves(self.u, *self._bounds, self.phi, *self._theta)
         else:
             self.phi[:] = self.prior.phi_from_u(self.u.T).T
             self._theta[:] = theta_from_phi(self.phi.T).T
@@ -222,7 +210,7 @@ class BayesStrategy(Strategy):
         """M_j(v_s) for every particle j."""
         if self._compiled:
             out = np.empty(self.n_particles)
-            _kernels().bayes_mu_at(*self._theta, creep_speed_kmh, out)
+            load_kernels().bayes_mu_at(*self._theta, creep_speed_kmh, out)
             return out
         l0, l1, l2, t1, t2 = self._theta
         return l0 + l1 * np.exp(t1 * creep_speed_kmh) + l2 * np.exp(t2 * creep_speed_kmh)
@@ -284,7 +272,7 @@ class BayesStrategy(Strategy):
         creep = self.creep_for_likelihood(s)
         dt_j, innov_var, gain = f.gains(periods)
         if self._compiled:
-            _kernels().bayes_step(*self._theta, self.omega, self._m_prev, self.log_w, self.ll, self.weights, creep,
+            load_kernels().bayes_step(*self._theta, self.omega, self._m_prev, self.log_w, self.ll, self.weights, creep,
                                   s.motor_speed_rad_s, prev.torque_nm, dt_j, f.torque_per_mu_nm, 0.5 / innov_var,
                                   gain, self._step_out)
             ess, nis = self._step_out
@@ -315,7 +303,7 @@ class BayesStrategy(Strategy):
         n = theta.shape[1]
         if self._compiled:
             ll, omega, m_last = np.empty(n), np.empty(n), np.empty(n)
-            _kernels().bayes_rerun(*theta, creep, y, torque, dt_j, gain, inv_2s, self.filter.torque_per_mu_nm, ll,
+            load_kernels().bayes_rerun(*theta, creep, y, torque, dt_j, gain, inv_2s, self.filter.torque_per_mu_nm, ll,
                                    omega, m_last)
             return ll, omega, m_last
         l0, l1, l2, t1, t2 = (row[:, None] for row in theta)
@@ -336,7 +324,7 @@ class BayesStrategy(Strategy):
         n = self.n_particles
         k = self.resamples
         if self._compiled:
-            _kernels().systematic_resample(self.weights, float(self.rng.random()), self._idx)
+            load_kernels().systematic_resample(self.weights, float(self.rng.random()), self._idx)
             idx = self._idx
         else:
             idx = np.minimum(np.searchsorted(np.cumsum(self.weights), (self.rng.random() + np.arange(n)) / n), n - 1)
@@ -352,7 +340,7 @@ class BayesStrategy(Strategy):
             normals = self._normals[(k * int(self.opts["moves"]) + m) % len(self._normals)]
             prop = self.u + chol @ normals
             if self._compiled:
-                _kernels().bayes_curves(prop, *self._bounds, phi_p, *theta_p)
+                load_kernels().bayes_curves(prop, *self._bounds, phi_p, *theta_p)
             else:
                 phi_p[:] = self.prior.phi_from_u(prop.T).T
                 theta_p[:] = theta_from_phi(phi_p.T).T
@@ -377,7 +365,7 @@ class BayesStrategy(Strategy):
             return weighted_quantiles(self.phi[col], self.weights, qs)
         k = len(qs)
         self._qs[:k] = qs
-        _kernels().weighted_quantiles_hist(self.phi[col], self.weights, self._qs[:k], QUANTILE_BINS, self._counts,
+        load_kernels().weighted_quantiles_hist(self.phi[col], self.weights, self._qs[:k], QUANTILE_BINS, self._counts,
                                            self._q_out[:k])
         return self._q_out[:k].copy()
 
@@ -392,7 +380,7 @@ class BayesStrategy(Strategy):
         weighted mean in u) and the central intervals at ``level``: one quantile pass per coordinate."""
         qs = (0.5 * (1.0 - level), 0.5, 0.5 * (1.0 + level))
         mu, creep = self.quantiles(0, qs), self.quantiles(1, qs)
-        u_mean = _kernels().weighted_mean(self.u, self.weights, np.empty(len(NAMES))) if self._compiled \
+        u_mean = load_kernels().weighted_mean(self.u, self.weights, np.empty(len(NAMES))) if self._compiled \
             else self.u @ self.weights
         phi = self.prior.phi_from_u_floats(u_mean)
         phi[0], phi[1] = float(mu[1]), float(creep[1])
@@ -407,7 +395,7 @@ class BayesStrategy(Strategy):
         """Cheap pre-check: the weighted standard deviation within ``tol`` of the mean (a cloud spread
         wider than that cannot have a central 98 % interval of half-width tol x centre)."""
         if self._compiled:
-            mean, var = _kernels().weighted_moments(self.phi[col], self.weights)
+            mean, var = load_kernels().weighted_moments(self.phi[col], self.weights)
         else:
             x = self.phi[col]
             mean = float(self.weights @ x)
