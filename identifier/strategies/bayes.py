@@ -165,7 +165,7 @@ class BayesStrategy(Strategy):
         self.creep_per_motor_speed = KMH_PER_MS * veh.wheel_radius_m / veh.gear_ratio   # km/h per rad/s
         self.filter = SpeedFilter(settings.period_s, veh.equivalent_inertia_kgm2, veh.torque_per_mu_nm, math.nan,
                                   math.nan)
-        self._compiled = bool(o.get("compiled", True)) and loadload_kernels().AVAILABLE
+        self._compiled = bool(o.get("compiled", True)) and load_kernels().AVAILABLE
         if self._compiled:
             load_kernels().warm_up()
         # the cloud, a row per coordinate: u (unconstrained prior coordinates), phi, theta; weights
