@@ -883,6 +883,25 @@ def bayes_mu_at(l0, l1, l2, t1, t2, creep_speed_kmh, out):
         out[j] = l0[j] + l1[j] * _exp(t1[j] * creep_speed_kmh) + l2[j] * _exp(t2[j] * creep_speed_kmh)
 
 
+@njit(**_JIT_EXACT)
+def cloud_peaks(xt, base, v_out, mu_out):
+    """``curve.peak_two_terms`` of every particle's curve base + chi_j of a (5, N) error cloud: the
+    creep (km/h) and mu of its maximum, NaN where it has none (the MDIPF family's intervals)."""
+    for j in range(xt.shape[1]):
+        l0, l1, l2 = base[0] + xt[0, j], base[1] + xt[1, j], base[2] + xt[2, j]
+        t1, t2 = base[3] + xt[3, j], base[4] + xt[4, j]
+        v_out[j] = math.nan
+        mu_out[j] = math.nan
+        ratio = -(l2 * t2) / (l1 * t1) if l1 * t1 != 0.0 else -1.0
+        if ratio > 0.0 and t1 != t2:
+            v = math.log(ratio) / (t1 - t2)
+            if v >= 0.0:
+                e1, e2 = math.exp(t1 * v), math.exp(t2 * v)
+                if l1 * t1 * t1 * e1 + l2 * t2 * t2 * e2 < 0.0:
+                    v_out[j] = v
+                    mu_out[j] = l0 + l1 * e1 + l2 * e2
+
+
 @njit(**_JIT)
 def weighted_moments(x, weights):
     """(mean, variance) of the weighted sample (weights normalised)."""
@@ -967,6 +986,7 @@ def warm_up() -> None:
     bayes_curves(u16, np.zeros(5), np.ones(5), np.array([False, True, False, True, True]), np.empty((5, 16)),
                  np.empty(16), np.empty(16), np.empty(16), np.empty(16), np.empty(16))
     weighted_moments(u16[0], np.full(16, 1 / 16))
+    cloud_peaks(np.zeros((5, 4)), np.array([0.0, 1.0, -1.0, -0.54, -1.2]), np.empty(4), np.empty(4))
     bayes_mu_at(u16[0], u16[1], u16[2], u16[3], u16[4], 0.5, np.empty(16))
     weighted_quantiles_hist(u16[0], np.full(16, 1 / 16), np.array([0.05, 0.5, 0.95]), 64, np.empty(64), np.empty(3))
     _warmed = True

@@ -252,3 +252,23 @@ def test_the_compiled_rerun_equals_the_numpy_filter():
     np.testing.assert_allclose(ll, ll_ref, rtol=1e-8)
     np.testing.assert_allclose(omega, omega_ref, rtol=1e-12)
     np.testing.assert_allclose(m_last, m_prev[:, -1], rtol=1e-12)
+
+
+def test_the_compiled_cloud_peaks_equal_the_closed_form():
+    """kernels.cloud_peaks (the MDIPF family's intervals) against curve.peak_two_terms."""
+    from identifier import kernels
+    from identifier.curve import peak_two_terms
+
+    if not kernels.AVAILABLE:
+        pytest.skip("numba not installed: the numpy path runs")
+    seed = secrets.randbits(31)
+    print("seed", seed)
+    rng = np.random.default_rng(seed)
+    base = np.array([-0.005, 0.585, -0.58, -0.525, -1.1])
+    xt = np.ascontiguousarray(rng.normal(0.0, [[0.01], [0.2], [0.2], [0.3], [0.3]], (5, 500)))   # some have no peak
+    v, mu = np.empty(500), np.empty(500)
+    kernels.cloud_peaks(xt, base, v, mu)
+    v_ref, mu_ref = peak_two_terms(xt.T + base)
+    assert np.isnan(v_ref).any() and np.isfinite(v_ref).any()
+    np.testing.assert_allclose(v, v_ref, rtol=1e-12, equal_nan=True)
+    np.testing.assert_allclose(mu, mu_ref, rtol=1e-12, equal_nan=True)

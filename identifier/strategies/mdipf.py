@@ -618,7 +618,21 @@ class MdipfStrategy(Strategy):
         if not self.prelim_done or self._xt.shape[0] != 5:
             return super().peak_intervals(level)
         base = self.base - self._shift if self._recentre_pending else self.base
-        return cloud_peak_intervals(self._xt.T + base, self.weights, level)
+        if not self._compiled:
+            return cloud_peak_intervals(self._xt.T + base, self.weights, level)
+        v, mu = np.empty(self.n_particles), np.empty(self.n_particles)
+        _K.cloud_peaks(self._xt, base, v, mu)                        # the same peaks, one compiled pass
+        ok = np.isfinite(v)
+        if not ok.any():
+            return super().peak_intervals(level)
+        qs = np.array([0.5 * (1.0 - level), 0.5 * (1.0 + level)])
+        w = self.weights[ok]
+        out = []
+        for x in (mu[ok], v[ok]):
+            q = np.empty(2)
+            _K.weighted_quantiles_hist(x, w, qs, 2048, np.empty(2048), q)
+            out.append((float(q[0]), float(q[1])))
+        return out[0], out[1]
 
     def _posterior_mean(self) -> np.ndarray:
         """chi^ = sum_j w_j chi_j (eq. 21), a new (P,) array."""
