@@ -48,7 +48,7 @@ from .link import MODES, die_with_parent, open_bus
 from .plant_node import PlantNode, PlantRig
 from .progress import Progress
 from .record import interrupts_between_writes, log_path, prepare_out_dir, start_recording, write_timing
-from .tcu_node import TcuNode
+from .tcu_node import TcuNode, set_cpu_affinity
 from .trace import Trace, clean
 
 LOAD_WARN_PERCENT = 70.0
@@ -296,6 +296,8 @@ def run(scenario, strategy: str = "nlls", seed: int | None = None, *, bus: str =
                    "bus_load_percent": load["load_percent"], **(node.counters() if node else {}),
                    **(timing.summary(node.late_commands) if timing else {}), **extra}))
 
+    if mode == "realtime":
+        set_cpu_affinity(settings.cpu_affinity_plant, "plant", log)
     old_sched = _set_rt_priority(settings.rt_priority, log) if mode == "realtime" and settings.rt_priority > 0 \
         else None
     with interrupts_between_writes():   # SIGTERM ends a run like Ctrl-C, never mid-write
