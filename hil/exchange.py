@@ -99,7 +99,8 @@ class Timing:
         if self.mode == "realtime":
             nominal = self.period_s * 1e6
             jitter = [abs(p - nominal) for p in self.period_us if math.isfinite(p)]
-            out.update({"missed_deadlines": self.missed, "jitter_p99_us": _percentile(jitter, 99),
+            out.update({"steps": len(self.period_us), "missed_deadlines": self.missed,
+                        "jitter_p50_us": _percentile(jitter, 50), "jitter_p99_us": _percentile(jitter, 99),
                         "jitter_max_us": max(jitter) if jitter else None,
                         "lateness_p99_us": _percentile(self.lateness_us, 99), "late_commands": late_commands})
         return out
