@@ -8,6 +8,7 @@ import sys
 import tempfile
 
 from ..config import load_scenario
+from .judge import _median
 
 IDENT_KEYS = ("identified", "t_identified_s", "corrections", "params", "samples", "mse", "r2", "observer_lag_ms")
 HEARTBEAT_IDS = (0x701, 0x702)
@@ -49,14 +50,6 @@ def stream_digest(mcap_path) -> dict:
                 n += 1
         out[direction] = {"frames": n, "sha256": h.hexdigest()[:16]}
     return out
-
-
-def _median(xs):
-    xs = sorted(x for x in xs if x is not None and x == x)
-    if not xs:
-        return None
-    n = len(xs)
-    return xs[n // 2] if n % 2 else (xs[n // 2 - 1] + xs[n // 2]) / 2
 
 
 def _rt_run(scenario_path, bus, seconds, sets, seed, strategy, out_dir) -> dict:
