@@ -43,6 +43,8 @@ class BusSettings:
     startup_timeout_s: float = 60.0       # wait for the other side's first frame
     deadline_fraction: float = 0.9        # realtime: the command is due this far into the period
     rt_priority: int = 0                  # realtime: SCHED_FIFO priority for plant, hub and TCU (0: off)
+    cpu_affinity_plant: tuple = ()        # realtime: CPUs the plant process runs on (empty: no setting)
+    cpu_affinity_tcu: tuple = ()          # realtime: CPUs the TCU process runs on (empty: no setting)
 
 
 @dataclass(frozen=True)
@@ -390,6 +392,12 @@ def _bus(path, data) -> BusSettings:
     for key, value in table.items():
         if key not in fields:
             raise _fail(path, f"[bus] {key}", f"unknown key (known: {', '.join(fields)})")
+        if key.startswith("cpu_affinity_"):
+            if not isinstance(value, list) or any(isinstance(c, bool) or not isinstance(c, int) or not 0 <= c < 4096
+                                                  for c in value):
+                raise _fail(path, f"[bus] {key}", f"must be a list of CPU numbers (0..4095), got {value!r}")
+            values[key] = tuple(value)
+            continue
         floor_ok = key == "rt_priority"
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
                 or not (value >= 0 if floor_ok else value > 0):

@@ -48,7 +48,7 @@ from .link import MODES, die_with_parent, open_bus
 from .plant_node import PlantNode, PlantRig
 from .progress import Progress
 from .record import interrupts_between_writes, log_path, prepare_out_dir, start_recording, write_timing
-from .tcu_node import TcuNode
+from .tcu_node import TcuNode, set_cpu_affinity
 from .trace import Trace, clean
 
 LOAD_WARN_PERCENT = 70.0
@@ -99,7 +99,8 @@ class Timing:
         if self.mode == "realtime":
             nominal = self.period_s * 1e6
             jitter = [abs(p - nominal) for p in self.period_us if math.isfinite(p)]
-            out.update({"missed_deadlines": self.missed, "jitter_p99_us": _percentile(jitter, 99),
+            out.update({"steps": len(self.period_us), "missed_deadlines": self.missed,
+                        "jitter_p50_us": _percentile(jitter, 50), "jitter_p99_us": _percentile(jitter, 99),
                         "jitter_max_us": max(jitter) if jitter else None,
                         "lateness_p99_us": _percentile(self.lateness_us, 99), "late_commands": late_commands})
         return out
@@ -296,6 +297,8 @@ def run(scenario, strategy: str = "nlls", seed: int | None = None, *, bus: str =
                    "bus_load_percent": load["load_percent"], **(node.counters() if node else {}),
                    **(timing.summary(node.late_commands) if timing else {}), **extra}))
 
+    if mode == "realtime":
+        set_cpu_affinity(settings.cpu_affinity_plant, "plant", log)
     old_sched = _set_rt_priority(settings.rt_priority, log) if mode == "realtime" and settings.rt_priority > 0 \
         else None
     with interrupts_between_writes():   # SIGTERM ends a run like Ctrl-C, never mid-write

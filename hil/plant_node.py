@@ -29,6 +29,10 @@ from .trace import Trace
 
 #: the longest the plant node writes log rows before it looks at the bus again
 FLUSH_SLICE_S = 50e-6
+#: pacing: a wait ends in the bus this long before its time (a bus may round its timeout up to 1 ms and
+#: the scheduler wakes a sleeper late); the rest is polled, sleeping POLL_SLICE_S between polls
+WAKE_MARGIN_S = 1.2e-3
+POLL_SLICE_S = 50e-6
 
 
 class PlantRig:
@@ -230,8 +234,12 @@ class PlantNode:
             msg = self.bus.recv(timeout=0.0)
             if msg is None:
                 self.rec.flush(now + max(min(FLUSH_SLICE_S, timeout), 0.0))
-        else:
-            msg = self.bus.recv(timeout=max(min(timeout, self.silence_s / 4), 0.0))
+        elif timeout > WAKE_MARGIN_S:       # sleep in the bus until shortly before the time ...
+            msg = self.bus.recv(timeout=min(timeout - WAKE_MARGIN_S, self.silence_s / 4))
+        else:                               # ... then poll, yielding the CPU between polls (never a spin)
+            msg = self.bus.recv(timeout=0.0)
+            if msg is None and timeout > 0.0:
+                time.sleep(min(timeout, POLL_SLICE_S))
         if msg is not None:
             self.on_rx(msg)
         self.check_alive()

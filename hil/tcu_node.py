@@ -225,6 +225,19 @@ def add_arguments(p) -> None:
     p.add_argument("--report", metavar="FILE", default=None, help="write the TCU's report (JSON) to FILE at exit")
 
 
+def set_cpu_affinity(cpus, who: str, log) -> bool:
+    """Pin this process to the CPU numbers ``cpus`` (nothing when empty); a refusal (EPERM, EINVAL, no
+    ``sched_setaffinity``) is reported once through ``log`` and is not fatal. True when applied."""
+    if not cpus:
+        return False
+    try:
+        os.sched_setaffinity(0, set(cpus))
+        return True
+    except (AttributeError, OSError) as e:
+        log(f"warning: cannot pin the {who} process to CPUs {list(cpus)} ({e}); running unpinned")
+        return False
+
+
 def run_tcu(args) -> int:
     """Shared by ``hil tcu`` and the child process; raises ``HilError`` for bad input."""
     from .config import load_scenario, parse_set
@@ -242,6 +255,8 @@ def run_tcu(args) -> int:
                        "interface:channel)")
     node = TcuNode(scenario, args.strategy, seed)
     handle = open_bus(bus)
+    if args.mode == "realtime":
+        set_cpu_affinity(settings.cpu_affinity_tcu, "TCU", lambda m: print(m, file=sys.stderr, flush=True))
     if args.mode == "realtime":     # a full collection over scipy's and casadi's objects stalls both threads
         gc.freeze()
         gc.disable()

@@ -8,6 +8,7 @@ import sys
 import tempfile
 
 from ..config import load_scenario
+from .judge import _median
 
 IDENT_KEYS = ("identified", "t_identified_s", "corrections", "params", "samples", "mse", "r2", "observer_lag_ms")
 HEARTBEAT_IDS = (0x701, 0x702)
@@ -24,6 +25,11 @@ def register(sub) -> None:
     p.add_argument("--realtime-seconds", type=float, default=0.0,
                    help="also run this many seconds in real time over --realtime-bus (fault 0.5 s before the end)")
     p.add_argument("--realtime-bus", default="hub")
+    p.add_argument("--realtime-runs", type=int, default=0,
+                   help="instead: this many real-time runs (each --realtime-seconds long, default 5) per bus of "
+                   "--realtime-buses, each a `hil run --mode realtime --json` process, and a lockstep run per bus "
+                   "(1 ms period, strategy proposed) for its speed")
+    p.add_argument("--realtime-buses", default="local,hub,inprocess")
     p.add_argument("--set", action="append", metavar="TABLE.KEY=VALUE", help="scenario override (all runs)")
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_bus)
@@ -46,9 +52,82 @@ def stream_digest(mcap_path) -> dict:
     return out
 
 
+def _rt_run(scenario_path, bus, seconds, sets, seed, strategy, out_dir) -> dict:
+    """One real-time ``hil run --json`` process: its figures, exit code, load average and whether
+    SCHED_FIFO was asked for and granted (None: not asked)."""
+    import os
+    import subprocess
+
+    cmd = [sys.executable, "-m", "hil.cli", "run", str(scenario_path), "--mode", "realtime", "--bus", bus,
+           "--strategy", strategy, "--seed", str(seed), "--out", out_dir, "--json",
+           "--set", f"run.duration_s={seconds}", "--set", f"run.fault_time_s={max(seconds - 0.5, seconds / 2)}"]
+    for item in sets:
+        cmd += ["--set", item]
+    r = subprocess.run(cmd, capture_output=True, text=True, stdin=subprocess.DEVNULL)
+    try:
+        s = json.loads(r.stdout) if r.stdout.strip() else {}
+    except ValueError:
+        s = {}
+    steps = s.get("steps")
+    missed = s.get("missed_deadlines")
+    fifo = None
+    if "SCHED_FIFO" in r.stderr:
+        fifo = "cannot set SCHED_FIFO" not in r.stderr
+    return {"exit_code": r.returncode, "missed_deadlines": missed,
+            "missed_per_10k": missed * 1e4 / steps if missed is not None and steps else None,
+            "jitter_p50_us": s.get("jitter_p50_us"), "jitter_p99_us": s.get("jitter_p99_us"),
+            "jitter_max_us": s.get("jitter_max_us"), "round_trip_p50_us": s.get("round_trip_p50_us"),
+            "round_trip_p99_us": s.get("round_trip_p99_us"), "tcu_stale_skipped": s.get("tcu_stale_skipped"),
+            "loadavg_1min": os.getloadavg()[0], "sched_fifo_granted": fifo,
+            "error": r.stderr.strip().splitlines()[-1] if r.returncode and r.stderr.strip() else None}
+
+
+def cmd_realtime(args, sets) -> int:
+    from ..config import parse_set
+    from ..exchange import run as run_can
+    from ..link import resolve
+
+    seconds = args.realtime_seconds or 5.0
+    buses = [b.strip() for b in args.realtime_buses.split(",") if b.strip()]
+    result = {"scenario": args.scenario, "seconds": seconds, "default_bus": resolve("auto"), "buses": {}}
+    with tempfile.TemporaryDirectory() as tmp:
+        for bus in buses:
+            runs = [_rt_run(args.scenario, bus, seconds, sets, args.seed, args.strategy, f"{tmp}/{bus}-{i}")
+                    for i in range(args.realtime_runs)]
+            ls_sets = sets + ["run.exchange_period_s=0.001", f"run.duration_s={seconds}",
+                              f"run.fault_time_s={max(seconds - 0.5, seconds / 2)}"]
+            s = run_can(load_scenario(args.scenario, parse_set(ls_sets)), "proposed", args.seed, bus=bus,
+                        out_dir=f"{tmp}/{bus}-ls", progress=False, set_args=ls_sets, log=lambda text: None)
+            speed = s["sim_s"] / s["wall_s"]
+            result["buses"][bus] = {
+                "runs": runs, "exit_codes": [r["exit_code"] for r in runs],
+                "missed_per_10k": _median([r["missed_per_10k"] for r in runs]),
+                "jitter_p99_us": _median([r["jitter_p99_us"] for r in runs]),
+                "round_trip_p99_us": _median([r["round_trip_p99_us"] for r in runs]),
+                "lockstep_speed": speed}
+    if args.json:
+        print(json.dumps(result))
+        return 0
+    f = lambda x, fmt="7.0f": "      -" if x is None else format(x, fmt)  # noqa: E731
+    print(f"{args.scenario}: {args.realtime_runs} real-time run(s) of {seconds:g} s per bus; auto is "
+          f"{result['default_bus']} here")
+    for bus, b in result["buses"].items():
+        print(f"  {bus}: lockstep {b['lockstep_speed']:.2f} sim s/wall s (1 ms, proposed)")
+        for r in b["runs"]:
+            fifo = {None: "not asked", True: "granted", False: "REFUSED"}[r["sched_fifo_granted"]]
+            print(f"    exit {r['exit_code']}  missed/10k {f(r['missed_per_10k'], '6.1f')}  jitter p50/p99/max "
+                  f"{f(r['jitter_p50_us'])}/{f(r['jitter_p99_us'])}/{f(r['jitter_max_us'])} us  round trip p50/p99 "
+                  f"{f(r['round_trip_p50_us'])}/{f(r['round_trip_p99_us'])} us  skipped {r['tcu_stale_skipped']}  "
+                  f"load {r['loadavg_1min']:.2f}  SCHED_FIFO {fifo}" + (f"  ({r['error']})" if r["error"] else ""))
+    return 0
+
+
 def cmd_bus(args) -> int:
     from ..exchange import run as run_can
     from ..config import parse_set
+
+    if args.realtime_runs > 0:
+        return cmd_realtime(args, list(args.set or []))
 
     sets = list(args.set or [])
     scenario = load_scenario(args.scenario, parse_set(sets))

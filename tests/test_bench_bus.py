@@ -1,0 +1,28 @@
+"""``hil bench bus --realtime-runs``: real-time runs per bus, their medians and the lockstep speed."""
+import json
+import random
+import subprocess
+
+from .conftest import ROOT, hil_command, subprocess_env
+
+
+def test_realtime_bench_lists_exit_codes_medians_and_whether_sched_fifo_was_granted():
+    seed = random.randrange(1, 10_000)
+    print(f"seed {seed}")
+    r = subprocess.run([*hil_command(), "bench", "bus", "--realtime-runs", "1", "--realtime-seconds", "1",
+                        "--seed", str(seed), "--set", "bus.rt_priority=10", "--json"],
+                       cwd=ROOT, env=subprocess_env(), capture_output=True, text=True, timeout=170)
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert out["default_bus"] in ("local", "hub") or out["default_bus"].startswith("socketcan")
+    assert set(out["buses"]) == {"local", "hub", "inprocess"}
+    for bus, b in out["buses"].items():
+        assert {"runs", "exit_codes", "missed_per_10k", "jitter_p99_us", "round_trip_p99_us",
+                "lockstep_speed"} <= set(b), bus
+        assert len(b["runs"]) == 1 and b["exit_codes"] == [b["runs"][0]["exit_code"]]
+        assert b["lockstep_speed"] > 0
+        run = b["runs"][0]
+        assert isinstance(run["sched_fifo_granted"], bool)      # asked for: granted or refused, never silent
+        if run["exit_code"] == 0:
+            assert 0 <= run["missed_per_10k"] <= 10_000 and run["jitter_p99_us"] >= 0
+        print(bus, run)

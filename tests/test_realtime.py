@@ -1,0 +1,120 @@
+"""Real time that holds: a stalled TCU process, the recording queue's overflow count, the local bus
+against the in-process bus in lockstep, and the per-process CPU affinity setting."""
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from hil.config import load_scenario, parse_set
+from hil.errors import ConfigError
+from hil.logread import read_log
+from hil.record import Recorder
+
+from .conftest import ROOT, hil_command, subprocess_env
+from .test_bus import FFCC_A, children_of, cmdline, data_streams, identification, run_json
+
+RT_ARGS = ["run", "scenarios/ffcc_a.toml", "--mode", "realtime", "--bus", "local", "--set", "run.duration_s=1.0",
+           "--set", "run.fault_time_s=0.5", "--json"]
+
+
+def _tcu_child(pid, timeout=30.0):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        for c in children_of(pid):
+            if "hil.tcu_node" in cmdline(c):
+                return c
+        time.sleep(0.005)
+    raise AssertionError("no hil.tcu_node child of the run appeared")
+
+
+def test_a_tcu_stalled_20ms_at_times_does_not_end_a_realtime_run(tmp_path):
+    seed = random.randrange(1, 10_000)
+    print(f"seed {seed}")
+    proc = subprocess.Popen([*hil_command(), *RT_ARGS, "--seed", str(seed), "--out", str(tmp_path)], cwd=ROOT,
+                            env=subprocess_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        tcu = _tcu_child(proc.pid)
+        stalls = 0
+        while proc.poll() is None and stalls < 5:
+            time.sleep(0.15)
+            try:
+                os.kill(tcu, signal.SIGSTOP)
+                time.sleep(0.02)
+                os.kill(tcu, signal.SIGCONT)
+                stalls += 1
+            except ProcessLookupError:
+                break
+        out, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert stalls >= 1, "the run ended before any stall"
+    assert proc.returncode == 0, err
+    s = json.loads(out)
+    assert s["mode"] == "realtime" and s["bus"] == "local"
+    assert s["tcu_stale_skipped"] > 0 or "silent" not in err
+
+
+def test_recording_queue_overflow_counts_exactly_the_dropped_rows(tmp_path):
+    limit, extra = 10, random.randrange(1, 50)
+    print(f"extra rows {extra}")
+    rec = Recorder(tmp_path / "q.mcap")
+    rec.defer(queue_limit=limit, block_when_full=False)
+    for i in range(limit + extra):
+        rec.event(i * 1e-3, "info", f"row {i}")
+    assert rec.overflow == extra and rec.pending == limit
+    rec.close({"done": True})
+    rows = read_log(tmp_path / "q.mcap", {"/run/events"}).topic("/run/events")
+    assert [r.text for r in rows] == [f"row {i}" for i in range(limit)]
+
+
+def test_local_and_inprocess_buses_give_the_same_frames_in_lockstep(tmp_path):
+    args = FFCC_A + ["--set", "run.duration_s=0.5", "--set", "run.fault_time_s=0.25"]
+    s_in, _ = run_json(args, "inprocess", tmp_path / "in")
+    s_local, _ = run_json(args, "local", tmp_path / "local")
+    assert s_in["bus"] == "inprocess" and s_local["bus"] == "local"
+    assert identification(s_local) == identification(s_in)
+    tx_in, rx_in = data_streams(tmp_path / "in" / "ffcc_a-nlls-1.mcap")
+    tx_local, rx_local = data_streams(tmp_path / "local" / "ffcc_a-nlls-1.mcap")
+    assert len(tx_in) == 500 and tx_local == tx_in and rx_local == rx_in
+
+
+def test_cpu_affinity_settings_are_lists_of_cpu_numbers():
+    s = load_scenario(ROOT / "scenarios/ffcc_a.toml", parse_set(["bus.cpu_affinity_plant=[0]",
+                                                                   "bus.cpu_affinity_tcu=[]"]))
+    assert s.bus.cpu_affinity_plant == (0,) and s.bus.cpu_affinity_tcu == ()
+    with pytest.raises(ConfigError, match="cpu_affinity_tcu"):
+        load_scenario(ROOT / "scenarios/ffcc_a.toml", parse_set(["bus.cpu_affinity_tcu=[-1]"]))
+
+
+def test_pinned_realtime_run_runs_each_process_on_its_cpu(tmp_path):
+    cpus = sorted(os.sched_getaffinity(0))
+    plant_cpu, tcu_cpu = cpus[0], cpus[-1]
+    proc = subprocess.Popen([*hil_command(), *RT_ARGS, "--out", str(tmp_path), "--set",
+                             f"bus.cpu_affinity_plant=[{plant_cpu}]", "--set", f"bus.cpu_affinity_tcu=[{tcu_cpu}]"],
+                            cwd=ROOT, env=subprocess_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        tcu = _tcu_child(proc.pid)
+        end, seen = time.monotonic() + 30, None
+        while time.monotonic() < end and proc.poll() is None:
+            try:
+                seen = (os.sched_getaffinity(proc.pid), os.sched_getaffinity(tcu))
+            except ProcessLookupError:
+                break
+            if seen == ({plant_cpu}, {tcu_cpu}):
+                break
+            time.sleep(0.01)
+        out, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, err
+    assert "cannot pin" not in err
+    assert seen == ({plant_cpu}, {tcu_cpu})
