@@ -272,3 +272,109 @@ def test_the_compiled_cloud_peaks_equal_the_closed_form():
     assert np.isnan(v_ref).any() and np.isfinite(v_ref).any()
     np.testing.assert_allclose(v, v_ref, rtol=1e-12, equal_nan=True)
     np.testing.assert_allclose(mu, mu_ref, rtol=1e-12, equal_nan=True)
+
+
+def _fed_strategy(seed: int, compiled: bool, samples_fed: int = 30):
+    """A strategy after ``samples_fed`` samples of a slip (its cloud resampled and moved on the way)."""
+    rng = np.random.default_rng(seed)
+    theta = theta_from_phi(np.array([0.14, 1.1, 0.005, 0.9, 2.4]))
+    pre, samples = slip(curve(theta), 0.15, rng)
+    strat = make_strategy("bayes", settings(particles=300, compiled=compiled, confirm_level=0.999999,
+                                            tol_peak_mu=1e-6), seed=5)
+    run(strat, pre, samples[:samples_fed])
+    return strat
+
+
+def test_the_compiled_move_equals_its_numpy_reference():
+    """kernels.bayes_move (one Metropolis step of a range of particles: proposal, curve, rerun over
+    every sample, acceptance) against the numpy reference of ``_move_range``, on the same cloud,
+    proposals and uniforms."""
+    from identifier import kernels
+
+    if not kernels.AVAILABLE:
+        pytest.skip("numba not installed: the numpy path runs")
+    seed = secrets.randbits(31)
+    print("seed", seed)
+    strat = _fed_strategy(seed, compiled=True)
+    rng = np.random.default_rng(seed)
+    n = strat.n_particles
+    cov = np.cov(strat.u) * (2.38 ** 2 / 5)
+    chol = np.linalg.cholesky(cov + 1e-9 * np.trace(cov) * np.eye(5))
+    normals, uniforms = rng.standard_normal((5, n)), rng.random(n)
+    names = ("u", "phi", "_theta", "ll", "omega", "_m_prev")
+    before = {k: np.array(getattr(strat, k), copy=True) for k in names}
+    results = []
+    for compiled in (True, False):
+        for k in names:
+            setattr(strat, k, np.ascontiguousarray(before[k].copy()))
+        strat._compiled = compiled
+        accepted = strat._move_range(40, n - 30, chol, normals, uniforms)
+        results.append((accepted, {k: getattr(strat, k).copy() for k in names}))
+    (acc_c, c), (acc_r, r) = results
+    print("accepted", acc_c, acc_r, "of", n - 70)
+    assert 0 < acc_c < n - 70                          # some proposals taken, some refused
+    changed = np.any(c["u"] != before["u"], axis=0)
+    assert not changed[:40].any() and not changed[n - 30:].any()     # outside the range nothing moves
+    # the same particles accepted (a log ratio within rounding of its uniform could differ: none here)
+    assert acc_c == acc_r
+    for k in names:
+        np.testing.assert_allclose(c[k], r[k], rtol=1e-7, atol=1e-12, err_msg=k)
+
+
+def test_a_spread_move_finishes_and_bounds_the_work_of_a_sample():
+    """With ``move_budget`` the move after a resampling is done a range of particles per sample: no
+    sample reruns more than the budget (plus one particle), and the move is finished before the
+    strategy confirms."""
+    seed = secrets.randbits(31)
+    print("seed", seed)
+    rng = np.random.default_rng(seed)
+    theta = theta_from_phi(np.array([0.14, 1.1, 0.005, 0.9, 2.4]))
+    pre, samples = slip(curve(theta), 0.15, rng)
+    budget = 3000
+    strat = make_strategy("bayes", settings(particles=400, move_budget=budget), seed=7)
+    work = []
+    orig = strat._move_range
+
+    def counted(start, stop, *rest):
+        work[-1] += (stop - start) * (strat._count + 30)
+        return orig(start, stop, *rest)
+
+    strat._move_range = counted
+    for k, y, v_t in pre:
+        strat.on_reading(k, y, v_t)
+    confirmed_pending = []
+    for s in samples:
+        work.append(0)
+        strat.add_sample(s)
+        if strat.confirmed:
+            confirmed_pending.append(strat._pending)
+        if strat.confirmed or strat.gave_up:
+            break
+    print("resamples", strat.resamples, "most work in a sample", max(work), "samples", len(work))
+    assert strat.resamples >= 2
+    assert max(work) <= budget + strat._count + 30
+    assert sum(1 for w in work if w) > strat.resamples        # spread: more samples moved than resampled
+    assert confirmed_pending in ([], [None])
+
+
+def test_the_compiled_baseline_equals_the_numpy_one():
+    """kernels.baseline_stats (noise and train-speed line before the slip, from a ring buffer) against
+    BaselineStats' numpy statistics, before and after the buffer wraps."""
+    from identifier import kernels
+    from identifier.strategies.bayes import BaselineStats
+
+    if not kernels.AVAILABLE:
+        pytest.skip("numba not installed: the numpy path runs")
+    seed = secrets.randbits(31)
+    print("seed", seed)
+    rng = np.random.default_rng(seed)
+    for count in (9, 100, 400, 1234):
+        b = BaselineStats(400)
+        for k in range(count):
+            b.add(500 + k, 300.0 + 0.01 * k + 0.005 * rng.standard_normal(), 20.0 + 1e-4 * k + 1e-3 * rng.standard_normal())
+        sigma_c, line_c = b.stats(True)
+        sigma_r, line_r = b.stats(False)
+        assert sigma_c == pytest.approx(sigma_r, rel=1e-9)
+        np.testing.assert_allclose(line_c, line_r, rtol=1e-9)
+        # the noise put in: 0.005; over 400 readings the estimate's relative sd is ~5 %: 4 sd either side
+        assert count < 400 or 0.004 < sigma_r < 0.006

@@ -27,11 +27,20 @@ error, both in mu units.
 When the effective sample size falls below ``ess_fraction`` N the cloud is resampled (systematic) and
 every particle takes ``moves`` Metropolis steps in the prior's unconstrained coordinates u
 (identifier/prior.py; resample-move, Gilks and Berzuini 2001): u' = u + L eps, L L^T = Cov(u) 2.38^2 / 5,
-each proposal's filter run afresh over every sample so far (``kernels.bayes_rerun``), accepted with
+each proposal's filter run afresh over every sample so far (``kernels.bayes_move``), accepted with
 min(1, L(u') p(u') / (L(u) p(u))).  This leaves the posterior exact in distribution; a Liu-West
 kernel (a Gaussian shrink-and-jitter, no likelihood) drifts off the posterior's curved ridge between
 peak mu and peak creep over the many moves of a slow slip and confirms curves whose likelihood is
-far below the truth's.  The price is the rerun: O(N x samples) on the samples that resample.
+far below the truth's.  The price is the rerun, O(N x samples) per step of every particle, so the
+move is spread over the samples that follow the resampling: each sample advances it by about
+``move_budget`` particle-samples (0: all in the resampling's sample).  A Metropolis step that leaves
+the posterior of all samples so far invariant keeps a weighted particle properly weighted, so a
+particle moved some samples after the resampling, weighted since, is still a draw of the posterior.
+While a move is under way the cloud is not resampled again and does not confirm (it holds copies);
+it confirms only with an effective sample size of at least ``confirm_min_ess`` N.  The first
+``min_samples`` samples (they arrive together at the slip's detection) and a sample that publishes
+a correction neither resample nor move.  The bench (``hil bench identify``, docs/identification.md)
+measures what the budget trades: per-sample cost against the intervals' coverage and RT.
 
 Intervals: weighted quantiles of peak_mu and peak_creep_kmh over the cloud, a credible interval.
 Every ``report_samples`` samples a correction event publishes the posterior's curve (weighted
@@ -69,6 +78,9 @@ QUANTILE_BINS = 2048
 #: the steepest dmu/dv_s the creep noise is taken through into the process noise (1 per km/h: above
 #: what the prior's curves reach where the samples are, ~0.3 at zero creep for FFCC-a)
 MAX_SLOPE_PER_KMH = 1.0
+#: what a moved particle costs besides its rerun (its proposal, curve and acceptance), in samples of a
+#: rerun: 50-100 ns against ~2.8-3.7 ns a particle-sample (kernels.bayes_move at N = 1000-2000)
+MOVE_OVERHEAD_SAMPLES = 30
 
 DEFAULTS = {
     "particles": 2000,
@@ -79,7 +91,9 @@ DEFAULTS = {
     "tol_peak_creep": 0.10,
     "model_mu_std": 3e-4,                # model error per period, mu units (process noise q)
     "ess_fraction": 0.5,
+    "confirm_min_ess": 0.1,              # the least effective sample size (fraction of N) that confirms
     "moves": 2,                          # Metropolis steps per particle after each resampling
+    "move_budget": 100000,               # the moves' work per sample, in particle-samples (0: all at once)
     "report_samples": 5,                 # a correction event every this many samples
     "min_samples": 5,                    # no confirmation before this many
     "max_samples": 400,
@@ -100,23 +114,40 @@ def _log_prior_u(u: np.ndarray) -> np.ndarray:
 
 class BaselineStats:
     """What the readings before the slip tell: the motor-speed noise (second differences) and the
-    train speed as a straight line in the step (least squares over the last ``size`` readings)."""
+    train speed as a straight line in the step (least squares over the last ``size`` readings).
+    The readings go into ring buffers (a few stores per reading); the statistics are computed once,
+    at the slip's first sample, on ``size`` numbers."""
 
     def __init__(self, size: int):
         self.size = size
-        self.steps: list[int] = []
-        self.motor: list[float] = []
-        self.train: list[float] = []
+        self._buf = np.zeros((3, size))        # step, motor speed, train speed
+        self.count = 0
 
     def add(self, step: int, motor_speed_rad_s: float, train_speed_ms: float) -> None:
-        self.steps.append(step)
-        self.motor.append(motor_speed_rad_s)
-        self.train.append(train_speed_ms)
-        if len(self.steps) > 2 * self.size:          # keep it bounded over a long run
-            del self.steps[:self.size], self.motor[:self.size], self.train[:self.size]
+        i = self.count % self.size
+        buf = self._buf
+        buf[0, i], buf[1, i], buf[2, i] = step, motor_speed_rad_s, train_speed_ms
+        self.count += 1
+
+    def _ordered(self, row: int) -> np.ndarray:
+        """The buffer's row ``row``, oldest reading first."""
+        n = min(self.count, self.size)
+        i = self.count % self.size
+        x = self._buf[row]
+        return x[:n] if self.count <= self.size else np.concatenate([x[i:], x[:i]])
+
+    def stats(self, compiled: bool) -> tuple[float, tuple[float, float, float]]:
+        """(motor-speed noise, train-speed line): ``motor_noise_rad_s`` and ``train_speed_line``, by
+        ``kernels.baseline_stats`` when ``compiled`` (one call instead of two dozen numpy ones)."""
+        if self.count < 2:
+            return math.nan, (self._buf[0, 0], self._buf[2, 0] if self.count else math.nan, 0.0)
+        if compiled:
+            sigma, k0, v0, slope = load_kernels().baseline_stats(self._buf, self.count)
+            return sigma, (k0, v0, slope)
+        return self.motor_noise_rad_s(), self.train_speed_line()
 
     def motor_noise_rad_s(self) -> float:
-        y = np.asarray(self.motor[-self.size:])
+        y = self._ordered(1)
         if y.size < 8:
             return math.nan
         d2 = y[2:] - 2.0 * y[1:-1] + y[:-2]
@@ -124,8 +155,7 @@ class BaselineStats:
 
     def train_speed_line(self) -> tuple[float, float, float]:
         """(step0, v at step0, slope per step) of the least-squares line through the last readings."""
-        k = np.asarray(self.steps[-self.size:], float)
-        v = np.asarray(self.train[-self.size:])
+        k, v = self._ordered(0), self._ordered(2)
         if k.size < 2:
             return (k[-1] if k.size else 0.0), (v[-1] if v.size else math.nan), 0.0
         k0 = float(k.mean())
@@ -195,6 +225,10 @@ class BayesStrategy(Strategy):
         self._m_prev: np.ndarray | None = None
         self._line = None
         self.resamples = 0
+        self._pending = None                   # the move under way after a resampling (``_move``)
+        self.ess = float(n)
+        # the cloud's gather buffers, by attribute (``_resample``), made and touched now, not on a sample
+        self._spare = {name: np.zeros_like(getattr(self, name)) for name in ("u", "phi", "_theta")}
         self.peak_mu_ci = self.peak_creep_ci = (math.nan, math.nan)
 
     # -- the cloud -----------------------------------------------------------------------------
@@ -245,9 +279,9 @@ class BayesStrategy(Strategy):
     def _open(self, s: Sample) -> None:
         """The first sample of the slip: the baseline is final; every particle starts at y."""
         f = self.filter
-        sigma_y = self.baseline.motor_noise_rad_s()
+        sigma_y, line = self.baseline.stats(self._compiled)
         f.sigma_y_rad_s = sigma_y if math.isfinite(sigma_y) and sigma_y > 0 else float(self.opts["sigma_y_fallback"])
-        self._line = self.baseline.train_speed_line() if self.baseline.steps else (s.step, s.train_speed_ms, 0.0)
+        self._line = line if self.baseline.count else (s.step, s.train_speed_ms, 0.0)
         # q: model error plus the creep noise carried into M (a slope of MAX_SLOPE_PER_KMH x the creep noise)
         creep_noise_kmh = self.creep_per_motor_speed * f.sigma_y_rad_s
         mu_std = math.hypot(float(self.opts["model_mu_std"]), MAX_SLOPE_PER_KMH * creep_noise_kmh / math.sqrt(2.0))
@@ -290,11 +324,21 @@ class BayesStrategy(Strategy):
             self.weights = w / w.sum()
             ess = 1.0 / float(self.weights @ self.weights)
         self._record(creep, s, dt_j, gain, 0.5 / innov_var)
+        self.ess = float(ess)
         # the fit's check: the recent normalised innovations squared (about 1 when a curve of the prior
         # explains the speed; well above when none does, e.g. a law of another form)
         self._nis_recent.append(float(nis))
-        if ess < float(self.opts["ess_fraction"]) * self.n_particles:
-            self._resample_move()
+        # a sample that publishes a correction neither resamples nor moves (its cost is the summary's),
+        # nor do the first min_samples (they arrive together when the slip is detected: the catch-up)
+        publishes = len(self._v) % int(self.opts["report_samples"]) == 0
+        if self._pending is not None:
+            if not publishes:
+                self._move(int(self.opts["move_budget"]))
+        elif (ess < float(self.opts["ess_fraction"]) * self.n_particles and not publishes
+              and len(self._v) >= int(self.opts["min_samples"])):
+            self._resample()
+            if int(self.opts["move_budget"]) <= 0:
+                self._move(0)
 
     def _rerun(self, theta: np.ndarray):
         """(log-likelihood, speed estimate, M at the last sample) of every particle of ``theta`` (5, N)
@@ -317,46 +361,79 @@ class BayesStrategy(Strategy):
             ll -= inv_2s[k] * e * e
         return ll, omega, m[:, -1].copy()
 
-    def _resample_move(self) -> None:
-        """Systematic resampling, then ``moves`` Metropolis steps per particle in u (module docstring):
-        a Gaussian random walk with the cloud's covariance x 2.38^2 / 5, each proposal's likelihood over
-        every sample so far run afresh, accepted with min(1, L' p(u') / (L p(u)))."""
+    def _resample(self) -> None:
+        """Systematic resampling; the weights become equal and a move is set under way (``_move``):
+        ``moves`` Metropolis rounds over the cloud, a Gaussian random walk in u with the resampled
+        cloud's covariance x 2.38^2 / 5."""
         n = self.n_particles
-        k = self.resamples
         if self._compiled:
-            load_kernels().systematic_resample(self.weights, float(self.rng.random()), self._idx)
-            idx = self._idx
+            kern = load_kernels()
+            cov = kern.weighted_covariance5(self.u, self.weights, np.empty((5, 5)))
+            idx = kern.systematic_resample(self.weights, float(self.rng.random()), self._idx)
+            for name in ("u", "phi", "_theta"):        # the cloud's rows gathered into the spare buffer
+                spare = self._spare[name]
+                kern.take_columns(getattr(self, name), idx, spare)
+                self._spare[name] = getattr(self, name)
+                setattr(self, name, spare)
         else:
+            centred = self.u - (self.u @ self.weights)[:, None]
+            cov = (centred * self.weights) @ centred.T
             idx = np.minimum(np.searchsorted(np.cumsum(self.weights), (self.rng.random() + np.arange(n)) / n), n - 1)
-        self.u = self.u[:, idx]
+            self.u, self.phi, self._theta = self.u[:, idx], self.phi[:, idx], self._theta[:, idx]
         self.ll = self.ll[idx]
         self.omega = self.omega[idx]
-        self._set_curves()
         self._m_prev = self._m_prev[idx]
-        cov = np.cov(self.u) * (2.38 ** 2 / self.u.shape[0])
-        chol = np.linalg.cholesky(cov + (1e-12 + 1e-9 * np.trace(cov)) * np.eye(len(cov)))
-        phi_p, theta_p = np.empty_like(self.phi), np.empty_like(self._theta)
-        for m in range(int(self.opts["moves"])):
-            normals = self._normals[(k * int(self.opts["moves"]) + m) % len(self._normals)]
-            prop = self.u + chol @ normals
-            if self._compiled:
-                load_kernels().bayes_curves(prop, *self._bounds, phi_p, *theta_p)
-            else:
-                phi_p[:] = self.prior.phi_from_u(prop.T).T
-                theta_p[:] = theta_from_phi(phi_p.T).T
-            ll_p, omega_p, m_p = self._rerun(theta_p)
-            log_ratio = ll_p - self.ll + _log_prior_u(prop) - _log_prior_u(self.u)
-            accept = np.log(self.rng.random(n)) < log_ratio
-            self.u = np.where(accept, prop, self.u)
-            self.phi = np.where(accept, phi_p, self.phi)
-            self._theta = np.where(accept, theta_p, self._theta)
-            self.ll = np.where(accept, ll_p, self.ll)
-            self.omega = np.where(accept, omega_p, self.omega)
-            self._m_prev = np.where(accept, m_p, self._m_prev)
-            self.accepted += int(accept.sum())
+        cov *= 2.38 ** 2 / self.u.shape[0]           # the random walk's covariance: the cloud's, weighted
+        cov += (1e-12 + 1e-9 * np.trace(cov)) * np.eye(len(cov))
+        chol = load_kernels().cholesky_lower(cov, np.empty_like(cov)) if self._compiled else np.linalg.cholesky(cov)
+        self._pending = [0, 0, chol, self.rng.random(n)]       # round, next particle, L, uniforms
         self.log_w.fill(0.0)
         self.weights.fill(1.0 / n)
         self.resamples += 1
+
+    def _move(self, budget: int) -> None:
+        """Advance the move under way by about ``budget`` particle-samples of filter reruns (0: finish
+        it now).  A Metropolis step targets the posterior of all samples so far, so a particle moved
+        samples after the resampling, with its weight since, is still a draw of it (a weighted
+        particle stays properly weighted under a posterior-invariant kernel): the move's work is
+        spread over the samples that follow instead of stalling one of them."""
+        n, count = self.n_particles, self._count
+        rounds = int(self.opts["moves"])
+        while self._pending is not None:
+            rnd, start, chol, uniforms = self._pending
+            stop = n if budget <= 0 else min(n, start + max(1, budget // (count + MOVE_OVERHEAD_SAMPLES)))
+            normals = self._normals[(self.resamples * rounds + rnd) % len(self._normals)]
+            self.accepted += self._move_range(start, stop, chol, normals, uniforms)
+            if stop < n:
+                self._pending[1] = stop
+            elif rnd + 1 < rounds:
+                self._pending = [rnd + 1, 0, chol, self.rng.random(n)]
+            else:
+                self._pending = None
+            if budget > 0:
+                budget -= (stop - start) * (count + MOVE_OVERHEAD_SAMPLES)
+                if budget <= 0:
+                    return
+
+    def _move_range(self, start: int, stop: int, chol, normals, uniforms) -> int:
+        """One Metropolis step for particles [start, stop) (module docstring): the proposal's filter
+        over every sample so far, accepted with min(1, L(u') p(u') / (L(u) p(u))).  Returns the
+        number accepted."""
+        if self._compiled:
+            return load_kernels().bayes_move(
+                self.u, self.phi, *self._theta, self.omega, self._m_prev, self.ll, start, stop, chol, normals,
+                uniforms, *self._bounds, *(np.ascontiguousarray(r[:self._count]) for r in self._log),
+                self.filter.torque_per_mu_nm)
+        sl = slice(start, stop)
+        prop = self.u[:, sl] + chol @ normals[:, sl]
+        phi_p = self.prior.phi_from_u(prop.T).T
+        theta_p = theta_from_phi(phi_p.T).T
+        ll_p, omega_p, m_p = self._rerun(theta_p)
+        accept = np.log(uniforms[sl]) < ll_p - self.ll[sl] + _log_prior_u(prop) - _log_prior_u(self.u[:, sl])
+        cols = np.flatnonzero(accept) + start
+        self.u[:, cols], self.phi[:, cols], self._theta[:, cols] = prop[:, accept], phi_p[:, accept], theta_p[:, accept]
+        self.ll[cols], self.omega[cols], self._m_prev[cols] = ll_p[accept], omega_p[accept], m_p[accept]
+        return int(accept.sum())
 
     # -- intervals and decisions -----------------------------------------------------------------
     def quantiles(self, col: int, qs) -> np.ndarray:
@@ -408,6 +485,12 @@ class BayesStrategy(Strategy):
         recent = self._nis_recent
         return len(recent) == recent.maxlen and sum(recent) / len(recent) <= float(self.opts["fit_nis_max"])
 
+    def _cloud_ready(self) -> bool:
+        """A cloud fit to confirm from: no move under way (a resampled cloud holds copies until its
+        move is done) and an effective sample size of at least ``ess_fraction`` N (quantiles of a few
+        heavy particles are too narrow)."""
+        return self._pending is None and self.ess >= float(self.opts["confirm_min_ess"]) * self.n_particles
+
     def _within_tolerance(self) -> bool:
         """The confirmation rule (module docstring)."""
         o = self.opts
@@ -428,7 +511,7 @@ class BayesStrategy(Strategy):
     def _evaluate(self, s: Sample) -> list[IdentificationEvent]:
         n = len(self._v)
         o = self.opts
-        if n >= int(o["min_samples"]) and self._within_tolerance():
+        if n >= int(o["min_samples"]) and self._cloud_ready() and self._within_tolerance():
             return [self._publish(s, "confirmed")]
         if s.creep_speed_kmh > self.prior.upper_peak_creep_kmh() or n >= int(o["max_samples"]):
             return [self._publish(s, "unconfirmed")]
