@@ -104,7 +104,30 @@ def aggregate(per_draw: list[dict]) -> dict:
         "ci_width_peak_creep_median_percent": _median([d["ci_width_peak_creep_percent"] for d in per_draw]),
         "rt_median_percent": quantile_or_inf(rts, 50),
         "rt_p90_percent": quantile_or_inf(rts, 90),
+        **by_law(per_draw),
     }
+
+
+def by_law(per_draw: list[dict]) -> dict:
+    """Wrong confirmations and coverage per law of the true curve (draws carry ``law`` in family
+    runs), and how many wrong confirmations the identifier's form itself could not have avoided
+    (``form_ok`` False: its best noiseless fit over the same creeps misses the tolerance too)."""
+    laws = sorted({d["law"] for d in per_draw if d.get("law")})
+    if not laws:
+        return {}
+    out = {"by_law": {}}
+    for law in laws:
+        ds = [d for d in per_draw if d.get("law") == law]
+        out["by_law"][law] = {"draws": len(ds),
+                              "correct_fraction": _fraction(d["correct"] for d in ds),
+                              "wrong_confirmation_fraction": _fraction(d["wrong_confirmation"] for d in ds),
+                              "coverage_peak_mu": _fraction(d["covers_peak_mu"] for d in ds),
+                              "coverage_peak_creep": _fraction(d["covers_peak_creep"] for d in ds)}
+    wrong = [d for d in per_draw if d["wrong_confirmation"]]
+    out["wrong_confirmations"] = len(wrong)
+    out["wrong_where_form_cannot"] = sum(d.get("form_ok") is False for d in wrong)
+    out["correct_where_form_cannot"] = sum(d.get("form_ok") is False for d in per_draw if d["correct"])
+    return out
 
 
 COLUMNS = (("strategy", None, "{}"), ("confirmed before serious", "confirmed_before_serious_fraction", "pct"),
