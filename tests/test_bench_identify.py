@@ -148,3 +148,29 @@ def test_family_mode_draws_at_run_time_prints_its_seed_and_judges_against_the_or
     assert json.loads((tmp_path / "rep" / "identification.json").read_text())["seed"] == seed
     bad = run(["--family", "nonesuch", "--draws", "2"], tmp_path)
     assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "nonesuch" in bad.stderr
+
+
+def test_form_limit_is_zero_on_its_own_form_and_not_on_a_flat_polach_peak():
+    """``form_limit``: the identifier's form fitted to a noiseless true curve.  On a curve of that form
+    (FFCC-a) it finds the peak exactly; on Polach curves seen only up to their peak (flat tops) it
+    misses the peak creep on some: what a wrong confirmation there owes to the form."""
+    import secrets
+
+    from hil.benchmarks.identify import case_path, form_limit
+    from hil.config import parse_scenario
+    from plant import families
+
+    sc = parse_scenario(case_path("ffcc_a").read_text(), "ffcc_a", {})
+    v_peak, _ = sc.fault_curve.peak()
+    exact = form_limit(sc.fault_curve, 2.0 * v_peak)
+    assert exact["form_ok"] and exact["form_peak_creep_err_percent"] < 0.5 and exact["form_peak_mu_err_percent"] < 0.1
+    seed = secrets.randbits(31)
+    print("seed", seed)
+    base = case_path("ffcc_a").read_text()
+    creep_errors = []
+    for i in range(6):
+        polach = parse_scenario(families.draw_scenario_text(base, "polach", seed, i), "polach draw", {})
+        v_peak, _ = polach.fault_curve.peak()
+        creep_errors.append(form_limit(polach.fault_curve, v_peak)["form_peak_creep_err_percent"])
+    print("form's peak creep errors on Polach curves seen up to their peak, %:", [round(e, 1) for e in creep_errors])
+    assert max(creep_errors) > 2.0
