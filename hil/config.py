@@ -363,6 +363,14 @@ def parse_scenario(text: str, path: str = "<scenario>", overrides: dict | None =
         if key not in _IDENTIFIER_FIELDS:
             raise _fail(path, f"[identifier] {key}", f"unknown key (known: {', '.join(_IDENTIFIER_FIELDS)})")
         typ = _IDENTIFIER_FIELDS[key].type
+        if key == "excitation":
+            from identifier.excitation import Excitation
+            try:
+                Excitation.from_dict(value)
+            except ValueError as e:
+                raise _fail(path, "[identifier.excitation]", e) from None
+            identifier[key] = dict(value)
+            continue
         identifier[key] = value if key == "options" and isinstance(value, dict) else \
             _coerce(path, f"[identifier] {key}", value, typ)
         if key in IDENTIFIER_RANGES:

@@ -44,9 +44,14 @@ class IdentifierSettings:
     # 0: no drill.  64 keeps its samples at ~10-40 us
     drill_particles: int = 64
     options: dict = field(default_factory=dict)   # strategy-specific tuning, by strategy name
+    # the open-loop torque excitation while identifying ([identifier.excitation], identifier/excitation.py);
+    # empty: none
+    excitation: dict = field(default_factory=dict)
 
     def __post_init__(self):
         if self.window_samples < 2 * ((len(self.initial_guess) - 1) // 2) + 2:
             raise ValueError("window_samples must exceed 2n + 1 (the SE of eq. 29 divides by L - 2n - 1)")
         if self.drill_particles != 0 and self.drill_particles < 2:
             raise ValueError(f"drill_particles must be 0 (no drill) or at least 2, got {self.drill_particles}")
+        from .excitation import Excitation
+        Excitation.from_dict(self.excitation)          # a bad table fails here, naming its field

@@ -12,6 +12,7 @@ import math
 from collections import deque
 
 from .drill import Drill
+from .excitation import Excitation
 from .messages import (STAGE_CONFIRMED, STAGE_GAVE_UP, STAGE_IDENTIFYING, STAGE_MONITORING, ObserverSample,
                        SensorReading, TcuOutput, TcuStatus, TorqueCommand)
 from .observer import LoadTorqueObserver
@@ -19,6 +20,13 @@ from .settings import IdentifierSettings
 from .strategies import Sample, make_strategy
 
 KMH_PER_MS = 3.6
+
+
+def creep_speed_kmh(reading: SensorReading, vehicle) -> float:
+    """The creep speed from a reading: wheel rim speed (motor speed / gear ratio x radius) minus the
+    train speed, in km/h."""
+    return KMH_PER_MS * (reading.motor_speed_rad_s / vehicle.gear_ratio * vehicle.wheel_radius_m
+                         - reading.train_speed_ms)
 
 
 class SlipDetector:
@@ -87,6 +95,8 @@ class TractionIdentifier:
         self.settings = settings
         self.strategy_name = strategy
         self.strategy = make_strategy(strategy, settings, seed)
+        self.seed = seed
+        self.excitation = Excitation.from_dict(settings.excitation)
         v = settings.vehicle
         self.observer = LoadTorqueObserver(v.equivalent_inertia_kgm2, settings.period_s,
                                            settings.observer_pole_rad_s)
@@ -113,22 +123,31 @@ class TractionIdentifier:
             return STAGE_GAVE_UP
         return STAGE_IDENTIFYING if self.detector.detected_step is not None else STAGE_MONITORING
 
+    def command_nm(self, step: int) -> float:
+        """The torque commanded after the reading of ``step``: the demand, with the excitation once a
+        slip has been detected (identifier/excitation.py: a function of the step and seed only)."""
+        s = self.settings
+        return self.excitation.command_nm(s.torque_demand_nm, step, self.detector.detected_step, s.period_s,
+                                          self.seed)
+
     def on_sensor(self, reading: SensorReading) -> TcuOutput:
-        torque = self.settings.torque_demand_nm
         if not (math.isfinite(reading.motor_speed_rad_s) and math.isfinite(reading.train_speed_ms)):
-            # a reading that cannot be trusted: hold the command, feed nothing downstream
+            # a reading that cannot be trusted: the planned command, nothing fed downstream
             self.rejected_readings += 1
-            return TcuOutput(TorqueCommand(reading.step, torque), self._status(reading.step))
+            return TcuOutput(TorqueCommand(reading.step, self.command_nm(reading.step)), self._status(reading.step))
         v = self.settings.vehicle
         t_s = reading.step * self.settings.period_s
         innovation = reading.motor_speed_rad_s - self.observer.speed_rad_s   # y(k) - omega^(k), before the update
         load_torque = self.observer.update(reading.motor_speed_rad_s, self._last_torque)
-        self._last_torque = torque
         mu_hat = load_torque / v.torque_per_mu_nm
-        creep = KMH_PER_MS * (reading.motor_speed_rad_s / v.gear_ratio * v.wheel_radius_m - reading.train_speed_ms)
+        creep = creep_speed_kmh(reading, v)
         self._creep_history.append(creep)
         paired_creep = self._creep_history[0]   # v_s(k - lag): the creep mu^(k) really belongs to
         observer = ObserverSample(reading.step, t_s, creep, mu_hat, load_torque)
+        detected_before = self.detector.detected_step is not None
+        slipping = self.detector.update(reading.step, creep)
+        torque = self.command_nm(reading.step)           # what is applied from this reading to the next
+        self._last_torque = torque
         events = []
         if self.drill is not None and (self.detector.detected_step is None
                                        or reading.step - self.detector.detected_step < self._settle_steps - 1):
@@ -138,8 +157,7 @@ class TractionIdentifier:
         if self._observer_aware:
             sample = Sample(reading.step, t_s, creep, mu_hat, innovation, reading.motor_speed_rad_s,
                             reading.train_speed_ms, torque)
-            detected_before = self.detector.detected_step is not None
-            if self.detector.update(reading.step, creep):
+            if slipping:
                 if not detected_before:     # just detected: the buffered readings since the slip's start first
                     for s in self._recent:
                         if s.step >= self.detector.detected_step:
@@ -147,7 +165,7 @@ class TractionIdentifier:
                 events.extend(self.strategy.add_sample(sample))
             else:
                 self._recent.append(sample)
-        elif self.detector.update(reading.step, creep):
+        elif slipping:
             if reading.step - self.detector.detected_step >= self._settle_steps:
                 events = self.strategy.add_sample(Sample(reading.step, t_s, paired_creep, mu_hat))
         return TcuOutput(TorqueCommand(reading.step, torque), self._status(reading.step), observer, events)

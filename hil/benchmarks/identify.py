@@ -105,24 +105,36 @@ class CaseData:
     seed: int
     readings: list
     tracker: object
+    plant_torques_nm: list = dataclasses.field(default_factory=list)    # the command after each reading
 
 
 def generate(scenario, seed: int) -> CaseData:
     """Run plant + sensors with the TCU's torque demand and record the sensor readings."""
     from identifier import TorqueCommand
+    from identifier.excitation import Excitation
+    from identifier.tcu import SlipDetector, creep_speed_kmh
 
     from ..plant_node import PlantRig
     from ..trace import Trace
 
     trace = Trace(scenario)
     rig = PlantRig(scenario, seed, trace)
-    torque = scenario.identifier_settings().torque_demand_nm
-    readings = []
+    settings = scenario.identifier_settings()
+    excitation = Excitation.from_dict(settings.excitation)
+    # the TCU's own slip detector and excitation (identifier/tcu.py), so the plant gets the commands
+    # every strategy's TCU would send: they depend on the readings and the seed, never on a strategy
+    detector = SlipDetector(settings.detection_creep_rise_kmh, settings.baseline_samples)
+    readings, torques = [], []
     for _ in range(scenario.steps):
         r = rig.sense()
         readings.append(r)
+        if excitation.active and math.isfinite(r.motor_speed_rad_s) and math.isfinite(r.train_speed_ms):
+            detector.update(r.step, creep_speed_kmh(r, settings.vehicle))
+        torque = excitation.command_nm(settings.torque_demand_nm, r.step, detector.detected_step, settings.period_s,
+                                       seed)
         rig.apply(TorqueCommand(r.step, torque))
-    return CaseData(scenario, seed, readings, trace.tracker)
+        torques.append(torque)
+    return CaseData(scenario, seed, readings, trace.tracker, torques)
 
 
 def with_particles(settings, strategy: str, particles: int | None):
