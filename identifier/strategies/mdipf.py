@@ -700,12 +700,3 @@ class MdipfStrategy(Strategy):
             lo, hi, use_box = self._clip_box()
             _K.recentre(self._xt, chi, lo, hi, use_box)
         chi.fill(0.0)
-
-
-class MdipfRawStrategy(MdipfStrategy):
-    """MDIPF with the literal Theta (the raw correlation matrix, spectral radius up to P): reported
-    beside ``mdipf`` to show what the stabilisation changes.  Literal in its prelim too (scipy's
-    trust-region solver)."""
-
-    name = "mdipf_raw"
-    defaults = {**DEFAULTS, "stabiliser": "raw", "prelim_solver": "trf"}

@@ -156,40 +156,6 @@ class ProposedStrategy(MdipfStrategy):
         self.boxes.append((self.lo.copy(), self.hi.copy()))
 
 
-class ProposedRawStrategy(ProposedStrategy):
-    """The proposed strategy with the literal Theta (raw correlation matrix); the box is what keeps
-    the amplifying transition in check, so it is tighter (measured: [0.002, 0.01, 0.015] gave 3
-    corrections and the best RT of the half-widths tried)."""
-
-    name = "proposed_raw"
-    defaults = {**PROPOSED_DEFAULTS, "stabiliser": "raw", "box_halfwidth": [0.002, 0.01, 0.015], "prelim_solver": "trf"}
-
-
-class ProposedFastStrategy(ProposedStrategy):
-    """Beyond the paper: correction 1 filters the preliminary fit's own window, so the first J_EF
-    (|chi^_1 - chi^_0|^2, chi^_0 = 0) and the confidence check come one window earlier; the
-    confirmation can then come after 2 windows instead of 3.  It reports the filter's estimate
-    after the confirmation window (``publish_latest``, as ``proposed_latest``): on hil bench
-    identify --first-seed 200 --seeds 60, RT 26.7 / 43.5 % (FFCC-a / FFCC-b) with peak errors
-    within 3 % / 10 % in 63 / 82 % of seeds; without ``publish_latest`` 47 / 73 % (30 seeds)."""
-
-    name = "proposed_fast"
-    defaults = {**PROPOSED_DEFAULTS, "filter_prelim_window": True, "publish_latest": True}
-
-
-class ProposedLatestStrategy(ProposedStrategy):
-    """Beyond the paper: the proposed strategy, but the confirmation reports the filter's estimate
-    after the confirmation window (the candidate plus one more correction from the window the
-    check just accepted) instead of the candidate itself.  The same RT and corrections; on
-    hil bench identify --first-seed 200 --seeds 60 the peak errors came within 3 % / 10 % in
-    78 / 83 % of seeds (FFCC-a / FFCC-b) against 70 / 80 % for ``proposed``, median peak mu error
-    1.62 / 0.78 % against 2.41 / 1.35 %.  The reported curve is not itself the one the band
-    checked: it is a further correction, from data the checked curve fitted."""
-
-    name = "proposed_latest"
-    defaults = {**PROPOSED_DEFAULTS, "publish_latest": True}
-
-
 def fit_curve_mu0(creep_speed_kmh, mu_samples, theta0, radius=None) -> np.ndarray:
     """NLLS with lambda0 = -sum(lambda_i) (mu(0) = 0): fits lambda_1..n, tau_1..n."""
     v = np.asarray(creep_speed_kmh, float)
