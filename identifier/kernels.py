@@ -812,11 +812,11 @@ _warmed = False
 # The same operations as its numpy reference (speed_likelihood.SpeedFilter, prior.phi_from_u /
 # theta_from_phi, pf.weighted_quantiles) in branch-free loops around ``_exp``, so they vectorise.
 @njit(**_JIT)
-def bayes_step(l0, l1, l2, t1, t2, omega, m_prev, log_w, ll_total, weights, creep_speed_kmh, y, torque_nm, dt_j,
-               torque_per_mu, inv_2s, gain, out):
+def bayes_step(l0, l1, l2, t1, t2, omega, delta, m_prev, log_w, ll_total, weights, creep_speed_kmh, y, torque_nm,
+               dt_j, torque_per_mu, inv_2s, gain, gain_delta, out):
     """``SpeedFilter.step`` for every particle's curve M_j(v) = l0 + l1 e^(t1 v) + l2 e^(t2 v) at
-    ``creep_speed_kmh``, log w_j and the particle's whole log-likelihood += log L_j, then the normalised
-    weights.  ``out[0]``: the ESS (-1.0
+    ``creep_speed_kmh`` and its offset ``delta`` (gain ``gain_delta``), log w_j and the particle's
+    whole log-likelihood += log L_j, then the normalised weights.  ``out[0]``: the ESS (-1.0
     when the weights are not finite); ``out[1]``: the normalised innovation squared e^2 / S averaged
     with the weights before this step."""
     n = omega.size
@@ -825,9 +825,10 @@ def bayes_step(l0, l1, l2, t1, t2, omega, m_prev, log_w, ll_total, weights, cree
     for j in range(n):       # (SpeedFilter.step written out here and in bayes_rerun: a shared helper
         #                          returning a tuple stops the loop vectorising)
         m_new = l0[j] + l1[j] * _exp(t1[j] * creep_speed_kmh) + l2[j] * _exp(t2[j] * creep_speed_kmh)
-        pred = omega[j] + dt_j * (torque_nm - half * (m_prev[j] + m_new))
+        pred = omega[j] + dt_j * (torque_nm - half * (m_prev[j] + m_new) - torque_per_mu * delta[j])
         e = y - pred
         omega[j] = pred + gain * e
+        delta[j] += gain_delta * e
         m_prev[j] = m_new
         log_w[j] -= inv_2s * e * e
         ll_total[j] -= inv_2s * e * e
@@ -851,31 +852,35 @@ def bayes_step(l0, l1, l2, t1, t2, omega, m_prev, log_w, ll_total, weights, cree
 
 
 @njit(**_JIT)
-def bayes_rerun(l0, l1, l2, t1, t2, creep, y, torque, dt_j, gain, inv_2s, torque_per_mu, ll, omega, m_last):
+def bayes_rerun(l0, l1, l2, t1, t2, creep, y, torque, dt_j, gain, inv_2s, gain_delta, torque_per_mu, ll, omega,
+                delta, m_last):
     """Every particle's speed filter over the samples so far, afresh (``SpeedFilter`` from the first
-    sample: omega = y[0]): its whole log-likelihood, its speed estimate and M at the last sample.
-    ``dt_j``, ``gain``, ``inv_2s``: the filter's shared constants of each step (index k: from sample
-    k - 1 to k), the same for every particle.  Particles are the inner loop, so it vectorises."""
+    sample: omega = y[0], delta = 0): its whole log-likelihood, its speed estimate, its offset and M at
+    the last sample.  ``dt_j``, ``gain``, ``inv_2s``, ``gain_delta``: the filter's shared constants of
+    each step (index k: from sample k - 1 to k), the same for every particle.  Particles are the inner
+    loop, so it vectorises."""
     n = l0.size
     half = 0.5 * torque_per_mu
     for j in range(n):
         omega[j] = y[0]
+        delta[j] = 0.0
         ll[j] = 0.0
         m_last[j] = l0[j] + l1[j] * _exp(t1[j] * creep[0]) + l2[j] * _exp(t2[j] * creep[0])
     for k in range(1, creep.size):
-        v, yk, tq, d, g, s = creep[k], y[k], torque[k - 1], dt_j[k], gain[k], inv_2s[k]
+        v, yk, tq, d, g, s, gd = creep[k], y[k], torque[k - 1], dt_j[k], gain[k], inv_2s[k], gain_delta[k]
         for j in range(n):
             m_new = l0[j] + l1[j] * _exp(t1[j] * v) + l2[j] * _exp(t2[j] * v)
-            pred = omega[j] + d * (tq - half * (m_last[j] + m_new))
+            pred = omega[j] + d * (tq - half * (m_last[j] + m_new) - torque_per_mu * delta[j])
             e = yk - pred
             omega[j] = pred + g * e
+            delta[j] += gd * e
             m_last[j] = m_new
             ll[j] -= s * e * e
 
 
 @njit(**_JIT)
-def bayes_move(ut, phit, l0, l1, l2, t1, t2, omega, m_prev, ll, start, stop, chol, normals, uniforms, lo, hi,
-               log_scale, creep, y, torque, dt_j, gain, inv_2s, torque_per_mu):
+def bayes_move(ut, phit, l0, l1, l2, t1, t2, omega, delta, m_prev, ll, start, stop, chol, normals, uniforms, lo,
+               hi, log_scale, creep, y, torque, dt_j, gain, inv_2s, gain_delta, torque_per_mu):
     """One Metropolis step for particles [start, stop) of the cloud, in place (``BayesStrategy._move``):
     proposal u' = u + chol z (z: ``normals``' columns), its curve (``bayes_curves``) and its filter
     over every sample so far (``bayes_rerun``), accepted when uniform < L(u') p(u') / (L(u) p(u)),
@@ -897,8 +902,8 @@ def bayes_move(ut, phit, l0, l1, l2, t1, t2, omega, m_prev, ll, start, stop, cho
     phip = np.empty((p, n))
     a0, a1, a2, a3, a4 = np.empty(n), np.empty(n), np.empty(n), np.empty(n), np.empty(n)
     bayes_curves(prop, lo, hi, log_scale, phip, a0, a1, a2, a3, a4)
-    llp, omp, mp = np.empty(n), np.empty(n), np.empty(n)
-    bayes_rerun(a0, a1, a2, a3, a4, creep, y, torque, dt_j, gain, inv_2s, torque_per_mu, llp, omp, mp)
+    llp, omp, dp, mp = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
+    bayes_rerun(a0, a1, a2, a3, a4, creep, y, torque, dt_j, gain, inv_2s, gain_delta, torque_per_mu, llp, omp, dp, mp)
     ratio = np.empty(n)
     for q in range(n):
         ratio[q] = _exp(llp[q] - ll[start + q])
@@ -916,7 +921,7 @@ def bayes_move(ut, phit, l0, l1, l2, t1, t2, omega, m_prev, ll, start, stop, cho
                 ut[i, j] = prop[i, q]
                 phit[i, j] = phip[i, q]
             l0[j], l1[j], l2[j], t1[j], t2[j] = a0[q], a1[q], a2[q], a3[q], a4[q]
-            ll[j], omega[j], m_prev[j] = llp[q], omp[q], mp[q]
+            ll[j], omega[j], delta[j], m_prev[j] = llp[q], omp[q], dp[q], mp[q]
             accepted += 1
     return accepted
 
@@ -1082,10 +1087,10 @@ def warm_up() -> None:
     grid_best(np.tile(np.eye(3), (4, 1, 1)), np.ones((4, 3)), 1.0, np.full((4, 2), -0.5), lo, hi)
     grid_add(np.full((4, 2), -0.5), 1.0, 0.1, np.empty((4, 3)), np.zeros((4, 3, 3)), np.zeros((4, 3)))
     c = np.full(4, 0.1)
-    bayes_step(c, c, -c, -c, -c, np.zeros(4), np.zeros(4), np.zeros(4), np.zeros(4), np.full(4, 0.25), 1.0, 0.0, 1.0,
-               1e-4, 1.0, 1.0, 0.5, np.empty(2))
+    bayes_step(c, c, -c, -c, -c, np.zeros(4), np.zeros(4), np.zeros(4), np.zeros(4), np.zeros(4), np.full(4, 0.25), 1.0,
+               0.0, 1.0, 1e-4, 1.0, 1.0, 0.5, 0.0, np.empty(2))
     bayes_rerun(c, c, -c, -c, -c, np.ones(3), np.zeros(3), np.ones(3), np.full(3, 1e-4), np.full(3, 0.5),
-                np.ones(3), 1.0, np.empty(4), np.empty(4), np.empty(4))
+                np.ones(3), np.zeros(3), 1.0, np.empty(4), np.empty(4), np.empty(4), np.empty(4))
     u16 = np.ascontiguousarray(np.random.default_rng(0).standard_normal((16, 5)).T)
     bayes_curves(u16, np.zeros(5), np.ones(5), np.array([False, True, False, True, True]), np.empty((5, 16)),
                  np.empty(16), np.empty(16), np.empty(16), np.empty(16), np.empty(16))
@@ -1095,9 +1100,10 @@ def warm_up() -> None:
     baseline_stats(np.ones((3, 16)), 20)
     th16 = np.empty((5, 16))
     bayes_curves(u16, np.zeros(5), np.ones(5), np.array([False, True, False, True, True]), np.empty((5, 16)), *th16)
-    bayes_move(u16.copy(), np.empty((5, 16)), *th16, np.zeros(16), np.zeros(16), np.zeros(16), 0, 4, np.eye(5),
-               np.zeros((5, 16)), np.full(16, 0.5), np.zeros(5), np.ones(5), np.array([False, True, False, True, True]),
-               np.ones(3), np.zeros(3), np.ones(3), np.full(3, 1e-4), np.full(3, 0.5), np.ones(3), 1.0)
+    bayes_move(u16.copy(), np.empty((5, 16)), *th16, np.zeros(16), np.zeros(16), np.zeros(16), np.zeros(16), 0, 4,
+               np.eye(5), np.zeros((5, 16)), np.full(16, 0.5), np.zeros(5), np.ones(5),
+               np.array([False, True, False, True, True]), np.ones(3), np.zeros(3), np.ones(3), np.full(3, 1e-4),
+               np.full(3, 0.5), np.ones(3), np.zeros(3), 1.0)
     cloud_peaks(np.zeros((5, 4)), np.array([0.0, 1.0, -1.0, -0.54, -1.2]), np.empty(4), np.empty(4))
     bayes_mu_at(u16[0], u16[1], u16[2], u16[3], u16[4], 0.5, np.empty(16))
     weighted_quantiles_hist(u16[0], np.full(16, 1 / 16), np.array([0.05, 0.5, 0.95]), 64, np.empty(64), np.empty(3))

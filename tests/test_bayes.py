@@ -173,13 +173,13 @@ def test_kernels_equal_their_numpy_reference():
     p_var = f.p_var
     ll = f.step(omega_ref, m_prev.copy(), m_new, 1, 3000.0, 300.01)
     f.p_var = p_var
-    dt_j, s, k = f.gains(1)
+    dt_j, s, k, _ = f.gains(1)
     log_w, w = np.zeros(n), np.empty(n)
     w.fill(1.0 / n)
     out = np.empty(2)
     ll_total = np.full(n, -3.0)
-    kernels.bayes_step(*th, omega, m_prev.copy(), log_w, ll_total, w, 0.55, 300.01, 3000.0, dt_j, TORQUE_PER_MU,
-                       0.5 / s, k, out)
+    kernels.bayes_step(*th, omega, np.zeros(n), m_prev.copy(), log_w, ll_total, w, 0.55, 300.01, 3000.0, dt_j,
+                       TORQUE_PER_MU, 0.5 / s, k, 0.0, out)
     ess, nis = out
     np.testing.assert_allclose(ll_total, ll - 3.0, rtol=1e-9)
     assert nis == pytest.approx(float(np.mean(-2.0 * ll)), rel=1e-9)
@@ -236,21 +236,25 @@ def test_the_compiled_rerun_equals_the_numpy_filter():
     creep = np.sort(rng.uniform(0.3, 1.5, steps))
     y = 300.0 + np.cumsum(rng.normal(0.01, 0.005, steps))
     torque = np.full(steps, 3200.0)
-    f = SpeedFilter(PERIOD_S, INERTIA, TORQUE_PER_MU, 0.005, 2e-6)
+    # with the mu offset's random walk on (q_delta > 0): the two-state filter of speed_likelihood
+    f = SpeedFilter(PERIOD_S, INERTIA, TORQUE_PER_MU, 0.005, 2e-6, q_delta_var=(2e-4) ** 2)
     omega_ref = f.open(y[0], n)
+    delta_ref = np.zeros(n)
     m_prev = th[0][:, None] + th[1][:, None] * np.exp(th[3][:, None] * creep) + th[2][:, None] * np.exp(th[4][:, None] * creep)
     ll_ref = np.zeros(n)
-    dt_j, gain, inv_2s = np.full(steps, np.nan), np.full(steps, np.nan), np.full(steps, np.nan)
+    dt_j, gain, inv_2s, gain_d = (np.full(steps, np.nan) for _ in range(4))
     for k in range(1, steps):
-        p_var = f.p_var
-        dt_j[k], s, gain[k] = f.gains(1)
+        state = (f.p_var, f.p_cross, f.p_delta)
+        dt_j[k], s, gain[k], gain_d[k] = f.gains(1)
         inv_2s[k] = 0.5 / s
-        f.p_var = p_var
-        ll_ref += f.step(omega_ref, m_prev[:, k - 1], m_prev[:, k], 1, torque[k - 1], y[k])
-    ll, omega, m_last = np.empty(n), np.empty(n), np.empty(n)
-    kernels.bayes_rerun(*th, creep, y, torque, dt_j, gain, inv_2s, TORQUE_PER_MU, ll, omega, m_last)
+        f.p_var, f.p_cross, f.p_delta = state
+        ll_ref += f.step(omega_ref, m_prev[:, k - 1], m_prev[:, k], 1, torque[k - 1], y[k], delta_ref)
+    assert np.all(gain_d[2:] != 0.0) and np.any(delta_ref != 0.0)       # the offset is really estimated
+    ll, omega, delta, m_last = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
+    kernels.bayes_rerun(*th, creep, y, torque, dt_j, gain, inv_2s, gain_d, TORQUE_PER_MU, ll, omega, delta, m_last)
     np.testing.assert_allclose(ll, ll_ref, rtol=1e-8)
     np.testing.assert_allclose(omega, omega_ref, rtol=1e-12)
+    np.testing.assert_allclose(delta, delta_ref, rtol=1e-7, atol=1e-12)
     np.testing.assert_allclose(m_last, m_prev[:, -1], rtol=1e-12)
 
 
@@ -280,7 +284,7 @@ def _fed_strategy(seed: int, compiled: bool, samples_fed: int = 30):
     theta = theta_from_phi(np.array([0.14, 1.1, 0.005, 0.9, 2.4]))
     pre, samples = slip(curve(theta), 0.15, rng)
     strat = make_strategy("bayes", settings(particles=300, compiled=compiled, confirm_level=0.999999,
-                                            tol_peak_mu=1e-6), seed=5)
+                                            tol_peak_mu=1e-6, discrepancy_mu_std=1e-4), seed=5)
     run(strat, pre, samples[:samples_fed])
     return strat
 
@@ -301,7 +305,7 @@ def test_the_compiled_move_equals_its_numpy_reference():
     cov = np.cov(strat.u) * (2.38 ** 2 / 5)
     chol = np.linalg.cholesky(cov + 1e-9 * np.trace(cov) * np.eye(5))
     normals, uniforms = rng.standard_normal((5, n)), rng.random(n)
-    names = ("u", "phi", "_theta", "ll", "omega", "_m_prev")
+    names = ("u", "phi", "_theta", "ll", "omega", "delta", "_m_prev")
     before = {k: np.array(getattr(strat, k), copy=True) for k in names}
     results = []
     for compiled in (True, False):

@@ -90,6 +90,7 @@ DEFAULTS = {
     "tol_peak_mu": 0.03,                 # half-width / centre allowed at confirmation
     "tol_peak_creep": 0.10,
     "model_mu_std": 3e-4,                # model error per period, mu units (process noise q)
+    "discrepancy_mu_std": 0.0,           # the random walk of the mu offset per period (speed_likelihood)
     "ess_fraction": 0.5,
     "confirm_min_ess": 0.1,              # the least effective sample size (fraction of N) that confirms
     "moves": 2,                          # Metropolis steps per particle after each resampling
@@ -190,6 +191,8 @@ class BayesStrategy(Strategy):
         for key in ("tol_peak_mu", "tol_peak_creep", "model_mu_std"):
             if not float(o[key]) > 0:
                 raise ValueError(f"{self.name}: {key} must be > 0, got {o[key]}")
+        if not float(o["discrepancy_mu_std"]) >= 0:
+            raise ValueError(f"{self.name}: discrepancy_mu_std must be >= 0, got {o['discrepancy_mu_std']}")
         veh = settings.vehicle
         self.period_s = settings.period_s
         self.creep_per_motor_speed = KMH_PER_MS * veh.wheel_radius_m / veh.gear_ratio   # km/h per rad/s
@@ -213,7 +216,7 @@ class BayesStrategy(Strategy):
         self._normals = self.rng.standard_normal((int(o["normals_drawn_ahead"]), len(NAMES), n))
         self._idx = np.empty(n, np.intp)
         self.ll = np.zeros(n)                  # every particle's whole log-likelihood (its current curve)
-        self._log = np.full((6, 256), np.nan)  # per sample: creep, y, torque, dt/J, gain, 1/(2S) (``_record``)
+        self._log = np.full((7, 256), np.nan)  # per sample: creep, y, torque, dt/J, gain, 1/(2S), offset gain (``_record``)
         self._count = 0
         self.accepted = 0
         self.baseline = BaselineStats(int(o["baseline_readings"]))
@@ -287,16 +290,18 @@ class BayesStrategy(Strategy):
         mu_std = math.hypot(float(self.opts["model_mu_std"]), MAX_SLOPE_PER_KMH * creep_noise_kmh / math.sqrt(2.0))
         f.q_var = (self.period_s * f.torque_per_mu_nm / f.inertia_kgm2 * mu_std) ** 2
         self.omega = f.open(s.motor_speed_rad_s, self.n_particles)
+        self.delta = np.zeros(self.n_particles)            # every particle's mu offset (speed_likelihood)
+        f.q_delta_var = float(self.opts["discrepancy_mu_std"]) ** 2
         creep = self.creep_for_likelihood(s)
         self._m_prev = self._mu_at(creep)
-        self._record(creep, s, math.nan, math.nan, math.nan)
+        self._record(creep, s, math.nan, math.nan, math.nan, math.nan)
 
-    def _record(self, creep: float, s: Sample, dt_j: float, gain: float, inv_2s: float) -> None:
+    def _record(self, creep: float, s: Sample, dt_j: float, gain: float, inv_2s: float, gain_delta: float) -> None:
         """What a move needs to run a particle's filter afresh: this sample and the step's constants."""
         k = self._count
         if k == self._log.shape[1]:
             self._log = np.hstack([self._log, np.full_like(self._log, np.nan)])
-        self._log[:, k] = (creep, s.motor_speed_rad_s, s.torque_nm, dt_j, gain, inv_2s)
+        self._log[:, k] = (creep, s.motor_speed_rad_s, s.torque_nm, dt_j, gain, inv_2s, gain_delta)
         self._count = k + 1
 
     def _step(self, s: Sample) -> None:
@@ -304,17 +309,19 @@ class BayesStrategy(Strategy):
         prev, f = self._prev, self.filter
         periods = max(s.step - prev.step, 1)
         creep = self.creep_for_likelihood(s)
-        dt_j, innov_var, gain = f.gains(periods)
+        dt_j, innov_var, gain, gain_delta = f.gains(periods)
         if self._compiled:
-            load_kernels().bayes_step(*self._theta, self.omega, self._m_prev, self.log_w, self.ll, self.weights, creep,
-                                  s.motor_speed_rad_s, prev.torque_nm, dt_j, f.torque_per_mu_nm, 0.5 / innov_var,
-                                  gain, self._step_out)
+            load_kernels().bayes_step(*self._theta, self.omega, self.delta, self._m_prev, self.log_w, self.ll,
+                                      self.weights, creep, s.motor_speed_rad_s, prev.torque_nm, dt_j,
+                                      f.torque_per_mu_nm, 0.5 / innov_var, gain, gain_delta, self._step_out)
             ess, nis = self._step_out
         else:
             m_new = self._mu_at(creep)
-            pred = self.omega + dt_j * (prev.torque_nm - f.torque_per_mu_nm * 0.5 * (self._m_prev + m_new))
+            mbar = 0.5 * (self._m_prev + m_new) + self.delta
+            pred = self.omega + dt_j * (prev.torque_nm - f.torque_per_mu_nm * mbar)
             e = s.motor_speed_rad_s - pred                             # the SpeedFilter step, its gains as above
             self.omega = pred + gain * e
+            self.delta = self.delta + gain_delta * e
             ll = -0.5 / innov_var * e * e
             nis = -2.0 * float(self.weights @ ll)
             self.log_w += ll
@@ -323,7 +330,7 @@ class BayesStrategy(Strategy):
             w = np.exp(self.log_w - self.log_w.max())
             self.weights = w / w.sum()
             ess = 1.0 / float(self.weights @ self.weights)
-        self._record(creep, s, dt_j, gain, 0.5 / innov_var)
+        self._record(creep, s, dt_j, gain, 0.5 / innov_var, gain_delta)
         self.ess = float(ess)
         # the fit's check: the recent normalised innovations squared (about 1 when a curve of the prior
         # explains the speed; well above when none does, e.g. a law of another form)
@@ -341,25 +348,26 @@ class BayesStrategy(Strategy):
                 self._move(0)
 
     def _rerun(self, theta: np.ndarray):
-        """(log-likelihood, speed estimate, M at the last sample) of every particle of ``theta`` (5, N)
-        over all samples so far, afresh."""
-        creep, y, torque, dt_j, gain, inv_2s = (np.ascontiguousarray(r[:self._count]) for r in self._log)
+        """(log-likelihood, speed estimate, offset, M at the last sample) of every particle of ``theta``
+        (5, N) over all samples so far, afresh."""
+        creep, y, torque, dt_j, gain, inv_2s, gain_delta = (np.ascontiguousarray(r[:self._count]) for r in self._log)
         n = theta.shape[1]
         if self._compiled:
-            ll, omega, m_last = np.empty(n), np.empty(n), np.empty(n)
-            load_kernels().bayes_rerun(*theta, creep, y, torque, dt_j, gain, inv_2s, self.filter.torque_per_mu_nm, ll,
-                                   omega, m_last)
-            return ll, omega, m_last
+            ll, omega, delta, m_last = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
+            load_kernels().bayes_rerun(*theta, creep, y, torque, dt_j, gain, inv_2s, gain_delta,
+                                       self.filter.torque_per_mu_nm, ll, omega, delta, m_last)
+            return ll, omega, delta, m_last
         l0, l1, l2, t1, t2 = (row[:, None] for row in theta)
         m = l0 + l1 * np.exp(t1 * creep) + l2 * np.exp(t2 * creep)                  # (N, S)
-        omega, ll = np.full(n, y[0]), np.zeros(n)
+        omega, delta, ll = np.full(n, y[0]), np.zeros(n), np.zeros(n)
         c = self.filter.torque_per_mu_nm
         for k in range(1, creep.size):
-            pred = omega + dt_j[k] * (torque[k - 1] - c * 0.5 * (m[:, k - 1] + m[:, k]))
+            pred = omega + dt_j[k] * (torque[k - 1] - c * (0.5 * (m[:, k - 1] + m[:, k]) + delta))
             e = y[k] - pred
             omega = pred + gain[k] * e
+            delta = delta + gain_delta[k] * e
             ll -= inv_2s[k] * e * e
-        return ll, omega, m[:, -1].copy()
+        return ll, omega, delta, m[:, -1].copy()
 
     def _resample(self) -> None:
         """Systematic resampling; the weights become equal and a move is set under way (``_move``):
@@ -382,6 +390,7 @@ class BayesStrategy(Strategy):
             self.u, self.phi, self._theta = self.u[:, idx], self.phi[:, idx], self._theta[:, idx]
         self.ll = self.ll[idx]
         self.omega = self.omega[idx]
+        self.delta = self.delta[idx]
         self._m_prev = self._m_prev[idx]
         cov *= 2.38 ** 2 / self.u.shape[0]           # the random walk's covariance: the cloud's, weighted
         cov += (1e-12 + 1e-9 * np.trace(cov)) * np.eye(len(cov))
@@ -421,18 +430,19 @@ class BayesStrategy(Strategy):
         number accepted."""
         if self._compiled:
             return load_kernels().bayes_move(
-                self.u, self.phi, *self._theta, self.omega, self._m_prev, self.ll, start, stop, chol, normals,
+                self.u, self.phi, *self._theta, self.omega, self.delta, self._m_prev, self.ll, start, stop, chol, normals,
                 uniforms, *self._bounds, *(np.ascontiguousarray(r[:self._count]) for r in self._log),
                 self.filter.torque_per_mu_nm)
         sl = slice(start, stop)
         prop = self.u[:, sl] + chol @ normals[:, sl]
         phi_p = self.prior.phi_from_u(prop.T).T
         theta_p = theta_from_phi(phi_p.T).T
-        ll_p, omega_p, m_p = self._rerun(theta_p)
+        ll_p, omega_p, delta_p, m_p = self._rerun(theta_p)
         accept = np.log(uniforms[sl]) < ll_p - self.ll[sl] + _log_prior_u(prop) - _log_prior_u(self.u[:, sl])
         cols = np.flatnonzero(accept) + start
         self.u[:, cols], self.phi[:, cols], self._theta[:, cols] = prop[:, accept], phi_p[:, accept], theta_p[:, accept]
-        self.ll[cols], self.omega[cols], self._m_prev[cols] = ll_p[accept], omega_p[accept], m_p[accept]
+        self.ll[cols], self.omega[cols], self.delta[cols], self._m_prev[cols] = (ll_p[accept], omega_p[accept],
+                                                                                 delta_p[accept], m_p[accept])
         return int(accept.sum())
 
     # -- intervals and decisions -----------------------------------------------------------------
