@@ -286,3 +286,30 @@ def test_proposed_latest_confirms_when_proposed_does_and_reports_one_more_correc
 def test_bad_filter_tuning_is_refused_by_name(key, value):
     with pytest.raises(ValueError, match=key):
         make_strategy("proposed", settings(options={"proposed": {key: value}}), 0)
+
+
+def test_every_particle_strategy_declares_what_it_replaces():
+    """The compiled fast paths of the MDIPF family run only where a class keeps the plain pieces;
+    each class declares that in its ``plain_*`` flags (no identity checks at run time).  Here every
+    class's flags are checked against what it really overrides, so a new variant cannot silently
+    take a fast path that skips its own code."""
+    from identifier.strategies import STRATEGIES, MdipfStrategy, ProposedStrategy
+
+    groups = {"plain_step": ("_step", "_constrain", "_move", "_log_likelihood", "_weigh"),
+              "plain_constrain": ("_constrain", "_constrain_in_box"),
+              "plain_projection": ("_project",),
+              "plain_prelim": ("preliminary_fit",),
+              "plain_recentre": ("_after_recentre",)}
+    checked = 0
+    for name, cls in STRATEGIES.items():
+        if not issubclass(cls, MdipfStrategy):
+            continue
+        base = ProposedStrategy if issubclass(cls, ProposedStrategy) else MdipfStrategy
+        for flag, methods in groups.items():
+            # the methods a base of the family defines itself count as plain for that base
+            overridden = [m for m in methods if hasattr(base, m) and getattr(cls, m) is not getattr(base, m)
+                          and not (m in ("_constrain",) and getattr(cls, m) is getattr(MdipfStrategy, m))]
+            if overridden:
+                assert getattr(cls, flag) is False, (name, flag, overridden)
+            checked += 1
+    assert checked >= 5 * 6

@@ -161,6 +161,13 @@ class MdipfStrategy(Strategy):
     name = "mdipf"
     defaults = DEFAULTS
     use_box = False
+    # What a variant replaces, declared (the compiled fast paths need the plain pieces; a subclass
+    # that overrides one says so here, and tests/test_strategies.py checks every class's word):
+    plain_step = True           # _step, _constrain, _move, _log_likelihood and _weigh as here
+    plain_constrain = True      # _constrain (and ProposedStrategy's _constrain_in_box) as in the base
+    plain_projection = True     # _project as in its base (MDIPF: none; proposed: the clip)
+    plain_prelim = True         # preliminary_fit as here
+    plain_recentre = True       # _after_recentre as in its base (re-centring may wait for the next step)
 
     def __init__(self, settings, seed: int = 0):
         super().__init__(settings, seed)
@@ -199,16 +206,13 @@ class MdipfStrategy(Strategy):
             self._idx = np.empty(self.n_particles, np.intp)
         # the whole step in one compiled call (kernels.filter_step) where this class's step is the
         # plain one: Theta row-normalised, no constraint, no projection or the "clip" one
-        cls = type(self)
-        self._fused = (self._compiled and opts["stabiliser"] == "rownorm" and cls._step is MdipfStrategy._step
-                       and cls._constrain is MdipfStrategy._constrain and cls._move is MdipfStrategy._move
-                       and cls._log_likelihood is MdipfStrategy._log_likelihood
-                       and cls._weigh is MdipfStrategy._weigh and self._can_fuse_projection())
+        self._fused = (self._compiled and opts["stabiliser"] == "rownorm" and self.plain_step
+                       and self._can_fuse_projection())
         # with the fused step, what a correction does to the cloud (its re-centring, and with a box
         # the box's contraction and the clip into it) waits for the next step, which does it first
         # (``_settle_recentre``; reading ``particles`` does it too): the same operations in the same
         # order, off the sample that closes the window
-        self._defer_recentre = self._fused and self._recentre_is_plain() and not opts["reset_cloud"]
+        self._defer_recentre = self._fused and self.plain_recentre and not opts["reset_cloud"]
         self._shift = np.zeros(p)            # chi^_Q still to subtract from the cloud
         self._recentre_pending = False
         # Random numbers are drawn before the fault, when the TCU is idle: the first block of
@@ -244,8 +248,7 @@ class MdipfStrategy(Strategy):
     def keeps_warm(self) -> bool:
         # compiled steps and the compiled lattice prelim: every sample's work is bounded (the
         # scipy prelims of the *_raw and mu0 variants are not)
-        return (self._compiled and self.opts["prelim_solver"] == "grid"
-                and type(self).preliminary_fit is MdipfStrategy.preliminary_fit)
+        return self._compiled and self.opts["prelim_solver"] == "grid" and self.plain_prelim
 
     # -- the cloud: kept as a (P, N) C-contiguous array; ``particles`` is its (N, P) view --------
     _recentre_pending = False                # (before __init__ sets it: the setter below runs first)
@@ -265,7 +268,7 @@ class MdipfStrategy(Strategy):
         if self._next_cloud is not None:     # drawn (and, with a box, clipped) before the fault
             self._xt, self._next_cloud = self._next_cloud, None
             self.weights, self._next_weights = self._next_weights, None
-            if type(self)._constrain is MdipfStrategy._constrain:
+            if self.plain_constrain:
                 return                       # finite by construction (finite init_std, checked above)
         else:
             self.particles = self.rng.standard_normal(self.particles.shape) * self.init_std
@@ -293,7 +296,7 @@ class MdipfStrategy(Strategy):
 
     def _can_fuse_projection(self) -> bool:
         """Whether the compiled step can do this class's projection (none here)."""
-        return type(self)._project is MdipfStrategy._project
+        return self.plain_projection
 
     def _clip_box(self):
         """(lo, hi, use_box): the box the fused step clips the cloud into (MDIPF: none)."""
@@ -684,10 +687,6 @@ class MdipfStrategy(Strategy):
 
     def _after_recentre(self) -> None:
         """Hook: the proposed strategy puts the re-centred cloud back into its new box."""
-
-    def _recentre_is_plain(self) -> bool:
-        """Whether the re-centring is the plain shift (+ this class's plain clip), so it may wait."""
-        return type(self)._after_recentre is MdipfStrategy._after_recentre
 
     def _settle_recentre(self) -> None:
         """The deferred part of the last correction (``_defer_recentre``): ``_after_correction``, then

@@ -270,6 +270,7 @@ class ProposedOaStrategy(ObserverAwareMixin, ProposedStrategy):
 
     name = "proposed_oa"
     defaults = OA_DEFAULTS
+    plain_step = plain_prelim = False       # its own step (the observer-aware model) and prelim
 
     def __init__(self, settings, seed: int = 0):
         super().__init__(settings, seed)

@@ -92,17 +92,11 @@ class ProposedStrategy(MdipfStrategy):
         self._clip_into_box(self._xt)
         self._constrain_in_box()
 
-    def _recentre_is_plain(self) -> bool:
-        # (the fused step, which deferring needs, already requires the plain _constrain_in_box)
-        return type(self)._after_recentre is ProposedStrategy._after_recentre
-
     def _recentre_changes(self, chi) -> bool:
         return self._box_changed or bool(chi.any())
 
     def _can_fuse_projection(self) -> bool:
-        cls = type(self)
-        return (self.opts["projector"] == "clip" and cls._project is ProposedStrategy._project
-                and cls._constrain_in_box is ProposedStrategy._constrain_in_box)
+        return self.opts["projector"] == "clip" and self.plain_projection and self.plain_constrain
 
     def _clip_box(self):
         return self.lo, self.hi, True
@@ -180,6 +174,7 @@ def fit_curve_mu0(creep_speed_kmh, mu_samples, theta0, radius=None) -> np.ndarra
 
 class ProposedMu0Strategy(ProposedStrategy):
     name = "proposed_mu0"
+    plain_step = plain_constrain = plain_prelim = False     # mu(0) = 0: its own constraint and prelim
 
     def __init__(self, settings, seed: int = 0):
         super().__init__(settings, seed)
