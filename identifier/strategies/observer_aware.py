@@ -47,6 +47,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from .. import pf
+from ..observer import LoadTorqueObserver
 from ..curve import jacobian, mu_model
 from .nlls import NllsStrategy, bounded_lm, fit_curve_grid, parameter_bounds
 from .proposed import PROPOSED_DEFAULTS, ProposedStrategy
@@ -58,10 +59,12 @@ class ObserverAwareModel:
 
     def __init__(self, settings, size: int = 128):
         v = settings.vehicle
-        T, J, c, p = settings.period_s, v.equivalent_inertia_kgm2, v.torque_per_mu_nm, settings.observer_pole_rad_s
-        self.a = 1.0 - T * 2.0 * p                  # 1 - T h_w
+        # the TCU's own observer (identifier/observer.py): its gains h_w, h_TL, not a second copy of them
+        obs = LoadTorqueObserver(v.equivalent_inertia_kgm2, settings.period_s, settings.observer_pole_rad_s)
+        T, J, c = settings.period_s, v.equivalent_inertia_kgm2, v.torque_per_mu_nm
+        self.a = 1.0 - T * obs.gain_speed           # 1 - T h_w
         self.b = T * c / J                          # T c / J            [rad/s per unit mu]
-        self.d = T * (-J * p * p) / c               # T h_TL / c         [mu per rad/s]
+        self.d = T * obs.gain_torque / c            # T h_TL / c         [mu per rad/s]
         self._build(size)
 
     def _build(self, size: int) -> None:
