@@ -1,0 +1,161 @@
+"""Where points run: Dask (``dask.distributed``), or this process one after another.
+
+``Engine(scheduler=None, workers=None)`` used as a context manager:
+
+- ``scheduler`` None and ``workers`` not 0: a ``distributed.LocalCluster`` started here and stopped on
+  exit: ``workers`` worker processes (default ``os.cpu_count()``), one thread each, bound to
+  127.0.0.1, dashboard off unless ``dashboard`` (then on 127.0.0.1:8787).  Each worker's nanny sets
+  ``THREAD_ENV`` (OMP, OpenBLAS, MKL, numba ... at one thread) before the worker process starts, so
+  before it imports numpy or numba; a worker that dies (SIGKILL, out of memory) is restarted by its
+  nanny and the scheduler runs its unfinished points again elsewhere.
+- ``scheduler="tcp://HOST:PORT"``: a client of that cluster (``dask scheduler`` / ``dask worker``
+  started by someone else); it waits up to ``connect_timeout_s`` for the scheduler and one worker.
+- ``workers=0`` and no scheduler: no Dask at all, every point in this process in order (what the
+  benches do by default, and the reference the parallel results are checked against).
+
+``map_unordered(fn, items)`` yields ``(i, value)`` as each ``fn(items[i])`` finishes, in completion
+order; ``value`` is the exception when the call raised (or, on Dask, when it could not be completed:
+``KilledWorker`` after a point took down ``distributed.scheduler.allowed-failures`` workers).  At most
+``window`` calls are queued on the cluster at once, so a sweep of a million points does not hold a
+million futures.  There is no scheduler or pool here: Dask schedules, retries and balances.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import time
+
+from ..errors import ClusterError
+from .point import THREAD_ENV
+
+CONNECT_TIMEOUT_S = 30.0
+
+
+class Engine:
+    def __init__(self, scheduler: str | None = None, workers: int | None = None, *, dashboard: bool = False,
+                 connect_timeout_s: float = CONNECT_TIMEOUT_S, window: int | None = None):
+        if workers is not None and workers < 0:
+            raise ClusterError(f"--workers {workers}: must be >= 0")
+        if scheduler is not None and workers == 0:
+            raise ClusterError("--workers 0 (this process) and --scheduler exclude each other")
+        self.scheduler = scheduler
+        self.serial = scheduler is None and workers == 0
+        self.workers = workers
+        self.dashboard = dashboard
+        self.connect_timeout_s = connect_timeout_s
+        self.window = window
+        self.cluster = self.client = None
+
+    # -- life cycle -------------------------------------------------------------------------------
+    def __enter__(self) -> "Engine":
+        if self.serial:
+            return self
+        try:
+            from distributed import Client, LocalCluster
+        except ImportError as e:
+            raise ClusterError(f"dask.distributed is not installed ({e}); pip install 'dask[distributed]'") from None
+        if self.scheduler is None:
+            n = self.workers or os.cpu_count() or 1
+            self.cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                        dashboard_address="127.0.0.1:8787" if self.dashboard else None,
+                                        silence_logs=logging.ERROR, env=dict(THREAD_ENV))
+            self.client = Client(self.cluster)
+            self.client.wait_for_workers(n, timeout=self.connect_timeout_s)
+        else:
+            if not self.scheduler.startswith(("tcp://", "tls://", "inproc://", "ucx://", "ws://", "wss://")):
+                raise ClusterError(f"--scheduler {self.scheduler!r}: expected an address like tcp://HOST:PORT")
+            try:
+                self.client = Client(self.scheduler, timeout=f"{self.connect_timeout_s}s")
+                self.client.wait_for_workers(self.workers or 1, timeout=self.connect_timeout_s)
+            except (OSError, TimeoutError) as e:
+                self.close()
+                raise ClusterError(f"--scheduler {self.scheduler}: no cluster with a worker answered within "
+                                   f"{self.connect_timeout_s:g} s ({type(e).__name__}: {' '.join(str(e).split())[:200]})") from None
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        if self.client is not None:
+            try:
+                self.client.close()
+            except Exception:  # noqa: BLE001 - closing after an interrupt may find the loop gone
+                pass
+            self.client = None
+        if self.cluster is not None:
+            try:
+                self.cluster.close()
+            except Exception:  # noqa: BLE001
+                pass
+            self.cluster = None
+
+    # -- facts -------------------------------------------------------------------------------------
+    @property
+    def nworkers(self) -> int:
+        if self.serial:
+            return 1
+        return len(self.client.scheduler_info(n_workers=-1)["workers"]) if self.client else 0
+
+    @property
+    def address(self) -> str:
+        if self.serial:
+            return "this process"
+        return self.client.scheduler.address if self.client else "closed"
+
+    def describe(self) -> str:
+        if self.serial:
+            return "this process, one point after another"
+        kind = "local cluster (started here)" if self.cluster is not None else "cluster"
+        return f"{kind} at {self.address} with {self.nworkers} workers"
+
+    def run_on_workers(self, fn) -> dict:
+        """``fn()`` once on every worker: {worker address: value} (in this process: {"serial": value})."""
+        if self.serial:
+            return {"serial": fn()}
+        return self.client.run(fn)
+
+    # -- work --------------------------------------------------------------------------------------
+    def map_unordered(self, fn, items):
+        """Yield ``(i, fn(items[i]))`` (or ``(i, exception)``) as each finishes (module docstring)."""
+        if self.serial:
+            for i, item in enumerate(items):
+                try:
+                    yield i, fn(item)
+                except (KeyboardInterrupt, SystemExit):
+                    raise
+                except Exception as e:  # noqa: BLE001 - the caller decides
+                    yield i, e
+            return
+        from distributed import as_completed
+
+        items = list(items)
+        window = self.window or max(64, 8 * max(self.nworkers, 1))
+        index = {}
+        pending = iter(range(len(items)))
+
+        def submit(i):
+            fut = self.client.submit(fn, items[i], pure=False, key=f"hil-{i}-{time.monotonic_ns()}")
+            index[fut.key] = (i, fut)
+            return fut
+
+        first = [submit(i) for _, i in zip(range(window), pending)]
+        queue = as_completed(first)
+        try:
+            for fut in queue:
+                i, _ = index.pop(fut.key)
+                if fut.status == "finished":
+                    value = fut.result()
+                else:
+                    try:
+                        value = fut.exception()
+                    except Exception as e:  # noqa: BLE001 - e.g. a cancelled future
+                        value = e
+                fut.release()
+                nxt = next(pending, None)
+                if nxt is not None:
+                    queue.add(submit(nxt))
+                yield i, value
+        finally:
+            for _, fut in index.values():        # an interrupted sweep leaves nothing queued
+                fut.cancel()
