@@ -45,10 +45,12 @@ META_COLUMNS = {"point": "int64", "key": "string", "error": "string", "worker": 
 DERIVED_COLUMNS = {"correct": "bool", "true_peak_mu": "float64", "true_peak_creep_kmh": "float64",
                    "fault_law": "string", "result_json": "string"}
 #: columns that differ between two runs of the same point (clocks, places)
-TIMING_COLUMNS = ("worker", "point_wall_s", "t_start", "t_end", "finished_utc", "wall_s", "mcap")
+#: (frames_tx and frames_rx count the heartbeats too, which are paced by the wall clock)
+TIMING_COLUMNS = ("worker", "point_wall_s", "t_start", "t_end", "finished_utc", "wall_s", "mcap", "frames_tx",
+                  "frames_rx")
 #: keys of ``result_json`` that differ between two runs of the same point
 TIMING_KEYS = ("wall_s", "sim_s_per_wall_s", "round_trip_p50_us", "round_trip_p99_us", "jitter_p50_us",
-               "jitter_p99_us", "jitter_max_us", "mcap")
+               "jitter_p99_us", "jitter_max_us", "mcap", "frames_tx", "frames_rx")
 INPUT_PREFIX = "in."
 
 
