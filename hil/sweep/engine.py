@@ -159,3 +159,21 @@ class Engine:
         finally:
             for _, fut in index.values():        # an interrupted sweep leaves nothing queued
                 fut.cancel()
+
+
+def map_in_order(fn, items, scheduler: str | None = None, workers: int | None = None, on_result=None) -> list:
+    """``[fn(x) for x in items]`` through an ``Engine``: in this process, one after another, when neither
+    ``scheduler`` nor ``workers`` is given (the benches' default), else on Dask.  ``on_result(done, i)``
+    after each call finishes.  The first exception of a call is raised (the others are cancelled), as the
+    serial loop would.  ``fn`` and ``items`` must pickle (module-level functions, plain data)."""
+    items = list(items)
+    out = [None] * len(items)
+    serial = scheduler is None and workers is None
+    with Engine(scheduler, 0 if serial else workers) as engine:
+        for done, (i, value) in enumerate(engine.map_unordered(fn, items), 1):
+            if isinstance(value, BaseException):
+                raise value
+            out[i] = value
+            if on_result is not None:
+                on_result(done, i)
+    return out
