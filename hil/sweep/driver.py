@@ -13,6 +13,7 @@ Ctrl-C stops the sweep; every row written so far stays.
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import sys
@@ -41,8 +42,11 @@ def _eta(seconds: float) -> str:
 
 def run_sweep(sweep, out=None, *, scheduler: str | None = None, workers: int | None = None, resume: bool = False,
               keep_logs: bool = False, dashboard: bool = False, progress: bool | None = None,
-              log=None) -> dict:
-    """Run ``sweep`` (``spec.Sweep``); returns what ``hil sweep --json`` prints (module docstring)."""
+              log=None, engine: Engine | None = None) -> dict:
+    """Run ``sweep`` (``spec.Sweep``); returns what ``hil sweep --json`` prints (module docstring).
+    ``engine``: an entered ``Engine`` to use (and leave open) instead of starting one.  ``wall_s`` is from the
+    first point sent to the last row written (the cluster's start is ``engine_start_s``); ``persist_ms_median``
+    the time to write one row."""
     log = log or (lambda text: print(text, file=sys.stderr, flush=True))
     out = Path(out) if out else default_out(sweep)
     table = Table(out / "table", sweep.axes)
@@ -60,11 +64,15 @@ def run_sweep(sweep, out=None, *, scheduler: str | None = None, workers: int | N
     skipped = len(sweep.points) - len(todo)
     logs_dir = str((out / "logs").resolve()) if keep_logs else None
     tasks = [sweep.task(p, logs_dir) for p in todo]
-    incomplete, failed, written = [], 0, 0
-    wall0 = time.perf_counter()
+    incomplete, failed, written, persist_s = [], 0, 0, []
+    wall = engine_start = 0.0
     engine_desc = None
     if tasks:
-        with Engine(scheduler, workers, dashboard=dashboard) as engine:
+        start0 = time.perf_counter()
+        with (contextlib.nullcontext(engine) if engine is not None else
+              Engine(scheduler, workers, dashboard=dashboard)) as engine:
+            engine_start = time.perf_counter() - start0
+            wall0 = time.perf_counter()
             engine_desc = engine.describe()
             log(f"hil sweep: {len(sweep.points)} points ({skipped} already in {table.directory}, {len(tasks)} to run) "
                 f"on {engine_desc}")
@@ -77,7 +85,9 @@ def run_sweep(sweep, out=None, *, scheduler: str | None = None, workers: int | N
                     if isinstance(row, BaseException):
                         incomplete.append((todo[i].index, f"{type(row).__name__}: {' '.join(str(row).split())[:300]}"))
                     else:
+                        t_write = time.perf_counter()
                         table.write(row)
+                        persist_s.append(time.perf_counter() - t_write)
                         written += 1
                         failed += row["error"] is not None
                     n = written + len(incomplete)
@@ -89,9 +99,9 @@ def run_sweep(sweep, out=None, *, scheduler: str | None = None, workers: int | N
                     f"(--resume runs the other {len(tasks) - written})")
                 raise
             bar.close()
+            wall = time.perf_counter() - wall0
     else:
         log(f"hil sweep: all {len(sweep.points)} points are in {table.directory} already")
-    wall = time.perf_counter() - wall0
     df = table.read()
     df = df[df["key"].isin(keys)].reset_index(drop=True)
     title = f"hil sweep {sweep.path}"
@@ -106,7 +116,9 @@ def run_sweep(sweep, out=None, *, scheduler: str | None = None, workers: int | N
     plots = write_plots(df, sweep.axes, out)
     doc = {"sweep": sweep.path, "out": str(out), "table": str(table.directory), "points": len(sweep.points),
            "ran_now": written, "skipped": skipped, "failed": int(df["error"].notna().sum()) if len(df) else 0,
-           "incomplete": len(incomplete), "rows": len(df), "wall_s": wall, "engine": engine_desc,
+           "incomplete": len(incomplete), "rows": len(df), "wall_s": wall, "engine_start_s": engine_start,
+           "persist_ms_median": float(sorted(persist_s)[len(persist_s) // 2] * 1e3) if persist_s else None,
+           "engine": engine_desc,
            "summary": str(summary_path), "plots": [str(p) for p in plots]}
     if incomplete:
         for index, why in incomplete[:5]:

@@ -115,6 +115,15 @@ class Engine:
             return {"serial": fn()}
         return self.client.run(fn)
 
+    def warm_up(self, fn, arg) -> dict:
+        """``fn(arg)`` once on every worker, as a task pinned to it (imports, caches): {worker: value}."""
+        if self.serial:
+            return {"serial": fn(arg)}
+        addresses = list(self.client.scheduler_info(n_workers=-1)["workers"])
+        futures = {a: self.client.submit(fn, arg, workers=[a], allow_other_workers=False, pure=False)
+                   for a in addresses}
+        return {a: f.result() for a, f in futures.items()}
+
     # -- work --------------------------------------------------------------------------------------
     def map_unordered(self, fn, items):
         """Yield ``(i, fn(items[i]))`` (or ``(i, exception)``) as each finishes (module docstring)."""
