@@ -158,3 +158,21 @@ def test_a_failing_point_is_a_row_and_the_sweep_goes_on(tmp_path):
     assert doc["rows"] == 4 and doc["failed"] == 1
     bad = df[df["error"].notna()]
     assert list(bad["in.run.fault_time_s"]) == [0.9] and "duration_s" in bad["error"].iloc[0]
+
+
+def test_bench_identify_on_two_workers_gives_the_serial_verdicts(capsys):
+    seed = random.SystemRandom().randrange(1, 2 ** 30)
+    print(f"bench identify draws seed {seed}")
+    args = ["bench", "identify", "--family", "default", "--draws", "3", "--seed", str(seed), "--strategies", "nlls",
+            "--oracle-draws", "50", "--json"]
+    assert main(args) == 0
+    serial = json.loads(capsys.readouterr().out)
+    assert main(args + ["--workers", "2"]) == 0
+    dask = json.loads(capsys.readouterr().out)
+
+    def strip(x):       # the cost per sample is a timing
+        if isinstance(x, dict):
+            return {k: strip(v) for k, v in x.items() if "cost" not in k}
+        return [strip(v) for v in x] if isinstance(x, list) else x
+
+    assert strip(serial) == strip(dask)

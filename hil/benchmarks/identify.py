@@ -357,6 +357,8 @@ def cmd_identify(args) -> int:
     overrides = parse_set(args.set)
     if args.family is not None:
         return cmd_family(args, strategies, overrides)
+    if args.scheduler is not None or args.workers is not None:
+        raise ConfigError("--scheduler / --workers: with --family only (--cases runs in this process)")
     cases = [c.strip() for c in args.cases.split(",") if c.strip()]
     scenarios = {}
     for c in cases:

@@ -1,18 +1,20 @@
 """``hil bench sweep``: what the sweep engine costs and what a worker is worth, measured back to back.
 
 One sweep of ``--points`` points of about a second each (FFCC-a, ``nlls``, in-process lockstep, 0.7 s
-simulated; the run seeds drawn at run time unless ``--seed``, and printed) runs three times, each on a
-cluster whose workers have already run one point (imports and caches warm, not timed):
+simulated; the run seeds drawn at run time unless ``--seed``, and printed) runs on clusters whose
+workers have already run one point (imports and caches warm, not timed):
 
-1. a local cluster of 1 worker (``hil sweep --workers 1``);
-2. a local cluster of 2 workers (the default on this 2-core machine);
-3. a ``dask scheduler --host 127.0.0.1`` and two ``dask worker ... --nthreads 1`` processes started
+1. a local cluster of 1 worker (``hil sweep --workers 1``), then
+2. a local cluster of 2 workers (the default on this 2-core machine), back to back, ``--rounds`` times
+   (alternating, so a change in the machine's load falls on both);
+3. once, a ``dask scheduler --host 127.0.0.1`` and two ``dask worker ... --nthreads 1`` processes started
    separately, as a cluster of machines would be (``hil sweep --scheduler tcp://127.0.0.1:PORT``).
 
 Figures, with the 1-minute load average before and after each phase beside them:
 
 - makespan: from the first point sent to the last row written;
-- parallel efficiency = makespan(1 worker) / (2 x makespan(2 workers));
+- parallel efficiency = makespan(1 worker) / (2 x makespan(2 workers)) per round, and its median;
+- CPU / wall per point: below 100 % a worker waited for a core (another process had it);
 - overhead per point: the time a worker is not running a point between two of its points (median of the
   gaps between one point's end and the worker's next point's start: scheduling, moving the result,
   fetching the next), and ``(workers x makespan - sum of point times) / points`` (the same plus the idle
@@ -40,7 +42,7 @@ from pathlib import Path
 from ..errors import ClusterError, ConfigError
 from ..sweep.driver import run_sweep
 from ..sweep.engine import Engine
-from ..sweep.point import THREAD_ENV, run_point
+from ..sweep.point import THREAD_ENV, run_point, threads_seen
 from ..sweep.spec import parse_sweep
 from ..sweep.table import comparable
 
@@ -54,6 +56,8 @@ def register(sub) -> None:
     p.add_argument("--seed", type=int, default=None, help="master seed of the run seeds (default: drawn now, printed)")
     p.add_argument("--duration-s", type=float, default=0.7, help="simulated seconds per point (default 0.7: "
                    "about a second of wall time per point on a 2-core machine)")
+    p.add_argument("--rounds", type=int, default=2, help="times the 1-worker and the 2-worker phases alternate "
+                   "(default 2; the efficiency of each round and their median are reported)")
     p.add_argument("--no-external", action="store_true", help="skip the separately started scheduler and workers")
     p.add_argument("--report", metavar="DIR", default=None, help="write DIR/sweep.md and DIR/sweep.json")
     p.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
@@ -83,6 +87,7 @@ def phase_figures(doc: dict, df, workers: int) -> dict:
     return {"workers": workers, "points": n, "makespan_s": makespan,
             "point_s_median": float(df["point_wall_s"].median()),
             "run_wall_s_median": float(df["wall_s"].median()),
+            "cpu_share_median": float((df["point_cpu_s"] / df["point_wall_s"]).median()),
             "gap_ms_median": float(np.median(gaps) * 1e3) if gaps else None,
             "gap_ms_p90": float(np.percentile(gaps, 90) * 1e3) if gaps else None,
             "overhead_ms_per_point": (workers * makespan - busy) / n * 1e3,
@@ -149,11 +154,14 @@ def run_phase(label: str, sweep, out: Path, engine_kwargs: dict, workers: int, l
     with Engine(**engine_kwargs) as engine:
         warm = sweep.task(sweep.points[0])
         engine.warm_up(run_point, {**warm, "key": "warm-up", "index": -1})
+        threads = engine.run_on_workers(threads_seen)
         log(f"bench sweep: {label}: {engine.describe()}, warm; {len(sweep.points)} points")
         doc = run_sweep(sweep, out, engine=engine, progress=None, log=lambda text: None)
     df = pd.read_parquet(out / "table")
     fig = phase_figures(doc, df, workers)
-    fig.update(label=label, load_before=load_before, load_after=os.getloadavg()[0])
+    fig.update(label=label, load_before=load_before, load_after=os.getloadavg()[0],
+               threads_one_per_worker=all(all(v in ("1", 1) for v in t.values()) for t in threads.values()),
+               threads_seen=threads)
     log(f"bench sweep: {label}: makespan {fig['makespan_s']:.1f} s, {fig['points_per_hour_per_core']:.0f} points/h/core, "
         f"gap {fig['gap_ms_median']:.1f} ms, load {load_before:.2f} -> {fig['load_after']:.2f}")
     return fig, df
@@ -162,6 +170,8 @@ def run_phase(label: str, sweep, out: Path, engine_kwargs: dict, workers: int, l
 def cmd_sweep_bench(args) -> int:
     if args.points < 4:
         raise ConfigError("--points: must be >= 4")
+    if args.rounds < 1:
+        raise ConfigError("--rounds: must be >= 1")
     if not 0.6 <= args.duration_s <= 60:
         raise ConfigError("--duration-s: must be in [0.6, 60] (the fault is at 0.5 s)")
     seed = secrets.randbits(31) if args.seed is None else args.seed
@@ -171,23 +181,29 @@ def cmd_sweep_bench(args) -> int:
     phases, tables = [], {}
     with tempfile.TemporaryDirectory(prefix="hil-bench-sweep-") as tmp:
         tmp = Path(tmp)
-        for label, kwargs, n in (("local, 1 worker", {"workers": 1}, 1), ("local, 2 workers", {"workers": 2}, 2)):
-            fig, tables[label] = run_phase(label, sweep, tmp / label.replace(", ", "-").replace(" ", ""), kwargs, n, log)
-            phases.append(fig)
+        for r in range(args.rounds):          # 1 and 2 workers alternate: a change of the machine's load
+            for label, kwargs, n in (("local, 1 worker", {"workers": 1}, 1), ("local, 2 workers", {"workers": 2}, 2)):
+                name = f"{label} (round {r + 1})"
+                fig, tables[name] = run_phase(name, sweep, tmp / f"r{r}-{n}", kwargs, n, log)
+                fig.update(round=r + 1)
+                phases.append(fig)
         if not args.no_external:
             with ExternalCluster(2) as cluster:
                 label = "dask scheduler + 2 dask worker processes"
                 fig, tables[label] = run_phase(label, sweep, tmp / "external", {"scheduler": cluster.address,
                                                                                  "workers": 2}, 2, log)
                 phases.append(fig)
-    one, two = phases[0], phases[1]
-    efficiency = one["makespan_s"] / (2 * two["makespan_s"])
-    reference = comparable(tables["local, 2 workers"])
+    import numpy as np
+
+    rounds = [(p1, p2) for p1, p2 in zip(phases[0::2], phases[1::2]) if p1.get("round")]
+    efficiencies = [p1["makespan_s"] / (2 * p2["makespan_s"]) for p1, p2 in rounds]
+    efficiency = float(np.median(efficiencies))
+    reference = comparable(tables["local, 2 workers (round 1)"])
     same = {label: bool(comparable(df).equals(reference)) for label, df in tables.items()}
     doc = {"seed": seed, "points": args.points, "duration_s": args.duration_s, "cores": os.cpu_count(),
            "machine": platform.machine(), "utc": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-           "parallel_efficiency": efficiency, "phases": phases, "same_table_as_local_2_workers": same,
-           "thread_env": THREAD_ENV}
+           "parallel_efficiency": efficiency, "parallel_efficiency_per_round": efficiencies, "phases": phases,
+           "same_table_as_local_2_workers": same, "thread_env": THREAD_ENV}
     text = markdown(doc)
     if args.report:
         out = Path(args.report)
@@ -201,27 +217,36 @@ def cmd_sweep_bench(args) -> int:
 
 def markdown(doc: dict) -> str:
     f = lambda x, spec: "n/a" if x is None else format(x, spec)  # noqa: E731
-    lines = [f"# hil bench sweep --points {doc['points']} --seed {doc['seed']}", "",
-             f"Written by `hil bench sweep --points {doc['points']} --seed {doc['seed']} --report docs` on {doc['utc']}, "
+    cmd = f"hil bench sweep --points {doc['points']} --rounds {len(doc['parallel_efficiency_per_round'])} --seed {doc['seed']}"
+    lines = [f"# {cmd}", "",
+             f"Written by `{cmd} --report docs` on {doc['utc']}, "
              f"{doc['machine']}, {doc['cores']} cores (shared: see the load averages).  Each point: FFCC-a, `nlls`, "
              f"in-process lockstep, {doc['duration_s']:g} s simulated, run seeds drawn from the master seed.  Every "
              "cluster's workers ran one point before the clock started.", "",
-             "| phase | workers | makespan s | point s (median) | gap between a worker's points ms (median / p90) | "
-             "overhead ms per point (idle tail included) | row write ms | points per hour per core | load before → after | same table |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "| phase | workers | makespan s | point s (median) | CPU / wall per point (median) | gap between a worker's points ms (median / p90) | "
+             "overhead ms per point (idle tail included) | row write ms | points per hour per core | load before → after | same table | 1 thread per worker |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for p in doc["phases"]:
         lines.append(f"| {p['label']} | {p['workers']} | {p['makespan_s']:.1f} | {p['point_s_median']:.2f} | "
+                     f"{p['cpu_share_median'] * 100:.0f} % | "
                      f"{f(p['gap_ms_median'], '.1f')} / {f(p['gap_ms_p90'], '.1f')} | {p['overhead_ms_per_point']:.0f} | "
                      f"{f(p['persist_ms_median'], '.1f')} | {p['points_per_hour_per_core']:.0f} | "
                      f"{p['load_before']:.2f} → {p['load_after']:.2f} | "
-                     f"{'yes' if doc['same_table_as_local_2_workers'].get(p['label']) else 'NO'} |")
+                     f"{'yes' if doc['same_table_as_local_2_workers'].get(p['label']) else 'NO'} | "
+                     f"{'yes' if p['threads_one_per_worker'] else 'NO'} |")
+    per_round = ", ".join(f"{e * 100:.0f} %" for e in doc["parallel_efficiency_per_round"])
     lines += ["", f"Parallel efficiency, 2 local workers against 1: **{doc['parallel_efficiency'] * 100:.0f} %** "
-              "(makespan of 1 worker / (2 x makespan of 2 workers)).", "",
+              f"(median over rounds: {per_round}; per round, makespan of 1 worker / (2 x makespan of 2 workers), "
+              "the two phases back to back).", "",
+              "CPU / wall per point: the CPU time a worker process spent on a point over its wall time; below "
+              "100 % the worker waited for a core (other processes on the machine: compare the load average).", "",
               "Gap: the time between one point's end and the same worker's next point's start (the scheduler's "
               "round trip, the result sent, the next task fetched): the engine's cost per point on a worker.  "
               "Overhead per point: (workers x makespan - the sum of the points' times) / points, which adds the idle "
               "tail when one worker finishes before the other.  Row write: the client's time to persist one row "
               "(one Parquet file), overlapped with the workers' runs.  Same table: `hil.sweep.table.comparable` "
               "equal to the 2-worker local table (the same rows and result columns; wall times, timings, heartbeat "
-              "frame counts and workers aside).", ""]
+              "frame counts and workers aside).  1 thread per worker: every worker process had OMP, OpenBLAS, MKL, "
+              "numba, vecLib and numexpr at one thread (`hil.sweep.point.THREAD_ENV`, set before the worker starts) "
+              "and numba's thread count at 1.", ""]
     return "\n".join(lines)

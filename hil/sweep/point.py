@@ -4,7 +4,8 @@
 scenario goes as text, never as a path the worker may not have) and returns a dict: ``index``,
 ``key``, ``inputs``, ``result`` (the ``hil run --json`` summary, or the partial one of a faulted run,
 or None), ``error`` (one line, or None), ``truth`` (the true fault curve's peak and law),
-``point_wall_s`` (the whole point on the worker: building the scenario, the run, the summary),
+``point_wall_s`` (the whole point on the worker: building the scenario, the run, the summary) and
+``point_cpu_s`` (the CPU time the worker process spent on it: below the wall time when it waited for a core),
 ``t_start``/``t_end`` (the worker's wall clock, for the benchmark's overhead figures) and ``worker``
 (the Dask worker's address, else ``host:pid``).  A failing point never raises: its error is its row
 (``KeyboardInterrupt`` and ``SystemExit`` do raise).
@@ -26,6 +27,18 @@ from pathlib import Path
 #: the environment a worker process needs before it imports numpy / numba: one thread each
 THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
               "NUMBA_NUM_THREADS": "1", "VECLIB_MAXIMUM_THREADS": "1", "NUMEXPR_NUM_THREADS": "1"}
+
+
+def threads_seen() -> dict:
+    """What this process runs numerical code with: the ``THREAD_ENV`` variables and numba's thread count."""
+    out = {k: os.environ.get(k) for k in THREAD_ENV}
+    try:
+        import numba
+
+        out["numba_threads"] = numba.config.NUMBA_NUM_THREADS
+    except ImportError:
+        out["numba_threads"] = None
+    return out
 
 
 def worker_name() -> str:
@@ -81,7 +94,7 @@ def run_point(task: dict) -> dict:
     from ..exchange import run
 
     t_start = time.time()
-    t0 = time.perf_counter()
+    t0, cpu0 = time.perf_counter(), time.process_time()
     row = {"index": task["index"], "key": task["key"], "inputs": task["inputs"], "result": None, "error": None,
            "truth": None, "worker": worker_name()}
     tmp = None
@@ -116,6 +129,7 @@ def run_point(task: dict) -> dict:
         if tmp is not None:
             tmp.cleanup()
     row["point_wall_s"] = time.perf_counter() - t0
+    row["point_cpu_s"] = time.process_time() - cpu0
     row["t_start"], row["t_end"] = t_start, time.time()
     return row
 

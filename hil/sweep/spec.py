@@ -28,7 +28,8 @@
     values = ["", "load_transfer:bogie_height_m=1.5", ["can:delay_ms=3", "sensor_delay:delay_ms=2"]]
 
 Each axis value is checked against the base once (the field exists, the value has its type and range,
-the strategy and effect exist, the family exists); an error is one ``ConfigError`` line naming the
+the strategy and effect exist, the family exists; an axis of more than ``MAX_CHECKED`` distinct values
+at its first ones and its extremes); an error is one ``ConfigError`` line naming the
 sweep file and the axis.  Combinations are not checked ahead (a point whose combination is refused
 by the scenario loader is a failed point with that line).  A point's ``key`` is a digest of
 everything that makes it (base text, fixed overrides, transport, its inputs): ``--resume`` skips the
@@ -263,7 +264,7 @@ def _check_axis(path, where, name, values, base_text, base_path, overrides) -> N
     if name in overrides:
         raise _fail(path, where, "also fixed in [set]; an axis and [set] cannot both set it")
     seen = set()
-    for v in values:
+    for v in checked_values(values):
         if isinstance(v, dict):
             raise _fail(path, f"{where} values", f"a table is not a field value: {v!r}")
         token = json.dumps(v, sort_keys=True)
@@ -274,6 +275,24 @@ def _check_axis(path, where, name, values, base_text, base_path, overrides) -> N
             parse_scenario(base_text, base_path, {**overrides, name: v})
         except ConfigError as e:
             raise _fail(path, f"{where} value {v!r}", e) from None
+
+
+#: at most this many distinct values of one field axis are loaded into the base ahead (plus its extremes)
+MAX_CHECKED = 256
+
+
+def checked_values(values: list) -> list:
+    """The values of a field axis checked ahead: all distinct ones up to ``MAX_CHECKED``, else the first
+    ``MAX_CHECKED`` and, for numbers, the smallest and the largest (a long random axis is checked at its
+    bounds; every other value is still checked when its point loads)."""
+    distinct = list({json.dumps(v, sort_keys=True): v for v in values}.values())
+    if len(distinct) <= MAX_CHECKED:
+        return distinct
+    out = distinct[:MAX_CHECKED]
+    numbers = [v for v in distinct if isinstance(v, (int, float)) and not isinstance(v, bool)]
+    if numbers:
+        out += [min(numbers), max(numbers)]
+    return out
 
 
 def reality_items(value, fail) -> list[str]:

@@ -4,8 +4,8 @@
 (``schema(axes)``), so the dataset never depends on which point finished first:
 
 - ``point`` (its index in the sweep), ``key`` (``spec.Point.key``), ``error`` (one line, null when it ran),
-  ``worker``, ``point_wall_s`` (the point on its worker), ``t_start``/``t_end`` (the worker's clock,
-  Unix s), ``finished_utc``;
+  ``worker``, ``point_wall_s`` and ``point_cpu_s`` (the point on its worker: wall and CPU time),
+  ``t_start``/``t_end`` (the worker's clock, Unix s), ``finished_utc``;
 - ``in.<axis>``: the point's inputs (numbers, strings, booleans; a list, e.g. several effects, as JSON);
 - the main ``hil run --json`` figures as typed columns (``OUTPUT_COLUMNS``), ``correct`` (confirmed with
   peak mu within 3 % and peak creep within 10 % of the truth: ``hil/benchmarks/judge.py``'s rule) and the
@@ -41,13 +41,13 @@ OUTPUT_COLUMNS = {
     "wall_s": "float64", "fault": "string", "mcap": "string",
 }
 META_COLUMNS = {"point": "int64", "key": "string", "error": "string", "worker": "string", "point_wall_s": "float64",
-                "t_start": "float64", "t_end": "float64", "finished_utc": "string"}
+                "point_cpu_s": "float64", "t_start": "float64", "t_end": "float64", "finished_utc": "string"}
 DERIVED_COLUMNS = {"correct": "bool", "true_peak_mu": "float64", "true_peak_creep_kmh": "float64",
                    "fault_law": "string", "result_json": "string"}
 #: columns that differ between two runs of the same point (clocks, places)
 #: (frames_tx and frames_rx count the heartbeats too, which are paced by the wall clock)
-TIMING_COLUMNS = ("worker", "point_wall_s", "t_start", "t_end", "finished_utc", "wall_s", "mcap", "frames_tx",
-                  "frames_rx")
+TIMING_COLUMNS = ("worker", "point_wall_s", "point_cpu_s", "t_start", "t_end", "finished_utc", "wall_s", "mcap",
+                  "frames_tx", "frames_rx")
 #: keys of ``result_json`` that differ between two runs of the same point
 TIMING_KEYS = ("wall_s", "sim_s_per_wall_s", "round_trip_p50_us", "round_trip_p99_us", "jitter_p50_us",
                "jitter_p99_us", "jitter_max_us", "mcap", "frames_tx", "frames_rx")
@@ -104,7 +104,8 @@ def to_record(row: dict, axes: dict) -> dict:
     result = row.get("result") or {}
     truth = row.get("truth") or {}
     rec = {"point": row["index"], "key": row["key"], "error": row.get("error"), "worker": row.get("worker"),
-           "point_wall_s": row.get("point_wall_s"), "t_start": row.get("t_start"), "t_end": row.get("t_end"),
+           "point_wall_s": row.get("point_wall_s"), "point_cpu_s": row.get("point_cpu_s"),
+           "t_start": row.get("t_start"), "t_end": row.get("t_end"),
            "finished_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
     for name, values in axes.items():
         kind = input_type(values)
