@@ -88,6 +88,7 @@ def phase_figures(doc: dict, df, workers: int) -> dict:
             "point_s_median": float(df["point_wall_s"].median()),
             "run_wall_s_median": float(df["wall_s"].median()),
             "cpu_share_median": float((df["point_cpu_s"] / df["point_wall_s"]).median()),
+            "point_cpu_s_median": float(df["point_cpu_s"].median()),
             "gap_ms_median": float(np.median(gaps) * 1e3) if gaps else None,
             "gap_ms_p90": float(np.percentile(gaps, 90) * 1e3) if gaps else None,
             "overhead_ms_per_point": (workers * makespan - busy) / n * 1e3,
@@ -223,12 +224,12 @@ def markdown(doc: dict) -> str:
              f"{doc['machine']}, {doc['cores']} cores (shared: see the load averages).  Each point: FFCC-a, `nlls`, "
              f"in-process lockstep, {doc['duration_s']:g} s simulated, run seeds drawn from the master seed.  Every "
              "cluster's workers ran one point before the clock started.", "",
-             "| phase | workers | makespan s | point s (median) | CPU / wall per point (median) | gap between a worker's points ms (median / p90) | "
+             "| phase | workers | makespan s | point s (median) | point CPU s (median) | CPU / wall per point (median) | gap between a worker's points ms (median / p90) | "
              "overhead ms per point (idle tail included) | row write ms | points per hour per core | load before → after | same table | 1 thread per worker |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for p in doc["phases"]:
         lines.append(f"| {p['label']} | {p['workers']} | {p['makespan_s']:.1f} | {p['point_s_median']:.2f} | "
-                     f"{p['cpu_share_median'] * 100:.0f} % | "
+                     f"{p['point_cpu_s_median']:.2f} | {p['cpu_share_median'] * 100:.0f} % | "
                      f"{f(p['gap_ms_median'], '.1f')} / {f(p['gap_ms_p90'], '.1f')} | {p['overhead_ms_per_point']:.0f} | "
                      f"{f(p['persist_ms_median'], '.1f')} | {p['points_per_hour_per_core']:.0f} | "
                      f"{p['load_before']:.2f} → {p['load_after']:.2f} | "

@@ -54,6 +54,14 @@ class Engine:
             from distributed import Client, LocalCluster
         except ImportError as e:
             raise ClusterError(f"dask.distributed is not installed ({e}); pip install 'dask[distributed]'") from None
+        try:
+            self._start(Client, LocalCluster)
+        except BaseException:         # Ctrl-C or a failure while starting: stop what did start
+            self.close()
+            raise
+        return self
+
+    def _start(self, Client, LocalCluster) -> None:
         if self.scheduler is None:
             n = self.workers or os.cpu_count() or 1
             self.cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
@@ -68,10 +76,9 @@ class Engine:
                 self.client = Client(self.scheduler, timeout=f"{self.connect_timeout_s}s")
                 self.client.wait_for_workers(self.workers or 1, timeout=self.connect_timeout_s)
             except (OSError, TimeoutError) as e:
-                self.close()
+                why = " ".join(str(e).split())[:200]
                 raise ClusterError(f"--scheduler {self.scheduler}: no cluster with a worker answered within "
-                                   f"{self.connect_timeout_s:g} s ({type(e).__name__}: {' '.join(str(e).split())[:200]})") from None
-        return self
+                                   f"{self.connect_timeout_s:g} s ({type(e).__name__}: {why})") from None
 
     def __exit__(self, *exc) -> None:
         self.close()
