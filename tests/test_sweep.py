@@ -162,7 +162,7 @@ def test_a_failing_point_is_a_row_and_the_sweep_goes_on(tmp_path):
 
 def test_bench_identify_on_two_workers_gives_the_serial_verdicts(capsys):
     seed = random.SystemRandom().randrange(1, 2 ** 30)
-    print(f"bench identify draws seed {seed}")
+    print(f"bench identify draws seed {seed}", file=sys.stderr)
     args = ["bench", "identify", "--family", "default", "--draws", "3", "--seed", str(seed), "--strategies", "nlls",
             "--oracle-draws", "50", "--json"]
     assert main(args) == 0
