@@ -1,6 +1,6 @@
 """``hil bench sweep``: what the sweep engine costs and what a worker is worth, measured back to back.
 
-One sweep of ``--points`` points of about a second each (FFCC-a, ``nlls``, in-process lockstep, 0.7 s
+One sweep of ``--points`` points of about a second each (FFCC-a, ``nlls``, in-process lockstep, 1 s
 simulated; the run seeds drawn at run time unless ``--seed``, and printed) runs on clusters whose
 workers have already run one point (imports and caches warm, not timed):
 
@@ -54,7 +54,7 @@ def register(sub) -> None:
                        "scheduler and workers; efficiency, overhead per point, points per hour per core")
     p.add_argument("--points", type=int, default=24, help="points per phase (default 24)")
     p.add_argument("--seed", type=int, default=None, help="master seed of the run seeds (default: drawn now, printed)")
-    p.add_argument("--duration-s", type=float, default=0.7, help="simulated seconds per point (default 0.7: "
+    p.add_argument("--duration-s", type=float, default=1.0, help="simulated seconds per point (default 1.0: "
                    "about a second of wall time per point on a 2-core machine)")
     p.add_argument("--rounds", type=int, default=2, help="times the 1-worker and the 2-worker phases alternate "
                    "(default 2; the efficiency of each round and their median are reported)")
