@@ -23,12 +23,18 @@ from __future__ import annotations
 
 import logging
 import os
+import signal
+import threading
 import time
 
 from ..errors import ClusterError
 from .point import THREAD_ENV
 
 CONNECT_TIMEOUT_S = 30.0
+
+
+def _main_thread() -> bool:
+    return threading.current_thread() is threading.main_thread()
 
 
 class Engine:
@@ -64,9 +70,16 @@ class Engine:
     def _start(self, Client, LocalCluster) -> None:
         if self.scheduler is None:
             n = self.workers or os.cpu_count() or 1
-            self.cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                        dashboard_address="127.0.0.1:8787" if self.dashboard else None,
-                                        silence_logs=logging.ERROR, env=dict(THREAD_ENV))
+            # the worker processes start with SIGINT ignored (inherited through exec): a terminal's Ctrl-C
+            # reaches the whole process group, and only this process handles it (it closes the cluster)
+            previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if _main_thread() else None
+            try:
+                self.cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                            dashboard_address="127.0.0.1:8787" if self.dashboard else None,
+                                            silence_logs=logging.ERROR, env=dict(THREAD_ENV))
+            finally:
+                if previous is not None:
+                    signal.signal(signal.SIGINT, previous)
             self.client = Client(self.cluster)
             self.client.wait_for_workers(n, timeout=self.connect_timeout_s)
         else:
