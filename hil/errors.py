@@ -7,6 +7,7 @@ message and exits with ``exit_code``.  Nothing here imports anything else of the
       BusError              exit 2   a bus that cannot be opened here
       LogError              exit 2   a file that is not a log this tool reads
       PlantError            exit 2   an FMU or plant that cannot be loaded or run
+      ClusterError          exit 2   a Dask cluster that cannot be started or reached (hil sweep)
       PeerSilent            exit 3   the other side of the bus fell silent or died mid-run
         NoProgress          exit 3   (lockstep) the other side lives but the pending step gets no answer
       PlantFault            exit 4   (TCU side) the plant reported a fault
@@ -43,6 +44,10 @@ class LogError(HilError, ValueError):
 
 class PlantError(HilError, ValueError):
     """A plant (an FMU, its mapping or parameters) that cannot be loaded or run."""
+
+
+class ClusterError(HilError, RuntimeError):
+    """A Dask cluster that cannot be started or reached, or a sweep that could not finish its points."""
 
 
 class PeerSilent(HilError, RuntimeError):

@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..sweep.engine import map_in_order
+
 #: drawn effect -> (the parameter the diagnosis must recover, sampler(rng) -> params)
 LIBRARY = {
     "load_transfer": ("bogie_height_m", lambda g: {"bogie_height_m": g.uniform(0.5, 2.6)}),
@@ -50,6 +52,10 @@ def register(sub) -> None:
                    help="fraction of cases whose effect is outside the candidate list (default 0.25)")
     p.add_argument("--out", default=None, help="keep the MCAP logs here (default: a temporary directory)")
     p.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
+    p.add_argument("--scheduler", metavar="ADDRESS", default=None, help="run the cases on this Dask cluster "
+                   "(tcp://HOST:PORT; hil sweep's engine)")
+    p.add_argument("--workers", type=int, default=None, help="run the cases on a local Dask cluster of this many "
+                   "worker processes (default: serially in this process)")
     p.set_defaults(func=cmd_gap_bench)
 
 
@@ -106,6 +112,18 @@ def run_case(scenario, effect: str, params: dict, run_seed: int, out_dir: Path, 
     return rec
 
 
+def gap_case(job) -> dict:
+    """Case ``i``: draw its effect, make the real run, diagnose it blind, score it.  Plain data in and out,
+    so it runs on a Dask worker as well as here; the log goes to ``out/case<i>`` when ``out`` is given
+    (on the machine that runs the case), else to a temporary directory removed after the case."""
+    scenario, seed, i, outside, out = job
+    effect, params, run_seed = draw_case(seed, i, outside)
+    if out:
+        return run_case(scenario, effect, params, run_seed, Path(out), i)
+    with tempfile.TemporaryDirectory(prefix="hil-gap-bench-") as tmp:
+        return run_case(scenario, effect, params, run_seed, Path(tmp), i)
+
+
 def summarise(records: list[dict]) -> dict:
     lib = [r for r in records if r["expected"] != "none"]
     out_ = [r for r in records if r["expected"] == "none"]
@@ -140,26 +158,19 @@ def cmd_gap_bench(args) -> int:
     if not 0 <= args.outside <= 1:
         raise ConfigError(f"--outside {args.outside}: must be in [0, 1]")
     scenario = load_scenario(args.scenario)
-    tmp = None
-    if args.out:
-        out_dir = Path(args.out)
-    else:
-        tmp = tempfile.TemporaryDirectory(prefix="hil-gap-bench-")
-        out_dir = Path(tmp.name)
     records = []
     wall0 = time.perf_counter()
-    try:
-        for i in range(args.cases):
-            effect, params, run_seed = draw_case(args.seed, i, args.outside)
-            rec = run_case(scenario, effect, params, run_seed, out_dir, i)
-            records.append(rec)
-            extra = f" param err {rec['param_err_percent']:.1f} %" if "param_err_percent" in rec else ""
-            print(f"hil bench gap: case {i + 1}/{args.cases}: {effect} -> {rec['named']} "
-                  f"({'ok' if rec['correct'] else 'WRONG'}), shrink {rec['shrink_percent']:.0f} %{extra}",
-                  file=sys.stderr, flush=True)
-    finally:
-        if tmp:
-            tmp.cleanup()
+    jobs = [(scenario, args.seed, i, args.outside, args.out) for i in range(args.cases)]
+
+    # one case per call, serially here or on Dask (--scheduler / --workers): the same records either way
+    for rec in map_in_order(gap_case, jobs, args.scheduler, args.workers,
+                            lambda done, i: print(f"hil bench gap: {done}/{args.cases} cases done (case {i})",
+                                                  file=sys.stderr, flush=True)):
+        records.append(rec)
+        extra = f" param err {rec['param_err_percent']:.1f} %" if "param_err_percent" in rec else ""
+        print(f"hil bench gap: case {rec['case'] + 1}/{args.cases}: {rec['effect']} -> {rec['named']} "
+              f"({'ok' if rec['correct'] else 'WRONG'}), shrink {rec['shrink_percent']:.0f} %{extra}",
+              file=sys.stderr, flush=True)
     result = summarise(records)
     result.update({"seed": args.seed, "scenario": scenario.path, "wall_s": time.perf_counter() - wall0,
                    "records": [{k: v for k, v in r.items() if k != "log" or args.out} for r in records]})

@@ -44,6 +44,7 @@ from .judge import aggregate as judge_aggregate
 from .judge import table as judge_table
 from ..exchange import collector_paused
 from ..progress import Progress
+from ..sweep.engine import map_in_order
 from ..config import load_scenario
 from ..trace import clean, summarise
 from ..trace import fmt as _f
@@ -86,6 +87,11 @@ def register(sub) -> None:
                    help="override a scenario field for every case, e.g. --set identifier.settle_time_s=0.006")
     p.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
     p.add_argument("--plots", metavar="DIR", default=None, help="write PNG figures (first seed) to DIR")
+    p.add_argument("--scheduler", metavar="ADDRESS", default=None, help="with --family: run the draws on this Dask "
+                   "cluster (tcp://HOST:PORT; hil sweep's engine); the same verdicts as the serial run")
+    p.add_argument("--workers", type=int, default=None, help="with --family: run the draws on a local Dask cluster "
+                   "of this many worker processes (default: serially in this process); costs are then timed "
+                   "with the workers side by side")
     p.set_defaults(func=cmd_identify)
 
 
@@ -403,6 +409,8 @@ def cmd_identify(args) -> int:
     overrides = parse_set(args.set)
     if args.family is not None:
         return cmd_family(args, strategies, overrides)
+    if args.scheduler is not None or args.workers is not None:
+        raise ConfigError("--scheduler / --workers: with --family only (--cases runs in this process)")
     cases = [c.strip() for c in args.cases.split(",") if c.strip()]
     scenarios = {}
     for c in cases:
@@ -496,8 +504,6 @@ def cmd_family(args, strategies: list[str], overrides: dict) -> int:
 
     from plant import families
 
-    from ..config import parse_scenario
-
     if args.family not in families.FAMILIES:
         raise ConfigError(f"--family {args.family!r}: unknown family (known: {', '.join(families.FAMILIES)})")
     if args.draws < 1:
@@ -513,38 +519,23 @@ def cmd_family(args, strategies: list[str], overrides: dict) -> int:
     per_draw = {s: [] for s in strategies}
     costs = {s: [] for s in strategies}
     bar = Progress(args.draws * (len(strategies) + 1), f"bench identify {args.family}", None)
-    done = 0
     from .oracle import DRAWS as ORACLE_DRAWS
 
     oracle_draws = ORACLE_DRAWS if args.oracle_draws is None else args.oracle_draws
     load_before = os.getloadavg()
     oracle_rts, oracle_detail = [], []
     base_text = base.read_text()
-    for i in range(args.draws):
-        text = families.draw_scenario_text(base_text, args.family, seed, i)
-        sc = parse_scenario(text, f"{args.family} draw {i} of seed {seed}", overrides)
-        data = generate(sc, i + 1)
-        v_true, mu_true = sc.fault_curve.peak()
-        law = getattr(sc.fault_curve, "model", type(sc.fault_curve).__name__)
-        done += 1
-        bar.update(done, f"draw {i}")
+    jobs = [(base_text, args.family, seed, i, overrides, strategies, args.particles, oracle_draws)
+            for i in range(args.draws)]
+    # one draw per call, serially here or on Dask (--scheduler / --workers): the same verdicts either way
+    for out in map_in_order(family_draw, jobs, args.scheduler, args.workers,
+                            lambda n, i: bar.update(n * (len(strategies) + 1), f"draw {i}")):
         for strat in strategies:
-            summary, ident = replay(data, strat, args.particles)
-            d = judge(summary, ident.events_seen, mu_true, v_true, data.tracker.serious_time_s)
-            d.update(draw=i, t_det_s=summary["t_det_s"], peak_mu_ci=summary.get("peak_mu_ci"),
-                     peak_creep_ci=summary.get("peak_creep_ci"), law=law)
-            if d["confirmed"]:      # the form's own floor over the creeps it had seen (form_limit)
-                v_seen = [x for x in ident.strategy.data()[0] if math.isfinite(x)]
-                d.update(form_limit(sc.fault_curve, max(v_seen) if v_seen else math.nan))
-            per_draw[strat].append(d)
-            costs[strat].append(summary.get("cost_p99_us"))
-            done += 1
-            bar.update(done, f"draw {i} {strat}")
-        if oracle_draws:
-            o = run_oracle(data, args.family, [seed, i], oracle_draws)
-            o.update(draw=i, true_peak_mu=mu_true, true_peak_creep_kmh=v_true)
-            oracle_rts.append(o["oracle_rt_percent"])
-            oracle_detail.append(o)
+            per_draw[strat].append(out["verdicts"][strat])
+            costs[strat].append(out["costs"][strat])
+        if out["oracle"] is not None:
+            oracle_rts.append(out["oracle"]["oracle_rt_percent"])
+            oracle_detail.append(out["oracle"])
     bar.close()
     results = {}
     oracle_median = judge_quantile(oracle_rts, 50) if oracle_rts else None
@@ -580,6 +571,37 @@ def cmd_family(args, strategies: list[str], overrides: dict) -> int:
                   f"{_f(oracle_median, '.1f')} %, p90 {_f(oracle_summary['rt_p90_percent'], '.1f')} %; before the "
                   f"serious stage in {_pct(_fraction_below(oracle_rts, 100.0))} of draws")
     return 0
+
+
+def family_draw(job) -> dict:
+    """Draw ``i`` of ``--family``: its plant run, every strategy fed and judged, the oracle.  Plain data in
+    and out, so it runs on a Dask worker as well as here (``hil.sweep.engine.map_in_order``)."""
+    from plant import families
+
+    from ..config import parse_scenario
+
+    base_text, family, seed, i, overrides, strategies, particles, oracle_draws = job
+    text = families.draw_scenario_text(base_text, family, seed, i)
+    sc = parse_scenario(text, f"{family} draw {i} of seed {seed}", overrides)
+    data = generate(sc, i + 1)
+    v_true, mu_true = sc.fault_curve.peak()
+    law = getattr(sc.fault_curve, "model", type(sc.fault_curve).__name__)
+    verdicts, costs = {}, {}
+    for strat in strategies:
+        summary, ident = replay(data, strat, particles)
+        d = judge(summary, ident.events_seen, mu_true, v_true, data.tracker.serious_time_s)
+        d.update(draw=i, t_det_s=summary["t_det_s"], peak_mu_ci=summary.get("peak_mu_ci"),
+                 peak_creep_ci=summary.get("peak_creep_ci"), law=law)
+        if d["confirmed"]:      # the form's own floor over the creeps it had seen (form_limit)
+            v_seen = [x for x in ident.strategy.data()[0] if math.isfinite(x)]
+            d.update(form_limit(sc.fault_curve, max(v_seen) if v_seen else math.nan))
+        verdicts[strat] = d
+        costs[strat] = summary.get("cost_p99_us")
+    oracle_out = None
+    if oracle_draws:
+        oracle_out = run_oracle(data, family, [seed, i], oracle_draws)
+        oracle_out.update(draw=i, true_peak_mu=mu_true, true_peak_creep_kmh=v_true)
+    return {"verdicts": verdicts, "costs": costs, "oracle": oracle_out}
 
 
 def _fraction_below(values, limit: float):
