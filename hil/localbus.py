@@ -112,6 +112,7 @@ class LocalBus(can.BusABC):
         self._poll.register(self._listener.fileno(), select.POLLIN)
         self._own_queue: list[can.Message] = []
         self.dropped: Counter = Counter()        # frames a full peer missed, by peer name
+        self._closing: set[int] = set()          # peers that closed: not written to, still read to their end
         self.peers_lost = 0
         for name in sorted(os.listdir(channel)):
             if name.endswith(SOCKET_SUFFIX) and name != self.name + SOCKET_SUFFIX:
@@ -125,6 +126,7 @@ class LocalBus(can.BusABC):
         self._poll.register(sock.fileno(), select.POLLIN)
 
     def _drop(self, fd: int) -> None:
+        self._closing.discard(fd)
         sock, _, _ = self._peers.pop(fd)
         try:
             self._poll.unregister(fd)
@@ -169,14 +171,17 @@ class LocalBus(can.BusABC):
         self._accept()             # a node that joined since: it gets this frame too
         packet = encode(msg)
         for fd, (sock, peer, _) in list(self._peers.items()):
+            if fd in self._closing:
+                continue
             try:
                 sock.send(packet, socket.MSG_DONTWAIT)
             except (BlockingIOError, InterruptedError):
                 self.dropped[peer or str(fd)] += 1
             except OSError as e:
                 if e.errno in (errno.EPIPE, errno.ECONNRESET, errno.ENOTCONN):
-                    self.peers_lost += 1
-                    self._drop(fd)
+                    # the peer has closed: nothing more goes to it, but what it sent before closing is
+                    # still queued here and is read first (recv drops the connection at end-of-file)
+                    self._closing.add(fd)
                 else:
                     raise can.CanOperationError(f"localbus: send: {e}") from None
         if self._own:

@@ -95,3 +95,28 @@ def test_a_node_that_dies_is_noticed_and_a_slow_one_never_blocks_the_sender(chan
         if peer.poll() is None:
             peer.kill()
         bus.shutdown()
+
+
+def test_what_a_peer_sent_before_closing_is_read_even_after_a_send_to_it_fails(channel):
+    """A TCU that answers and exits at once: the plant's next send to it fails (EPIPE), yet the frames
+    the TCU sent before closing are still delivered (a lockstep run's last TcuStatus was lost so)."""
+    a = can.Bus(interface="localbus", channel=channel)
+    b = can.Bus(interface="localbus", channel=channel)
+    try:
+        a.send(can.Message(arbitration_id=0x701, data=b"\x01", is_extended_id=False))   # a accepts b's connection
+        assert b.recv(timeout=2.0) is not None
+        for i in range(3):
+            b.send(can.Message(arbitration_id=0x120, data=bytes([i]), is_extended_id=False))
+        b.shutdown()
+        b = None
+        for _ in range(2):      # the first send may still be taken by the kernel; the next fails (EPIPE)
+            a.send(can.Message(arbitration_id=0x701, data=b"\x02", is_extended_id=False))
+        got = []
+        while (m := a.recv(timeout=0.5)) is not None:
+            got.append(bytes(m.data))
+        assert got == [b"\x00", b"\x01", b"\x02"]
+        assert a.peers_lost == 1
+    finally:
+        a.shutdown()
+        if b is not None:
+            b.shutdown()
