@@ -10,6 +10,7 @@ message and exits with ``exit_code``.  Nothing here imports anything else of the
       PeerSilent            exit 3   the other side of the bus fell silent or died mid-run
         NoProgress          exit 3   (lockstep) the other side lives but the pending step gets no answer
       PlantFault            exit 4   (TCU side) the plant reported a fault
+      DeadlinesMissed       exit 5   (real time) more deadlines missed than [bus] max_missed_fraction allows
 """
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ EXIT_OK = 0
 EXIT_USAGE = 2
 EXIT_SILENT = 3
 EXIT_PLANT_FAULT = 4
+EXIT_DEADLINES = 5
 EXIT_INTERRUPTED = 130
 
 
@@ -59,3 +61,9 @@ class NoProgress(PeerSilent):
 class PlantFault(HilError, RuntimeError):
     """The TCU was told by the plant's heartbeat that the plant side failed."""
     exit_code = EXIT_PLANT_FAULT
+
+
+class DeadlinesMissed(HilError, RuntimeError):
+    """A real-time run completed (logs written) but missed more deadlines than the scenario's
+    ``[bus] max_missed_fraction`` allows; the message gives how many of how many."""
+    exit_code = EXIT_DEADLINES

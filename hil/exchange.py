@@ -17,6 +17,11 @@ The TCU on the other end is reached through one of three transports, chosen by `
 Whatever the transport, the summary comes from the run's ``Trace``, fed by the frames the plant
 node received (results, samples, observer): an external TCU's run has fit metrics too.
 
+A real-time run's summary (and so the log's) says whether its missed deadlines exceed
+``[bus] max_missed_fraction`` (``deadlines_exceeded``); ``run`` still returns it, so benchmarks can
+measure misses, and ``check_deadlines`` (called by ``hil run`` after the logs are written) turns it
+into ``DeadlinesMissed`` (exit 5).
+
 Faults: the TCU silent for longer than the limit, its process ending, its heartbeat saying "fault",
 or (lockstep) no command for the pending step within ``[bus] lockstep_progress_s`` twice (``NoProgress``,
 from ``PlantNode.await_command``) raise ``PeerSilent`` (exit 3); the log then holds the fault (an event and ``fault``
@@ -42,7 +47,7 @@ import numpy as np
 from identifier.messages import TorqueCommand
 
 from .effects import TRUTH_KEY
-from .errors import BusError, PeerSilent
+from .errors import BusError, DeadlinesMissed, PeerSilent
 from .frames import DBC_PATH, STATE_FAULT, STATE_FINISHED, FrameCodec, bus_load, format_bus_load
 from .link import MODES, die_with_parent, open_bus
 from .plant_node import PlantNode, PlantRig
@@ -104,6 +109,23 @@ class Timing:
                         "jitter_max_us": max(jitter) if jitter else None,
                         "lateness_p99_us": _percentile(self.lateness_us, 99), "late_commands": late_commands})
         return out
+
+
+def deadline_verdict(timing: Timing, max_missed_fraction: float) -> dict:
+    """The summary fields of a real-time run's deadline verdict: exceeded when the missed deadlines are
+    more than ``max_missed_fraction`` of the steps run."""
+    steps = len(timing.period_us)
+    return {"max_missed_fraction": max_missed_fraction,
+            "deadlines_exceeded": steps > 0 and timing.missed > max_missed_fraction * steps}
+
+
+def check_deadlines(summary: dict) -> None:
+    """``DeadlinesMissed`` (one line: how many of how many, and the limit) when the summary of a
+    real-time run says its missed deadlines exceeded ``max_missed_fraction``; nothing otherwise."""
+    if summary.get("deadlines_exceeded"):
+        missed, steps, limit = summary["missed_deadlines"], summary["steps"], summary["max_missed_fraction"]
+        raise DeadlinesMissed(f"{missed} of {steps} deadlines missed ({100.0 * missed / steps:.2f} %), more than "
+                              f"[bus] max_missed_fraction = {limit:g} allows; logs written")
 
 
 def exchange(node: PlantNode, steps: int, mode: str, bar: Progress | None = None) -> Timing:
@@ -331,6 +353,8 @@ def run(scenario, strategy: str = "nlls", seed: int | None = None, *, bus: str =
             wall = time.perf_counter() - wall0
             node.finish(STATE_FINISHED)
             summary = summarise(tcu.finish(node))
+            if mode == "realtime":
+                summary.update(deadline_verdict(timing, settings.max_missed_fraction))
             if rec:
                 summary["messages"] = rec.messages + 1   # + the summary itself
                 summary["log_rows_dropped"] = rec.overflow     # real time: rows the full queue could not take

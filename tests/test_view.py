@@ -85,7 +85,7 @@ def test_realtime_run_has_timing_in_the_recording(tmp_path):
 
     # a generous TCU-silence limit (1 s): on a loaded 2-core machine the default 6 ms trips the fault handling
     r = hil("run", str(SCENARIOS / "ffcc_a.toml"), "--mode", "realtime", "--out", str(tmp_path), "--json",
-            "--set", "bus.silence_periods=500")
+            "--set", "bus.silence_periods=500", "--set", "bus.max_missed_fraction=1")
     assert r.returncode == 0, r.stderr
     s = json.loads(r.stdout)
     data = LogData(s["mcap"])

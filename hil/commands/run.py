@@ -46,7 +46,7 @@ def cmd_run(args) -> int:
     scenario = load_scenario(args.scenario, parse_set(args.set))
     scenario = apply_reality_args(scenario, args.reality)
     from ..errors import PeerSilent
-    from ..exchange import run
+    from ..exchange import check_deadlines, run
     from ..plants import make_plant, plant_label
 
     plant = make_plant(scenario, args.plant)   # None: the CasADi model
@@ -68,6 +68,8 @@ def cmd_run(args) -> int:
         print_summary(summary)
         if rrd:
             print(f"  rerun: {rrd}")
+    sys.stdout.flush()
+    check_deadlines(summary)     # real time: too many misses -> exit 5, after the logs and the summary
     return 0
 
 
