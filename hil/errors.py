@@ -7,6 +7,7 @@ message and exits with ``exit_code``.  Nothing here imports anything else of the
       BusError              exit 2   a bus that cannot be opened here
       LogError              exit 2   a file that is not a log this tool reads
       PlantError            exit 2   an FMU or plant that cannot be loaded or run
+      LogWriteError         exit 2   the log cannot be written (disk full, file size limit, I/O error)
       PeerSilent            exit 3   the other side of the bus fell silent or died mid-run
         NoProgress          exit 3   (lockstep) the other side lives but the pending step gets no answer
       PlantFault            exit 4   (TCU side) the plant reported a fault
@@ -41,6 +42,11 @@ class BusError(HilError, ValueError):
 
 class LogError(HilError, ValueError):
     """A file that is not a log this tool can read."""
+
+
+class LogWriteError(HilError, RuntimeError):
+    """Writing the run's log failed (disk full, file size limit, I/O error); the message names the file
+    and how far it got.  The run stops, its cleanup still completes."""
 
 
 class PlantError(HilError, ValueError):

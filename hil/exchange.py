@@ -26,7 +26,9 @@ Faults: the TCU silent for longer than the limit, its process ending, its heartb
 or (lockstep) no command for the pending step within ``[bus] lockstep_progress_s`` twice (``NoProgress``,
 from ``PlantNode.await_command``) raise ``PeerSilent`` (exit 3); the log then holds the fault (an event and ``fault``
 metadata) and is closed, and the exception carries the partial summary (``.summary``) with a
-``fault`` field.  Ctrl-C and SIGTERM end the run as ``KeyboardInterrupt``, never mid-write.
+``fault`` field.  Ctrl-C and SIGTERM end the run as ``KeyboardInterrupt``, never mid-write.  A log
+that cannot be written (disk full) raises ``LogWriteError``: the TCU is told the plant failed and
+stopped, the bus closed, the log closed as far as the disk allows (an empty file removed).
 """
 from __future__ import annotations
 
@@ -47,9 +49,9 @@ import numpy as np
 from identifier.messages import TorqueCommand
 
 from .effects import TRUTH_KEY
-from .errors import BusError, DeadlinesMissed, PeerSilent
+from .errors import BusError, DeadlinesMissed, LogWriteError, PeerSilent
 from .frames import DBC_PATH, STATE_FAULT, STATE_FINISHED, FrameCodec, bus_load, format_bus_load
-from .link import MODES, die_with_parent, open_bus
+from .link import MODES, GuardedBus, die_with_parent, open_bus
 from .plant_node import PlantNode, PlantRig
 from .progress import Progress
 from .record import interrupts_between_writes, log_path, prepare_out_dir, start_recording, write_timing
@@ -181,7 +183,11 @@ class Tcu:
         self.node: TcuNode | None = None
         self.child: subprocess.Popen | None = None
         self.handle = None
-        self._report_dir = tempfile.TemporaryDirectory(prefix="hil-tcu-") if transport == "process" else None
+        try:
+            self._report_dir = tempfile.TemporaryDirectory(prefix="hil-tcu-") if transport == "process" else None
+        except OSError as e:     # a full disk: tempfile cannot even probe a directory
+            raise LogWriteError(f"cannot create a temporary directory for the TCU's report: {e.strerror or e}") \
+                from None
         self.report_path = Path(self._report_dir.name) / "report.json" if self._report_dir else None
 
     def open(self, scenario, strategy, seed, bus: str, mode: str, set_args) -> None:
@@ -340,7 +346,8 @@ def run(scenario, strategy: str = "nlls", seed: int | None = None, *, bus: str =
                               "load_percent": f"{load['load_percent']:.2f}"})
             if rec:      # rows are written while the plant waits for the TCU (Recorder.defer)
                 rec.defer(max(int(RECORD_QUEUE_S / period) * ROWS_PER_PERIOD, 1000), block_when_full=mode == "lockstep")
-            node = PlantNode(PlantRig(scenario, seed, trace, rec, plant=plant), tcu.handle.bus, mode,
+            node = PlantNode(PlantRig(scenario, seed, trace, rec, plant=plant),
+                             GuardedBus(tcu.handle.bus, tcu.handle.name), mode,
                              strategy=strategy, watch=tcu.child, watch_silence=tcu.node is None)
             if tcu.node is None:
                 node.wait_for_tcu()
@@ -372,17 +379,23 @@ def run(scenario, strategy: str = "nlls", seed: int | None = None, *, bus: str =
             if node is not None:
                 node.finish(STATE_FAULT)
             raise
+        except LogWriteError:
+            if node is not None:
+                node.finish(STATE_FAULT)     # the TCU ends too; the log is closed as far as the disk allows
+            raise
         finally:
-            if rec:
-                with rec.atomic():
-                    if node is not None:
-                        node.settle_results()        # a result whose status never came is still logged
-                    if summary is None and node is not None:
-                        rec.event(node.t_s, "ERROR", "run aborted")
-                    if node is not None:
-                        node.rig.reality.record_truth(rec)
-                    rec.close(_recorded(summary))
-            tcu.close()
-            if old_sched is not None:
-                os.sched_setscheduler(0, *old_sched)
+            try:
+                if rec:
+                    with rec.atomic():
+                        if node is not None:
+                            node.settle_results()        # a result whose status never came is still logged
+                        if summary is None and node is not None:
+                            rec.event(node.t_s, "ERROR", "run aborted")
+                        if node is not None:
+                            node.rig.reality.record_truth(rec)
+                        rec.close(_recorded(summary))
+            finally:                                     # a log that cannot be closed still stops the TCU
+                tcu.close()
+                if old_sched is not None:
+                    os.sched_setscheduler(0, *old_sched)
     return summary
