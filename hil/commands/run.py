@@ -137,5 +137,8 @@ def print_summary(s: dict, file=sys.stdout, heading: str | None = None) -> None:
         if bad or bad_tcu:
             line += f"; rejected frames: plant {bad}, TCU {bad_tcu}"
         print(line, file=file)
+    if s.get("suspicious"):
+        print("  suspicious frames (another node on the bus?): "
+              + ", ".join(f"{k} x{n}" for k, n in sorted(s["suspicious"].items())), file=file)
     if s.get("mcap"):
         print(f"  log: {s['mcap']}", file=file)
