@@ -42,6 +42,8 @@ class BusSettings:
                                           # run ends (exit 3) naming the step and the likely cause
     startup_timeout_s: float = 60.0       # wait for the other side's first frame
     deadline_fraction: float = 0.9        # realtime: the command is due this far into the period
+    max_missed_fraction: float = 0.01     # realtime: a run missing more deadlines than this fraction of its
+                                          # steps ends with exit 5 (after the logs are written)
     rt_priority: int = 0                  # realtime: SCHED_FIFO priority for plant, hub and TCU (0: off)
     cpu_affinity_plant: tuple = ()        # realtime: CPUs the plant process runs on (empty: no setting)
     cpu_affinity_tcu: tuple = ()          # realtime: CPUs the TCU process runs on (empty: no setting)
@@ -128,7 +130,7 @@ BUS_RANGES = {
     "bitrate": (1_000, 100_000_000), "data_bitrate": (1_000, 100_000_000), "heartbeat_period_s": (1e-4, 10.0),
     "silence_periods": (1, 1_000_000), "lockstep_silence_s": (1e-3, 86_400.0),
     "lockstep_progress_s": (1e-3, 86_400.0), "startup_timeout_s": (1e-3, 86_400.0),
-    "deadline_fraction": (1e-3, 0.999), "rt_priority": (0, 99),
+    "deadline_fraction": (1e-3, 0.999), "rt_priority": (0, 99), "max_missed_fraction": (0.0, 1.0),
 }
 #: the PlantSensor signals' ranges in hil/hil.dbc (motor speed rad/s, train speed m/s); a scenario whose
 #: speeds at the start, with six standard deviations of sensor noise, leave them is refused at load
@@ -406,7 +408,7 @@ def _bus(path, data) -> BusSettings:
                 raise _fail(path, f"[bus] {key}", f"must be a list of CPU numbers (0..4095), got {value!r}")
             values[key] = tuple(value)
             continue
-        floor_ok = key == "rt_priority"
+        floor_ok = key in ("rt_priority", "max_missed_fraction")
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
                 or not (value >= 0 if floor_ok else value > 0):
             raise _fail(path, f"[bus] {key}", f"must be a {'non-negative' if floor_ok else 'positive'} number, "

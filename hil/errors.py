@@ -7,10 +7,12 @@ message and exits with ``exit_code``.  Nothing here imports anything else of the
       BusError              exit 2   a bus that cannot be opened here
       LogError              exit 2   a file that is not a log this tool reads
       PlantError            exit 2   an FMU or plant that cannot be loaded or run
+      LogWriteError         exit 2   the log cannot be written (disk full, file size limit, I/O error)
       ClusterError          exit 2   a Dask cluster that cannot be started or reached (hil sweep)
       PeerSilent            exit 3   the other side of the bus fell silent or died mid-run
         NoProgress          exit 3   (lockstep) the other side lives but the pending step gets no answer
       PlantFault            exit 4   (TCU side) the plant reported a fault
+      DeadlinesMissed       exit 5   (real time) more deadlines missed than [bus] max_missed_fraction allows
 """
 from __future__ import annotations
 
@@ -18,6 +20,7 @@ EXIT_OK = 0
 EXIT_USAGE = 2
 EXIT_SILENT = 3
 EXIT_PLANT_FAULT = 4
+EXIT_DEADLINES = 5
 EXIT_INTERRUPTED = 130
 
 
@@ -42,6 +45,11 @@ class LogError(HilError, ValueError):
     """A file that is not a log this tool can read."""
 
 
+class LogWriteError(HilError, RuntimeError):
+    """Writing the run's log failed (disk full, file size limit, I/O error); the message names the file
+    and how far it got.  The run stops, its cleanup still completes."""
+
+
 class PlantError(HilError, ValueError):
     """A plant (an FMU, its mapping or parameters) that cannot be loaded or run."""
 
@@ -64,3 +72,9 @@ class NoProgress(PeerSilent):
 class PlantFault(HilError, RuntimeError):
     """The TCU was told by the plant's heartbeat that the plant side failed."""
     exit_code = EXIT_PLANT_FAULT
+
+
+class DeadlinesMissed(HilError, RuntimeError):
+    """A real-time run completed (logs written) but missed more deadlines than the scenario's
+    ``[bus] max_missed_fraction`` allows; the message gives how many of how many."""
+    exit_code = EXIT_DEADLINES

@@ -17,11 +17,18 @@ The TCU on the other end is reached through one of three transports, chosen by `
 Whatever the transport, the summary comes from the run's ``Trace``, fed by the frames the plant
 node received (results, samples, observer): an external TCU's run has fit metrics too.
 
+A real-time run's summary (and so the log's) says whether its missed deadlines exceed
+``[bus] max_missed_fraction`` (``deadlines_exceeded``); ``run`` still returns it, so benchmarks can
+measure misses, and ``check_deadlines`` (called by ``hil run`` after the logs are written) turns it
+into ``DeadlinesMissed`` (exit 5).
+
 Faults: the TCU silent for longer than the limit, its process ending, its heartbeat saying "fault",
 or (lockstep) no command for the pending step within ``[bus] lockstep_progress_s`` twice (``NoProgress``,
 from ``PlantNode.await_command``) raise ``PeerSilent`` (exit 3); the log then holds the fault (an event and ``fault``
 metadata) and is closed, and the exception carries the partial summary (``.summary``) with a
-``fault`` field.  Ctrl-C and SIGTERM end the run as ``KeyboardInterrupt``, never mid-write.
+``fault`` field.  Ctrl-C and SIGTERM end the run as ``KeyboardInterrupt``, never mid-write.  A log
+that cannot be written (disk full) raises ``LogWriteError``: the TCU is told the plant failed and
+stopped, the bus closed, the log closed as far as the disk allows (an empty file removed).
 """
 from __future__ import annotations
 
@@ -42,9 +49,9 @@ import numpy as np
 from identifier.messages import TorqueCommand
 
 from .effects import TRUTH_KEY
-from .errors import BusError, PeerSilent
+from .errors import BusError, DeadlinesMissed, LogWriteError, PeerSilent
 from .frames import DBC_PATH, STATE_FAULT, STATE_FINISHED, FrameCodec, bus_load, format_bus_load
-from .link import MODES, die_with_parent, open_bus
+from .link import MODES, GuardedBus, die_with_parent, open_bus
 from .plant_node import PlantNode, PlantRig
 from .progress import Progress
 from .record import interrupts_between_writes, log_path, prepare_out_dir, start_recording, write_timing
@@ -106,6 +113,23 @@ class Timing:
         return out
 
 
+def deadline_verdict(timing: Timing, max_missed_fraction: float) -> dict:
+    """The summary fields of a real-time run's deadline verdict: exceeded when the missed deadlines are
+    more than ``max_missed_fraction`` of the steps run."""
+    steps = len(timing.period_us)
+    return {"max_missed_fraction": max_missed_fraction,
+            "deadlines_exceeded": steps > 0 and timing.missed > max_missed_fraction * steps}
+
+
+def check_deadlines(summary: dict) -> None:
+    """``DeadlinesMissed`` (one line: how many of how many, and the limit) when the summary of a
+    real-time run says its missed deadlines exceeded ``max_missed_fraction``; nothing otherwise."""
+    if summary.get("deadlines_exceeded"):
+        missed, steps, limit = summary["missed_deadlines"], summary["steps"], summary["max_missed_fraction"]
+        raise DeadlinesMissed(f"{missed} of {steps} deadlines missed ({100.0 * missed / steps:.2f} %), more than "
+                              f"[bus] max_missed_fraction = {limit:g} allows; logs written")
+
+
 def exchange(node: PlantNode, steps: int, mode: str, bar: Progress | None = None) -> Timing:
     """The loop: ``steps`` exchange periods of sense -> send -> await the command -> apply."""
     period = node.period_s
@@ -159,7 +183,11 @@ class Tcu:
         self.node: TcuNode | None = None
         self.child: subprocess.Popen | None = None
         self.handle = None
-        self._report_dir = tempfile.TemporaryDirectory(prefix="hil-tcu-") if transport == "process" else None
+        try:
+            self._report_dir = tempfile.TemporaryDirectory(prefix="hil-tcu-") if transport == "process" else None
+        except OSError as e:     # a full disk: tempfile cannot even probe a directory
+            raise LogWriteError(f"cannot create a temporary directory for the TCU's report: {e.strerror or e}") \
+                from None
         self.report_path = Path(self._report_dir.name) / "report.json" if self._report_dir else None
 
     def open(self, scenario, strategy, seed, bus: str, mode: str, set_args) -> None:
@@ -318,7 +346,8 @@ def run(scenario, strategy: str = "nlls", seed: int | None = None, *, bus: str =
                               "load_percent": f"{load['load_percent']:.2f}"})
             if rec:      # rows are written while the plant waits for the TCU (Recorder.defer)
                 rec.defer(max(int(RECORD_QUEUE_S / period) * ROWS_PER_PERIOD, 1000), block_when_full=mode == "lockstep")
-            node = PlantNode(PlantRig(scenario, seed, trace, rec, plant=plant), tcu.handle.bus, mode,
+            node = PlantNode(PlantRig(scenario, seed, trace, rec, plant=plant),
+                             GuardedBus(tcu.handle.bus, tcu.handle.name), mode,
                              strategy=strategy, watch=tcu.child, watch_silence=tcu.node is None)
             if tcu.node is None:
                 node.wait_for_tcu()
@@ -331,6 +360,8 @@ def run(scenario, strategy: str = "nlls", seed: int | None = None, *, bus: str =
             wall = time.perf_counter() - wall0
             node.finish(STATE_FINISHED)
             summary = summarise(tcu.finish(node))
+            if mode == "realtime":
+                summary.update(deadline_verdict(timing, settings.max_missed_fraction))
             if rec:
                 summary["messages"] = rec.messages + 1   # + the summary itself
                 summary["log_rows_dropped"] = rec.overflow     # real time: rows the full queue could not take
@@ -348,17 +379,23 @@ def run(scenario, strategy: str = "nlls", seed: int | None = None, *, bus: str =
             if node is not None:
                 node.finish(STATE_FAULT)
             raise
+        except LogWriteError:
+            if node is not None:
+                node.finish(STATE_FAULT)     # the TCU ends too; the log is closed as far as the disk allows
+            raise
         finally:
-            if rec:
-                with rec.atomic():
-                    if node is not None:
-                        node.settle_results()        # a result whose status never came is still logged
-                    if summary is None and node is not None:
-                        rec.event(node.t_s, "ERROR", "run aborted")
-                    if node is not None:
-                        node.rig.reality.record_truth(rec)
-                    rec.close(_recorded(summary))
-            tcu.close()
-            if old_sched is not None:
-                os.sched_setscheduler(0, *old_sched)
+            try:
+                if rec:
+                    with rec.atomic():
+                        if node is not None:
+                            node.settle_results()        # a result whose status never came is still logged
+                        if summary is None and node is not None:
+                            rec.event(node.t_s, "ERROR", "run aborted")
+                        if node is not None:
+                            node.rig.reality.record_truth(rec)
+                        rec.close(_recorded(summary))
+            finally:                                     # a log that cannot be closed still stops the TCU
+                tcu.close()
+                if old_sched is not None:
+                    os.sched_setscheduler(0, *old_sched)
     return summary

@@ -36,7 +36,7 @@ from typing import Callable
 
 import can
 
-from .errors import BusError
+from .errors import BusError, HilError, PeerSilent
 
 HUB_START_TIMEOUT_S = 15.0
 HUB_SWITCH_INTERVAL_S = 1e-4
@@ -324,6 +324,50 @@ def open_bus(spec: str, inprocess_node=None) -> BusHandle:
     if not channel:
         raise BusError(f"unknown bus {spec!r}; available here: {available_here()}")
     return _open_python_can(spec, name, channel)
+
+
+# -- a bus that fails ----------------------------------------------------------------------------------
+def is_bus_failure(e: BaseException) -> bool:
+    """An exception raised by the bus itself: python-can, python-can-remote, or the OS under them (the
+    hub process killed, the interface gone), not by the code a bus runs in-process."""
+    return isinstance(e, (can.CanError, OSError)) or type(e).__module__.split(".")[0] in ("can", "can_remote")
+
+
+class GuardedBus:
+    """``bus`` whose ``recv`` and ``send`` turn a failure of the bus itself (``is_bus_failure``) into
+    ``PeerSilent`` naming the bus, so a dead hub ends a run in one line (exit 3) with the usual fault
+    handling; ``send``'s ``CanOperationError`` (a full transmit queue) passes through for
+    ``Sender`` to retry.  Everything else is the bus's own."""
+
+    def __init__(self, bus, name: str):
+        self._bus, self.name = bus, name
+
+    def _failed(self, e: Exception) -> PeerSilent:
+        return PeerSilent(f"bus {self.name} failed ({type(e).__name__}: {str(e)[:120]}): its hub process or "
+                          "interface is gone")
+
+    def recv(self, timeout=None):
+        try:
+            return self._bus.recv(timeout=timeout)
+        except HilError:
+            raise
+        except Exception as e:
+            if not is_bus_failure(e):
+                raise
+            raise self._failed(e) from None
+
+    def send(self, msg, timeout=None):
+        try:
+            return self._bus.send(msg, timeout=timeout)
+        except (HilError, can.CanOperationError):
+            raise
+        except Exception as e:
+            if not is_bus_failure(e):
+                raise
+            raise self._failed(e) from None
+
+    def __getattr__(self, name):
+        return getattr(self._bus, name)
 
 
 # -- sending and timing -------------------------------------------------------------------------------

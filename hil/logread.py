@@ -16,6 +16,10 @@ Every skipped stretch is reported with its byte range and what was wrong (``LogC
 registered in ``hil.schemas.TOPICS`` order, so when the damaged part held them they are rebuilt from
 ``hil.schemas``.  A log closed properly after a run that did not finish
 (a fault, an interrupt) is not damaged: ``ended_early`` says why it ended.
+
+``read_log(..., on_message=f)`` streams instead of collecting: each decoded message goes to
+``f(topic, log_time_ns, message)`` as its chunk is read, nothing is kept in ``messages``, and the
+file's pages are released after each chunk, so the memory a read needs does not grow with the log.
 """
 from __future__ import annotations
 
@@ -102,8 +106,8 @@ def _stream(body) -> ReadDataStream:
 class _Reader:
     """Turns trusted records into ``LogContents``; ``record_at`` reads (and checks) one record."""
 
-    def __init__(self, buf, out: LogContents, topics):
-        self.buf, self.out, self.topics = buf, out, topics
+    def __init__(self, buf, out: LogContents, topics, on_message=None):
+        self.buf, self.out, self.topics, self.on_message = buf, out, topics, on_message
         self.size = len(buf)
         self.schemas: dict[int, Schema] = {}
         self.channels: dict[int, Channel] = {}
@@ -134,6 +138,8 @@ class _Reader:
         try:
             if op == Opcode.CHUNK:
                 self._chunk(body)
+                if self.on_message is not None:
+                    self._release(pos, end)
             else:
                 stream = _stream(body)
                 record = self._read(op, stream, len(body))
@@ -146,6 +152,16 @@ class _Reader:
         except Exception as e:  # noqa: BLE001 - whatever the parser makes of damaged bytes
             raise _Damaged(f"unreadable {Opcode(op).name.lower()} record ({type(e).__name__}: {e})") from None
         return end
+
+    def _release(self, start: int, end: int) -> None:
+        """Drop the mapped pages of bytes [start, end) from this process's memory (they are read again
+        from the file if needed): a streamed read stays flat however long the log."""
+        start -= start % mmap.PAGESIZE
+        if hasattr(self.buf, "madvise") and end > start:
+            try:
+                self.buf.madvise(mmap.MADV_DONTNEED, start, end - start)
+            except (OSError, ValueError):
+                pass
 
     @staticmethod
     def _read(op: int, stream: ReadDataStream, length: int):
@@ -198,7 +214,11 @@ class _Reader:
                 self.decoders[record.channel_id] = self.factory.decoder_for(ch.message_encoding,
                                                                             self.schemas.get(ch.schema_id))
             decode = self.decoders[record.channel_id]
-            if decode is not None:
+            if decode is None:
+                return
+            if self.on_message is not None:
+                self.on_message(ch.topic, record.log_time, decode(record.data))
+            else:
                 out.messages.append((ch.topic, record.log_time, decode(record.data)))
 
     def _rebuilt(self, channel_id: int):
@@ -336,8 +356,9 @@ def _read_linear(reader: _Reader) -> None:
         out.damaged.append((pos, reader.size, "the closing magic after the footer is missing or wrong"))
 
 
-def read_log(path, topics: set[str] | None = None) -> LogContents:
+def read_log(path, topics: set[str] | None = None, on_message=None) -> LogContents:
     """Read every message that can be trusted (module docstring); damage is reported, not raised.
+    ``on_message(topic, log_time_ns, message)``: messages are streamed to it, not collected.
     LogError (one line) for a file that cannot be read or is not MCAP at all."""
     p = Path(path)
     try:
@@ -350,7 +371,7 @@ def read_log(path, topics: set[str] | None = None) -> LogContents:
         raise LogError(f"{path}: cannot read: {e.strerror or e}") from None
     out = LogContents(str(path))
     with buf:
-        reader = _Reader(buf, out, topics)
+        reader = _Reader(buf, out, topics, on_message)
         summary = _summary(buf)
         if summary is not None:
             _read_indexed(reader, summary)

@@ -110,6 +110,9 @@ class PlantNode:
         self.frames_tx = 0
         self.frames_rx = 0
         self.late_commands = 0
+        self.answered = bytearray()            # answered[k]: a command for step k was taken
+        self.suspicious: dict[str, int] = {}   # what the stream itself shows to be wrong (no authentication)
+        self.fault_time_s = scenario.run.fault_time_s
         self.hb_counter = 0
         self.next_hb = 0.0
 
@@ -175,10 +178,19 @@ class PlantNode:
         name, v, rec, current = frame.name, frame.value, self.rec, self.awaited
         if name == "TorqueCommand":
             if v.step < current:
+                if v.step < len(self.answered) and self.answered[v.step]:
+                    self.notice("answered_twice", f"a second TorqueCommand for step {v.step}, already answered")
+                    return "answered_twice"
                 self.late_commands += 1
                 return "late"
             if v.step > current:
                 return "bad_sequence"
+            if v.step in self.commands:      # the first one stays
+                self.notice("duplicate_command", f"a second TorqueCommand for the pending step {v.step}")
+                return "duplicate"
+            if v.step >= len(self.answered):
+                self.answered.extend(bytes(max(v.step + 1 - len(self.answered), 4096)))
+            self.answered[v.step] = 1
             self.commands[v.step] = v
             if rec:
                 write_command(rec, v, self.period_s)
@@ -197,6 +209,9 @@ class PlantNode:
             if not (self.last_result_step <= v.step <= current):
                 return "bad_sequence"
             self.last_result_step = v.step
+            if v.t_s < self.fault_time_s:
+                self.notice("result_before_fault", f"an identification result ({v.kind}) at t = {v.t_s:.4f} s, "
+                            f"before the fault at {self.fault_time_s:g} s")
             self.trace.result(v)
             return "ok"
         if name == "TcuInterval":
@@ -209,10 +224,23 @@ class PlantNode:
             self.trace.detected(v.detected_step)
             return "ok"
         if name == "TcuHeartbeat":
+            if v.step > max(current, 0):
+                self.notice("heartbeat_ahead", f"a TCU heartbeat at step {v.step}, past the plant's step {current}")
             self.tcu_state = v.state
             self.tcu_step = v.step
             return "ok"
+        if name == "PlantSensor":
+            self.notice("sensor_from_another_node", f"a PlantSensor frame for step {v.step} this plant did not "
+                        "send")
         return "foreign"        # plant frames from another node on the bus
+
+    def notice(self, what: str, text: str) -> None:
+        """Count something the stream shows to be wrong (a third node on the bus, a replay); the first of
+        each kind also goes to the log as a warning event."""
+        n = self.suspicious.get(what, 0)
+        self.suspicious[what] = n + 1
+        if n == 0 and self.rec:
+            self.rec.event(self.t_s, "WARN", f"suspicious frame ({what}): {text}; another node on the bus?")
 
     def settle_results(self, upto_step: int | None = None) -> None:
         """Results up to ``upto_step`` (all: None) are final (their intervals came first): record them."""
@@ -341,4 +369,4 @@ class PlantNode:
 
     def counters(self) -> dict:
         return {"frames_tx": self.frames_tx, "frames_rx": self.frames_rx, "rejected_frames": dict(self.rejected),
-                "late_commands": self.late_commands}
+                "late_commands": self.late_commands, "suspicious": dict(self.suspicious)}

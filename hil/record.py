@@ -32,7 +32,7 @@ from mcap_protobuf.schema import build_file_descriptor_set
 
 from identifier.messages import STAGE_NAMES
 
-from .errors import ConfigError
+from .errors import ConfigError, LogWriteError
 from .schemas import PROFILE, TOPICS, TYPES
 
 CHUNK_SIZE = 32 * 1024
@@ -160,6 +160,11 @@ class McapFile:
         self._writer.finish()
         self._file.close()
 
+    def abandon(self) -> None:
+        """Close the file as it is (after a write failed: the writer's state is not to be trusted)."""
+        with contextlib.suppress(OSError):
+            self._file.close()
+
 
 class Recorder:
     """``write(topic, t_s, **fields)`` appends one message; ``close(summary)`` finishes the file.
@@ -180,9 +185,17 @@ class Recorder:
             fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
         except OSError as e:
             raise ConfigError(f"{self.path}: cannot write the log: {e.strerror or e}") from None
-        self._file = McapFile(fd, chunk_size)
+        try:
+            self._file = McapFile(fd, chunk_size)
+        except OSError as e:
+            with contextlib.suppress(OSError):
+                os.close(fd)
+            self._remove_if_empty()
+            raise LogWriteError(f"{self.path}: cannot write the log: {e.strerror or e}") from None
         self._written = 0
         self.closed = False
+        self.failed: str | None = None      # why writing failed; from then on rows are dropped
+        self.dropped = 0
         self._queue: collections.deque | None = None
         self._queue_limit = 0
         self._block_when_full = True
@@ -232,17 +245,39 @@ class Recorder:
         return n
 
     def _write(self, topic: str, log_t_s: float, fields: dict) -> None:
+        if self.failed:
+            self.dropped += 1
+            return
         _InterruptGuard.depth += 1
         try:
             self._file.write(topic, log_t_s, fields)
             self._written += 1
+        except OSError as e:
+            raise self._fail(e) from None
         finally:
             _InterruptGuard.leave()
+
+    def _fail(self, e: OSError) -> LogWriteError:
+        """Writing failed: later rows are dropped, the file is closed as it is; the error to raise."""
+        self.failed = e.strerror or str(e)
+        self._file.abandon()
+        return LogWriteError(f"{self.path}: cannot write the log: {self.failed} (after {self._written} messages; "
+                             "what reached the file stays readable)")
+
+    def _remove_if_empty(self) -> None:
+        with contextlib.suppress(OSError):
+            if self.path.stat().st_size == 0:
+                self.path.unlink()
 
     def metadata(self, name: str, data: dict) -> None:
         with self.atomic():
             self.flush()
-            self._file.metadata(name, {k: v if isinstance(v, str) else json.dumps(v) for k, v in data.items()})
+            if self.failed:
+                return
+            try:
+                self._file.metadata(name, {k: v if isinstance(v, str) else json.dumps(v) for k, v in data.items()})
+            except OSError as e:
+                raise self._fail(e) from None
 
     @contextlib.contextmanager
     def atomic(self):
@@ -257,20 +292,32 @@ class Recorder:
         self.write("/run/events", t_s, t_s=t_s, level=level, text=text)
 
     def close(self, summary: dict | None = None) -> None:
+        """Write the queued rows, the summary and the footer.  After a failed write (``failed``) the file
+        is only closed (what reached it stays readable; an empty file is removed); a failure here
+        raises ``LogWriteError``, after the file is closed."""
         if self.closed:
             return
-        with self.atomic():             # the queued rows, summary, metadata and footer go out together
-            self.flush()
-            self._queue = None
-            if summary is not None:
-                fields = {k: summary[k] for k in ("identified", "rt_percent", "t_fault_s", "t_serious_s",
-                                                  "t_identified_s", "r2", "peak_mu_err_percent",
-                                                  "peak_creep_err_percent")
-                          if summary.get(k) is not None}
-                self.write("/run/summary", summary.get("sim_s", 0.0), json=json.dumps(summary), **fields)
-                self.metadata("summary", {"json": json.dumps(summary)})
-            self._file.finish()
+        try:
+            with self.atomic():         # the queued rows, summary, metadata and footer go out together
+                self.flush()
+                self._queue = None
+                if summary is not None and not self.failed:
+                    fields = {k: summary[k] for k in ("identified", "rt_percent", "t_fault_s", "t_serious_s",
+                                                      "t_identified_s", "r2", "peak_mu_err_percent",
+                                                      "peak_creep_err_percent")
+                              if summary.get(k) is not None}
+                    self.write("/run/summary", summary.get("sim_s", 0.0), json=json.dumps(summary), **fields)
+                    self.metadata("summary", {"json": json.dumps(summary)})
+                if not self.failed:
+                    try:
+                        self._file.finish()
+                    except OSError as e:
+                        raise self._fail(e) from None
+        finally:
             self.closed = True
+            self._queue = None
+            if self.failed:
+                self._remove_if_empty()
 
 
 # -- where a log goes -----------------------------------------------------------------------------------

@@ -30,7 +30,7 @@ from identifier import STRATEGIES, TractionIdentifier
 from .errors import EXIT_INTERRUPTED, EXIT_OK, BusError, ConfigError, HilError, PeerSilent, PlantFault
 from .frames import (PLANT_IDS, SENSOR_ID, STATE_FAULT, STATE_FINISHED, STATE_NAMES, STATE_RUNNING, STATE_STARTING,
                      FrameCodec, RejectCounter, SampleReport)
-from .link import Sender, heartbeat_period_s, silence_limit_s
+from .link import GuardedBus, Sender, heartbeat_period_s, silence_limit_s
 
 #: a sensor step may jump ahead by at most this many periods (frames lost); beyond it is garbage
 MAX_STEP_GAP = 100
@@ -264,7 +264,7 @@ def run_tcu(args) -> int:
     code = EXIT_OK
     error = None
     try:
-        serve(handle.bus, node, silence_s=silence_limit_s(settings, args.mode, period),
+        serve(GuardedBus(handle.bus, handle.name), node, silence_s=silence_limit_s(settings, args.mode, period),
               heartbeat_period_s=heartbeat_period_s(settings, args.mode),
               startup_timeout_s=settings.startup_timeout_s if args.wait is None else args.wait,
               realtime=args.mode == "realtime")
@@ -302,9 +302,12 @@ def _write_report(report: dict, path, to_stdout: bool) -> None:
     text = json.dumps(_clean(report))
     if path:
         tmp = f"{path}.tmp"
-        with open(tmp, "w") as f:
-            f.write(text)
-        os.replace(tmp, path)     # the reader sees a whole report or none
+        try:
+            with open(tmp, "w") as f:
+                f.write(text)
+            os.replace(tmp, path)     # the reader sees a whole report or none
+        except OSError as e:          # the plant's report directory gone, or a full disk: say so, go on
+            print(f"hil tcu: warning: report not written to {path}: {e.strerror or e}", file=sys.stderr, flush=True)
     if to_stdout:
         print(text, flush=True)
 

@@ -8,7 +8,13 @@ Timelines
   "mu-v_s curve" tab into a mu over creep-speed plot with real axes and ticks.  The same figure is
   also drawn with matplotlib and logged as an image (``/figures/curve``), visible on any timeline.
 
-Entities (all scalars sent in bulk with ``rr.send_columns``)
+Streaming: ``write_rrd`` opens the .rrd's file sink first and reads the log twice in chunks
+(``hil.logread.read_log``'s ``on_message``): a first pass for the events and the first identifying
+status (``LogHead``), a second that sends the per-step topics in batches of ``BATCH_ROWS`` rows.
+What stays in memory is bounded by the batch, plus the curve samples of the identification window
+and one bus-count bin per 10 ms of sim time.
+
+Entities (all scalars sent with ``rr.send_columns``)
 - ``/speed/{train,wheel}_kmh``: true train speed and wheel peripheral speed (train + creep), km/h;
 - ``/creep/{true,measured}_kmh``: true creep (plant) and the TCU's creep from measured speeds;
   ``/creep/fault_onset``, ``/creep/serious_start``: vertical markers at t_f and t_serious;
@@ -51,29 +57,6 @@ def corrections_and_final(events) -> tuple[list, object]:
     return corrections, final
 
 
-class LogData:
-    """The arrays a view needs, pulled out of one log."""
-
-    def __init__(self, path):
-        log = read_log(path)
-        self.path = str(path)
-        self.log = log
-        meta = log.metadata
-        self.scenario = scenario_from_log(log)
-        self.run = meta.get("run") or {}
-        by_topic: dict[str, list] = {}
-        for topic, _, m in log.messages:
-            by_topic.setdefault(topic, []).append(m)
-        self.topics = by_topic
-        if not by_topic.get("/plant/state") and not by_topic.get("/tcu/observer"):
-            raise LogError(f"{path}: no /plant/state or /tcu/observer messages"
-                           + (f" outside the damage ({log.damage})" if log.damage else ""))
-
-    def arrays(self, topic: str, *fields: str) -> list[np.ndarray]:
-        msgs = self.topics.get(topic, [])
-        return [np.array([getattr(m, f) for m in msgs], dtype=float) for f in fields]
-
-
 def _scalars(rr, rec, entity: str, t, values, timeline: str = TIME_TIMELINE, sequence: bool = False) -> None:
     values = np.asarray(values, dtype=float)
     if values.size == 0:
@@ -108,18 +91,7 @@ def _span(*arrays) -> tuple[float, float]:
     return lo - pad, hi + pad
 
 
-def identification_events(data: LogData) -> list:
-    return list(data.topics.get("/tcu/identification", []))
-
-
-def serious_time(data: LogData) -> float | None:
-    for m in data.topics.get("/plant/state", []):
-        if m.stage == "serious":
-            return m.t_s
-    return None
-
-
-def curve_figure_png(data: LogData, samples_v, samples_mu, events) -> bytes:
+def curve_figure_png(data: "LogHead", samples_v, samples_mu, events) -> bytes:
     """The paper-style mu-v_s figure (matplotlib, Agg): samples, identified curves, true fault curve."""
     import matplotlib
 
@@ -160,75 +132,212 @@ def curve_figure_png(data: LogData, samples_v, samples_mu, events) -> bytes:
     return buf.getvalue()
 
 
-def build_recording(data: LogData, application_id: str = "railway_hil"):
-    """A ``rr.RecordingStream`` (not yet saved) with every entity; returns (recording, blueprint)."""
+#: the topics the recording streams (read in a second pass, never held whole)
+STREAMED_TOPICS = {"/plant/state", "/tcu/observer", "/tcu/status", "/can/frames", "/loop/timing"}
+#: rows a streamed entity holds before they go to the .rrd in one ``rr.send_columns``
+BATCH_ROWS = 20_000
+
+
+class LogHead:
+    """What the recording needs before the per-step topics stream by: the log's metadata and
+    scenario, its identification and run events, and the first TCU status of the identifying stage
+    (a first pass over the log, the per-step messages decoded one at a time and dropped)."""
+
+    def __init__(self, path):
+        self.path = str(path)
+        self.t_detect = None
+        small = {"/tcu/identification": [], "/run/events": []}
+
+        def take(topic, _, m):
+            if topic in small:
+                small[topic].append(m)
+            elif self.t_detect is None and m.stage >= 1:
+                self.t_detect = m.t_s
+
+        self.log = read_log(path, set(small) | {"/tcu/status"}, on_message=take)
+        self.scenario = scenario_from_log(self.log)
+        self.run = self.log.metadata.get("run") or {}
+        self.events = small["/tcu/identification"]
+        self.run_events = small["/run/events"]
+
+
+class _Column:
+    """One scalar entity's rows, sent to the recording every ``BATCH_ROWS`` rows (``_scalars``)."""
+
+    def __init__(self, rr, rec, entity: str):
+        self.rr, self.rec, self.entity = rr, rec, entity
+        self.t: list[float] = []
+        self.v: list[float] = []
+
+    def add(self, t: float, v: float) -> None:
+        self.t.append(t)
+        self.v.append(v)
+        if len(self.t) >= BATCH_ROWS:
+            self.flush()
+
+    def flush(self) -> None:
+        _scalars(self.rr, self.rec, self.entity, self.t, self.v)
+        self.t, self.v = [], []
+
+
+class _Range:
+    """Running min and max of the finite values seen (``_span``'s figures without the arrays)."""
+
+    def __init__(self):
+        self.lo, self.hi, self.seen = math.inf, -math.inf, False
+
+    def add(self, v: float) -> None:
+        if math.isfinite(v):
+            self.lo, self.hi, self.seen = min(self.lo, v), max(self.hi, v), True
+
+    def span(self, *others: "_Range") -> tuple[float, float]:
+        ranges = [r for r in (self, *others) if r.seen]
+        if not ranges:
+            return _span()
+        return _span([min(r.lo for r in ranges), max(r.hi for r in ranges)])
+
+
+class _Stream:
+    """The per-step topics, taken one message at a time (``read_log``'s ``on_message``) and sent in
+    batches; what needs the whole run (marker heights, time range, bus bins, curve samples in the
+    identification window) is kept as running figures or small arrays."""
+
+    def __init__(self, rr, rec, t_f: float, t_from: float, t_to: float):
+        col = lambda entity: _Column(rr, rec, entity)   # noqa: E731
+        self.cols = {e: col(e) for e in (
+            "/speed/train_kmh", "/speed/wheel_kmh", "/creep/true_kmh", "/creep/measured_kmh", "/mu/true",
+            "/mu/observed", "/tcu/stage", "/tcu/corrections", "/tcu/plant_stage", "/timing/round_trip_us",
+            "/timing/lateness_us", "/timing/missed_deadlines")}
+        self.t_f, self.t_from, self.t_to = t_f, t_from, t_to
+        self.t_range = _Range()
+        self.creep, self.creep_meas, self.mu, self.mu_hat = _Range(), _Range(), _Range(), _Range()
+        self.t_serious = None
+        self.states = self.observers = self.timings = self.frames = 0
+        self.missed_total = 0.0
+        self.nb = 0                                       # bus bins in use
+        self.finite_round_trip = False
+        self.bins = {k: np.zeros(0) for k in ("frames_tx", "frames_rx", "rejected")}
+        self.samples_v: list[float] = []
+        self.samples_mu: list[float] = []
+
+    def _bin(self, name: str, b: int, w: float) -> None:
+        arr = self.bins[name]
+        if b >= arr.size:
+            arr = self.bins[name] = np.concatenate([arr, np.zeros(max(b + 1 - arr.size, 1024))])
+        arr[b] += w
+
+    def take(self, topic: str, _, m) -> None:
+        c = self.cols
+        if topic == "/plant/state":
+            self.states += 1
+            t, train_kmh, creep = m.t_s, 3.6 * m.train_speed_ms, m.creep_speed_kmh
+            c["/speed/train_kmh"].add(t, train_kmh)
+            c["/speed/wheel_kmh"].add(t, train_kmh + creep)
+            c["/creep/true_kmh"].add(t, creep)
+            c["/mu/true"].add(t, m.mu)
+            c["/tcu/plant_stage"].add(t, float(STAGE_CODES.get(m.stage, -1)))
+            self.t_range.add(t)
+            self.creep.add(creep)
+            if t >= self.t_f - 0.05:
+                self.mu.add(m.mu)
+            if self.t_serious is None and m.stage == "serious":
+                self.t_serious = t
+        elif topic == "/tcu/observer":
+            self.observers += 1
+            t = m.t_s
+            c["/creep/measured_kmh"].add(t, m.creep_speed_kmh)
+            c["/mu/observed"].add(t, m.mu_hat)
+            self.t_range.add(t)
+            self.creep_meas.add(m.creep_speed_kmh)
+            if t >= self.t_f - 0.05:
+                self.mu_hat.add(m.mu_hat)
+            if self.t_from <= t <= self.t_to:
+                self.samples_v.append(m.creep_speed_kmh)
+                self.samples_mu.append(m.mu_hat)
+        elif topic == "/tcu/status":
+            c["/tcu/stage"].add(m.t_s, m.stage)
+            c["/tcu/corrections"].add(m.t_s, m.correction)
+        elif topic == "/can/frames":
+            self.frames += 1
+            b = int(math.floor(m.t_s / BUS_BIN_S))
+            self._bin("frames_tx", b, float(m.direction == "tx"))
+            self._bin("frames_rx", b, float(m.direction == "rx"))
+            self._bin("rejected", b, float(m.status not in ("ok", "late")))
+            self.nb = max(self.nb, b + 1)
+        elif topic == "/loop/timing":
+            self.timings += 1
+            self.missed_total += m.missed_deadline
+            self.finite_round_trip = self.finite_round_trip or math.isfinite(m.round_trip_us)
+            c["/timing/round_trip_us"].add(m.t_s, m.round_trip_us)
+            c["/timing/lateness_us"].add(m.t_s, m.lateness_us)
+            c["/timing/missed_deadlines"].add(m.t_s, self.missed_total)
+
+    def flush(self) -> None:
+        for column in self.cols.values():
+            column.flush()
+
+
+def build_recording(head: LogHead, rec):
+    """Stream every entity of the log at ``head.path`` into ``rec`` (whose file sink is already open):
+    the per-step topics in a second pass over the log, in batches of ``BATCH_ROWS``.  Returns the
+    blueprint and the second pass's ``LogContents``.  ``LogError`` when the log holds no
+    /plant/state or /tcu/observer message."""
     import rerun as rr
     import rerun.blueprint as rrb
 
     from identifier.curve import mu_model
 
-    rec = rr.RecordingStream(application_id, recording_id=Path(data.path).stem)
-    sc = data.scenario
+    sc = head.scenario
     t_f = sc.run.fault_time_s
-    t_serious = serious_time(data)
     v_peak = sc.fault_curve.peak()[0]
-
-    # -- against sim time -------------------------------------------------------------------------------
-    t, train, creep, mu = data.arrays("/plant/state", "t_s", "train_speed_ms", "creep_speed_kmh", "mu")
-    train_kmh = 3.6 * train
-    wheel_kmh = train_kmh + creep
+    events = head.events
+    conf = next((e for e in events if e.kind == "confirmed"), None)
+    stream = _Stream(rr, rec, t_f, head.t_detect if head.t_detect is not None else t_f,
+                     conf.t_s if conf is not None else math.inf)
+    # entity styles first (static), then the rows as they stream
     _line(rr, rec, "/speed/train_kmh", "train speed (km/h)", C_TRAIN)
     _line(rr, rec, "/speed/wheel_kmh", "wheel speed (km/h)", C_WHEEL)
-    _scalars(rr, rec, "/speed/train_kmh", t, train_kmh)
-    _scalars(rr, rec, "/speed/wheel_kmh", t, wheel_kmh)
-
-    to, creep_meas, mu_hat = data.arrays("/tcu/observer", "t_s", "creep_speed_kmh", "mu_hat")
     _line(rr, rec, "/creep/true_kmh", "true creep (km/h)", C_TRUE, 2.0)
     _line(rr, rec, "/creep/measured_kmh", "measured creep (km/h)", C_MEAS, 1.0)
-    _scalars(rr, rec, "/creep/true_kmh", t, creep)
-    _scalars(rr, rec, "/creep/measured_kmh", to, creep_meas)
-    t_all = np.concatenate([t, to]) if t.size or to.size else np.zeros(1)
-    if t_all.size:
-        _line(rr, rec, "/creep/peak_creep_kmh", "fault curve peak creep (km/h)", (127, 127, 127), 1.0)
-        _scalars(rr, rec, "/creep/peak_creep_kmh", [t_all.min(), t_all.max()], [v_peak, v_peak])
-    lo, hi = _span(creep, creep_meas)
+    _line(rr, rec, "/mu/true", "true mu", C_TRUE, 2.0)
+    _line(rr, rec, "/mu/observed", "observed mu^", C_MEAS, 1.0)
+    _line(rr, rec, "/tcu/stage", "TCU stage (0 monitor, 1 identify, 2 confirmed, 3 gave up)", (31, 119, 180))
+    _line(rr, rec, "/tcu/corrections", "corrections Q", (255, 127, 14))
+    log = read_log(head.path, STREAMED_TOPICS, on_message=stream.take)
+    stream.flush()
+    if not stream.states and not stream.observers:
+        raise LogError(f"{head.path}: no /plant/state or /tcu/observer messages"
+                       + (f" outside the damage ({log.damage})" if log.damage else ""))
+    if stream.states:
+        _line(rr, rec, "/tcu/plant_stage", "plant stage (0 normal, 1 early, 2 serious)", C_SERIOUS)
+    t_serious = stream.t_serious
+    t_lo, t_hi = (stream.t_range.lo, stream.t_range.hi) if stream.t_range.seen else (0.0, 0.0)
+
+    # -- markers (their heights need the whole run) -----------------------------------------------------
+    _line(rr, rec, "/creep/peak_creep_kmh", "fault curve peak creep (km/h)", (127, 127, 127), 1.0)
+    _scalars(rr, rec, "/creep/peak_creep_kmh", [t_lo, t_hi], [v_peak, v_peak])
+    lo, hi = stream.creep.span(stream.creep_meas)
     _marker(rr, rec, "/creep/fault_onset", f"fault onset t_f = {t_f:.3f} s", C_FAULT, t_f, lo, hi)
     _marker(rr, rec, "/creep/serious_start", "serious stage starts" + (f" {t_serious:.3f} s" if t_serious else ""),
             C_SERIOUS, t_serious, lo, hi)
-
-    _line(rr, rec, "/mu/true", "true mu", C_TRUE, 2.0)
-    _line(rr, rec, "/mu/observed", "observed mu^", C_MEAS, 1.0)
-    _scalars(rr, rec, "/mu/true", t, mu)
-    _scalars(rr, rec, "/mu/observed", to, mu_hat)
-    lo, hi = _span(mu[t >= t_f - 0.05] if t.size else mu, mu_hat[to >= t_f - 0.05] if to.size else mu_hat)
+    lo, hi = stream.mu.span(stream.mu_hat)
     _marker(rr, rec, "/mu/fault_onset", "fault onset", C_FAULT, t_f, lo, hi)
     _marker(rr, rec, "/mu/serious_start", "serious stage starts", C_SERIOUS, t_serious, lo, hi)
 
-    ts, stage, corr = data.arrays("/tcu/status", "t_s", "stage", "correction")
-    _line(rr, rec, "/tcu/stage", "TCU stage (0 monitor, 1 identify, 2 confirmed, 3 gave up)", (31, 119, 180))
-    _line(rr, rec, "/tcu/corrections", "corrections Q", (255, 127, 14))
-    _scalars(rr, rec, "/tcu/stage", ts, stage)
-    _scalars(rr, rec, "/tcu/corrections", ts, corr)
-    if t.size:
-        codes = np.array([STAGE_CODES.get(m.stage, -1) for m in data.topics["/plant/state"]], dtype=float)
-        _line(rr, rec, "/tcu/plant_stage", "plant stage (0 normal, 1 early, 2 serious)", C_SERIOUS)
-        _scalars(rr, rec, "/tcu/plant_stage", t, codes)
-
     # -- events as text ---------------------------------------------------------------------------------
-    events = identification_events(data)
     texts = []
     for e in events:
         texts.append((e.t_s, "INFO", f"{e.kind} Q={e.correction} ({e.strategy}) after {e.samples} samples, "
                       f"J_EF {e.j_ef:.4g}: " + ", ".join(f"{x:.5g}" for x in e.params)))
-    for m in data.topics.get("/run/events", []):
+    for m in head.run_events:
         if not m.text.startswith(("correction Q=", "confirmed Q=")):     # already above, with more detail
             texts.append((m.t_s, m.level or "INFO", m.text))
     texts.append((t_f, "WARN", f"fault onset (t_f = {t_f:.3f} s)"))
     if t_serious is not None:
         texts.append((t_serious, "WARN", f"serious stage starts (creep >= {v_peak:.3f} km/h, "
                                          f"T_det = {1e3 * (t_serious - t_f):.1f} ms)"))
-    if not data.log.complete:
-        texts.append((float(t_all.max()) if t_all.size else 0.0, "ERROR", f"log incomplete: {data.log.problem()}"))
+    if not log.complete:
+        texts.append((t_hi, "ERROR", f"log incomplete: {log.problem()}"))
     texts.sort(key=lambda x: x[0])
     if texts:
         rr.send_columns("/events", indexes=[rr.TimeColumn(TIME_TIMELINE, duration=[x[0] for x in texts])],
@@ -236,36 +345,22 @@ def build_recording(data: LogData, application_id: str = "railway_hil"):
                         recording=rec)
 
     # -- bus and timing ---------------------------------------------------------------------------------
-    frames = data.topics.get("/can/frames", [])
-    if frames:
-        ft = np.array([m.t_s for m in frames])
-        bins = np.floor(ft / BUS_BIN_S).astype(np.int64)
-        nb = int(bins.max()) + 1
+    if stream.frames:
+        nb = stream.nb
         tb = (np.arange(nb) + 0.5) * BUS_BIN_S
-        tx = np.bincount(bins, weights=[m.direction == "tx" for m in frames], minlength=nb)
-        rx = np.bincount(bins, weights=[m.direction == "rx" for m in frames], minlength=nb)
-        bad = np.bincount(bins, weights=[m.status not in ("ok", "late") for m in frames], minlength=nb)
-        for name, vals, color in (("frames_tx", tx, C_TRAIN), ("frames_rx", rx, C_WHEEL), ("rejected", bad, C_MEAS)):
+        for name, color in (("frames_tx", C_TRAIN), ("frames_rx", C_WHEEL), ("rejected", C_MEAS)):
             _line(rr, rec, f"/bus/{name}", f"{name.replace('_', ' ')} per {BUS_BIN_S * 1e3:g} ms", color)
-            _scalars(rr, rec, f"/bus/{name}", tb, vals)
-    timing = data.topics.get("/loop/timing", [])
-    realtime = data.run.get("mode") == "realtime"
-    if timing:
-        tt, rt, late, missed = data.arrays("/loop/timing", "t_s", "round_trip_us", "lateness_us", "missed_deadline")
+            vals = stream.bins[name][:nb]
+            for i in range(0, nb, BATCH_ROWS):
+                _scalars(rr, rec, f"/bus/{name}", tb[i:i + BATCH_ROWS], vals[i:i + BATCH_ROWS])
+    realtime = head.run.get("mode") == "realtime"
+    if stream.timings:
         _line(rr, rec, "/timing/round_trip_us", "round trip (us)", C_TRAIN)
         _line(rr, rec, "/timing/lateness_us", "period start lateness = jitter (us)", C_WHEEL)
         _line(rr, rec, "/timing/missed_deadlines", "missed deadlines (cumulative)", C_MEAS)
-        _scalars(rr, rec, "/timing/round_trip_us", tt, rt)
-        _scalars(rr, rec, "/timing/lateness_us", tt, late)
-        _scalars(rr, rec, "/timing/missed_deadlines", tt, np.cumsum(missed))
 
     # -- the mu-v_s curve on the creep timeline ---------------------------------------------------------
-    tdet = [m.t_s for m in data.topics.get("/tcu/status", []) if m.stage >= 1]
-    t_from = tdet[0] if tdet else t_f
-    conf = next((e for e in events if e.kind == "confirmed"), None)
-    t_to = conf.t_s if conf is not None else math.inf
-    sel = (to >= t_from) & (to <= t_to)
-    sv, smu = creep_meas[sel], mu_hat[sel]
+    sv, smu = np.array(stream.samples_v, dtype=float), np.array(stream.samples_mu, dtype=float)
     order = np.argsort(sv, kind="stable")
     _points(rr, rec, "/curve/samples", "samples: observed mu^ over measured creep", (120, 120, 120), 2.5)
     _scalars(rr, rec, "/curve/samples", np.round(sv[order] * 1000), smu[order], CREEP_TIMELINE, sequence=True)
@@ -288,7 +383,7 @@ def build_recording(data: LogData, application_id: str = "railway_hil"):
                  CREEP_TIMELINE, sequence=True)
     mu_peak = sc.fault_curve.peak()[1]
     curve_mu_range = (min(0.0, float(smu.min()) if smu.size else 0.0) - 0.01, 1.35 * mu_peak)
-    png = curve_figure_png(data, sv, smu, events)
+    png = curve_figure_png(head, sv, smu, events)
     rec.log("/figures/curve", rr.EncodedImage(contents=png, media_type="image/png"), static=True)
 
     # -- blueprint --------------------------------------------------------------------------------------
@@ -308,9 +403,9 @@ def build_recording(data: LogData, application_id: str = "railway_hil"):
         rrb.Spatial2DView(origin="/figures", name="mu-v_s figure (matplotlib)"),
     ]
     lower = [rrb.TextLogView(origin="/events", name="Identification events")]
-    if frames:
+    if stream.frames:
         lower.append(rrb.TimeSeriesView(origin="/bus", name="CAN frames per 10 ms"))
-    if timing and (realtime or np.any(np.isfinite(rt))):
+    if stream.timings and (realtime or stream.finite_round_trip):
         lower.append(rrb.TimeSeriesView(origin="/timing", name="Loop timing: round trip, jitter, missed deadlines"))
     # one page, no tabs: the time plots fill on sim_time, the mu-v_s plot on creep_m_per_h, the figure on both
     blueprint = rrb.Blueprint(
@@ -318,20 +413,34 @@ def build_recording(data: LogData, application_id: str = "railway_hil"):
                      row_shares=[3, 1], name="HIL run"),
         rrb.TimePanel(timeline=TIME_TIMELINE), rrb.BlueprintPanel(state="collapsed"),
         rrb.SelectionPanel(state="collapsed"), collapse_panels=False)
-    return rec, blueprint
+    return blueprint, log
 
 
 def default_rrd_path(mcap_path) -> Path:
     return Path(mcap_path).with_suffix(".rrd")
 
 
-def write_rrd(mcap_path, out=None) -> tuple[Path, LogData]:
-    """Read ``mcap_path``, write the .rrd (default: beside it); returns (rrd path, the log's data)."""
-    data = LogData(mcap_path)
-    rec, blueprint = build_recording(data)
+def write_rrd(mcap_path, out=None) -> tuple[Path, LogHead]:
+    """Read ``mcap_path``, write the .rrd (default: beside it); returns (rrd path, the log's head, whose
+    ``log`` is the streamed pass's ``LogContents``: completeness, damage, message count).  The recording
+    goes to a file sink as it is built (``.rrd.part``, renamed when whole), the log is read in chunks:
+    memory does not grow with the run's length."""
+    import rerun as rr
+
+    head = LogHead(mcap_path)
     out = Path(out) if out else default_rrd_path(mcap_path)
     out.parent.mkdir(parents=True, exist_ok=True)
-    rec.save(str(out), default_blueprint=blueprint)
-    rec.flush()
+    part = out.with_name(out.name + ".part")
+    rec = rr.RecordingStream("railway_hil", recording_id=Path(head.path).stem)
+    rec.save(str(part))
+    try:
+        blueprint, head.log = build_recording(head, rec)
+        rec.send_blueprint(blueprint, make_active=False, make_default=True)
+        rec.flush()
+    except BaseException:
+        rec.disconnect()
+        part.unlink(missing_ok=True)
+        raise
     rec.disconnect()       # closes the file sink: the .rrd is complete (footer written) when this returns
-    return out, data
+    part.replace(out)
+    return out, head

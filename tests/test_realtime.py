@@ -19,7 +19,7 @@ from .conftest import ROOT, hil_command, subprocess_env
 from .test_bus import FFCC_A, children_of, cmdline, data_streams, identification, run_json
 
 RT_ARGS = ["run", "scenarios/ffcc_a.toml", "--mode", "realtime", "--bus", "local", "--set", "run.duration_s=1.0",
-           "--set", "run.fault_time_s=0.5", "--json"]
+           "--set", "run.fault_time_s=0.5", "--set", "bus.max_missed_fraction=1", "--json"]
 
 
 def _tcu_child(pid, timeout=30.0):
@@ -118,3 +118,51 @@ def test_pinned_realtime_run_runs_each_process_on_its_cpu(tmp_path):
     assert proc.returncode == 0, err
     assert "cannot pin" not in err
     assert seen == ({plant_cpu}, {tcu_cpu})
+
+
+# -- the missed-deadline limit ([bus] max_missed_fraction, exit 5) ---------------------------------------------
+MISS_ARGS = ["run", "scenarios/ffcc_a.toml", "--mode", "realtime", "--bus", "local", "--set", "run.duration_s=0.4",
+             "--set", "run.fault_time_s=0.2", "--set", "bus.silence_periods=500", "--json"]
+
+
+def test_a_realtime_run_over_its_missed_deadline_limit_exits_5_after_writing_its_logs(tmp_path):
+    # a deadline 1 us into each period: no command over a real bus arrives that fast, so every step misses
+    seed = random.randrange(1, 10_000)
+    print(f"seed {seed}")
+    r = subprocess.run([*hil_command(), *MISS_ARGS, "--seed", str(seed), "--out", str(tmp_path),
+                        "--set", "bus.deadline_fraction=0.001", "--set", "bus.max_missed_fraction=0"],
+                       cwd=ROOT, env=subprocess_env(), capture_output=True, text=True, timeout=180)
+    assert r.returncode == 5, r.stderr
+    s = json.loads(r.stdout)                                    # the one JSON object is still printed
+    assert s["deadlines_exceeded"] is True and s["max_missed_fraction"] == 0
+    assert s["steps"] == 400 and s["missed_deadlines"] > 0
+    last = r.stderr.strip().splitlines()[-1]
+    assert last.startswith("hil run: error: ") and f"{s['missed_deadlines']} of 400 deadlines missed" in last
+    assert "Traceback" not in r.stderr
+    log = read_log(s["mcap"])                                   # the log is whole and carries the verdict
+    assert log.complete and not log.damage
+    assert json.loads(log.metadata["summary"]["json"])["deadlines_exceeded"] is True
+    timing = log.topic("/loop/timing")
+    assert len(timing) == 400 and sum(t.missed_deadline for t in timing) == s["missed_deadlines"]
+    assert os.path.getsize(s["mcap"][:-len(".mcap")] + ".rrd") > 0    # the Rerun recording too
+
+
+def test_a_realtime_run_within_a_generous_missed_deadline_limit_exits_0(tmp_path):
+    r = subprocess.run([*hil_command(), *MISS_ARGS, "--out", str(tmp_path), "--no-rrd",
+                        "--set", "bus.deadline_fraction=0.001", "--set", "bus.max_missed_fraction=1"],
+                       cwd=ROOT, env=subprocess_env(), capture_output=True, text=True, timeout=180)
+    assert r.returncode == 0, r.stderr
+    s = json.loads(r.stdout)
+    assert s["deadlines_exceeded"] is False and s["missed_deadlines"] > 0
+
+
+def test_the_missed_deadline_limit_does_not_touch_lockstep_and_is_range_checked(tmp_path):
+    r = subprocess.run([*hil_command(), "run", "scenarios/ffcc_a.toml", "--bus", "inprocess", "--no-rrd", "--json",
+                        "--out", str(tmp_path), "--set", "run.duration_s=0.2", "--set", "run.fault_time_s=0.1",
+                        "--set", "bus.max_missed_fraction=0"],
+                       cwd=ROOT, env=subprocess_env(), capture_output=True, text=True, timeout=180)
+    assert r.returncode == 0, r.stderr
+    assert "deadlines_exceeded" not in json.loads(r.stdout)
+    for bad in ("1.5", "-0.1", "true"):
+        with pytest.raises(ConfigError, match="max_missed_fraction"):
+            load_scenario(ROOT / "scenarios/ffcc_a.toml", parse_set([f"bus.max_missed_fraction={bad}"]))

@@ -1,6 +1,8 @@
 """``hil view`` and the .rrd ``hil run`` writes: ``rerun rrd verify``, content, and Rerun's headless viewer."""
 import json
 import os
+import random
+import re
 import shutil
 import signal
 import socket
@@ -80,16 +82,59 @@ def test_view_of_damaged_and_foreign_files(runs, tmp_path):
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "not an MCAP file" in r.stderr
 
 
+_BLUEPRINT_PARTS = ("view", "container", "viewport", "blueprint_panel", "selection_panel", "time_panel", "top_panel")
+
+
+def rrd_rows(path) -> tuple[dict, dict]:
+    """(rows, chunks) per (entity, data columns) of the recording's data (blueprint parts left out),
+    from ``rerun rrd print``."""
+    out = subprocess.run([rerun_exe(), "rrd", "print", str(path)], capture_output=True, text=True, timeout=120,
+                         check=True).stdout
+    rows, chunks = {}, {}
+    for m in re.finditer(r"^Chunk\(\S+\) with (\d+) rows \([^)]*\) - (\S+) - data columns: \[([^\]]*)\]", out, re.M):
+        if m[2].split("/")[1] in _BLUEPRINT_PARTS:
+            continue
+        key = (m[2], m[3])
+        rows[key] = rows.get(key, 0) + int(m[1])
+        chunks[key] = chunks.get(key, 0) + 1
+    return rows, chunks
+
+
+def test_the_rrd_streams_in_batches_with_every_point_of_the_log(runs, tmp_path, monkeypatch):
+    from hil import view
+    from hil.logread import read_log
+
+    s, mcap, _, _ = runs["ffcc_b"]
+    batch = random.randrange(500, 5000)
+    print(f"batch {batch} rows")
+    monkeypatch.setattr(view, "BATCH_ROWS", batch)
+    small, _ = view.write_rrd(mcap, tmp_path / "small.rrd")
+    monkeypatch.setattr(view, "BATCH_ROWS", 10**9)                 # one send per entity: the whole-run way
+    whole, _ = view.write_rrd(mcap, tmp_path / "whole.rrd")
+    assert not list(tmp_path.glob("*.part"))
+    rows_small, chunks_small = rrd_rows(small)
+    rows_whole, _ = rrd_rows(whole)
+    assert rows_small == rows_whole                                # same entities, same number of points
+    log = read_log(mcap, {"/plant/state", "/tcu/observer", "/loop/timing"})
+    scalars = "Scalars:scalars"
+    for entity, topic in (("/speed/train_kmh", "/plant/state"), ("/mu/observed", "/tcu/observer"),
+                          ("/timing/round_trip_us", "/loop/timing")):
+        n = len(log.topic(topic))
+        assert rows_small[(entity, scalars)] == n
+        assert chunks_small[(entity, scalars)] >= n // batch       # sent in batches, not at once
+    v = subprocess.run([rerun_exe(), "rrd", "verify", str(small)], capture_output=True, text=True, timeout=120)
+    assert v.returncode == 0, v.stderr
+
+
 def test_realtime_run_has_timing_in_the_recording(tmp_path):
-    from hil.view import LogData
+    from hil.logread import read_log
 
     # a generous TCU-silence limit (1 s): on a loaded 2-core machine the default 6 ms trips the fault handling
     r = hil("run", str(SCENARIOS / "ffcc_a.toml"), "--mode", "realtime", "--out", str(tmp_path), "--json",
-            "--set", "bus.silence_periods=500")
+            "--set", "bus.silence_periods=500", "--set", "bus.max_missed_fraction=1")
     assert r.returncode == 0, r.stderr
     s = json.loads(r.stdout)
-    data = LogData(s["mcap"])
-    timing = data.topics.get("/loop/timing", [])
+    timing = read_log(s["mcap"], {"/loop/timing"}).topic("/loop/timing")
     assert len(timing) == 1000
     rrd = Path(s["mcap"]).with_suffix(".rrd")
     v = subprocess.run([rerun_exe(), "rrd", "verify", str(rrd)], capture_output=True, text=True, timeout=120)

@@ -46,7 +46,7 @@ def cmd_run(args) -> int:
     scenario = load_scenario(args.scenario, parse_set(args.set))
     scenario = apply_reality_args(scenario, args.reality)
     from ..errors import PeerSilent
-    from ..exchange import run
+    from ..exchange import check_deadlines, run
     from ..plants import make_plant, plant_label
 
     plant = make_plant(scenario, args.plant)   # None: the CasADi model
@@ -68,6 +68,8 @@ def cmd_run(args) -> int:
         print_summary(summary)
         if rrd:
             print(f"  rerun: {rrd}")
+    sys.stdout.flush()
+    check_deadlines(summary)     # real time: too many misses -> exit 5, after the logs and the summary
     return 0
 
 
@@ -135,5 +137,8 @@ def print_summary(s: dict, file=sys.stdout, heading: str | None = None) -> None:
         if bad or bad_tcu:
             line += f"; rejected frames: plant {bad}, TCU {bad_tcu}"
         print(line, file=file)
+    if s.get("suspicious"):
+        print("  suspicious frames (another node on the bus?): "
+              + ", ".join(f"{k} x{n}" for k, n in sorted(s["suspicious"].items())), file=file)
     if s.get("mcap"):
         print(f"  log: {s['mcap']}", file=file)
