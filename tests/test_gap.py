@@ -7,6 +7,7 @@ import json
 import os
 import time
 
+import numpy as np
 import pytest
 
 from hil.benchmarks.gap import LIBRARY, draw_case, run_case
@@ -127,8 +128,11 @@ def test_cli_gap_bad_inputs(tmp_path):
     bad.write_text("not mcap")
     asc = tmp_path / "rig.asc"
     asc.write_text("date Mon Jan 1\n")
+    junk = tmp_path / "rig.blf"
+    junk.write_bytes(os.urandom(4096))
     for args, word in (([str(tmp_path / "missing.mcap")], "cannot read"), ([str(bad)], "not an MCAP file"),
-                       ([str(asc)], "python-can CAN logs are not read")):
+                       ([str(asc)], "no valid PlantSensor frames"), ([str(junk)], "not a CAN log"),
+                       ([str(tmp_path / "missing.log")], "cannot read")):
         r = hil("gap", *args, "--model", FFCC_A, timeout=120)
         assert r.returncode == 2 and word in r.stderr and r.stderr.strip().count("\n") == 0, r.stderr
 
@@ -200,3 +204,115 @@ def test_torque_lag_found_when_the_command_varies(tmp_path, scenario):
     # correlation depends on the dither's pattern (0.04-0.60 over those seeds), so it is not asserted.
     mu_test = out["where"]["tests"]["mu_hat"]
     assert mu_test["xcorr_input"] > 3 * mu_test["xcorr_bound_95"]
+
+
+# -- rig CAN logs ---------------------------------------------------------------------------------------
+def _frames_of(mcap_path) -> list:
+    """The frames that crossed the bus in a hil run, as python-can messages (what a rig logger sees)."""
+    from hil.replay import _msg_from_record
+    return [_msg_from_record(m) for t, _, m in read_log(mcap_path).messages if t == "/can/frames"]
+
+
+def _write_can_log(path, msgs) -> None:
+    import can
+    writer = {".log": can.CanutilsLogWriter, ".asc": can.ASCWriter, ".blf": can.BLFWriter}[path.suffix]
+    w = writer(str(path))
+    for m in msgs:
+        w.on_message_received(m)
+    w.stop()
+
+
+@pytest.fixture(scope="module")
+def rig_run(tmp_path_factory, scenario):
+    import numpy as np
+    from hil.effects import with_reality
+    seed = fresh_seed()
+    g = np.random.default_rng(seed)
+    z = float(g.uniform(1.0, 2.5))
+    out = tmp_path_factory.mktemp("rig")
+    s = run(with_reality(scenario, {"load_transfer": {"bogie_height_m": z}}), "nlls", int(g.integers(1, 1 << 30)),
+            bus="inprocess", out_dir=out, progress=False, log=print)
+    mcap_out, _ = diagnose(read_real_log(s["mcap"]), scenario, identify=False)
+    print(f"z {z:.3f} m: MCAP ->", mcap_out["which"]["verdict"])
+    return {"mcap": s["mcap"], "frames": _frames_of(s["mcap"]), "out": mcap_out, "seed": seed, "dir": out}
+
+
+@pytest.mark.parametrize("suffix", [".asc", ".blf"])
+def test_can_log_diagnoses_like_its_mcap_twin(rig_run, scenario, suffix):
+    path = rig_run["dir"] / f"rig{suffix}"
+    _write_can_log(path, rig_run["frames"])
+    data = read_real_log(path, scenario.run.exchange_period_s)
+    assert data.source["format"] == "can-log" and data.source["damage"] == ""
+    assert not np.isnan(data.tcu_mu_hat).any() and len(data.identification) >= 1
+    out, _ = diagnose(data, scenario, identify=False)
+    twin = rig_run["out"]
+    assert out["which"]["named"] == twin["which"]["named"] == "load_transfer"
+    assert out["which"]["named_set"] == twin["which"]["named_set"]
+    assert out["shrink"]["held_out_gap_shrink_percent"] == pytest.approx(twin["shrink"]["held_out_gap_shrink_percent"],
+                                                                         abs=3)
+
+
+def test_can_log_with_garbage_frames_skips_and_counts_them(rig_run, scenario):
+    """candump log of the same run with garbage on the bus: every bad frame is skipped and counted by
+    reason, the diagnosis is that of the clean log; through the CLI, a log of garbage only is one line."""
+    import can
+    g = np.random.default_rng(rig_run["seed"] + 1)
+    msgs = list(rig_run["frames"])
+    bad = []
+    for i in range(60):
+        kind = i % 5
+        fid = int(g.choice([0x100, 0x110, 0x120, 0x130]))
+        if kind == 0:     # wrong length
+            bad.append(can.Message(arbitration_id=fid, data=bytes(g.integers(0, 256, 5).tolist()), is_fd=True,
+                                   is_extended_id=False))
+        elif kind == 1:   # right length, random bytes (NaN, out of range, or a wild step)
+            n = {0x100: 24, 0x110: 12, 0x120: 32, 0x130: 64}[fid]
+            bad.append(can.Message(arbitration_id=fid, data=bytes(g.integers(0, 256, n).tolist()), is_fd=True,
+                                   is_extended_id=False))
+        elif kind == 2:   # extended id
+            bad.append(can.Message(arbitration_id=0x100, is_extended_id=True, data=bytes(8)))
+        elif kind == 3:   # an id of another ECU
+            bad.append(can.Message(arbitration_id=int(g.integers(0x200, 0x700)), data=bytes(8), is_extended_id=False))
+        else:             # error frame
+            bad.append(can.Message(is_error_frame=True, data=bytes(0)))
+    for m in bad:
+        msgs.insert(int(g.integers(0, len(msgs))), m)
+    path = rig_run["dir"] / "garbage.log"
+    _write_can_log(path, msgs)
+    data = read_real_log(path, scenario.run.exchange_period_s)
+    print(data.source)
+    others = sum(m.arbitration_id not in (0x100, 0x110, 0x120, 0x130) for m in rig_run["frames"])
+    assert data.source["skipped_total"] == 60 + others and data.n == 1000
+    assert any(k.endswith("bad_length") for k in data.source["skipped"]), data.source
+    out, _ = diagnose(data, scenario, identify=False)
+    assert out["which"]["named"] == rig_run["out"]["which"]["named"]
+    assert out["real_log_source"]["skipped_total"] == data.source["skipped_total"]
+    only = rig_run["dir"] / "only_garbage.log"
+    _write_can_log(only, bad)
+    r = hil("gap", only, "--model", FFCC_A, "--no-identify", timeout=120)
+    assert r.returncode == 2 and "no valid PlantSensor frames" in r.stderr and r.stderr.strip().count("\n") == 0, \
+        r.stderr
+
+
+def test_can_log_with_many_steps_out_of_sequence_names_the_frame(rig_run, scenario):
+    import can
+    from hil.frames import FrameCodec
+    from identifier.messages import SensorReading
+    codec = FrameCodec(scenario.run.exchange_period_s)
+    msgs = [m for m in rig_run["frames"] if not (m.arbitration_id == 0x100 and m.data[0] % 3 == 0)]
+    msgs += [codec.sensor(SensorReading(10 ** 6 + i, 60.0, 10.0)) for i in range(30)]
+    path = rig_run["dir"] / "holes.log"
+    _write_can_log(path, msgs)
+    with pytest.raises(Exception) as e:
+        read_real_log(path, scenario.run.exchange_period_s)
+    assert type(e.value).__name__ == "LogError" and "PlantSensor frame #" in str(e.value), e.value
+    # a candump line that is not a frame part-way: what came before is kept and the damage said
+    cut = rig_run["dir"] / "cut.log"
+    _write_can_log(cut, rig_run["frames"])
+    lines = cut.read_text().splitlines()
+    cut.write_text("\n".join(lines[:2500] + ["(1.0) can0 this-is-not-a-frame"] + lines[2500:]) + "\n")
+    try:
+        data = read_real_log(cut, scenario.run.exchange_period_s)
+        print(data.source)
+    except Exception as e2:   # the reader stopped before 50 readings: a one-line project error
+        assert type(e2).__name__ == "LogError", e2

@@ -30,7 +30,8 @@ import numpy as np
 from scipy import stats
 
 from identifier import SensorReading, TractionIdentifier
-from identifier.metrics import peak_errors, rt_percent
+from identifier.curve import peak as exp_peak
+from identifier.metrics import rt_percent
 from plant import SensorModel
 
 from ..trace import clean
@@ -110,6 +111,17 @@ def band_rms(x, period_s, bands) -> list[float]:
         sel = (f >= lo) & (f < hi)
         out.append(float(math.sqrt(power[sel].sum())))
     return out
+
+
+def peak_errors_vs_curve(theta, curve) -> dict:
+    """Peak mu and peak creep of the identified exponential curve ``theta`` and their errors (percent)
+    against the model's fault curve, whatever its law (``curve.peak()``: an exponential curve or a
+    ``PolachCurve``, which has no exponential parameter vector)."""
+    v_id, mu_id = exp_peak(theta)
+    v_true, mu_true = curve.peak()
+    return {"peak_mu_err_percent": abs(mu_id - mu_true) / abs(mu_true) * 100.0,
+            "peak_creep_err_percent": abs(v_id - v_true) / abs(v_true) * 100.0,
+            "peak_mu": mu_id, "peak_creep_kmh": v_id}
 
 
 # -- the diagnosis --------------------------------------------------------------------------------------
@@ -198,12 +210,12 @@ class Diagnosis:
                             "gap_before": base["per_signal"][s]["gap"], "gap_after": best["per_signal"][s]["gap"],
                             "noise_floor": sigma[s], "unit": UNITS[s]} for s in SIGNALS}
         out = {
-            "real_log": d.path, "model": sc.path, "periods": d.n, "analysis_periods": int(window.sum()),
+            "real_log": d.path, "real_log_source": d.source, "model": sc.path, "periods": d.n, "analysis_periods": int(window.sum()),
             "held_out_periods": int(held_mask.sum()), "block_periods": self.block,
             "noise_floor": sigma, "initial_state": {"motor_speed_rad_s": nom_fit.extra["x0"][0],
                                                     "train_speed_ms": nom_fit.extra["x0"][1]},
             "where": where,
-            "which": {"named": named, "verdict": verdict, "gap_present": gap_present,
+            "which": {"named": named, "named_set": [] if named == NONE else [named], "verdict": verdict, "gap_present": gap_present,
                       "nominal_held_out_gap": base["gap"], "ranking": ranking,
                       "rule": {"min_shrink": MIN_SHRINK, "max_left": max_left, "min_score_gain": MIN_SCORE_GAIN,
                                "min_gap": MIN_GAP}},
@@ -348,7 +360,7 @@ class Diagnosis:
                "rt_percent": rt_percent(conf["t_s"] if conf else None, t_f, tdet),
                "params": last["params"] if last else None}
         if last:
-            out.update(peak_errors(np.asarray(last["params"]), sc.fault_curve.params))
+            out.update(peak_errors_vs_curve(np.asarray(last["params"]), sc.fault_curve))
         return out
 
     def identification(self, ctx: Context, nominal, best: Fit | None, creep_meas) -> dict:
