@@ -60,16 +60,37 @@ class Context:
         self.valid = {s: np.isfinite(v) for s, v in self.meas.items()}
         self.mu_gain = observer.noise_gain()
         self._sims = {}
+        self.base_effects = {}                                  # plant effects held fixed underneath
+        self.base_delays = {"sensor_delay": 0.0, "can_delay": 0.0}   # and delays (periods)
+        self.base_names = ()
 
     def simulator(self, effect, fit_params, fixed):
-        key = (effect, fit_params)
+        key = (effect, fit_params, repr(sorted(fixed.items())), repr(sorted(self.base_effects.items())))
         if key not in self._sims:
-            self._sims[key] = Simulator(self.cfg, effect, fit_params, fixed, self.data.n)
+            self._sims[key] = Simulator(self.cfg, effect, fit_params, fixed, self.data.n, self.base_effects)
         return self._sims[key]
+
+    def on_top_of(self, fit: "Fit") -> "Context":
+        """This context with ``fit``'s effect held fixed underneath every model (forward selection)."""
+        import copy
+        c = copy.copy(self)
+        c.base_effects = dict(self.base_effects)
+        c.base_delays = dict(self.base_delays)
+        if "plant" in fit.extra:
+            name, params = fit.extra["plant"]
+            c.base_effects[name] = dict(params)
+        c.base_delays["sensor_delay"] += fit.extra.get("sensor_delay", 0.0)
+        c.base_delays["can_delay"] += fit.extra.get("can_delay", 0.0)
+        if "can_frames" in fit.extra:
+            c.base_delays["can_delay"] += fit.params["delay_ms"] * 1e-3 / self.data.period_s
+        c.base_names = self.base_names + (fit.name,)
+        return c
 
     def predict(self, motor, train, sensor_delay=0.0, can_delay=0.0) -> dict:
         """Measured-signal predictions from the plant trajectory: sensors see it ``sensor_delay`` periods
-        late; the TCU sees the sensor values another ``can_delay`` periods late."""
+        late; the TCU sees the sensor values another ``can_delay`` periods late (each plus the base's)."""
+        sensor_delay += self.base_delays["sensor_delay"]
+        can_delay += self.base_delays["can_delay"]
         m_s, t_s = shift(motor, sensor_delay), shift(train, sensor_delay)
         m_tcu = shift(m_s, can_delay)
         return {"motor": m_s, "train": t_s, "mu_hat": self.observer.mu_hat(m_tcu, self.data.torque_cmd_nm)}
@@ -192,7 +213,7 @@ class PlantCandidate:
             ci[name] = ([math.exp(lo_u), math.exp(hi_u)] if lg else [lo_u, hi_u]) if math.isfinite(h) else None
         return Fit(self.name, params, np_, ctx.predict(motor, train), dict(ctx.sigma_nom), 2 * float(best.cost),
                    extra={"plant": (self.name, dict(fixed, **params)), "x0": x0.tolist(), "param_ci": ci,
-                          "at_bound": at_bound})
+                          "at_bound": at_bound, "plant_motor": motor, "plant_train": train})
 
 
 @dataclass(frozen=True)
@@ -228,7 +249,7 @@ class SensorDelayCandidate:
         half = interval_halfwidths(best)
         h = float(half[0]) if half is not None and math.isfinite(half[0]) else None
         return Fit(self.name, {"delay_ms": d * T * 1e3}, 1, pred, dict(ctx.sigma_nom), 2 * float(best.cost),
-                   extra={"sensor_delay": d, "x0": x0.tolist(),
+                   extra={"sensor_delay": d, "x0": x0.tolist(), "plant_motor": motor, "plant_train": train,
                           "at_bound": {"delay_ms": bool(d <= 1e-3 or d >= self.max_periods - 1e-3)},
                           "param_ci": {"delay_ms": [max(d - h, 0.0) * T * 1e3, (d + h) * T * 1e3] if h else None}})
 

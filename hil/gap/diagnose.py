@@ -46,7 +46,7 @@ from plant import SensorModel
 
 from ..trace import clean
 from ..effects import EFFECTS
-from .candidates import RAIL, SIGNALS, UNITS, Context, Fit, candidates, fit_nominal
+from .candidates import RAIL, SIGNALS, UNITS, Context, Fit, PlantCandidate, candidates, fit_nominal
 from .model import ObserverReplica, Simulator, initial_line
 
 NONE = "none"
@@ -54,6 +54,10 @@ MIN_SHRINK = 0.8           # fraction of the held-out gap a named effect must re
 MIN_MARGIN = 25.0          # held-out score by which it must beat the runner-up and the nuisance, and ...
 MARGIN_GAP_RATIO = 0.5     # ... the gap it leaves must be at most this fraction of theirs, unless ...
 NOISE_GAP = 0.5            # ... theirs is already this close to the noise floor (noise units)
+FORWARD_MIN_SHARE = 0.3    # forward selection starts from a best single effect removing at least this, and
+FORWARD_MAX_SHARE = 0.9    # ... and at most this (a form that differs from its candidate's leaves up to ~8 %:
+                           #     a second effect fitted into that remainder would be a false name)
+FORWARD_MIN_REMAINDER = 0.5  # accepts a second one removing at least this fraction of what the first left
 MIN_SCORE_GAIN = 25.0      # held-out NLL + BIC penalty improvement over the nominal model
 MIN_GAP = 0.5              # combined gap (noise units) below which there is no gap to explain
                            # (measured on nominal runs: up to about 0.3 from the noise alone)
@@ -192,7 +196,7 @@ class Diagnosis:
         base = self.score(ctx, nom_fit)
         gap_present = base["gap"] >= MIN_GAP
         # the nuisance first: the rail's fault curve scaled (only when there is a gap to explain)
-        rail = None
+        rail, rail_fit = None, None
         if gap_present:
             _log(self.progress, "fitting the nuisance: the rail's fault curve (scale in mu and creep)")
             try:
@@ -206,6 +210,13 @@ class Diagnosis:
         best = ranking[0]
         named, named_set, verdict, nuisances, confidence = self.judge(base, ranking, rail, gap_present)
         best_fit = next(f for f in fits if f.name == best["effect"])
+        forward = None
+        if gap_present and FORWARD_MIN_SHARE <= best["held_out_shrink"] < FORWARD_MAX_SHARE and \
+                best["held_out_gap"] > NOISE_GAP:
+            forward = self.forward(ctx, nom_fit, base, best_fit, best, rail_fit, rail)
+            if forward is not None and forward["accepted"]:
+                named, named_set, verdict, confidence = self.rejudge(named, named_set, verdict, confidence, best,
+                                                                     forward)
         shrink_table = {s: {"rmse_before": base["per_signal"][s]["rmse"], "rmse_after": best["per_signal"][s]["rmse"],
                             "gap_before": base["per_signal"][s]["gap"], "gap_after": best["per_signal"][s]["gap"],
                             "noise_floor": sigma[s], "unit": UNITS[s]} for s in SIGNALS}
@@ -217,7 +228,7 @@ class Diagnosis:
             "where": where,
             "which": {"named": named, "named_set": named_set, "verdict": verdict, "gap_present": gap_present,
                       "confidence": confidence, "nominal_held_out_gap": base["gap"], "ranking": ranking,
-                      "nuisances": nuisances,
+                      "nuisances": nuisances, "forward": forward,
                       "rule": {"min_shrink": MIN_SHRINK, "min_score_gain": MIN_SCORE_GAIN,
                                "margin_score": MIN_MARGIN, "margin_gap_ratio": MARGIN_GAP_RATIO,
                                "min_gap": MIN_GAP}},
@@ -308,6 +319,109 @@ class Diagnosis:
                 "tentative"
         return NONE, [], (f"none of the candidates: the best, {desc}, removes less than "
                           f"{MIN_SHRINK * 100:.0f} %{bound_note}"), nuisances, "none"
+
+    # -- forward selection -----------------------------------------------------------------------------
+    def forward(self, ctx: Context, nom_fit: Fit, base: dict, first: Fit, first_row: dict, rail_fit, rail) -> dict:
+        """Second step of forward selection: every other candidate fitted on top of the first (its
+        parameters held), judged on held-out data against the first alone.  Sensor-level pairs are not
+        tried (a delay on a delay is one delay).  Accepted when the best second effect removes at least
+        ``FORWARD_MIN_REMAINDER`` of what the first left, gains ``MIN_MARGIN`` in held-out score, beats the
+        runner-up second effect by the margin and its fit is not at a bound; the pair is then compared
+        with the rail curve plus the same second effect."""
+        if first.name == "sensor_quantisation":
+            return None
+        sensor_first = "plant" not in first.extra
+        ctx2 = ctx.on_top_of(first)
+        pseudo = self._pseudo(first, nom_fit)
+        rows, fits2 = [], {}
+        for cand in candidates(self.scenario):
+            if cand.name == first.name or cand.name == "torque_lag" and self.data.torque_cmd_nm.std() < 1e-9:
+                continue
+            if sensor_first and not isinstance(cand, PlantCandidate):
+                continue
+            _log(self.progress, f"forward selection: {cand.name} on top of {first.name}")
+            try:
+                f2 = cand.fit(ctx2, pseudo)
+            except Exception:  # noqa: BLE001 - a candidate that cannot be fitted is skipped here
+                continue
+            fits2[cand.name] = f2
+            rows.append(self._entry(ctx, f2, base))
+        if not rows:
+            return None
+        rows.sort(key=lambda r: -r["score_gain"])
+        second = rows[0]
+        runner = rows[1] if len(rows) > 1 else None
+        # the first was fitted alone and absorbed part of the second: refit each on top of the other
+        # (one round of coordinate descent), keeping the refit only if it scores better
+        by_name = {c.name: c for c in candidates(self.scenario)}
+        try:
+            f2 = fits2[second["effect"]]
+            _log(self.progress, f"forward selection: refitting {first.name} on top of {f2.name}, then back")
+            f1b = by_name[first.name].fit(ctx.on_top_of(f2), self._pseudo(f2, nom_fit))
+            f2b = by_name[f2.name].fit(ctx.on_top_of(f1b), self._pseudo(f1b, nom_fit))
+            row = self._entry(ctx, f2b, base)
+            if row["score_gain"] > second["score_gain"]:
+                second = row
+                second["first_params"] = f1b.params
+        except Exception:  # noqa: BLE001 - keep the greedy pair
+            pass
+        removed = 1 - second["held_out_gap"] / first_row["held_out_gap"] if first_row["held_out_gap"] > 0 else 0.0
+        bounded = [k for k, v in second["at_bound"].items() if v]
+        accepted = (second["score_gain"] - first_row["score_gain"] >= MIN_MARGIN and removed >= FORWARD_MIN_REMAINDER
+                    and (runner is None or self.beats(second, runner)) and not bounded
+                    and second["held_out_shrink"] >= MIN_SHRINK)
+        out = {"first": first.name, "second": second["effect"], "second_form": second["form"],
+               "second_params": second["params"], "first_params": second.get("first_params", first.params),
+               "pair_held_out_shrink": second["held_out_shrink"],
+               "second_removes_of_remainder": removed, "accepted": bool(accepted),
+               "ranking": [{k: r[k] for k in ("effect", "form", "params", "score_gain", "held_out_shrink",
+                                              "held_out_gap", "at_bound")} for r in rows]}
+        if accepted and rail_fit is not None:
+            # is the first effect the rail in disguise?  the rail curve plus the same second effect
+            try:
+                cand = next(c for c in candidates(self.scenario) if c.name == second["effect"])
+                r2 = cand.fit(ctx.on_top_of(rail_fit), Fit("rail_curve", rail_fit.params, 0, rail_fit.pred,
+                                                            dict(ctx.sigma_nom), extra={
+                                                                "x0": rail_fit.extra["x0"],
+                                                                "plant_motor": rail_fit.extra["plant_motor"],
+                                                                "plant_train": rail_fit.extra["plant_train"]}))
+                row = self._entry(ctx, r2, base)
+                out["rail_pair"] = {"held_out_shrink": row["held_out_shrink"], "score_gain": row["score_gain"],
+                                    "held_out_gap": row["held_out_gap"]}
+                out["pair_vs_rail"] = ("pair" if self.beats(second, row) else
+                                       "rail" if self.beats(row, second) else "not_separable")
+            except Exception:  # noqa: BLE001
+                out["pair_vs_rail"] = "pair"
+        else:
+            out["pair_vs_rail"] = "pair"
+        return out
+
+    @staticmethod
+    def _pseudo(fit: Fit, nom_fit: Fit) -> Fit:
+        """``fit`` as the 'nominal' another candidate builds on (its plant trajectory and start)."""
+        return Fit(fit.name, fit.params, 0, fit.pred, dict(fit.sigma),
+                   extra={"x0": fit.extra["x0"],
+                          "plant_motor": fit.extra.get("plant_motor", nom_fit.extra["plant_motor"]),
+                          "plant_train": fit.extra.get("plant_train", nom_fit.extra["plant_train"])})
+
+    def rejudge(self, named, named_set, verdict, confidence, best, fw):
+        """The answer once forward selection accepted a second effect."""
+        first, second = fw["first"], fw["second"]
+        pair = (f"{second} ({fw['second_form']}) on top of {first} removes {fw['second_removes_of_remainder'] * 100:.0f} % "
+                f"of what {first} left (together {fw['pair_held_out_shrink'] * 100:.0f} % of the gap), fitted "
+                + ", ".join(f"{k}={v:.4g}" for k, v in fw["second_params"].items()))
+        if fw["pair_vs_rail"] == "rail":
+            return second, [second], (
+                f"{second} explains part of the gap and the rail's curve differs: {pair}; the rail curve with "
+                f"{second} explains it better than {first} with {second}"), "confident"
+        if fw["pair_vs_rail"] == "not_separable":
+            return second, [second], (f"{second} found, and rail or {self._what(first)}: not separable in this log; "
+                                      f"{pair}"), "confident"
+        if confidence == "tentative":
+            return second, [second], (f"{second} found; {pair}; {first} is only the most likely first effect "
+                                      f"({verdict})"), "confident"
+        return first, sorted([first, second]), (f"{first} and {second} explain the gap: {first} removes "
+                                                f"{best['share'] * 100:.0f} %; {pair}"), "confident"
 
     @staticmethod
     def _what(effect: str) -> str:
