@@ -12,7 +12,7 @@ The bus is a trust boundary: a frame that does not decode, has the wrong length,
 non-finite or out-of-range signal is skipped and counted by reason (``RealData.source["skipped"]``);
 a second frame for a step already read (a log recorded on two interfaces) is skipped when it repeats
 the first and counted as ``conflicting_duplicate`` when it does not.  Sensor steps must form one
-consecutive run: frames outside the longest consecutive run of steps are skipped and counted
+consecutive run (and commands, observer readings and results must fall inside it): frames outside the longest consecutive run of steps are skipped and counted
 (``out_of_sequence``) as long as they are at most ``MAX_OUT_OF_SEQUENCE`` of the sensor frames; more
 than that, or a gap inside the run, is an error naming the first offending frame (its index in the
 file and its step).  A file that stops being readable part-way keeps what was read before
@@ -87,7 +87,7 @@ def read_can_log(path, period_s: float) -> tuple[dict, dict, dict, list, dict]:
                     if obs is not None:
                         keep(observer, st.step, (obs.creep_speed_kmh, obs.mu_hat), n - 1)
                 else:
-                    events.append({"t_s": v.t_s, "kind": v.kind, "correction": v.correction,
+                    events.append({"step": v.step, "t_s": v.t_s, "kind": v.kind, "correction": v.correction,
                                    "params": list(v.params), "samples": v.samples})
     except Exception as e:  # noqa: BLE001 - a file from another tool: keep what was read, or say what it is
         what = f"{type(e).__name__}: {e}".splitlines()[0][:200]
@@ -106,7 +106,19 @@ def read_can_log(path, period_s: float) -> tuple[dict, dict, dict, list, dict]:
     for _, k in outside:
         del sensor[k]
         skipped["out_of_sequence"] += 1
-    events.sort(key=lambda e: e["t_s"])
+    # commands, observer readings and results must fall in the sensor run too (a garbage frame that
+    # decodes with a wild step is counted here rather than used)
+    for table in (command, observer):
+        for k in [k for k in table if not first <= k <= last]:
+            del table[k]
+            skipped["out_of_sequence"] += 1
+    kept = [e for e in events if first <= e["step"] <= last]
+    skipped["out_of_sequence"] += len(events) - len(kept)
+    events = sorted(kept, key=lambda e: e["t_s"])
+    for e in events:
+        del e["step"]
+    if not skipped["out_of_sequence"]:
+        del skipped["out_of_sequence"]
     source = {"format": "can-log", "frames": n, "skipped": dict(skipped), "skipped_total": sum(skipped.values()),
               "damage": damage}
     return sensor, command, observer, events, source

@@ -61,6 +61,8 @@ FORWARD_MIN_REMAINDER = 0.5  # accepts a second one removing at least this fract
 MIN_SCORE_GAIN = 25.0      # held-out NLL + BIC penalty improvement over the nominal model
 MIN_GAP = 0.5              # combined gap (noise units) below which there is no gap to explain
                            # (measured on nominal runs: up to about 0.3 from the noise alone)
+WHERE_SIGNIFICANT = 2.0    # a stage's residual RMS (noise units) from which the gap counts as significant there
+WHERE_MIN_PERIODS = 10     # ... over at least this many periods
 CREEP_BANDS_KMH = (0.0, 0.5, 1.0, 1.5, 3.0, 10.0, math.inf)
 FREQ_BANDS_HZ = (0.0, 2.0, 10.0, 30.0, 100.0, math.inf)
 REPLAY_SEEDS = (424242, 424243, 424244, 424245, 424246)   # sensor-noise draws of the identification replays
@@ -521,11 +523,53 @@ class Diagnosis:
         worst_band = max(per_band, key=lambda b: max((b[s] or 0) for s in SIGNALS) if b["periods"] else -1)
         worst_freq = max(per_freq, key=lambda b: max((b[s]["ratio"] or 0) for s in SIGNALS))
         worst_signal = max(SIGNALS, key=lambda s: per_signal[s]["rmse_in_noise_units"])
-        summary = (f"largest on {worst_signal} ({per_signal[worst_signal]['rmse_in_noise_units']:.1f}x noise), "
+        largest = (f"largest on {worst_signal} ({per_signal[worst_signal]['rmse_in_noise_units']:.1f}x noise), "
                    f"in the {worst_stage} stage, at measured creep {worst_band['creep_kmh'][0]}-"
                    f"{worst_band['creep_kmh'][1] or 'inf'} km/h, in the {worst_freq['hz'][0]}-"
                    f"{worst_freq['hz'][1] or 'Nyquist'} Hz band")
-        return {"summary": summary, "per_signal": per_signal, "per_stage": per_stage,
+        # the headline: the EARLIEST stage where the gap is significant (the serious stage amplifies any
+        # gap), and the frequency band worst within that stage's own samples, among the bands its length
+        # resolves (a band is resolved when the stage lasts at least two periods of its lower edge)
+        earliest = None
+        for i, nm in enumerate(names):
+            v = per_stage[nm]
+            if v["periods"] >= WHERE_MIN_PERIODS and max((v[s] or 0) for s in SIGNALS) >= WHERE_SIGNIFICANT:
+                earliest = (i, nm)
+                break
+        stage_where = None
+        if earliest is not None:
+            i, nm = earliest
+            sel = w & (st_meas == i)
+            dur = float(sel.sum()) * d.period_s
+            f_min = 2.0 / dur if dur > 0 else math.inf
+            sig_e = max(SIGNALS, key=lambda s: per_stage[nm][s] or 0)
+            e2 = np.random.default_rng(11).standard_normal(int(sel.sum()))
+            bands = []
+            for s_ in SIGNALS:
+                res = band_rms(np.nan_to_num(resid[s_][sel]), d.period_s, FREQ_BANDS_HZ)
+                nz = band_rms(noise["mu_hat"][:e2.size] if s_ == "mu_hat" else sig[s_] * e2, d.period_s,
+                              FREQ_BANDS_HZ)
+                for j, (lo, hi) in enumerate(zip(FREQ_BANDS_HZ[:-1], FREQ_BANDS_HZ[1:])):
+                    bands.append({"signal": s_, "hz": [lo, None if math.isinf(hi) else hi],
+                                  "ratio": res[j] / nz[j] if nz[j] > 0 else None, "resolved": lo == 0 or lo >= f_min})
+            resolved = [b for b in bands if b["resolved"] and b["ratio"] is not None and b["hz"][0] > 0]
+            worst_b = max(resolved, key=lambda b: b["ratio"]) if resolved else None
+            unresolved = sorted({b["hz"][0] for b in bands if not b["resolved"]})
+            stage_where = {"stage": nm, "signal": sig_e, "rms_in_noise_units": per_stage[nm][sig_e],
+                           "duration_s": dur, "lowest_resolved_hz": f_min, "bands": bands,
+                           "worst_band": worst_b}
+            summary = (f"first significant in the {nm} stage ({sig_e} {per_stage[nm][sig_e]:.1f}x noise over "
+                       f"{dur:.3g} s)")
+            if worst_b is not None:
+                summary += (f", there worst in the {worst_b['hz'][0]:g}-{worst_b['hz'][1] or 'Nyquist'} Hz band "
+                            f"({worst_b['signal']} {worst_b['ratio']:.1f}x the noise in that band)")
+            if unresolved:
+                summary += (f"; its {dur:.3g} s do not resolve bands below {f_min:.3g} Hz")
+            summary += f"; overall {largest}"
+        else:
+            summary = largest
+        return {"summary": summary, "largest": largest, "earliest": stage_where,
+                "per_signal": per_signal, "per_stage": per_stage,
                 "per_stage_by_model_creep": per_stage_model,
                 "t_det_measured_s": t_det(st_meas), "t_det_model_s": t_det(st_model),
                 "per_creep_band": per_band, "per_frequency_band": per_freq, "tests": tests,
