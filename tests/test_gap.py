@@ -360,3 +360,20 @@ def test_polach_fault_curve_diagnosed_and_reported(tmp_path):
     assert out["identification"]["real"]["peak_mu_err_percent"] is not None or \
         not out["identification"]["real"]["identified"]
     assert (rep / "curves.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_two_effects_at_once_found_by_forward_selection(tmp_path, scenario):
+    """An adhesion lag and a sensor delay together (neither removes 80 % alone): forward selection
+    names both; the where headline starts from the earliest significant stage, not the serious one."""
+    from hil.effects import with_reality
+    g = np.random.default_rng(fresh_seed())
+    tau, delay = float(g.uniform(0.008, 0.015)), float(g.uniform(3.0, 5.0))
+    real = with_reality(scenario, {"adhesion_lag": {"tau_s": tau}, "sensor_delay": {"delay_ms": delay}})
+    s = run(real, "nlls", int(g.integers(1, 1 << 30)), bus="inprocess", out_dir=tmp_path, progress=False, log=print)
+    out, _ = diagnose(read_real_log(s["mcap"]), scenario, identify=False)
+    which = out["which"]
+    print(f"tau {tau:.4f} s, delay {delay:.2f} ms ->", which["verdict"], "|", out["where"]["summary"])
+    assert set(which["named_set"]) <= {"adhesion_lag", "sensor_delay"}        # never a false name
+    assert which["named_set"] == ["adhesion_lag", "sensor_delay"], which["forward"]
+    assert out["where"]["earliest"]["stage"] in ("normal", "early")
+    assert out["where"]["summary"].startswith("first significant in the")
