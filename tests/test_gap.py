@@ -110,6 +110,7 @@ def test_cli_gap_json_and_report(tmp_path, scenario):
     lo, hi = top["param_ci"]["tau_s"]
     assert lo <= top["params"]["tau_s"] <= hi
     assert out["which"]["nuisances"][0]["name"] == "rail_curve"
+    assert {u["effect"] for u in out["which"]["unobservable"]} == {"torque_lag", "compliance.backlash_rad"}
     for s in ("motor", "train", "mu_hat"):
         assert s in out["where"]["per_signal"] and s in out["shrink"]["per_signal"]
     assert set(out["where"]["per_stage"]) == {"normal", "early", "serious"}
@@ -205,6 +206,7 @@ def test_torque_lag_found_when_the_command_varies(tmp_path, scenario):
     assert out["which"]["named"] == "torque_lag"
     assert out["which"]["ranking"][0]["params"]["tau_s"] == pytest.approx(tau, rel=0.2)
     assert out["where"]["input_constant"] is False
+    assert out["which"]["unobservable"] == []
     # the lag shows in the observer's mu^ (it reads the lagged torque as load): its residual follows the
     # command, ~6x the 95 % bound on every seed tried (0.42-0.58 against 0.072).  The motor speed's
     # correlation depends on the dither's pattern (0.04-0.60 over those seeds), so it is not asserted.

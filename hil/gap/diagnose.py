@@ -131,6 +131,24 @@ def band_rms(x, period_s, bands) -> list[float]:
     return out
 
 
+#: effects (and parts of effects) that cannot show under a constant torque command, with the excitation
+#: that makes them show
+NEEDS_VARYING_TORQUE = {
+    "torque_lag": "a first-order torque lag acts only when the command changes",
+    "compliance.backlash_rad": "gear backlash acts only when the shaft torque changes sign",
+}
+EXCITATION = ("a torque command that varies: a PRBS dither of a few % or torque steps (the TCU's command is "
+              "constant in hil run logs)")
+
+
+def observability(input_constant: bool) -> list[dict]:
+    """What this log cannot show: under a constant command, ``NEEDS_VARYING_TORQUE``; an effect there
+    is 'not observable' (its absence from the answer says nothing), with the excitation that shows it."""
+    if not input_constant:
+        return []
+    return [{"effect": k, "why": v, "excitation": EXCITATION} for k, v in NEEDS_VARYING_TORQUE.items()]
+
+
 def peak_errors_vs_curve(theta, curve) -> dict:
     """Peak mu and peak creep of the identified exponential curve ``theta`` and their errors (percent)
     against the model's fault curve, whatever its law (``curve.peak()``: an exponential curve or a
@@ -222,6 +240,7 @@ class Diagnosis:
         shrink_table = {s: {"rmse_before": base["per_signal"][s]["rmse"], "rmse_after": best["per_signal"][s]["rmse"],
                             "gap_before": base["per_signal"][s]["gap"], "gap_after": best["per_signal"][s]["gap"],
                             "noise_floor": sigma[s], "unit": UNITS[s]} for s in SIGNALS}
+        unobservable = observability(where["input_constant"])
         out = {
             "real_log": d.path, "real_log_source": d.source, "model": sc.path, "periods": d.n, "analysis_periods": int(window.sum()),
             "held_out_periods": int(held_mask.sum()), "block_periods": self.block,
@@ -230,7 +249,7 @@ class Diagnosis:
             "where": where,
             "which": {"named": named, "named_set": named_set, "verdict": verdict, "gap_present": gap_present,
                       "confidence": confidence, "nominal_held_out_gap": base["gap"], "ranking": ranking,
-                      "nuisances": nuisances, "forward": forward,
+                      "nuisances": nuisances, "forward": forward, "unobservable": unobservable,
                       "rule": {"min_shrink": MIN_SHRINK, "min_score_gain": MIN_SCORE_GAIN,
                                "margin_score": MIN_MARGIN, "margin_gap_ratio": MARGIN_GAP_RATIO,
                                "min_gap": MIN_GAP}},

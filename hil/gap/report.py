@@ -36,6 +36,8 @@ def text_summary(out: dict) -> str:
                                            f"{_f((r.get('param_ci') or {}).get(k, [None, None])[1], '.3g')}]"
                                            if (r.get("param_ci") or {}).get(k) else "")
                          for k, v in r["params"].items()) + (f"  AT BOUND: {', '.join(bounds)}" if bounds else ""))
+    for u in which.get("unobservable", []):
+        lines.append(f"    not observable in this log: {u['effect']} ({u['why']}); shows with {u['excitation']}")
     for n in which.get("nuisances", []):
         lines.append(f"    nuisance {n['name']}: peak mu {n['peak_mu_percent']:+.2f} %, peak creep "
                      f"{n['peak_creep_percent']:+.2f} %, held-out gap shrink {n['held_out_shrink'] * 100:.1f} %")
