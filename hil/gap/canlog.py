@@ -97,6 +97,9 @@ def read_can_log(path, period_s: float) -> tuple[dict, dict, dict, list, dict]:
     if not sensor:
         raise LogError(f"{path}: no valid PlantSensor frames (id 0x{SENSOR_ID:X}) among its {n} frames"
                        + (f" (skipped: {dict(skipped)})" if skipped else ""))
+    if len(sensor) < 50:
+        raise LogError(f"{path}: {len(sensor)} valid PlantSensor frames among its {n} frames; hil gap needs at "
+                       f"least 50" + (f" (skipped: {dict(skipped)})" if skipped else ""))
     first, last = _longest_run(sensor)
     outside = sorted((where[k], k) for k in sensor if not first <= k <= last)
     if len(outside) > MAX_OUT_OF_SEQUENCE * len(sensor):
