@@ -41,6 +41,12 @@ class EffectSpec:
     doc: str
     units: dict = field(default_factory=dict)
     candidate: bool = True             # offered to the diagnosis as an explanation
+    cls: str = ""                      # the effect class it is a form of ("" = its own name)
+    form: str = ""                     # the form's name within its class
+
+    @property
+    def effect_class(self) -> str:
+        return self.cls or self.name
 
 
 EFFECTS: dict[str, EffectSpec] = {s.name: s for s in [
@@ -48,30 +54,56 @@ EFFECTS: dict[str, EffectSpec] = {s.name: s for s in [
                {"half_bogie_distance_m": None, "half_wheelbase_m": None, "coupler_height_m": None,
                 "bogie_height_m": None},
                "axle load transfer under traction (L, L_b, Z, z; defaults from the scenario's [vehicle])",
-               {"half_bogie_distance_m": "m", "half_wheelbase_m": "m", "coupler_height_m": "m", "bogie_height_m": "m"}),
+               {"half_bogie_distance_m": "m", "half_wheelbase_m": "m", "coupler_height_m": "m", "bogie_height_m": "m"},
+               form="static"),
+    EffectSpec("load_transfer_pitch", "plant",
+               {"half_bogie_distance_m": None, "half_wheelbase_m": None, "coupler_height_m": None,
+                "bogie_height_m": None, "pitch_hz": 4.0, "pitch_damping": 0.2},
+               "axle load transfer reached through a bogie pitch mode (second order, pitch_hz, pitch_damping)",
+               {"bogie_height_m": "m", "pitch_hz": "Hz", "pitch_damping": "-"}, candidate=False,
+               cls="load_transfer", form="pitch_mode"),
     EffectSpec("torque_lag", "plant", {"tau_s": 0.005}, "first-order motor/inverter torque lag",
-               {"tau_s": "s"}),
+               {"tau_s": "s"}, form="first_order"),
     EffectSpec("compliance", "plant",
                {"stiffness_nm_rad": 3e5, "damping_ratio": 0.05, "backlash_rad": 0.0},
                "drivetrain torsional compliance (motor side) with gear backlash (half-width)",
-               {"stiffness_nm_rad": "N·m/rad", "damping_ratio": "-", "backlash_rad": "rad"}),
+               {"stiffness_nm_rad": "N·m/rad", "damping_ratio": "-", "backlash_rad": "rad"},
+               form="stiffness_backlash"),
+    EffectSpec("drivetrain_damping", "plant", {"viscous_nm_s_rad": 5.0, "coulomb_nm": 50.0},
+               "drivetrain losses: viscous (x motor speed) and Coulomb torque taken off the motor torque",
+               {"viscous_nm_s_rad": "N·m·s/rad", "coulomb_nm": "N·m"}, candidate=False, cls="compliance",
+               form="viscous_coulomb"),
     EffectSpec("adhesion_lag", "plant", {"tau_s": 0.01}, "adhesion dynamics: mu relaxes to the curve with tau_s",
-               {"tau_s": "s"}),
+               {"tau_s": "s"}, form="mu_lag"),
+    EffectSpec("creep_relaxation", "plant", {"relaxation_length_m": 0.3},
+               "adhesion dynamics: mu relaxes to the curve over a rolled length (tau = L / v_train)",
+               {"relaxation_length_m": "m"}, candidate=False, cls="adhesion_lag", form="creep_relaxation"),
+    EffectSpec("bristle", "plant", {"stiffness_per_m": 200.0, "damping_s_per_m": 0.0},
+               "adhesion dynamics, LuGre-type bristle: z' = w - |w| z / g(v_s), mu = s0 z + s1 z'",
+               {"stiffness_per_m": "1/m", "damping_s_per_m": "s/m"}, candidate=False, cls="adhesion_lag",
+               form="bristle"),
     EffectSpec("resistance", "plant", {"factor": 1.5}, "running resistance = factor x the Davis polynomial",
-               {"factor": "-"}),
+               {"factor": "-"}, form="davis_factor"),
+    EffectSpec("rail_curve", "plant", {"peak_mu_scale": 0.98, "creep_scale": 1.0},
+               "the rail's fault curve differs from the scenario's: mu = peak_mu_scale * mu_fault(v_s / creep_scale)",
+               {"peak_mu_scale": "-", "creep_scale": "-"}, candidate=False, form="scaled_curve"),
     EffectSpec("torque_ripple", "plant", {"amplitude": 0.02, "frequency_hz": 60.0, "phase_rad": 0.0},
                "sinusoidal torque ripple (fraction of the torque)",
                {"amplitude": "-", "frequency_hz": "Hz", "phase_rad": "rad"}, candidate=False),
     EffectSpec("wheel_radius", "plant", {"error_percent": 0.2}, "true wheel radius = nominal x (1 + error)",
                {"error_percent": "%"}, candidate=False),
     EffectSpec("sensor_delay", "sensor", {"delay_ms": 3.0}, "speed sensors report values delay_ms old",
-               {"delay_ms": "ms"}),
+               {"delay_ms": "ms"}, form="pure_delay"),
+    EffectSpec("sensor_lowpass", "sensor", {"tau_ms": 4.0}, "speed sensors low-pass filtered (first order, tau_ms)",
+               {"tau_ms": "ms"}, candidate=False, cls="sensor_delay", form="low_pass"),
+    EffectSpec("motor_delay", "sensor", {"delay_ms": 5.0}, "the motor encoder alone reports values delay_ms old",
+               {"delay_ms": "ms"}, candidate=False, cls="sensor_delay", form="per_signal"),
     EffectSpec("sensor_quantisation", "sensor", {"motor_quantum_rad_s": 0.05, "train_quantum_ms": 0.0},
                "speed sensors quantised (on top of their noise)",
-               {"motor_quantum_rad_s": "rad/s", "train_quantum_ms": "m/s"}),
+               {"motor_quantum_rad_s": "rad/s", "train_quantum_ms": "m/s"}, form="quantiser"),
     EffectSpec("can", "bus", {"delay_ms": 2.0, "jitter_ms": 0.0, "loss": 0.0},
                "CAN sensor frames delayed (+ uniform jitter), lost with probability loss; the TCU uses the "
-               "newest frame it has", {"delay_ms": "ms", "jitter_ms": "ms", "loss": "-"}),
+               "newest frame it has", {"delay_ms": "ms", "jitter_ms": "ms", "loss": "-"}, form="frame_delay"),
 ]}
 
 
@@ -102,6 +134,9 @@ def check_effect(name: str, params: dict, where: str = "reality") -> dict:
     for k, v in out.items():
         if v is not None and v < 0 and k not in ("phase_rad", "error_percent"):
             raise ValueError(f"{where} {name}.{k}: must be >= 0, got {v}")
+    for k in ("relaxation_length_m", "stiffness_per_m", "tau_ms", "peak_mu_scale", "creep_scale", "pitch_hz"):
+        if k in out and not out[k] > 0:
+            raise ValueError(f"{where} {name}.{k}: must be > 0, got {out[k]}")
     if name in ("torque_lag", "adhesion_lag") and out["tau_s"] <= 0:
         raise ValueError(f"{where} {name}.tau_s: must be > 0, got {out['tau_s']}")
     if name == "compliance" and out["stiffness_nm_rad"] <= 0:

@@ -43,10 +43,14 @@ from .params import KMH_PER_MS
 
 
 #: the plant-level effects this module integrates, in the order they act on the torque path
-PLANT_ORDER = ("torque_lag", "torque_ripple", "compliance", "wheel_radius", "adhesion_lag", "load_transfer",
-               "resistance")
+PLANT_ORDER = ("torque_lag", "torque_ripple", "drivetrain_damping", "compliance", "wheel_radius", "rail_curve",
+               "adhesion_lag", "creep_relaxation", "bristle", "load_transfer", "load_transfer_pitch", "resistance")
+#: slip velocity (m/s) above which the bristle model's relaxation rate stops growing (10.8 km/h)
+BRISTLE_MAX_SLIP_MS = 3.0
+#: and its relaxation rate (1/s) is capped here (time constant >= 0.25 ms, 2.5 RK4 sub-steps)
+BRISTLE_MAX_RATE_1_S = 4000.0
 #: the sensor-level effects ``RealitySensors`` applies
-SENSOR_EFFECTS = ("sensor_delay", "sensor_quantisation")
+SENSOR_EFFECTS = ("sensor_delay", "sensor_lowpass", "motor_delay", "sensor_quantisation")
 
 
 def fill_defaults(effects: dict, cfg: PlantConfig) -> dict:
@@ -55,7 +59,7 @@ def fill_defaults(effects: dict, cfg: PlantConfig) -> dict:
     out = {}
     for name, params in effects.items():
         q = dict(params)
-        if name == "load_transfer":
+        if name in ("load_transfer", "load_transfer_pitch"):
             for k in ("half_bogie_distance_m", "half_wheelbase_m", "coupler_height_m", "bogie_height_m"):
                 if q.get(k) is None:
                     q[k] = float(getattr(p, k))
@@ -92,8 +96,12 @@ class RealityModel:
             names += ["omega_w", "twist"]
         if "torque_lag" in self.effects:
             names += ["torque_actual"]
-        if "adhesion_lag" in self.effects:
+        if "adhesion_lag" in self.effects or "creep_relaxation" in self.effects:
             names += ["mu_state"]
+        if "bristle" in self.effects:
+            names += ["bristle_z"]
+        if "load_transfer_pitch" in self.effects:
+            names += ["normal_dev", "normal_dev_rate"]
         self.state_names = names
         self.nx = len(names)
 
@@ -113,15 +121,38 @@ class RealityModel:
         if "torque_ripple" in e:
             r = e["torque_ripple"]
             torque = torque * (1 + r["amplitude"] * ca.sin(2 * math.pi * r["frequency_hz"] * t + r["phase_rad"]))
+        if "drivetrain_damping" in e:
+            dd = e["drivetrain_damping"]
+            torque = torque - dd["viscous_nm_s_rad"] * omega_m - dd["coulomb_nm"] * ca.tanh(omega_m / 0.1)
         omega_wheel = x[self._i("omega_w")] if "compliance" in e else omega_m
         radius = p.wheel_radius_m * (1 + e["wheel_radius"]["error_percent"] / 100) if "wheel_radius" in e \
             else p.wheel_radius_m
         v_s = KMH_PER_MS * (omega_wheel / p.gear_ratio * radius - v_t)
-        mu_curve = ca.if_else(t >= cfg.fault_time_s, cfg.fault_curve.mu_casadi(v_s, v_t),
-                              cfg.normal_curve.mu_casadi(v_s, v_t))
+        fault = cfg.fault_curve.mu_casadi(v_s, v_t)
+        if "rail_curve" in e:
+            rc = e["rail_curve"]
+            fault = rc["peak_mu_scale"] * cfg.fault_curve.mu_casadi(v_s / rc["creep_scale"], v_t)
+        mu_curve = ca.if_else(t >= cfg.fault_time_s, fault, cfg.normal_curve.mu_casadi(v_s, v_t))
         if "adhesion_lag" in e:
             mu = x[self._i("mu_state")]
             dx[self._i("mu_state")] = (mu_curve - mu) / e["adhesion_lag"]["tau_s"]
+        elif "creep_relaxation" in e:
+            mu = x[self._i("mu_state")]
+            rate = ca.fmax(ca.fabs(v_t), 0.1) / e["creep_relaxation"]["relaxation_length_m"]
+            dx[self._i("mu_state")] = (mu_curve - mu) * rate
+        elif "bristle" in e:
+            # LuGre-type bristle: z' = w - |w| z / g, g = mu_curve(v_s) / sigma0 (steady state z = g for w>0),
+            # mu = sigma0 z + sigma1 z' ; w = slip velocity (m/s).  The decay rate's |w| is capped at
+            # BRISTLE_MAX_SLIP_MS (beyond the diagnosis' window) so free spinning stays integrable.
+            br = e["bristle"]
+            s0, s1 = br["stiffness_per_m"], br["damping_s_per_m"]
+            w = v_s / KMH_PER_MS
+            g = ca.fmax(ca.fabs(mu_curve), 1e-6) / s0
+            z = x[self._i("bristle_z")]
+            rate = ca.fmin(ca.fmin(ca.fabs(w), BRISTLE_MAX_SLIP_MS) / g, BRISTLE_MAX_RATE_1_S)
+            zdot = w - rate * z
+            dx[self._i("bristle_z")] = zdot
+            mu = s0 * z + s1 * zdot
         else:
             mu = mu_curve
         n0 = p.normal_force_n
@@ -130,6 +161,17 @@ class RealityModel:
             a, b = load_transfer_coefficients(cfg, lt["half_bogie_distance_m"], lt["half_wheelbase_m"],
                                               lt["coupler_height_m"], lt["bogie_height_m"])
             normal = (n0 - b) / (1 + a * mu)
+        elif "load_transfer_pitch" in e:
+            # the static transfer through a pitch mode: N = N0 + d, d'' = w^2 (d_static - d) - 2 zeta w d'
+            lt = e["load_transfer_pitch"]
+            a, b = load_transfer_coefficients(cfg, lt["half_bogie_distance_m"], lt["half_wheelbase_m"],
+                                              lt["coupler_height_m"], lt["bogie_height_m"])
+            d, dd = x[self._i("normal_dev")], x[self._i("normal_dev_rate")]
+            w = 2 * math.pi * lt["pitch_hz"]
+            d_static = (n0 - b) / (1 + a * mu) - n0
+            dx[self._i("normal_dev")] = dd
+            dx[self._i("normal_dev_rate")] = w * w * (d_static - d) - 2 * lt["pitch_damping"] * w * dd
+            normal = n0 + d
         else:
             normal = n0
         force = mu * normal
@@ -167,8 +209,19 @@ class RealityModel:
         v_s = float(creep_speed_kmh(p, x0_nominal[0], x0_nominal[1]))
         curve = cfg.fault_curve if t0 >= cfg.fault_time_s else cfg.normal_curve
         mu0 = float(curve.mu_at(v_s, x0_nominal[1]))
-        if "adhesion_lag" in e:
+        if "rail_curve" in e and t0 >= cfg.fault_time_s:
+            rc = e["rail_curve"]
+            mu0 = float(rc["peak_mu_scale"] * curve.mu_at(v_s / float(rc["creep_scale"]), x0_nominal[1]))
+        if "adhesion_lag" in e or "creep_relaxation" in e:
             x[self._i("mu_state")] = mu0
+        if "bristle" in e:
+            x[self._i("bristle_z")] = mu0 / float(e["bristle"]["stiffness_per_m"])
+        if "load_transfer_pitch" in e:
+            lt = e["load_transfer_pitch"]
+            a, b = load_transfer_coefficients(cfg, lt["half_bogie_distance_m"], lt["half_wheelbase_m"],
+                                              lt["coupler_height_m"], lt["bogie_height_m"])
+            n0 = p.normal_force_n
+            x[self._i("normal_dev")] = float((n0 - b) / (1 + a * mu0) - n0)
         if "compliance" in e:
             c = e["compliance"]
             x[self._i("omega_w")] = x0_nominal[0]
@@ -265,6 +318,10 @@ class RealitySensors:
         self.cfg = inner.cfg
         d = effects.get("sensor_delay", {}).get("delay_ms", 0.0)
         self.delay_periods = d * 1e-3 / period_s
+        self.motor_delay_periods = effects.get("motor_delay", {}).get("delay_ms", 0.0) * 1e-3 / period_s
+        tau = effects.get("sensor_lowpass", {}).get("tau_ms", 0.0) * 1e-3
+        self.lowpass = math.exp(-period_s / tau) if tau > 0 else 0.0   # y += (1 - a) (x - y) per period
+        self._lp = None
         q = effects.get("sensor_quantisation", {})
         self.q_motor = q.get("motor_quantum_rad_s", 0.0)
         self.q_train = q.get("train_quantum_ms", 0.0)
@@ -272,16 +329,26 @@ class RealitySensors:
 
     def measure(self, motor_speed_rad_s: float, train_speed_ms: float) -> tuple[float, float]:
         self._hist.append((motor_speed_rad_s, train_speed_ms))
-        if self.delay_periods > 0:
+        if self.lowpass > 0:
+            if self._lp is None:
+                self._lp = (motor_speed_rad_s, train_speed_ms)
+            a = self.lowpass
+            self._lp = tuple(a * y + (1 - a) * x for y, x in zip(self._lp, (motor_speed_rad_s, train_speed_ms)))
+            motor_speed_rad_s, train_speed_ms = self._lp
+        if self.delay_periods > 0 or self.motor_delay_periods > 0:
             k = len(self._hist) - 1
-            pos = max(k - self.delay_periods, 0.0)
-            i = int(math.floor(pos))
-            frac = pos - i
-            a = self._hist[i]
-            b = self._hist[min(i + 1, k)]
-            motor_speed_rad_s = a[0] + frac * (b[0] - a[0])
-            train_speed_ms = a[1] + frac * (b[1] - a[1])
-            keep = int(self.delay_periods) + 3
+
+            def late(periods, j):
+                pos = max(k - periods, 0.0)
+                i = int(math.floor(pos))
+                frac = pos - i
+                return self._hist[i][j] + frac * (self._hist[min(i + 1, k)][j] - self._hist[i][j])
+
+            if self.delay_periods > 0:
+                motor_speed_rad_s, train_speed_ms = late(self.delay_periods, 0), late(self.delay_periods, 1)
+            if self.motor_delay_periods > 0:
+                motor_speed_rad_s = late(self.motor_delay_periods, 0)
+            keep = int(max(self.delay_periods, self.motor_delay_periods)) + 3
             if len(self._hist) > 4 * keep + 100:   # bounded memory on long runs
                 del self._hist[:len(self._hist) - keep - 1]
         omega, v = self.inner.measure(motor_speed_rad_s, train_speed_ms)

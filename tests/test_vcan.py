@@ -181,3 +181,30 @@ def test_cansend_garbage_during_a_run_is_counted_and_the_run_still_identifies(tm
     assert len(rejected) == sent
     print(f"\ncansend garbage: {sent} frames sent, plant counted {sum(s['rejected_frames'].values())}, "
           f"TCU counted {sum(s['tcu_rejected_frames'].values())}, exit {proc.returncode}")
+
+
+def test_gap_reads_candump_l_of_a_run_like_its_mcap(tmp_path):
+    """Issue 18 item 7: ``candump -l`` (can-utils' own log format) of a run on vcan0 with a hidden
+    load transfer; ``hil gap`` on that file names the same set and shrinks the gap like the MCAP."""
+    from .conftest import hil
+    dump = subprocess.Popen(["candump", "-l", "vcan0"], cwd=tmp_path, stdout=subprocess.DEVNULL)
+    try:
+        time.sleep(0.3)
+        run_json(FFCC_A, "socketcan:vcan0", tmp_path, "--reality", "load_transfer:bogie_height_m=1.5")
+        time.sleep(0.3)
+    finally:
+        dump.send_signal(signal.SIGINT)
+        dump.wait(timeout=10)
+    logs = sorted(tmp_path.glob("candump-*.log"))
+    assert len(logs) == 1, logs
+    mcap = next(tmp_path.glob("*.mcap"))
+    outs = []
+    for path in (mcap, logs[0]):
+        r = hil("gap", path, "--model", ROOT / "scenarios" / "ffcc_a.toml", "--json", "--no-identify", timeout=600)
+        assert r.returncode == 0, r.stderr
+        outs.append(json.loads(r.stdout))
+    a, b = outs
+    print(a["which"]["verdict"], "|", b["which"]["verdict"], "|", b["real_log_source"])
+    assert b["real_log_source"]["format"] == "can-log"
+    assert a["which"]["named_set"] == b["which"]["named_set"] == ["load_transfer"]
+    assert abs(a["shrink"]["held_out_gap_shrink_percent"] - b["shrink"]["held_out_gap_shrink_percent"]) <= 3

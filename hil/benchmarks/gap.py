@@ -1,10 +1,24 @@
-"""``hil bench gap``: the blind check of the gap diagnosis.
+"""``hil bench gap``: the blind check of the gap diagnosis, on data its candidates did not generate.
 
-K real runs, each with ONE effect drawn at random (seeded) with random parameters in realistic
-ranges -- most from the candidate library, some (``--outside`` fraction) from effects the diagnosis
-does not offer (torque ripple, wheel-radius error).  Each run is recorded to MCAP, diagnosed through
-``hil.gap.read_real_log`` (which drops the truth key), and only then compared with the truth read
-from the log's ``reality_truth`` metadata.
+K real runs, each drawn (seeded; the seed is drawn at run time unless given, and printed) as one of:
+
+* ``held_out_form`` (``--held-out`` fraction): one effect in a form the candidate list does NOT use
+  for its class (``hil/effects.py`` forms with ``candidate=False``: creep relaxation and a LuGre-type
+  bristle for ``adhesion_lag``, viscous + Coulomb losses for ``compliance``, a low-pass and a
+  motor-only delay for ``sensor_delay``, a pitch mode for ``load_transfer``);
+* ``library_form``: one effect in the candidate's own form (the old, circular check, kept as a
+  reference; the parameter error is scored only here, where the forms match);
+* ``rail``: the rail's fault curve 1-5 % less (or more) grippy, peak creep sometimes moved: a
+  nuisance, whose right answer names no effect;
+* ``two_effect``: one plant effect and one sensor effect at once;
+* ``outside``: an effect outside every class (torque ripple, wheel radius): right answer "none".
+
+Each run is recorded to MCAP, diagnosed through ``hil.gap.read_real_log`` (which drops the truth
+key), and only then compared with the truth.  Scores: top-1 (single effects: the named class is the
+truth's class), set accuracy (``named_set`` equals the truth's classes), "none" accuracy (rail and
+outside cases), false-confident rate (a named class absent from the truth: every name claims at least
+``MIN_SHRINK`` of the gap), both-found rate of two-effect cases, median held-out shrink when right,
+parameter error where the forms match.
 
 Not drawn: ``torque_lag``.  The TCU commands a constant torque, so a first-order torque lag never
 acts and no diagnosis can see it (the gap is zero); it stays in the library and among the candidates.
@@ -13,6 +27,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import sys
 import tempfile
 import time
@@ -20,36 +35,71 @@ from pathlib import Path
 
 import numpy as np
 
+from ..effects import EFFECTS
 from ..sweep.engine import map_in_order
 
-#: drawn effect -> (the parameter the diagnosis must recover, sampler(rng) -> params)
+U = lambda g, a, b: float(g.uniform(a, b))  # noqa: E731
+LOGU = lambda g, a, b: float(math.exp(g.uniform(math.log(a), math.log(b))))  # noqa: E731
+
+#: the candidates' own forms: effect -> (the parameter the diagnosis must recover, sampler(rng) -> params)
 LIBRARY = {
-    "load_transfer": ("bogie_height_m", lambda g: {"bogie_height_m": g.uniform(0.5, 2.6)}),
-    "compliance": ("stiffness_nm_rad", lambda g: {"stiffness_nm_rad": math.exp(g.uniform(math.log(1e5), math.log(1e6))),
-                                                  "damping_ratio": g.uniform(0.02, 0.15),
-                                                  "backlash_rad": g.uniform(0.0, 0.002)}),
-    "adhesion_lag": ("tau_s", lambda g: {"tau_s": math.exp(g.uniform(math.log(0.003), math.log(0.03)))}),
-    "resistance": ("factor", lambda g: {"factor": g.uniform(0.4, 0.7) if g.random() < 0.5 else g.uniform(1.4, 2.0)}),
-    "sensor_delay": ("delay_ms", lambda g: {"delay_ms": g.uniform(1.0, 8.0)}),
-    "sensor_quantisation": ("motor_quantum_rad_s",
-                            lambda g: {"motor_quantum_rad_s": math.exp(g.uniform(math.log(0.04), math.log(0.2)))}),
-    "can": ("delay_ms", lambda g: {"delay_ms": float(g.integers(1, 7)), "jitter_ms": g.uniform(0.0, 1.0),
-                                   "loss": g.uniform(0.0, 0.03)}),
+    "load_transfer": ("bogie_height_m", lambda g: {"bogie_height_m": U(g, 0.5, 2.6)}),
+    "compliance": ("stiffness_nm_rad", lambda g: {"stiffness_nm_rad": LOGU(g, 1e5, 1e6),
+                                                  "damping_ratio": U(g, 0.02, 0.15),
+                                                  "backlash_rad": U(g, 0.0, 0.002)}),
+    "adhesion_lag": ("tau_s", lambda g: {"tau_s": LOGU(g, 0.003, 0.03)}),
+    "resistance": ("factor", lambda g: {"factor": U(g, 0.4, 0.7) if g.random() < 0.5 else U(g, 1.4, 2.0)}),
+    "sensor_delay": ("delay_ms", lambda g: {"delay_ms": U(g, 1.0, 8.0)}),
+    "sensor_quantisation": ("motor_quantum_rad_s", lambda g: {"motor_quantum_rad_s": LOGU(g, 0.04, 0.2)}),
+    "can": ("delay_ms", lambda g: {"delay_ms": float(g.integers(1, 7)), "jitter_ms": U(g, 0.0, 1.0),
+                                   "loss": U(g, 0.0, 0.03)}),
 }
+#: forms the candidate list does not use (their class: ``EFFECTS[name].effect_class``)
+HELD_OUT = {
+    "creep_relaxation": lambda g: {"relaxation_length_m": LOGU(g, 0.05, 0.8)},
+    "bristle": lambda g: {"stiffness_per_m": LOGU(g, 50.0, 400.0), "damping_s_per_m": U(g, 0.0, 0.02)},
+    "drivetrain_damping": lambda g: {"viscous_nm_s_rad": U(g, 0.2, 2.0), "coulomb_nm": U(g, 5.0, 40.0)},
+    "sensor_lowpass": lambda g: {"tau_ms": U(g, 1.0, 6.0)},
+    "motor_delay": lambda g: {"delay_ms": U(g, 2.0, 12.0)},
+    "load_transfer_pitch": lambda g: {"bogie_height_m": U(g, 0.5, 2.6), "pitch_hz": U(g, 2.0, 8.0),
+                                      "pitch_damping": U(g, 0.1, 0.4)},
+}
+RAIL = lambda g: {"peak_mu_scale": 1.0 + float(g.choice([-1, 1])) * U(g, 0.01, 0.05),  # noqa: E731
+                  "creep_scale": 1.0 if g.random() < 0.5 else 1.0 + U(g, -0.05, 0.05)}
 OUTSIDE = {
-    "torque_ripple": lambda g: {"amplitude": g.uniform(0.01, 0.05), "frequency_hz": g.uniform(20.0, 150.0),
-                                "phase_rad": g.uniform(0, 2 * math.pi)},
+    "torque_ripple": lambda g: {"amplitude": U(g, 0.01, 0.05), "frequency_hz": U(g, 20.0, 150.0),
+                                "phase_rad": U(g, 0, 2 * math.pi)},
     "wheel_radius": lambda g: {"error_percent": float(g.choice([-1, 1]) * g.uniform(0.05, 0.3))},
 }
+PLANT_FORMS = ("load_transfer", "compliance", "adhesion_lag", "resistance", "creep_relaxation", "bristle",
+               "load_transfer_pitch")
+SENSOR_FORMS = ("sensor_delay", "sensor_quantisation", "can", "sensor_lowpass", "motor_delay")
+KINDS = ("held_out_form", "library_form", "rail", "two_effect", "outside")
+DEFAULT_MIX = {"held_out_form": 0.4, "library_form": 0.15, "rail": 0.15, "two_effect": 0.1, "outside": 0.2}
+
+
+def _sample(name: str, g) -> dict:
+    if name in LIBRARY:
+        return LIBRARY[name][1](g)
+    if name in HELD_OUT:
+        return HELD_OUT[name](g)
+    return OUTSIDE[name](g)
+
+
+def truth_classes(effects: dict) -> list[str]:
+    """The classes a right answer names: effects outside every class and the rail name none."""
+    return sorted({EFFECTS[n].effect_class for n in effects if n not in OUTSIDE and n != "rail_curve"})
 
 
 def register(sub) -> None:
     p = sub.add_parser("gap", help="blind check of hil gap on runs with one random hidden effect each")
     p.add_argument("scenario", nargs="?", default="scenarios/ffcc_a.toml")
     p.add_argument("--cases", type=int, default=24, help="number of real runs (default 24)")
-    p.add_argument("--seed", type=int, default=1, help="seed of the effect and parameter draws")
-    p.add_argument("--outside", type=float, default=0.25,
-                   help="fraction of cases whose effect is outside the candidate list (default 0.25)")
+    p.add_argument("--seed", type=int, default=None, help="seed of the case draws (default: drawn now, printed)")
+    p.add_argument("--mix", default=None,
+                   help="case mix KIND=F,... over " + ", ".join(KINDS) + " (default "
+                   + ",".join(f"{k}={v}" for k, v in DEFAULT_MIX.items()) + ")")
+    p.add_argument("--doc", metavar="DIR", default=None, help="write gap.md and gap.json into DIR (e.g. docs)")
     p.add_argument("--out", default=None, help="keep the MCAP logs here (default: a temporary directory)")
     p.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
     p.add_argument("--scheduler", metavar="ADDRESS", default=None, help="run the cases on this Dask cluster "
@@ -59,20 +109,50 @@ def register(sub) -> None:
     p.set_defaults(func=cmd_gap_bench)
 
 
-def draw_case(seed: int, i: int, outside_fraction: float) -> tuple[str, dict, int]:
-    """(effect, params, run seed) of case i: a pure function of (seed, i)."""
+def parse_mix(text: str | None) -> dict:
+    from ..errors import ConfigError
+    if not text:
+        return dict(DEFAULT_MIX)
+    mix = {k: 0.0 for k in KINDS}
+    for item in text.split(","):
+        k, _, v = item.partition("=")
+        if k.strip() not in mix:
+            raise ConfigError(f"--mix {text!r}: unknown kind {k.strip()!r} (known: {', '.join(KINDS)})")
+        try:
+            mix[k.strip()] = float(v)
+        except ValueError:
+            raise ConfigError(f"--mix {text!r}: {item!r} is not KIND=FRACTION") from None
+    if not all(v >= 0 for v in mix.values()) or sum(mix.values()) <= 0:
+        raise ConfigError(f"--mix {text!r}: fractions must be >= 0 with a positive sum")
+    return mix
+
+
+def draw_case(seed: int, i: int, mix: dict) -> tuple[str, dict, int]:
+    """(kind, {effect: params}, run seed) of case i: a pure function of (seed, i, mix)."""
     g = np.random.default_rng([seed, i, 0x6A9])
-    if g.random() < outside_fraction:
-        name = sorted(OUTSIDE)[int(g.integers(len(OUTSIDE)))]
-        params = OUTSIDE[name](g)
-    else:
+    kinds = list(mix)
+    w = np.array([mix[k] for k in kinds], float)
+    kind = kinds[int(g.choice(len(kinds), p=w / w.sum()))]
+    if kind == "held_out_form":
+        name = sorted(HELD_OUT)[int(g.integers(len(HELD_OUT)))]
+        effects = {name: _sample(name, g)}
+    elif kind == "library_form":
         name = sorted(LIBRARY)[int(g.integers(len(LIBRARY)))]
-        params = LIBRARY[name][1](g)
-    return name, params, int(g.integers(1, 2 ** 31 - 1))
+        effects = {name: _sample(name, g)}
+    elif kind == "rail":
+        effects = {"rail_curve": RAIL(g)}
+    elif kind == "two_effect":
+        a = PLANT_FORMS[int(g.integers(len(PLANT_FORMS)))]
+        b = SENSOR_FORMS[int(g.integers(len(SENSOR_FORMS)))]
+        effects = {a: _sample(a, g), b: _sample(b, g)}
+    else:
+        name = sorted(OUTSIDE)[int(g.integers(len(OUTSIDE)))]
+        effects = {name: _sample(name, g)}
+    return kind, effects, int(g.integers(1, 2 ** 31 - 1))
 
 
 def truth_value(effect: str, truth: dict) -> float | None:
-    """The parameter value the diagnosis must recover, from the log's truth record."""
+    """The parameter value the diagnosis must recover, from the log's truth record (library forms)."""
     if effect not in LIBRARY:
         return None
     params = json.loads(truth["effects"])[effect]
@@ -81,13 +161,13 @@ def truth_value(effect: str, truth: dict) -> float | None:
     return params[LIBRARY[effect][0]]
 
 
-def run_case(scenario, effect: str, params: dict, run_seed: int, out_dir: Path, i: int) -> dict:
+def run_case(scenario, kind: str, effects: dict, run_seed: int, out_dir: Path, i: int) -> dict:
     from ..gap import diagnose, read_real_log
     from ..logread import read_log
     from ..exchange import run
     from ..effects import TRUTH_KEY, with_reality
 
-    real = with_reality(scenario, {effect: params})
+    real = with_reality(scenario, effects)
     summary = run(real, "nlls", run_seed, bus="inprocess", out_dir=out_dir / f"case{i:03d}", progress=False,
                   log=lambda text: None)
     path = summary["mcap"]
@@ -95,98 +175,173 @@ def run_case(scenario, effect: str, params: dict, run_seed: int, out_dir: Path, 
     out, _ = diagnose(read_real_log(path), scenario, identify=False)   # blind: no truth in here
     wall = time.perf_counter() - t0
     truth = read_log(path).metadata[TRUTH_KEY]                          # only now, for scoring
-    named = out["which"]["named"]
-    expected = effect if effect in LIBRARY else "none"
-    rec = {"case": i, "effect": effect, "params": params, "expected": expected, "named": named,
-           "correct": named == expected, "shrink_percent": out["shrink"]["held_out_gap_shrink_percent"],
-           "nominal_gap": out["which"]["nominal_held_out_gap"], "best": out["which"]["ranking"][0]["effect"],
-           "best_gap": out["which"]["ranking"][0]["held_out_gap"],
-           "best_gap_own_floor": out["which"]["ranking"][0]["held_out_gap_own_floor"], "diagnosis_s": wall, "log": path}
-    if effect in LIBRARY:
+    which = out["which"]
+    truth_set = truth_classes(effects)
+    named_set = sorted(which["named_set"])
+    rec = {"case": i, "kind": kind, "effects": effects, "truth_classes": truth_set, "named": which["named"],
+           "named_set": named_set, "confidence": which["confidence"], "verdict": which["verdict"],
+           "set_correct": named_set == truth_set,
+           "false_confident": bool(set(named_set) - set(truth_set)),
+           "shrink_percent": out["shrink"]["held_out_gap_shrink_percent"],
+           "nominal_gap": which["nominal_held_out_gap"], "best": which["ranking"][0]["effect"],
+           "best_form": which["ranking"][0]["form"], "diagnosis_s": wall, "log": path}
+    if len(effects) == 1 and truth_set:
+        rec["correct"] = which["named"] == truth_set[0]
+    elif not truth_set:
+        rec["correct"] = which["named"] == "none"
+    else:
+        rec["correct"] = rec["set_correct"]
+    if kind == "rail":
+        n = which["nuisances"]
+        rec["rail_reported"] = bool(n) and "rail" in which["verdict"]
+        if n:
+            rec["rail_peak_mu_percent"] = n[0]["peak_mu_percent"]
+            rec["rail_true_peak_mu_percent"] = (effects["rail_curve"]["peak_mu_scale"] - 1) * 100
+    if kind == "library_form":
+        effect = next(iter(effects))
         true_v = truth_value(effect, truth)
         rec["true_value"] = true_v
-        if named == effect:
-            fitted = out["which"]["ranking"][0]["params"][LIBRARY[effect][0]]
+        if which["named"] == effect:
+            fitted = which["ranking"][0]["params"][LIBRARY[effect][0]]
             rec["fitted_value"] = fitted
             rec["param_err_percent"] = abs(fitted - true_v) / abs(true_v) * 100
     return rec
 
 
 def gap_case(job) -> dict:
-    """Case ``i``: draw its effect, make the real run, diagnose it blind, score it.  Plain data in and out,
-    so it runs on a Dask worker as well as here; the log goes to ``out/case<i>`` when ``out`` is given
-    (on the machine that runs the case), else to a temporary directory removed after the case."""
-    scenario, seed, i, outside, out = job
-    effect, params, run_seed = draw_case(seed, i, outside)
+    """Case ``i``: draw it, make the real run, diagnose it blind, score it.  Plain data in and out, so
+    it runs on a Dask worker as well as here; the log goes to ``out/case<i>`` when ``out`` is given (on
+    the machine that runs the case), else to a temporary directory removed after the case."""
+    scenario, seed, i, mix, out = job
+    kind, effects, run_seed = draw_case(seed, i, mix)
     if out:
-        return run_case(scenario, effect, params, run_seed, Path(out), i)
+        return run_case(scenario, kind, effects, run_seed, Path(out), i)
     with tempfile.TemporaryDirectory(prefix="hil-gap-bench-") as tmp:
-        return run_case(scenario, effect, params, run_seed, Path(tmp), i)
+        return run_case(scenario, kind, effects, run_seed, Path(tmp), i)
+
+
+def _rate(rs, key="correct"):
+    return sum(bool(r[key]) for r in rs) / len(rs) if rs else None
 
 
 def summarise(records: list[dict]) -> dict:
-    lib = [r for r in records if r["expected"] != "none"]
-    out_ = [r for r in records if r["expected"] == "none"]
-    labels = sorted({r["expected"] for r in records} | {r["named"] for r in records})
-    confusion = {e: {n: 0 for n in labels} for e in labels if any(r["expected"] == e for r in records)}
+    single = [r for r in records if r["kind"] in ("held_out_form", "library_form")]
+    held = [r for r in records if r["kind"] == "held_out_form"]
+    nones = [r for r in records if r["kind"] in ("rail", "outside")]
+    two = [r for r in records if r["kind"] == "two_effect"]
+    shrinks = [r["shrink_percent"] for r in records if r["correct"] and r["truth_classes"]]
+    perr = [r["param_err_percent"] for r in records if "param_err_percent" in r]
+    per_form = {}
     for r in records:
-        confusion[r["expected"]][r["named"]] += 1
-    shrinks = [r["shrink_percent"] for r in lib if r["correct"]]
-    perr = [r["param_err_percent"] for r in lib if "param_err_percent" in r]
-    per_class = {e: sum(r["correct"] for r in lib if r["expected"] == e) / max(1, sum(r["expected"] == e for r in lib))
-                 for e in sorted({r["expected"] for r in lib})}
+        key = "+".join(sorted(r["effects"]))
+        d = per_form.setdefault(key, {"cases": 0, "correct": 0})
+        d["cases"] += 1
+        d["correct"] += int(r["correct"])
+    labels = sorted({c for r in records for c in r["truth_classes"]} | {r["named"] for r in records} | {"none"})
+    confusion = {}
+    for r in records:
+        row = "+".join(r["truth_classes"]) or "none"
+        confusion.setdefault(row, {n: 0 for n in labels})[r["named"]] += 1
     return {
-        "cases": len(records), "library_cases": len(lib), "outside_cases": len(out_),
-        "effect_classes": len(per_class),
-        "top1_accuracy": sum(r["correct"] for r in lib) / len(lib) if lib else None,
-        "none_accuracy": sum(r["correct"] for r in out_) / len(out_) if out_ else None,
+        "cases": len(records), "by_kind": {k: sum(r["kind"] == k for r in records) for k in KINDS},
+        "top1_accuracy": _rate(single), "top1_accuracy_held_out_forms": _rate(held),
+        "top1_accuracy_library_forms": _rate([r for r in records if r["kind"] == "library_form"]),
+        "set_accuracy": _rate(records, "set_correct"),
+        "none_accuracy": _rate(nones), "none_accuracy_rail": _rate([r for r in nones if r["kind"] == "rail"]),
+        "none_accuracy_outside": _rate([r for r in nones if r["kind"] == "outside"]),
+        "rail_reported": _rate([r for r in records if r["kind"] == "rail"], "rail_reported"),
+        "false_confident_rate": _rate(records, "false_confident"),
+        "two_effect_both_found": _rate(two, "set_correct"),
         "median_shrink_percent": float(np.median(shrinks)) if shrinks else None,
         "median_param_err_percent": float(np.median(perr)) if perr else None,
         "param_within_20_percent": sum(p <= 20 for p in perr) / len(perr) if perr else None,
-        "per_class_accuracy": per_class,
-        "confusion": confusion,
+        "per_form": per_form, "confusion": confusion,
         "median_diagnosis_s": float(np.median([r["diagnosis_s"] for r in records])) if records else None,
     }
+
+
+def markdown(result: dict) -> str:
+    from ..trace import fmt as f
+    pct = lambda v: "-" if v is None else f"{v * 100:.0f} %"  # noqa: E731
+    lines = ["# `hil bench gap`: the blind check of `hil gap`", "",
+             f"Written by `hil bench gap {result['scenario']} --cases {result['cases']} --seed {result['seed']}"
+             f"{' --mix ' + result['mix_arg'] if result.get('mix_arg') else ''} --doc docs` "
+             f"(seed drawn at run time: {result['seed_drawn']}); wall {result['wall_s']:.0f} s, "
+             f"median diagnosis {f(result['median_diagnosis_s'], '.1f')} s.", "",
+             "Cases by kind: " + ", ".join(f"{k} {v}" for k, v in result["by_kind"].items()), "",
+             "| figure | measured | target (issue 18) |", "|---|---|---|",
+             f"| top-1, single effects in a held-out form | {pct(result['top1_accuracy_held_out_forms'])} | >= 90 % |",
+             f"| top-1, single effects in the candidates' form | {pct(result['top1_accuracy_library_forms'])} | - |",
+             f"| set accuracy (all cases) | {pct(result['set_accuracy'])} | - |",
+             f"| false-confident rate (all cases) | {pct(result['false_confident_rate'])} | <= 2 % |",
+             f"| 'none' on rail curves 1-5 % off | {pct(result['none_accuracy_rail'])} | - |",
+             f"| rail curve reported as the rail | {pct(result['rail_reported'])} | - |",
+             f"| 'none' on out-of-library effects | {pct(result['none_accuracy_outside'])} | >= 80 % |",
+             f"| two-effect cases, both found | {pct(result['two_effect_both_found'])} | >= 70 % |",
+             f"| median held-out shrink when right | {f(result['median_shrink_percent'], '.1f')} % | >= 80 % |",
+             f"| median parameter error (matching forms) | {f(result['median_param_err_percent'], '.1f')} % | - |",
+             "", "## Per effect (or pair)", "", "| truth | cases | right |", "|---|---|---|"]
+    for k, v in sorted(result["per_form"].items()):
+        lines.append(f"| {k} | {v['cases']} | {v['correct']} |")
+    lines += ["", "## Every case", "", "| # | kind | truth | named | confidence | shrink | verdict |",
+              "|---|---|---|---|---|---|---|"]
+    for r in result["records"]:
+        truth = "; ".join(f"{n}(" + ", ".join(f"{k}={v:.4g}" for k, v in p.items() if v is not None) + ")"
+                          for n, p in r["effects"].items())
+        lines.append(f"| {r['case']} | {r['kind']} | {truth} | {r['named']} | {r['confidence']} | "
+                     f"{r['shrink_percent']:.0f} % | {r['verdict'][:160].replace('|', '/')} |")
+    lines.append("")
+    return "\n".join(lines)
 
 
 def cmd_gap_bench(args) -> int:
     from ..errors import ConfigError
     from ..config import load_scenario
+    from ..trace import clean
 
     if args.cases < 1:
         raise ConfigError(f"--cases {args.cases}: must be >= 1")
-    if not 0 <= args.outside <= 1:
-        raise ConfigError(f"--outside {args.outside}: must be in [0, 1]")
+    mix = parse_mix(args.mix)
+    seed_drawn = args.seed is None
+    seed = int.from_bytes(os.urandom(4), "little") % (1 << 31) if seed_drawn else args.seed
+    print(f"hil bench gap: seed {seed}" + (" (drawn now)" if seed_drawn else ""), file=sys.stderr, flush=True)
     scenario = load_scenario(args.scenario)
     records = []
     wall0 = time.perf_counter()
-    jobs = [(scenario, args.seed, i, args.outside, args.out) for i in range(args.cases)]
-
+    jobs = [(scenario, seed, i, mix, args.out) for i in range(args.cases)]
     # one case per call, serially here or on Dask (--scheduler / --workers): the same records either way
     for rec in map_in_order(gap_case, jobs, args.scheduler, args.workers,
                             lambda done, i: print(f"hil bench gap: {done}/{args.cases} cases done (case {i})",
                                                   file=sys.stderr, flush=True)):
         records.append(rec)
         extra = f" param err {rec['param_err_percent']:.1f} %" if "param_err_percent" in rec else ""
-        print(f"hil bench gap: case {rec['case'] + 1}/{args.cases}: {rec['effect']} -> {rec['named']} "
-              f"({'ok' if rec['correct'] else 'WRONG'}), shrink {rec['shrink_percent']:.0f} %{extra}",
-              file=sys.stderr, flush=True)
+        print(f"hil bench gap: case {rec['case'] + 1}/{args.cases}: {rec['kind']} {'+'.join(rec['effects'])} -> "
+              f"{'+'.join(rec['named_set']) or 'none'} [{rec['confidence']}] "
+              f"({'ok' if rec['correct'] else 'WRONG'}{', FALSE-CONFIDENT' if rec['false_confident'] else ''}), "
+              f"shrink {rec['shrink_percent']:.0f} %{extra}", file=sys.stderr, flush=True)
     result = summarise(records)
-    result.update({"seed": args.seed, "scenario": scenario.path, "wall_s": time.perf_counter() - wall0,
+    result.update({"seed": seed, "seed_drawn": seed_drawn, "mix": mix, "mix_arg": args.mix,
+                   "scenario": scenario.path, "wall_s": time.perf_counter() - wall0,
                    "records": [{k: v for k, v in r.items() if k != "log" or args.out} for r in records]})
+    result = clean(result)
+    if args.doc:
+        d = Path(args.doc)
+        d.mkdir(parents=True, exist_ok=True)
+        (d / "gap.json").write_text(json.dumps(result, indent=1) + "\n")
+        (d / "gap.md").write_text(markdown(result))
+        print(f"hil bench gap: wrote {d / 'gap.md'} and {d / 'gap.json'}", file=sys.stderr)
     if args.json:
         print(json.dumps(result))
     else:
-        print(f"gap bench: {result['cases']} cases (seed {args.seed}), {result['effect_classes']} effect classes")
         from ..trace import fmt as f
-        print(f"  top-1 accuracy {f(result['top1_accuracy'], '.3f')} ({result['library_cases']} library cases)  "
-              f"'none' accuracy {f(result['none_accuracy'], '.3f')} ({result['outside_cases']} outside)")
-        print(f"  median held-out gap shrink {f(result['median_shrink_percent'], '.1f')} %  "
-              f"median parameter error {f(result['median_param_err_percent'], '.2f')} %  "
-              f"(within 20 %: {f(result['param_within_20_percent'], '.3f')})")
-        print("  confusion (rows: truth, columns: named):")
-        cols = sorted({n for row in result["confusion"].values() for n, c in row.items()})
-        print("    " + " " * 20 + " ".join(f"{c[:8]:>8s}" for c in cols))
-        for e, row in result["confusion"].items():
-            print(f"    {e:20s}" + " ".join(f"{row.get(c, 0):8d}" for c in cols))
+        print(f"gap bench: {result['cases']} cases (seed {seed}): " +
+              ", ".join(f"{k} {v}" for k, v in result["by_kind"].items()))
+        print(f"  top-1 held-out forms {f(result['top1_accuracy_held_out_forms'], '.3f')}, library forms "
+              f"{f(result['top1_accuracy_library_forms'], '.3f')}; set accuracy {f(result['set_accuracy'], '.3f')}; "
+              f"'none' accuracy {f(result['none_accuracy'], '.3f')} (rail {f(result['none_accuracy_rail'], '.3f')}, "
+              f"outside {f(result['none_accuracy_outside'], '.3f')})")
+        print(f"  false-confident rate {f(result['false_confident_rate'], '.3f')}; two effects both found "
+              f"{f(result['two_effect_both_found'], '.3f')}; median shrink when right "
+              f"{f(result['median_shrink_percent'], '.1f')} %; median parameter error "
+              f"{f(result['median_param_err_percent'], '.2f')} %")
     return 0

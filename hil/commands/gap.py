@@ -9,7 +9,7 @@ from ..config import load_scenario
 
 def register(sub) -> None:
     p = sub.add_parser("gap", help="sim-to-real gap: where it lies, which effect explains it, how far it shrinks")
-    p.add_argument("real_log", help="MCAP log of the real run (hil run output; python-can CAN logs: not yet)")
+    p.add_argument("real_log", help="log of the real run: MCAP (hil run) or a CAN log python-can reads (.log candump, .asc, .blf, ...)")
     p.add_argument("--model", required=True, help="scenario TOML of the nominal model, e.g. scenarios/ffcc_a.toml")
     p.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
     p.add_argument("--report", metavar="DIR", help="write report.md, PNG plots and gap.json into DIR")
@@ -29,7 +29,7 @@ def cmd_gap(args) -> int:
     if args.max_creep_kmh <= 0:
         raise ConfigError(f"--max-creep-kmh {args.max_creep_kmh}: must be > 0")
     scenario = load_scenario(args.model)
-    data = read_real_log(args.real_log)
+    data = read_real_log(args.real_log, scenario.run.exchange_period_s)
     out, dg = diagnose(data, scenario, block=args.block, max_creep_kmh=args.max_creep_kmh,
                        identify=not args.no_identify, progress=True)
     if args.report:

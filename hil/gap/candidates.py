@@ -60,16 +60,37 @@ class Context:
         self.valid = {s: np.isfinite(v) for s, v in self.meas.items()}
         self.mu_gain = observer.noise_gain()
         self._sims = {}
+        self.base_effects = {}                                  # plant effects held fixed underneath
+        self.base_delays = {"sensor_delay": 0.0, "can_delay": 0.0}   # and delays (periods)
+        self.base_names = ()
 
     def simulator(self, effect, fit_params, fixed):
-        key = (effect, fit_params)
+        key = (effect, fit_params, repr(sorted(fixed.items())), repr(sorted(self.base_effects.items())))
         if key not in self._sims:
-            self._sims[key] = Simulator(self.cfg, effect, fit_params, fixed, self.data.n)
+            self._sims[key] = Simulator(self.cfg, effect, fit_params, fixed, self.data.n, self.base_effects)
         return self._sims[key]
+
+    def on_top_of(self, fit: "Fit") -> "Context":
+        """This context with ``fit``'s effect held fixed underneath every model (forward selection)."""
+        import copy
+        c = copy.copy(self)
+        c.base_effects = dict(self.base_effects)
+        c.base_delays = dict(self.base_delays)
+        if "plant" in fit.extra:
+            name, params = fit.extra["plant"]
+            c.base_effects[name] = dict(params)
+        c.base_delays["sensor_delay"] += fit.extra.get("sensor_delay", 0.0)
+        c.base_delays["can_delay"] += fit.extra.get("can_delay", 0.0)
+        if "can_frames" in fit.extra:
+            c.base_delays["can_delay"] += fit.params["delay_ms"] * 1e-3 / self.data.period_s
+        c.base_names = self.base_names + (fit.name,)
+        return c
 
     def predict(self, motor, train, sensor_delay=0.0, can_delay=0.0) -> dict:
         """Measured-signal predictions from the plant trajectory: sensors see it ``sensor_delay`` periods
-        late; the TCU sees the sensor values another ``can_delay`` periods late."""
+        late; the TCU sees the sensor values another ``can_delay`` periods late (each plus the base's)."""
+        sensor_delay += self.base_delays["sensor_delay"]
+        can_delay += self.base_delays["can_delay"]
         m_s, t_s = shift(motor, sensor_delay), shift(train, sensor_delay)
         m_tcu = shift(m_s, can_delay)
         return {"motor": m_s, "train": t_s, "mu_hat": self.observer.mu_hat(m_tcu, self.data.torque_cmd_nm)}
@@ -102,6 +123,21 @@ def _fit_ls(resid, u0, lo, hi, scale, starts=None, sigma=None):
         if best is None or r.cost < best.cost:
             best = r
     return best
+
+
+def interval_halfwidths(result, z: float = 1.96):
+    """z x the standard errors of a least_squares result's parameters, from its Jacobian of residuals in
+    noise units (cov = (J'J)^-1 x the residual variance per degree of freedom).  The residuals of
+    neighbouring samples are correlated (a model error is smooth), so these intervals are too narrow
+    by about the square root of the correlation length; None when J'J is singular."""
+    J = np.asarray(result.jac, float)
+    m, p = J.shape
+    try:
+        cov = np.linalg.inv(J.T @ J) * (2 * float(result.cost) / max(m - p, 1))
+    except np.linalg.LinAlgError:
+        return None
+    d = np.diag(cov)
+    return np.where(d >= 0, z * np.sqrt(np.abs(d)), np.nan)
 
 
 def fit_nominal(ctx: Context, mask=None) -> Fit:
@@ -159,15 +195,25 @@ class PlantCandidate:
         mesh = np.array(np.meshgrid(*grids, indexing="ij")).reshape(np_, -1).T
         costs = [float(np.sum(resid(u) ** 2)) for u in mesh]
         order = np.argsort(costs)
-        starts = [np.concatenate([mesh[i], np.zeros(2)]) for i in order[:2]]
+        starts = [np.concatenate([mesh[i], np.zeros(2)]) for i in order[:3]]
         starts.append(np.concatenate([mesh[order[0]], np.array(nominal.extra["x0"]) - ctx.x0]))
         best = _fit_ls(resid, None, lo, hi, np.maximum(hi - lo, 1e-9) / 10, starts, ctx.sigma_nom)
         theta = theta_of(best.x)
         x0 = x0_nom + best.x[np_:]
         motor, train = sim.run(theta, x0, torque)
         params = dict(zip(self.fit_params, map(float, theta)))
+        ci, at_bound = {}, {}
+        half = interval_halfwidths(best)
+        for i, (name, lg) in enumerate(zip(self.fit_params, self.log)):
+            u = best.x[i]
+            span = hi[i] - lo[i]
+            at_bound[name] = bool(u - lo[i] <= 1e-3 * span or hi[i] - u <= 1e-3 * span)
+            h = half[i] if half is not None else math.nan
+            lo_u, hi_u = u - h, u + h
+            ci[name] = ([math.exp(lo_u), math.exp(hi_u)] if lg else [lo_u, hi_u]) if math.isfinite(h) else None
         return Fit(self.name, params, np_, ctx.predict(motor, train), dict(ctx.sigma_nom), 2 * float(best.cost),
-                   extra={"plant": (self.name, dict(fixed, **params)), "x0": x0.tolist()})
+                   extra={"plant": (self.name, dict(fixed, **params)), "x0": x0.tolist(), "param_ci": ci,
+                          "at_bound": at_bound, "plant_motor": motor, "plant_train": train})
 
 
 @dataclass(frozen=True)
@@ -200,8 +246,12 @@ class SensorDelayCandidate:
         pred, (motor, train) = pred_of(best.x)
         d = float(best.x[0])
         x0 = x0_nom + ctx.x0_slope * d * T + best.x[1:]
+        half = interval_halfwidths(best)
+        h = float(half[0]) if half is not None and math.isfinite(half[0]) else None
         return Fit(self.name, {"delay_ms": d * T * 1e3}, 1, pred, dict(ctx.sigma_nom), 2 * float(best.cost),
-                   extra={"sensor_delay": d, "x0": x0.tolist()})
+                   extra={"sensor_delay": d, "x0": x0.tolist(), "plant_motor": motor, "plant_train": train,
+                          "at_bound": {"delay_ms": bool(d <= 1e-3 or d >= self.max_periods - 1e-3)},
+                          "param_ci": {"delay_ms": [max(d - h, 0.0) * T * 1e3, (d + h) * T * 1e3] if h else None}})
 
 
 def match_frames(tcu_creep, sensor_creep, max_back: int = 40) -> tuple[np.ndarray, float]:
@@ -349,6 +399,10 @@ class QuantisationCandidate:
             sig["mu_hat"] = float(np.sqrt(np.mean(sq)))
         return Fit(self.name, params, 1, pred, sig, math.nan, "; ".join(notes),
                    {"quanta": params, "x0": x0.tolist()})
+
+
+#: the nuisance fitted before any effect is compared: the rail's fault curve, scaled in mu and in creep
+RAIL = PlantCandidate("rail_curve", ("peak_mu_scale", "creep_scale"), (0.85, 0.85), (1.18, 1.18), (True, True), (17, 7))
 
 
 def candidates(scenario) -> list:

@@ -6,9 +6,9 @@ exchange period) and drops everything else: the reality truth key, the plant's t
 scenario text (a ``[reality]`` table in it would leak the answer) and the run summary (its stage
 times come from the plant's true states).
 
-REAL_LOG is an MCAP file written by ``hil run``.  A python-can log from a rig (``.asc``/``.blf``/
-``.log``) is not read yet: it would need the DBC decoding of the frame layer (hil/frames.py) and
-carries no observer topic; ``read_real_log`` says so in one line.
+REAL_LOG is an MCAP file written by ``hil run`` or a python-can CAN log from a rig (``.log`` candump,
+``.asc``, ``.blf``, ...: ``hil.gap.canlog``), whose frames carry the same readings (PlantSensor,
+TorqueCommand, TcuStatus with the observer output, TcuResult) and no truth at all.
 """
 from __future__ import annotations
 
@@ -20,6 +20,8 @@ import numpy as np
 
 from ..logread import LogError, read_log
 from ..effects import TRUTH_KEY
+
+from .canlog import CAN_LOG_SUFFIXES, read_can_log
 
 TOPICS = {"/plant/sensor", "/tcu/command", "/tcu/observer", "/tcu/identification"}
 KEPT_METADATA = ("run",)
@@ -39,16 +41,24 @@ class RealData:
     identification: list = field(default_factory=list)   # dicts of /tcu/identification events
     metadata: dict = field(default_factory=dict)          # only KEPT_METADATA
     strategy: str = ""
+    source: dict = field(default_factory=dict)            # format, frames read / skipped (CAN logs)
 
     @property
     def n(self) -> int:
         return len(self.step)
 
 
-def read_real_log(path) -> RealData:
+def read_real_log(path, period_s: float | None = None) -> RealData:
+    """The measured side of the log at ``path``: an MCAP log of ``hil run``, or a python-can CAN log
+    (suffix in ``canlog.CAN_LOG_SUFFIXES``) decoded through hil/hil.dbc, which needs ``period_s`` (the
+    exchange period of the ``--model`` scenario: a CAN log does not record it)."""
     p = Path(path)
-    if p.suffix.lower() in (".asc", ".blf", ".log", ".trc", ".csv"):
-        raise LogError(f"{path}: python-can CAN logs are not read by hil gap yet (MCAP logs from hil run are)")
+    if p.suffix.lower() in CAN_LOG_SUFFIXES:
+        if period_s is None:
+            raise LogError(f"{path}: a CAN log does not record the exchange period; give the model scenario")
+        sensor, command, observer, events, source = read_can_log(p, period_s)
+        # no strategy travels on the bus: the identification replays use the diagnosis' default
+        return assemble(str(path), period_s, sensor, command, observer, events, {}, "", source)
     log = read_log(p, topics=TOPICS)
     log.metadata.pop(TRUTH_KEY, None)
     meta = {k: v for k, v in log.metadata.items() if k in KEPT_METADATA}
@@ -63,34 +73,50 @@ def read_real_log(path) -> RealData:
         steps = np.array([m.step for m in sensor[:2]])
         ts = np.array([m.t_s for m in sensor[:2]])
         period = float((ts[1] - ts[0]) / max(steps[1] - steps[0], 1))
-    k0 = sensor[0].step
-    n = sensor[-1].step - k0 + 1
+    events = [{"t_s": e.t_s, "kind": e.kind, "correction": e.correction, "params": list(e.params),
+               "samples": e.samples} for e in log.topic("/tcu/identification")]
+    strategy = next((e.strategy for e in log.topic("/tcu/identification")), run.get("strategy", ""))
+    return assemble(str(path), period,
+                    {m.step: (m.motor_speed_rad_s, m.train_speed_ms) for m in sensor},
+                    {m.step: m.torque_nm for m in log.topic("/tcu/command")},
+                    {m.step: (m.creep_speed_kmh, m.mu_hat) for m in log.topic("/tcu/observer")},
+                    events, meta, strategy, {"format": "mcap"})
+
+
+def assemble(path: str, period: float, sensor: dict, command: dict, observer: dict, events: list, meta: dict,
+             strategy: str, source: dict) -> RealData:
+    """RealData from per-step readings: ``sensor`` {step: (motor rad/s, train m/s)} must cover its
+    steps without a gap; ``command`` {step: torque N·m} (a missing step holds the previous command);
+    ``observer`` {step: (creep km/h, mu^)} (NaN where missing)."""
+    if len(sensor) < 50:
+        raise LogError(f"{path}: {len(sensor)} sensor readings; hil gap needs at least 50")
+    k0, k1 = min(sensor), max(sensor)
+    n = k1 - k0 + 1
+    if n != len(sensor):
+        missing = next(k for k in range(k0, k1 + 1) if k not in sensor)
+        raise LogError(f"{path}: sensor readings have gaps (missing steps, first {missing}); hil gap needs "
+                       f"consecutive readings")
     nan = lambda: np.full(n, np.nan)  # noqa: E731
     motor, train, torque, creep, mu = nan(), nan(), nan(), nan(), nan()
-    for m in sensor:
-        motor[m.step - k0] = m.motor_speed_rad_s
-        train[m.step - k0] = m.train_speed_ms
-    for m in log.topic("/tcu/command"):
-        if 0 <= m.step - k0 < n:
-            torque[m.step - k0] = m.torque_nm
-    for m in log.topic("/tcu/observer"):
-        if 0 <= m.step - k0 < n:
-            creep[m.step - k0] = m.creep_speed_kmh
-            mu[m.step - k0] = m.mu_hat
-    if np.isnan(motor).any() or np.isnan(train).any():
-        raise LogError(f"{path}: /plant/sensor has gaps (missing steps); hil gap needs consecutive readings")
+    for k, (w, v) in sensor.items():
+        motor[k - k0], train[k - k0] = w, v
+    for k, te in command.items():
+        if 0 <= k - k0 < n:
+            torque[k - k0] = te
+    for k, (c, m) in observer.items():
+        if 0 <= k - k0 < n:
+            creep[k - k0], mu[k - k0] = c, m
+    if not (np.all(np.isfinite(motor)) and np.all(np.isfinite(train))):
+        raise LogError(f"{path}: non-finite sensor readings")
     if np.isnan(torque).all():
-        raise LogError(f"{path}: no /tcu/command messages: the model has no input to replay")
+        raise LogError(f"{path}: no torque commands: the model has no input to replay")
     # a missing command holds the previous one
     for i in range(n):
         if np.isnan(torque[i]):
             torque[i] = torque[i - 1] if i else torque[~np.isnan(torque)][0]
-    events = [{"t_s": e.t_s, "kind": e.kind, "correction": e.correction, "params": list(e.params),
-               "samples": e.samples} for e in log.topic("/tcu/identification")]
-    strategy = next((e.strategy for e in log.topic("/tcu/identification")), run.get("strategy", ""))
     steps = np.arange(k0, k0 + n)
     return RealData(str(path), period, steps, steps * period, motor, train, torque, creep, mu, events, meta,
-                    strategy)
+                    strategy, source)
 
 
 def describe(data: RealData) -> str:

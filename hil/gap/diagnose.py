@@ -11,12 +11,22 @@
    of the residual with the input (torque command) and with the model's creep.
 3. WHICH: the run is cut into alternating blocks of ``block`` samples: even blocks fit each candidate,
    odd blocks judge it.  Score on held-out blocks = Gaussian negative log-likelihood with the noise
-   floor the candidate expects, plus k log(n) (BIC penalty, k fitted parameters).  A candidate is named
-   only if it beats the nominal model by ``MIN_SCORE_GAIN``, removes at least ``MIN_SHRINK`` of the
-   held-out gap AND leaves the residual near the noise floor it expects (at most ``MAX_LEFT`` units of
-   that floor -- a quantiser raises it -- or ``MAX_LEFT_FRACTION`` of a huge nominal gap); otherwise the answer is "none of the candidates",
-   never the least bad one.  (A candidate that only imitates the gap -- load transfer standing in for a
-   lower friction curve -- removes most of it but leaves a remainder far above the noise.)
+   floor the candidate expects, plus k log(n) (BIC penalty, k fitted parameters).  The nuisance is
+   fitted too: the rail's fault curve scaled in mu and in creep (``candidates.RAIL``), the most
+   common real gap.  Graded answer (``judge``), every row of the ranking with its form, share of the
+   held-out gap removed, parameter interval (``candidates.interval_halfwidths``) and at-bound flag:
+   - the rail curve removes >= ``MIN_SHRINK`` and no effect beats it by the margin: "the rail's curve
+     differs: peak mu -2 %" (named "none", confidence "nuisance");
+   - the best effect and the rail curve both remove >= ``MIN_SHRINK`` and neither beats the other:
+     "rail or axle load: not separable in this log" (named "none", confidence "not_separable");
+   - the best effect removes >= ``MIN_SHRINK``, gains ``MIN_SCORE_GAIN`` over the nominal model, beats
+     the runner-up and the rail curve by the margin (``beats``: a held-out score better by
+     ``MIN_MARGIN`` and a remaining gap at most ``MARGIN_GAP_RATIO`` of theirs) and its fit is not at a
+     bound: named (confidence "confident");
+   - it removes >= ``MIN_SHRINK`` without that margin: "none named with confidence: most likely X"
+     ("tentative"); otherwise "none of the candidates" ("none").
+   No noise-floor test: an effect written with other equations than its candidate leaves a
+   remainder above the noise and is still the right answer when it beats every alternative.
 4. HOW FAR: held-out RMSE per signal before/after; "gap RMSE" = sqrt(max(RMSE^2 - noise floor^2, 0)),
    the part a model can remove; shrink = 1 - gap_after / gap_before.  Identification outcome (RT, peak
    errors, identified curve) on the real run vs the TCU run on the nominal and augmented models' replays.
@@ -30,20 +40,29 @@ import numpy as np
 from scipy import stats
 
 from identifier import SensorReading, TractionIdentifier
-from identifier.metrics import peak_errors, rt_percent
+from identifier.curve import peak as exp_peak
+from identifier.metrics import rt_percent
 from plant import SensorModel
 
 from ..trace import clean
-from .candidates import SIGNALS, UNITS, Context, Fit, candidates, fit_nominal
+from ..effects import EFFECTS
+from .candidates import RAIL, SIGNALS, UNITS, Context, Fit, PlantCandidate, candidates, fit_nominal
 from .model import ObserverReplica, Simulator, initial_line
 
 NONE = "none"
-MIN_SHRINK = 0.5           # fraction of the held-out gap the named effect must remove, and ...
-MAX_LEFT = 1.0             # ... what it leaves must be this close to the noise floor (noise units), or
-MAX_LEFT_FRACTION = 0.005  # ... this fraction of the nominal gap when that is huge (fit tolerance)
+MIN_SHRINK = 0.8           # fraction of the held-out gap a named effect must remove
+MIN_MARGIN = 25.0          # held-out score by which it must beat the runner-up and the nuisance, and ...
+MARGIN_GAP_RATIO = 0.5     # ... the gap it leaves must be at most this fraction of theirs, unless ...
+NOISE_GAP = 0.5            # ... theirs is already this close to the noise floor (noise units)
+FORWARD_MIN_SHARE = 0.3    # forward selection starts from a best single effect removing at least this, and
+FORWARD_MAX_SHARE = 0.9    # ... and at most this (a form that differs from its candidate's leaves up to ~8 %:
+                           #     a second effect fitted into that remainder would be a false name)
+FORWARD_MIN_REMAINDER = 0.5  # accepts a second one removing at least this fraction of what the first left
 MIN_SCORE_GAIN = 25.0      # held-out NLL + BIC penalty improvement over the nominal model
 MIN_GAP = 0.5              # combined gap (noise units) below which there is no gap to explain
                            # (measured on nominal runs: up to about 0.3 from the noise alone)
+WHERE_SIGNIFICANT = 2.0    # a stage's residual RMS (noise units) from which the gap counts as significant there
+WHERE_MIN_PERIODS = 10     # ... over at least this many periods
 CREEP_BANDS_KMH = (0.0, 0.5, 1.0, 1.5, 3.0, 10.0, math.inf)
 FREQ_BANDS_HZ = (0.0, 2.0, 10.0, 30.0, 100.0, math.inf)
 REPLAY_SEEDS = (424242, 424243, 424244, 424245, 424246)   # sensor-noise draws of the identification replays
@@ -112,6 +131,35 @@ def band_rms(x, period_s, bands) -> list[float]:
     return out
 
 
+#: effects (and parts of effects) that cannot show under a constant torque command, with the excitation
+#: that makes them show
+NEEDS_VARYING_TORQUE = {
+    "torque_lag": "a first-order torque lag acts only when the command changes",
+    "compliance.backlash_rad": "gear backlash acts only when the shaft torque changes sign",
+}
+EXCITATION = ("a torque command that varies: a PRBS dither of a few % or torque steps (the TCU's command is "
+              "constant in hil run logs)")
+
+
+def observability(input_constant: bool) -> list[dict]:
+    """What this log cannot show: under a constant command, ``NEEDS_VARYING_TORQUE``; an effect there
+    is 'not observable' (its absence from the answer says nothing), with the excitation that shows it."""
+    if not input_constant:
+        return []
+    return [{"effect": k, "why": v, "excitation": EXCITATION} for k, v in NEEDS_VARYING_TORQUE.items()]
+
+
+def peak_errors_vs_curve(theta, curve) -> dict:
+    """Peak mu and peak creep of the identified exponential curve ``theta`` and their errors (percent)
+    against the model's fault curve, whatever its law (``curve.peak()``: an exponential curve or a
+    ``PolachCurve``, which has no exponential parameter vector)."""
+    v_id, mu_id = exp_peak(theta)
+    v_true, mu_true = curve.peak()
+    return {"peak_mu_err_percent": abs(mu_id - mu_true) / abs(mu_true) * 100.0,
+            "peak_creep_err_percent": abs(v_id - v_true) / abs(v_true) * 100.0,
+            "peak_mu": mu_id, "peak_creep_kmh": v_id}
+
+
 # -- the diagnosis --------------------------------------------------------------------------------------
 class Diagnosis:
     def __init__(self, data, scenario, *, block: int = 20, max_creep_kmh: float = 8.0, identify: bool = True,
@@ -166,46 +214,44 @@ class Diagnosis:
                 fit = Fit(cand.name, {}, 1, {k: nominal[k] for k in SIGNALS}, dict(sigma), note=f"fit failed: {e}")
             fits.append(fit)
         base = self.score(ctx, nom_fit)
-        ranking = []
-        for fit in fits:
-            s = self.score(ctx, fit)
-            gain = base["score"] - s["score"]
-            shrink = 1 - s["gap"] / base["gap"] if base["gap"] > 0 else 0.0
-            ranking.append({"effect": fit.name, "params": fit.params, "k": fit.k, "score_gain": gain,
-                            "held_out_shrink": shrink, "held_out_gap": s["gap"],
-                            "held_out_gap_own_floor": s["gap_own_floor"], "note": fit.note,
-                            "per_signal": s["per_signal"]})
+        gap_present = base["gap"] >= MIN_GAP
+        # the nuisance first: the rail's fault curve scaled (only when there is a gap to explain)
+        rail, rail_fit = None, None
+        if gap_present:
+            _log(self.progress, "fitting the nuisance: the rail's fault curve (scale in mu and creep)")
+            try:
+                rail_fit = RAIL.fit(ctx, nom_fit)
+                rail = self._entry(ctx, rail_fit, base)
+            except Exception as e:  # noqa: BLE001 - reported, not fatal
+                rail = None
+                _log(self.progress, f"rail curve fit failed: {e}")
+        ranking = [self._entry(ctx, fit, base) for fit in fits]
         ranking.sort(key=lambda r: -r["score_gain"])
         best = ranking[0]
-        gap_present = base["gap"] >= MIN_GAP
-        max_left = max(MAX_LEFT, MAX_LEFT_FRACTION * base["gap"])
-        explains = best["held_out_shrink"] >= MIN_SHRINK and best["held_out_gap_own_floor"] <= max_left
-        named = best["effect"] if (gap_present and best["score_gain"] > MIN_SCORE_GAIN and explains) else NONE
-        if not gap_present:
-            verdict = (f"no significant gap: held-out residuals are within {base['gap']:.2f} noise units of the "
-                       f"sensor noise floor")
-        elif named == NONE:
-            verdict = (f"none of the candidates: the best ({best['effect']}) removes "
-                       f"{best['held_out_shrink'] * 100:.0f} % of the held-out gap and leaves "
-                       f"{best['held_out_gap_own_floor']:.2f} "
-                       f"noise units (needs >= {MIN_SHRINK * 100:.0f} % and <= {max_left:.2f}) with score gain "
-                       f"{best['score_gain']:.1f} (needs {MIN_SCORE_GAIN})")
-        else:
-            verdict = (f"{named} explains the gap: held-out gap shrinks {best['held_out_shrink'] * 100:.0f} %, "
-                       f"fitted " + ", ".join(f"{k}={v:.4g}" for k, v in best["params"].items()))
+        named, named_set, verdict, nuisances, confidence = self.judge(base, ranking, rail, gap_present)
         best_fit = next(f for f in fits if f.name == best["effect"])
+        forward = None
+        if gap_present and FORWARD_MIN_SHARE <= best["held_out_shrink"] < FORWARD_MAX_SHARE and \
+                best["held_out_gap"] > NOISE_GAP:
+            forward = self.forward(ctx, nom_fit, base, best_fit, best, rail_fit, rail)
+            if forward is not None and forward["accepted"]:
+                named, named_set, verdict, confidence = self.rejudge(named, named_set, verdict, confidence, best,
+                                                                     forward)
         shrink_table = {s: {"rmse_before": base["per_signal"][s]["rmse"], "rmse_after": best["per_signal"][s]["rmse"],
                             "gap_before": base["per_signal"][s]["gap"], "gap_after": best["per_signal"][s]["gap"],
                             "noise_floor": sigma[s], "unit": UNITS[s]} for s in SIGNALS}
+        unobservable = observability(where["input_constant"])
         out = {
-            "real_log": d.path, "model": sc.path, "periods": d.n, "analysis_periods": int(window.sum()),
+            "real_log": d.path, "real_log_source": d.source, "model": sc.path, "periods": d.n, "analysis_periods": int(window.sum()),
             "held_out_periods": int(held_mask.sum()), "block_periods": self.block,
             "noise_floor": sigma, "initial_state": {"motor_speed_rad_s": nom_fit.extra["x0"][0],
                                                     "train_speed_ms": nom_fit.extra["x0"][1]},
             "where": where,
-            "which": {"named": named, "verdict": verdict, "gap_present": gap_present,
-                      "nominal_held_out_gap": base["gap"], "ranking": ranking,
-                      "rule": {"min_shrink": MIN_SHRINK, "max_left": max_left, "min_score_gain": MIN_SCORE_GAIN,
+            "which": {"named": named, "named_set": named_set, "verdict": verdict, "gap_present": gap_present,
+                      "confidence": confidence, "nominal_held_out_gap": base["gap"], "ranking": ranking,
+                      "nuisances": nuisances, "forward": forward, "unobservable": unobservable,
+                      "rule": {"min_shrink": MIN_SHRINK, "min_score_gain": MIN_SCORE_GAIN,
+                               "margin_score": MIN_MARGIN, "margin_gap_ratio": MARGIN_GAP_RATIO,
                                "min_gap": MIN_GAP}},
             "shrink": {"effect": best["effect"], "named": named, "held_out_gap_shrink_percent":
                        best["held_out_shrink"] * 100, "per_signal": shrink_table},
@@ -228,6 +274,179 @@ class Diagnosis:
             return ctx.simulator(None, (), {}).run([], ctx.x0, d.torque_cmd_nm)
         fit = fit_nominal(ctx, pre)
         return fit.extra["plant_motor"], fit.extra["plant_train"]
+
+    def _entry(self, ctx: Context, fit: Fit, base: dict) -> dict:
+        """One ranking row: held-out score gain and shrink against the nominal model, form, interval."""
+        sc_ = self.score(ctx, fit)
+        shrink = 1 - sc_["gap"] / base["gap"] if base["gap"] > 0 else 0.0
+        spec = EFFECTS.get(fit.name)
+        return {"effect": fit.name, "form": spec.form if spec else "", "params": fit.params, "k": fit.k,
+                "score_gain": base["score"] - sc_["score"], "held_out_shrink": shrink,
+                "share": min(max(shrink, 0.0), 1.0), "held_out_gap": sc_["gap"],
+                "held_out_gap_own_floor": sc_["gap_own_floor"], "at_bound": fit.extra.get("at_bound", {}),
+                "param_ci": fit.extra.get("param_ci", {}), "note": fit.note, "per_signal": sc_["per_signal"]}
+
+    @staticmethod
+    def beats(a: dict, b: dict) -> bool:
+        """``a`` explains the held-out data better than ``b`` by the margin: a better held-out score by
+        MIN_MARGIN and a remaining gap at most MARGIN_GAP_RATIO of ``b``'s (unless ``b``'s is already
+        within the noise: then the score alone decides)."""
+        if b["score_gain"] + MIN_MARGIN > a["score_gain"]:
+            return False
+        return a["held_out_gap"] <= MARGIN_GAP_RATIO * b["held_out_gap"] or b["held_out_gap"] <= NOISE_GAP
+
+    def judge(self, base, ranking, rail, gap_present):
+        """(named, named_set, verdict, nuisances, confidence) -- see the module docstring, step 3."""
+        best = ranking[0]
+        runner = next((r for r in ranking[1:]), None)
+        nuisances = []
+        if rail is not None:
+            p = rail["params"]
+            nuisances.append({"name": "rail_curve", "params": p, "score_gain": rail["score_gain"],
+                              "held_out_shrink": rail["held_out_shrink"], "held_out_gap": rail["held_out_gap"],
+                              "at_bound": rail["at_bound"], "param_ci": rail["param_ci"],
+                              "peak_mu_percent": (p["peak_mu_scale"] - 1) * 100,
+                              "peak_creep_percent": (p["creep_scale"] - 1) * 100})
+        if not gap_present:
+            return NONE, [], (f"no significant gap: held-out residuals are within {base['gap']:.2f} noise units of "
+                              f"the sensor noise floor"), nuisances, "none"
+        desc = (f"{best['effect']} ({best['form']}) removes {best['share'] * 100:.0f} % of the held-out gap, leaves "
+                f"{best['held_out_gap']:.2f} noise units, fitted "
+                + ", ".join(f"{k}={v:.4g}" for k, v in best["params"].items()))
+        material = best["held_out_shrink"] >= MIN_SHRINK and best["score_gain"] > MIN_SCORE_GAIN
+        over_runner = runner is None or self.beats(best, runner)
+        rail_material = rail is not None and rail["held_out_shrink"] >= MIN_SHRINK and \
+            rail["score_gain"] > MIN_SCORE_GAIN
+        over_rail = rail is None or self.beats(best, rail)
+        bounded = [k for k, v in best["at_bound"].items() if v]
+        bound_note = f" (fit at its bound: {', '.join(bounded)})" if bounded else ""
+        if rail_material and (rail is not None and (not material or self.beats(rail, best))):
+            n = nuisances[0]
+            return NONE, [], (f"the rail's curve differs: peak mu {n['peak_mu_percent']:+.1f} %, peak creep "
+                              f"{n['peak_creep_percent']:+.1f} % removes {rail['share'] * 100:.0f} % of the held-out "
+                              f"gap, more than any effect (best: {desc})"), nuisances, "nuisance"
+        if material and rail_material and not over_rail:
+            return NONE, [], (f"rail or {self._what(best['effect'])}: not separable in this log (the rail's curve "
+                              f"scaled by {nuisances[0]['peak_mu_percent']:+.1f} % removes "
+                              f"{rail['share'] * 100:.0f} %, {desc})"), nuisances, "not_separable"
+        if material and over_runner and over_rail and not bounded:
+            return best["effect"], [best["effect"]], (f"{best['effect']} explains the gap: {desc}"), nuisances, \
+                "confident"
+        if material:
+            why = "its fit sits at a bound" if bounded else (
+                f"it does not beat {runner['effect']} ({runner['share'] * 100:.0f} %) by the margin" if not over_runner
+                else "it does not beat the rail-curve nuisance by the margin")
+            return NONE, [], (f"none named with confidence: most likely {desc}{bound_note}; {why}"), nuisances, \
+                "tentative"
+        return NONE, [], (f"none of the candidates: the best, {desc}, removes less than "
+                          f"{MIN_SHRINK * 100:.0f} %{bound_note}"), nuisances, "none"
+
+    # -- forward selection -----------------------------------------------------------------------------
+    def forward(self, ctx: Context, nom_fit: Fit, base: dict, first: Fit, first_row: dict, rail_fit, rail) -> dict:
+        """Second step of forward selection: every other candidate fitted on top of the first (its
+        parameters held), judged on held-out data against the first alone.  Sensor-level pairs are not
+        tried (a delay on a delay is one delay).  Accepted when the best second effect removes at least
+        ``FORWARD_MIN_REMAINDER`` of what the first left, gains ``MIN_MARGIN`` in held-out score, beats the
+        runner-up second effect by the margin and its fit is not at a bound; the pair is then compared
+        with the rail curve plus the same second effect."""
+        if first.name == "sensor_quantisation":
+            return None
+        sensor_first = "plant" not in first.extra
+        ctx2 = ctx.on_top_of(first)
+        pseudo = self._pseudo(first, nom_fit)
+        rows, fits2 = [], {}
+        for cand in candidates(self.scenario):
+            if cand.name == first.name or cand.name == "torque_lag" and self.data.torque_cmd_nm.std() < 1e-9:
+                continue
+            if sensor_first and not isinstance(cand, PlantCandidate):
+                continue
+            _log(self.progress, f"forward selection: {cand.name} on top of {first.name}")
+            try:
+                f2 = cand.fit(ctx2, pseudo)
+            except Exception:  # noqa: BLE001 - a candidate that cannot be fitted is skipped here
+                continue
+            fits2[cand.name] = f2
+            rows.append(self._entry(ctx, f2, base))
+        if not rows:
+            return None
+        rows.sort(key=lambda r: -r["score_gain"])
+        second = rows[0]
+        runner = rows[1] if len(rows) > 1 else None
+        # the first was fitted alone and absorbed part of the second: refit each on top of the other
+        # (one round of coordinate descent), keeping the refit only if it scores better
+        by_name = {c.name: c for c in candidates(self.scenario)}
+        try:
+            f2 = fits2[second["effect"]]
+            _log(self.progress, f"forward selection: refitting {first.name} on top of {f2.name}, then back")
+            f1b = by_name[first.name].fit(ctx.on_top_of(f2), self._pseudo(f2, nom_fit))
+            f2b = by_name[f2.name].fit(ctx.on_top_of(f1b), self._pseudo(f1b, nom_fit))
+            row = self._entry(ctx, f2b, base)
+            if row["score_gain"] > second["score_gain"]:
+                second = row
+                second["first_params"] = f1b.params
+        except Exception:  # noqa: BLE001 - keep the greedy pair
+            pass
+        removed = 1 - second["held_out_gap"] / first_row["held_out_gap"] if first_row["held_out_gap"] > 0 else 0.0
+        bounded = [k for k, v in second["at_bound"].items() if v]
+        accepted = (second["score_gain"] - first_row["score_gain"] >= MIN_MARGIN and removed >= FORWARD_MIN_REMAINDER
+                    and (runner is None or self.beats(second, runner)) and not bounded
+                    and second["held_out_shrink"] >= MIN_SHRINK)
+        out = {"first": first.name, "second": second["effect"], "second_form": second["form"],
+               "second_params": second["params"], "first_params": second.get("first_params", first.params),
+               "pair_held_out_shrink": second["held_out_shrink"],
+               "second_removes_of_remainder": removed, "accepted": bool(accepted),
+               "ranking": [{k: r[k] for k in ("effect", "form", "params", "score_gain", "held_out_shrink",
+                                              "held_out_gap", "at_bound")} for r in rows]}
+        if accepted and rail_fit is not None:
+            # is the first effect the rail in disguise?  the rail curve plus the same second effect
+            try:
+                cand = next(c for c in candidates(self.scenario) if c.name == second["effect"])
+                r2 = cand.fit(ctx.on_top_of(rail_fit), Fit("rail_curve", rail_fit.params, 0, rail_fit.pred,
+                                                            dict(ctx.sigma_nom), extra={
+                                                                "x0": rail_fit.extra["x0"],
+                                                                "plant_motor": rail_fit.extra["plant_motor"],
+                                                                "plant_train": rail_fit.extra["plant_train"]}))
+                row = self._entry(ctx, r2, base)
+                out["rail_pair"] = {"held_out_shrink": row["held_out_shrink"], "score_gain": row["score_gain"],
+                                    "held_out_gap": row["held_out_gap"]}
+                out["pair_vs_rail"] = ("pair" if self.beats(second, row) else
+                                       "rail" if self.beats(row, second) else "not_separable")
+            except Exception:  # noqa: BLE001
+                out["pair_vs_rail"] = "pair"
+        else:
+            out["pair_vs_rail"] = "pair"
+        return out
+
+    @staticmethod
+    def _pseudo(fit: Fit, nom_fit: Fit) -> Fit:
+        """``fit`` as the 'nominal' another candidate builds on (its plant trajectory and start)."""
+        return Fit(fit.name, fit.params, 0, fit.pred, dict(fit.sigma),
+                   extra={"x0": fit.extra["x0"],
+                          "plant_motor": fit.extra.get("plant_motor", nom_fit.extra["plant_motor"]),
+                          "plant_train": fit.extra.get("plant_train", nom_fit.extra["plant_train"])})
+
+    def rejudge(self, named, named_set, verdict, confidence, best, fw):
+        """The answer once forward selection accepted a second effect."""
+        first, second = fw["first"], fw["second"]
+        pair = (f"{second} ({fw['second_form']}) on top of {first} removes {fw['second_removes_of_remainder'] * 100:.0f} % "
+                f"of what {first} left (together {fw['pair_held_out_shrink'] * 100:.0f} % of the gap), fitted "
+                + ", ".join(f"{k}={v:.4g}" for k, v in fw["second_params"].items()))
+        if fw["pair_vs_rail"] == "rail":
+            return second, [second], (
+                f"{second} explains part of the gap and the rail's curve differs: {pair}; the rail curve with "
+                f"{second} explains it better than {first} with {second}"), "confident"
+        if fw["pair_vs_rail"] == "not_separable":
+            return second, [second], (f"{second} found, and rail or {self._what(first)}: not separable in this log; "
+                                      f"{pair}"), "confident"
+        if confidence == "tentative":
+            return second, [second], (f"{second} found; {pair}; {first} is only the most likely first effect "
+                                      f"({verdict})"), "confident"
+        return first, sorted([first, second]), (f"{first} and {second} explain the gap: {first} removes "
+                                                f"{best['share'] * 100:.0f} %; {pair}"), "confident"
+
+    @staticmethod
+    def _what(effect: str) -> str:
+        return {"load_transfer": "axle load"}.get(effect, effect)
 
     # -- scores ---------------------------------------------------------------------------------------
     def score(self, ctx: Context, fit: Fit) -> dict:
@@ -323,11 +542,53 @@ class Diagnosis:
         worst_band = max(per_band, key=lambda b: max((b[s] or 0) for s in SIGNALS) if b["periods"] else -1)
         worst_freq = max(per_freq, key=lambda b: max((b[s]["ratio"] or 0) for s in SIGNALS))
         worst_signal = max(SIGNALS, key=lambda s: per_signal[s]["rmse_in_noise_units"])
-        summary = (f"largest on {worst_signal} ({per_signal[worst_signal]['rmse_in_noise_units']:.1f}x noise), "
+        largest = (f"largest on {worst_signal} ({per_signal[worst_signal]['rmse_in_noise_units']:.1f}x noise), "
                    f"in the {worst_stage} stage, at measured creep {worst_band['creep_kmh'][0]}-"
                    f"{worst_band['creep_kmh'][1] or 'inf'} km/h, in the {worst_freq['hz'][0]}-"
                    f"{worst_freq['hz'][1] or 'Nyquist'} Hz band")
-        return {"summary": summary, "per_signal": per_signal, "per_stage": per_stage,
+        # the headline: the EARLIEST stage where the gap is significant (the serious stage amplifies any
+        # gap), and the frequency band worst within that stage's own samples, among the bands its length
+        # resolves (a band is resolved when the stage lasts at least two periods of its lower edge)
+        earliest = None
+        for i, nm in enumerate(names):
+            v = per_stage[nm]
+            if v["periods"] >= WHERE_MIN_PERIODS and max((v[s] or 0) for s in SIGNALS) >= WHERE_SIGNIFICANT:
+                earliest = (i, nm)
+                break
+        stage_where = None
+        if earliest is not None:
+            i, nm = earliest
+            sel = w & (st_meas == i)
+            dur = float(sel.sum()) * d.period_s
+            f_min = 2.0 / dur if dur > 0 else math.inf
+            sig_e = max(SIGNALS, key=lambda s: per_stage[nm][s] or 0)
+            e2 = np.random.default_rng(11).standard_normal(int(sel.sum()))
+            bands = []
+            for s_ in SIGNALS:
+                res = band_rms(np.nan_to_num(resid[s_][sel]), d.period_s, FREQ_BANDS_HZ)
+                nz = band_rms(noise["mu_hat"][:e2.size] if s_ == "mu_hat" else sig[s_] * e2, d.period_s,
+                              FREQ_BANDS_HZ)
+                for j, (lo, hi) in enumerate(zip(FREQ_BANDS_HZ[:-1], FREQ_BANDS_HZ[1:])):
+                    bands.append({"signal": s_, "hz": [lo, None if math.isinf(hi) else hi],
+                                  "ratio": res[j] / nz[j] if nz[j] > 0 else None, "resolved": lo == 0 or lo >= f_min})
+            resolved = [b for b in bands if b["resolved"] and b["ratio"] is not None and b["hz"][0] > 0]
+            worst_b = max(resolved, key=lambda b: b["ratio"]) if resolved else None
+            unresolved = sorted({b["hz"][0] for b in bands if not b["resolved"]})
+            stage_where = {"stage": nm, "signal": sig_e, "rms_in_noise_units": per_stage[nm][sig_e],
+                           "duration_s": dur, "lowest_resolved_hz": f_min, "bands": bands,
+                           "worst_band": worst_b}
+            summary = (f"first significant in the {nm} stage ({sig_e} {per_stage[nm][sig_e]:.1f}x noise over "
+                       f"{dur:.3g} s)")
+            if worst_b is not None:
+                summary += (f", there worst in the {worst_b['hz'][0]:g}-{worst_b['hz'][1] or 'Nyquist'} Hz band "
+                            f"({worst_b['signal']} {worst_b['ratio']:.1f}x the noise in that band)")
+            if unresolved:
+                summary += (f"; its {dur:.3g} s do not resolve bands below {f_min:.3g} Hz")
+            summary += f"; overall {largest}"
+        else:
+            summary = largest
+        return {"summary": summary, "largest": largest, "earliest": stage_where,
+                "per_signal": per_signal, "per_stage": per_stage,
                 "per_stage_by_model_creep": per_stage_model,
                 "t_det_measured_s": t_det(st_meas), "t_det_model_s": t_det(st_model),
                 "per_creep_band": per_band, "per_frequency_band": per_freq, "tests": tests,
@@ -348,7 +609,7 @@ class Diagnosis:
                "rt_percent": rt_percent(conf["t_s"] if conf else None, t_f, tdet),
                "params": last["params"] if last else None}
         if last:
-            out.update(peak_errors(np.asarray(last["params"]), sc.fault_curve.params))
+            out.update(peak_errors_vs_curve(np.asarray(last["params"]), sc.fault_curve))
         return out
 
     def identification(self, ctx: Context, nominal, best: Fit | None, creep_meas) -> dict:

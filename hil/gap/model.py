@@ -36,13 +36,16 @@ def initial_line(t_s, motor, train, n_fit: int = 20, n_fit_train: int = 100) -> 
 class Simulator:
     """``run(theta, x0, torque) -> (motor_rad_s, train_ms)`` at every step k (state at t_k)."""
 
-    def __init__(self, cfg, effect: str | None, fit_params: tuple[str, ...], fixed: dict, n: int):
+    def __init__(self, cfg, effect: str | None, fit_params: tuple[str, ...], fixed: dict, n: int,
+                 base: dict | None = None):
         """``effect``: a plant-level effect name or None (nominal); ``fit_params``: its parameters that
-        ``theta`` gives; ``fixed``: its other parameters."""
+        ``theta`` gives; ``fixed``: its other parameters; ``base``: plant effects {name: params} held
+        fixed underneath (forward selection builds on the effect found first)."""
         self.cfg = cfg
         self.n = n
+        self.base = {k: dict(v) for k, v in (base or {}).items()}
         self.theta = ca.SX.sym("theta", max(len(fit_params), 1))
-        effects = {}
+        effects = {k: dict(v) for k, v in self.base.items()}
         if effect is not None:
             params = dict(fixed)
             for i, name in enumerate(fit_params):
@@ -57,12 +60,13 @@ class Simulator:
 
     def initial(self, theta, x0, torque0):
         """Full initial state (extra states consistent with the nominal ones) for parameters theta."""
-        if self.effect is None:
+        if self.effect is None and not self.base:
             return np.asarray(x0, float)
-        params = {k: (float(theta[self.fit_params.index(k)]) if k in self.fit_params else v)
-                  for k, v in self._fixed_effects[self.effect].items()}
-        m = RealityModel(self.cfg, {self.effect: params})
-        return m.initial_state(x0, torque0)
+        effects = dict(self.base)
+        if self.effect is not None:
+            effects[self.effect] = {k: (float(theta[self.fit_params.index(k)]) if k in self.fit_params else v)
+                                    for k, v in self._fixed_effects[self.effect].items()}
+        return RealityModel(self.cfg, effects).initial_state(x0, torque0)
 
     def run(self, theta, x0, torque, t0: float = 0.0):
         theta = np.atleast_1d(np.asarray(theta, float)) if len(self.fit_params) else np.zeros(1)

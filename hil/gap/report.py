@@ -29,8 +29,18 @@ def text_summary(out: dict) -> str:
              + ("; input constant: no input cross-correlation test" if w["input_constant"] else ""),
              f"  WHICH: {which['verdict']}"]
     for r in which["ranking"]:
-        lines.append(f"    {r['effect']:20s} score gain {r['score_gain']:12.1f}  held-out gap shrink "
-                     f"{r['held_out_shrink'] * 100:7.1f} %  " + ", ".join(f"{k}={v:.4g}" for k, v in r["params"].items()))
+        bounds = [k for k, v in (r.get("at_bound") or {}).items() if v]
+        lines.append(f"    {r['effect']:20s} {r.get('form', ''):18s} score gain {r['score_gain']:12.1f}  held-out gap "
+                     f"shrink {r['held_out_shrink'] * 100:7.1f} %  " + ", ".join(
+                         f"{k}={v:.4g}" + (f" [{_f((r.get('param_ci') or {}).get(k, [None])[0], '.3g')}, "
+                                           f"{_f((r.get('param_ci') or {}).get(k, [None, None])[1], '.3g')}]"
+                                           if (r.get("param_ci") or {}).get(k) else "")
+                         for k, v in r["params"].items()) + (f"  AT BOUND: {', '.join(bounds)}" if bounds else ""))
+    for u in which.get("unobservable", []):
+        lines.append(f"    not observable in this log: {u['effect']} ({u['why']}); shows with {u['excitation']}")
+    for n in which.get("nuisances", []):
+        lines.append(f"    nuisance {n['name']}: peak mu {n['peak_mu_percent']:+.2f} %, peak creep "
+                     f"{n['peak_creep_percent']:+.2f} %, held-out gap shrink {n['held_out_shrink'] * 100:.1f} %")
     lines.append(f"  HOW FAR ({sh['effect']}{'' if sh['named'] != 'none' else ', not named'}): held-out gap "
                  f"shrink {sh['held_out_gap_shrink_percent']:.1f} %")
     for s, v in sh["per_signal"].items():
@@ -133,8 +143,8 @@ def write_report(out: dict, dg, directory) -> Path:
     ax.barh([r["effect"] for r in rk][::-1], [r["held_out_shrink"] * 100 for r in rk][::-1],
             color=["tab:green" if r["effect"] == out["which"]["named"] else "0.6" for r in rk][::-1])
     ax.axvline(out["which"]["rule"]["min_shrink"] * 100, color="k", ls="--", lw=0.8)
-    ax.set_xlabel("held-out gap shrink [%] (dashed: minimum to name an effect; the remainder must also "
-                  "be near the noise floor)", fontsize=8)
+    ax.set_xlabel("held-out gap shrink [%] (dashed: minimum to name an effect; it must also beat the runner-up "
+                  "and the rail-curve nuisance by a margin)", fontsize=8)
     ax.set_xlim(-20, 105)
     fig.tight_layout()
     fig.savefig(d / "which.png", dpi=110)
