@@ -176,3 +176,10 @@ def test_bench_identify_on_two_workers_gives_the_serial_verdicts(capsys):
         return [strip(v) for v in x] if isinstance(x, list) else x
 
     assert strip(serial) == strip(dask)
+    # the --cases mode (Table 3: the paper's curves, fixed seeds): the same summaries on 2 workers
+    args = ["bench", "identify", "--cases", "ffcc_a", "--seeds", "2", "--first-seed", str(seed % 1000 + 1),
+            "--strategies", "proposed", "--oracle-draws", "50", "--json"]
+    assert main(args) == 0
+    serial = json.loads(capsys.readouterr().out)
+    assert main(args + ["--workers", "2"]) == 0
+    assert strip(serial) == strip(json.loads(capsys.readouterr().out))

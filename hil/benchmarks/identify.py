@@ -87,9 +87,9 @@ def register(sub) -> None:
                    help="override a scenario field for every case, e.g. --set identifier.settle_time_s=0.006")
     p.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
     p.add_argument("--plots", metavar="DIR", default=None, help="write PNG figures (first seed) to DIR")
-    p.add_argument("--scheduler", metavar="ADDRESS", default=None, help="with --family: run the draws on this Dask "
-                   "cluster (tcp://HOST:PORT; hil sweep's engine); the same verdicts as the serial run")
-    p.add_argument("--workers", type=int, default=None, help="with --family: run the draws on a local Dask cluster "
+    p.add_argument("--scheduler", metavar="ADDRESS", default=None, help="run the draws (--family) or the case seeds "
+                   "on this Dask cluster (tcp://HOST:PORT; hil sweep's engine); the same verdicts as the serial run")
+    p.add_argument("--workers", type=int, default=None, help="run the draws or case seeds on a local Dask cluster "
                    "of this many worker processes (default: serially in this process); costs are then timed "
                    "with the workers side by side")
     p.set_defaults(func=cmd_identify)
@@ -409,8 +409,6 @@ def cmd_identify(args) -> int:
     overrides = parse_set(args.set)
     if args.family is not None:
         return cmd_family(args, strategies, overrides)
-    if args.scheduler is not None or args.workers is not None:
-        raise ConfigError("--scheduler / --workers: with --family only (--cases runs in this process)")
     cases = [c.strip() for c in args.cases.split(",") if c.strip()]
     scenarios = {}
     for c in cases:
@@ -430,24 +428,24 @@ def cmd_identify(args) -> int:
             raise ConfigError(f"--oracle-family {args.oracle_family!r}: unknown family (known: "
                               f"{', '.join(families.FAMILIES)})")
     bar = Progress(len(cases) * len(seeds) * (len(strategies) + 1), "bench identify", None)
-    done = 0
-    for c in cases:
-        for seed in seeds:
-            data = generate(scenarios[c], seed)
-            done += 1
-            bar.update(done, f"{c} seed {seed}")
+    keys = [(c, seed) for c in cases for seed in seeds]
+    jobs = [(scenarios[c], seed, strategies, args.particles, args.oracle_family, args.oracle_draws) for c, seed in keys]
+    # one (case, seed) per call, serially here or on Dask (--scheduler / --workers): the same summaries
+    outs = map_in_order(case_seed, jobs, args.scheduler, args.workers,
+                        lambda n, i: bar.update(n * (len(strategies) + 1), f"{keys[i][0]} seed {keys[i][1]}"))
+    for (c, seed), out in zip(keys, outs):
+        for strat in strategies:
+            per_seed[strat][c].append(out["summaries"][strat])
+        if out["oracle"] is not None:
+            oracle_rts[c].append(out["oracle"]["oracle_rt_percent"])
+            for strat in strategies:
+                per_seed[strat][c][-1]["oracle_rt_percent"] = out["oracle"]["oracle_rt_percent"]
+    if args.plots:          # the first seed's runs again, here: the figures need the identifiers themselves
+        for c in cases:
+            data = generate(scenarios[c], seeds[0])
             for strat in strategies:
                 summary, ident = replay(data, strat, args.particles)
-                per_seed[strat][c].append(summary)
-                if seed == seeds[0]:
-                    first_runs[c][strat] = (summary, ident, data)
-                done += 1
-                bar.update(done, f"{c} seed {seed} {strat}")
-            if args.oracle_draws:
-                o = run_oracle(data, args.oracle_family, [seed, 1], args.oracle_draws)
-                oracle_rts[c].append(o["oracle_rt_percent"])
-                for strat in strategies:
-                    per_seed[strat][c][-1]["oracle_rt_percent"] = o["oracle_rt_percent"]
+                first_runs[c][strat] = (summary, ident, data)
     bar.close()
     results = {s: {c: aggregate(per_seed[s][c]) for c in cases} for s in strategies}
     for per_case in results.values():
@@ -465,6 +463,16 @@ def cmd_identify(args) -> int:
     else:
         print(table(results, cases, len(seeds)))
     return 0
+
+
+def case_seed(job) -> dict:
+    """One seed of one ``--cases`` scenario: its plant run, every strategy fed and summarised, the
+    oracle.  Plain data in and out, so it runs on a Dask worker as well as here."""
+    scenario, seed, strategies, particles, oracle_family, oracle_draws = job
+    data = generate(scenario, seed)
+    summaries = {strat: replay(data, strat, particles)[0] for strat in strategies}
+    oracle = run_oracle(data, oracle_family, [seed, 1], oracle_draws) if oracle_draws else None
+    return {"summaries": summaries, "oracle": oracle}
 
 
 def run_oracle(data: CaseData, family: str, seed, draws: int) -> dict:
