@@ -607,7 +607,9 @@ class Diagnosis:
         out = {"identified": conf is not None, "t_det_s": tdet,
                "t_identified_s": conf["t_s"] if conf else None,
                "rt_percent": rt_percent(conf["t_s"] if conf else None, t_f, tdet),
-               "params": last["params"] if last else None}
+               "params": last["params"] if last else None,
+               # the same keys whether or not the run published a curve (None: no curve to judge)
+               "peak_mu_err_percent": None, "peak_creep_err_percent": None, "peak_mu": None, "peak_creep_kmh": None}
         if last:
             out.update(peak_errors_vs_curve(np.asarray(last["params"]), sc.fault_curve))
         return out
