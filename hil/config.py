@@ -47,6 +47,9 @@ class BusSettings:
     rt_priority: int = 0                  # realtime: SCHED_FIFO priority for plant, hub and TCU (0: off)
     cpu_affinity_plant: tuple = ()        # realtime: CPUs the plant process runs on (empty: no setting)
     cpu_affinity_tcu: tuple = ()          # realtime: CPUs the TCU process runs on (empty: no setting)
+    auth: str = "auto"                    # frame authentication (hil/secoc.py): "on", "off", or "auto": on
+                                          # for the embedded buses (local, localbus, inprocess), off otherwise
+    auth_key_file: str = ""               # the key (32 hex digits); "": a new key per run, made by the run
 
 
 @dataclass(frozen=True)
@@ -393,6 +396,9 @@ def parse_scenario(text: str, path: str = "<scenario>", overrides: dict | None =
     return scenario
 
 
+AUTH_MODES = ("auto", "on", "off")
+
+
 def _bus(path, data) -> BusSettings:
     table = data.get("bus", {})
     if not isinstance(table, dict):
@@ -402,6 +408,16 @@ def _bus(path, data) -> BusSettings:
     for key, value in table.items():
         if key not in fields:
             raise _fail(path, f"[bus] {key}", f"unknown key (known: {', '.join(fields)})")
+        if key == "auth":
+            if value not in AUTH_MODES:
+                raise _fail(path, "[bus] auth", f"must be one of {', '.join(AUTH_MODES)}, got {value!r}")
+            values[key] = value
+            continue
+        if key == "auth_key_file":
+            if not isinstance(value, str):
+                raise _fail(path, "[bus] auth_key_file", f"must be a path (a string), got {value!r}")
+            values[key] = value
+            continue
         if key.startswith("cpu_affinity_"):
             if not isinstance(value, list) or any(isinstance(c, bool) or not isinstance(c, int) or not 0 <= c < 4096
                                                   for c in value):

@@ -49,11 +49,12 @@ import numpy as np
 from identifier.messages import TorqueCommand
 
 from .effects import TRUTH_KEY
-from .errors import BusError, DeadlinesMissed, LogWriteError, PeerSilent
+from .errors import BusError, ConfigError, DeadlinesMissed, LogWriteError, PeerSilent
 from .frames import DBC_PATH, STATE_FAULT, STATE_FINISHED, FrameCodec, bus_load, format_bus_load
-from .link import MODES, GuardedBus, die_with_parent, open_bus
+from .link import MODES, GuardedBus, die_with_parent, open_bus, resolve
 from .plant_node import PlantNode, PlantRig
 from .progress import Progress
+from .secoc import EMBEDDED_BUSES, node_key, write_key
 from .record import interrupts_between_writes, log_path, prepare_out_dir, start_recording, write_timing
 from .tcu_node import TcuNode, set_cpu_affinity
 from .trace import Trace, clean
@@ -289,6 +290,33 @@ def _log_path(scenario, strategy, seed, out_dir, plant_label, log) -> Path:
     return path
 
 
+def authenticate(scenario, bus: str, transport: str, key_dir, log) -> tuple[object, list[str]]:
+    """The scenario with its ``[bus] auth`` resolved for this run (``hil/secoc.py``), and the ``--set``
+    items that give the TCU process the same: ``auto`` is on for the embedded buses and off for the
+    others; on, without a key file, a new key is written in ``key_dir`` (readable by this user only).
+    An external TCU cannot be handed a key: ``auto`` is off there (with a warning), ``on`` needs the
+    key file both sides read."""
+    settings = scenario.bus
+    mode = settings.auth
+    if mode == "auto":
+        if transport == "external" and not settings.auth_key_file:
+            log("warning: frames are not authenticated (an external TCU: give both sides [bus] auth_key_file "
+                "to authenticate)")
+            mode = "off"
+        else:
+            mode = "on" if resolve(bus).split(":")[0] in EMBEDDED_BUSES or settings.auth_key_file else "off"
+    key_file = settings.auth_key_file
+    if mode == "on" and not key_file:
+        if transport == "external":
+            raise ConfigError("bus.auth = \"on\" with an external TCU needs bus.auth_key_file (the key both sides "
+                              "read)")
+        key_file = str(write_key(Path(key_dir) / "frames.key"))
+    scenario = dataclasses.replace(scenario, bus=dataclasses.replace(settings, auth=mode, auth_key_file=key_file))
+    node_key(scenario.bus)                      # a bad key file fails here, before anything starts
+    items = [f"bus.auth={json.dumps(mode)}"] + ([f"bus.auth_key_file={json.dumps(key_file)}"] if key_file else [])
+    return scenario, items
+
+
 def run(scenario, strategy: str = "nlls", seed: int | None = None, *, bus: str = "auto", mode: str = "lockstep",
         external_tcu: bool = False, out_dir=None, record: bool = True, progress: bool | None = None,
         set_args=None, plant=None, plant_label: str | None = None, log=None) -> dict:
@@ -312,6 +340,12 @@ def run(scenario, strategy: str = "nlls", seed: int | None = None, *, bus: str =
                     settings.data_bitrate)
     path = _log_path(scenario, strategy, seed, out_dir, plant_label, log) if record else None
     tcu = Tcu("inprocess" if bus == "inprocess" else ("external" if external_tcu else "process"))
+    try:
+        key_dir = tempfile.TemporaryDirectory(prefix="hil-key-")
+    except OSError as e:     # a full disk
+        raise LogWriteError(f"cannot create a temporary directory for the frame key: {e.strerror or e}") from None
+    scenario, auth_items = authenticate(scenario, bus, tcu.transport, key_dir.name, log)
+    set_args = [*(set_args or []), *auth_items]
     trace = Trace(scenario)
     rec = node = timing = summary = None
     wall = 0.0
@@ -322,7 +356,8 @@ def run(scenario, strategy: str = "nlls", seed: int | None = None, *, bus: str =
             extra={"mode": mode, "transport": tcu.transport, "plant": plant_label or "casadi",
                    "reality": scenario.extra.get("reality") or None, "wall_s": wall,
                    "sim_s": node.t_s if node else 0.0, "sim_s_per_wall_s": node.t_s / wall if node and wall else None,
-                   "bus_load_percent": load["load_percent"], **(node.counters() if node else {}),
+                   "bus_load_percent": load["load_percent"],
+                   "frame_auth": scenario.bus.auth, **(node.counters() if node else {}),
                    **(timing.summary(node.late_commands) if timing else {}), **extra}))
 
     if mode == "realtime":
@@ -396,6 +431,7 @@ def run(scenario, strategy: str = "nlls", seed: int | None = None, *, bus: str =
                         rec.close(_recorded(summary))
             finally:                                     # a log that cannot be closed still stops the TCU
                 tcu.close()
+                key_dir.cleanup()
                 if old_sched is not None:
                     os.sched_setscheduler(0, *old_sched)
     return summary

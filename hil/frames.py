@@ -2,8 +2,11 @@
 
 ``FrameCodec`` maps ``identifier.messages`` dataclasses to ``can.Message`` and back.  Every received
 frame goes through ``FrameCodec.classify``: it either yields a decoded ``Frame`` or a rejection
-reason (unknown id, wrong length, error/remote frame, undecodable, non-finite or out-of-range
-signal).  Rejected frames are counted by reason (``RejectCounter``) and never reach the identifier.
+reason (unknown id, wrong length, error/remote frame, ``forged`` or ``replayed`` when the codec
+authenticates (``hil/secoc.py``), undecodable, non-finite or out-of-range signal).  Rejected frames
+are counted by reason (``RejectCounter``) and never reach the identifier.  Every frame ends with the
+authentication trailer (``AuthFreshness``, ``AuthMac``); a codec without an ``Authenticator`` sends it
+zeroed and does not read it.
 
 Frame schedule per exchange period: PlantSensor (plant -> TCU), then TorqueCommand, TcuSample (0..n,
 one per sample the strategy took), TcuResult (0..n, only on an identification event, each followed by its
@@ -36,12 +39,14 @@ STATE_STARTING, STATE_RUNNING, STATE_FINISHED, STATE_FAULT = 0, 1, 2, 3
 STATE_NAMES = {STATE_STARTING: "starting", STATE_RUNNING: "running", STATE_FINISHED: "finished",
                STATE_FAULT: "fault"}
 
-MAX_PARAMS = 6
+MAX_PARAMS = 5
 KINDS = ("correction", "confirmed", "unconfirmed")
 #: the coverage of the intervals a TCU sends with each result
 INTERVAL_LEVEL_PERCENT = 90
 #: signals allowed to be non-finite (J_EF is inf before the 2nd correction and NaN on confirmation)
 NON_FINITE_OK = frozenset({"JEf"})
+#: the authentication trailer's signals (every frame's last; hil/secoc.py)
+AUTH_SIGNALS = ("AuthFreshness", "AuthMac")
 
 
 def load_dbc() -> cantools.database.can.Database:
@@ -92,9 +97,11 @@ class RejectCounter(Counter):
 
 
 class FrameCodec:
-    """Encode/decode between frames and ``identifier.messages`` dataclasses, through the DBC."""
+    """Encode/decode between frames and ``identifier.messages`` dataclasses, through the DBC.
+    ``auth``: the key (16 bytes) this node authenticates with (``hil/secoc.py``); None: it fills the
+    trailer with zeros and does not check it."""
 
-    def __init__(self, period_s: float, db=None):
+    def __init__(self, period_s: float, db=None, auth=None):
         self.db = db or load_dbc()
         self.period_s = period_s
         self._by_id = {m.frame_id: m for m in self.db.messages}
@@ -103,13 +110,23 @@ class FrameCodec:
         for fid, name in expected.items():
             if fid not in self._by_id or self._by_id[fid].name != name:
                 raise ValueError(f"{DBC_NAME}: frame 0x{fid:X} must be {name}")
-        self._limits = {fid: [(s.name, s.is_float, s.minimum, s.maximum) for s in m.signals]
+        self._limits = {fid: [(s.name, s.is_float, s.minimum, s.maximum) for s in m.signals
+                              if s.name not in AUTH_SIGNALS]
                         for fid, m in self._by_id.items()}
+        #: where each frame's authentication trailer starts (bytes)
+        self.trailer_offsets = {fid: m.get_signal_by_name(AUTH_SIGNALS[0]).start // 8
+                                for fid, m in self._by_id.items()}
+        self.auth = None
+        if auth is not None:
+            from .secoc import Authenticator
+            self.auth = Authenticator(auth, self.trailer_offsets)
 
     # -- encoding ------------------------------------------------------------------------------
     def _msg(self, fid: int, values: dict) -> can.Message:
         m = self._by_id[fid]
-        data = m.encode(values, scaling=True, padding=False, strict=False)
+        data = m.encode({**values, "AuthFreshness": 0, "AuthMac": 0}, scaling=True, padding=False, strict=False)
+        if self.auth is not None:
+            data = self.auth.protect(fid, bytes(data))
         return can.Message(arbitration_id=fid, data=data, is_extended_id=False, is_fd=True, bitrate_switch=True)
 
     def sensor(self, r: SensorReading) -> can.Message:
@@ -163,6 +180,19 @@ class FrameCodec:
                                             "TcuStep": max(step, 0)})
 
     # -- decoding ------------------------------------------------------------------------------
+    def upgrade(self, msg: can.Message) -> can.Message:
+        """A frame recorded before the DBC had the authentication trailer (its length then ended where
+        the trailer now starts) as today's frame: the same bytes, a zero trailer.  Any other frame is
+        returned as it is.  For replaying old logs (``hil replay``, ``hil gap``); never on a live bus."""
+        at = self.trailer_offsets.get(msg.arbitration_id)
+        m = self._by_id.get(msg.arbitration_id)
+        if at is None or msg.is_extended_id or msg.is_remote_frame or msg.is_error_frame or len(msg.data) != at \
+                or m.length == at:
+            return msg
+        data = bytes(msg.data) + bytes(m.length - at)
+        return can.Message(timestamp=msg.timestamp, arbitration_id=msg.arbitration_id, data=data,
+                           is_extended_id=False, is_fd=True, bitrate_switch=msg.bitrate_switch, channel=msg.channel)
+
     def classify(self, msg: can.Message) -> tuple[Frame | None, str]:
         """(Frame, "ok") for a valid frame, else (None, reason).  Never raises."""
         try:
@@ -183,6 +213,10 @@ class FrameCodec:
         data = bytes(msg.data)
         if len(data) != m.length:
             return None, "bad_length"
+        if self.auth is not None:
+            verdict = self.auth.verify(m.frame_id, data)
+            if verdict != "ok":
+                return None, verdict
         values = m.decode(data, decode_choices=False, scaling=True)
         for name, is_float, lo, hi in self._limits[m.frame_id]:
             x = values[name]

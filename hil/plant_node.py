@@ -22,6 +22,7 @@ from .effects import Reality
 from .errors import NoProgress, PeerSilent
 from .frames import STATE_FAULT, STATE_RUNNING, STATE_STARTING, TCU_IDS, FrameCodec, RejectCounter
 from .link import Sender, heartbeat_period_s, silence_limit_s
+from .secoc import node_key
 from .record import (Recorder, write_command, write_frame, write_identification, write_plant_state, write_sensor,
                      write_status)
 from .trace import Trace
@@ -86,7 +87,8 @@ class PlantNode:
         self.trace = rig.trace
         self.rec = rig.recorder
         self.period_s = scenario.run.exchange_period_s
-        self.codec = FrameCodec(self.period_s)
+        self.codec = FrameCodec(self.period_s, auth=node_key(scenario.bus))
+        self._plain_codec = FrameCodec(self.period_s, self.codec.db)     # checks own frames, no freshness
         self.bus = bus
         self.sender = Sender(bus)
         self.mode = mode
@@ -131,14 +133,15 @@ class PlantNode:
     def send_sensor(self) -> None:
         """Sense the plant at its current step and send the reading; that step's command is awaited."""
         self.awaited = self.rig.step
-        self._sensor_msg = self.codec.sensor(self.rig.sense())
+        self._sensor_reading = self.rig.sense()
+        self._sensor_msg = self.codec.sensor(self._sensor_reading)
         self.send(self._sensor_msg)
 
     def resend_sensor(self) -> None:
-        """The pending step's sensor frame once more (lockstep progress deadline, ``await_command``)."""
-        m = self._sensor_msg
-        self.send(can.Message(arbitration_id=m.arbitration_id, data=bytes(m.data), is_extended_id=m.is_extended_id,
-                              is_fd=m.is_fd, bitrate_switch=m.bitrate_switch))
+        """The pending step's reading once more (lockstep progress deadline, ``await_command``), in a
+        new frame: with authentication the same frame again would be a replay."""
+        self._sensor_msg = self.codec.sensor(self._sensor_reading)
+        self.send(self._sensor_msg)
 
     def heartbeat(self, state: int) -> None:
         self.send(self.codec.plant_heartbeat(self.hb_counter, state, max(self.awaited, 0)))
@@ -341,7 +344,7 @@ class PlantNode:
     def _no_progress_cause(self, k: int, rejected_before: dict) -> str:
         """The likely reason step ``k`` got no command: the sensor frame itself (the TCU validates it
         against the DBC as this side can), the TCU's heartbeat step, the frames rejected here."""
-        frame, status = self.codec.classify(self._sensor_msg)
+        frame, status = self._plain_codec.classify(self._sensor_msg)
         if frame is None:
             kind, _, signal = status.partition(":")
             m = self.codec.db.get_message_by_frame_id(self._sensor_msg.arbitration_id)

@@ -79,10 +79,11 @@ def load_mcap(path, scenario_file=None) -> ReplaySource:
         seed = None
     frames, sensor, truth, events, status_steps = [], [], [], [], []
     has_ident_topic = False
+    upgrade = FrameCodec(scenario.run.exchange_period_s).upgrade     # frames of logs before the trailer
     for topic, _, m in log.messages:
         if topic == "/can/frames":
             if m.direction == "tx" and m.arbitration_id == SENSOR_ID:
-                frames.append(_msg_from_record(m))
+                frames.append(upgrade(_msg_from_record(m)))
         elif topic == "/plant/sensor":
             sensor.append(SensorReading(int(m.step), m.motor_speed_rad_s, m.train_speed_ms))
         elif topic == "/plant/state":
@@ -123,9 +124,9 @@ def load_can_log(path, scenario_file) -> ReplaySource:
             for msg in reader:
                 n += 1
                 if msg.arbitration_id == SENSOR_ID and not msg.is_extended_id:
-                    frames.append(msg)
+                    frames.append(codec.upgrade(msg))
                 elif msg.arbitration_id == RESULT_ID and not msg.is_extended_id:
-                    frame, status = codec.classify(msg)
+                    frame, status = codec.classify(codec.upgrade(msg))
                     if frame is not None:
                         e = frame.value
                         events.append((e.step, e.kind, e.correction, tuple(e.params)))
@@ -189,7 +190,8 @@ def replay(src: ReplaySource, strategy: str | None = None, seed: int | None = No
     strategy = strategy or src.logged_strategy or "nlls"
     seed = seed if seed is not None else (src.logged_seed if src.logged_seed is not None else scenario.run.seed)
     period = scenario.run.exchange_period_s
-    node = TcuNode(scenario, strategy, seed)
+    # the logged frames' MACs are of the run's key and freshness: a replay reads them unauthenticated
+    node = TcuNode(scenario, strategy, seed, codec=FrameCodec(period))
     trace = Trace(scenario)
     for t_s, creep, mu in src.truth:
         trace.plant(int(round(t_s / period)), t_s, creep, mu)

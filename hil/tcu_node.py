@@ -31,6 +31,7 @@ from .errors import EXIT_INTERRUPTED, EXIT_OK, BusError, ConfigError, HilError, 
 from .frames import (PLANT_IDS, SENSOR_ID, STATE_FAULT, STATE_FINISHED, STATE_NAMES, STATE_RUNNING, STATE_STARTING,
                      FrameCodec, RejectCounter, SampleReport)
 from .link import GuardedBus, Sender, heartbeat_period_s, silence_limit_s
+from .secoc import node_key
 
 #: a sensor step may jump ahead by at most this many periods (frames lost); beyond it is garbage
 MAX_STEP_GAP = 100
@@ -41,7 +42,7 @@ class TcuNode:
 
     def __init__(self, scenario, strategy: str, seed: int, codec: FrameCodec | None = None):
         self.settings = scenario.identifier_settings()
-        self.codec = codec or FrameCodec(scenario.run.exchange_period_s)
+        self.codec = codec or FrameCodec(scenario.run.exchange_period_s, auth=node_key(scenario.bus))
         self.identifier = TractionIdentifier(self.settings, strategy, seed)
         self.rejected = RejectCounter()
         self.last_step = -1

@@ -26,6 +26,8 @@ from identifier.messages import SensorReading
 from .conftest import ROOT, hil, hil_command, subprocess_env
 
 HEARTBEATS = {PLANT_HEARTBEAT_ID, TCU_HEARTBEAT_ID}
+#: where each frame's authentication trailer starts, from the DBC
+TRAILER_AT = {m.frame_id: m.get_signal_by_name("AuthFreshness").start // 8 for m in load_dbc().messages}
 IDENT_KEYS = ("identified", "t_identified_s", "t_detected_s", "t_serious_s", "corrections", "params", "samples",
               "mse", "rmse", "mae", "r2", "peak_mu_err_percent", "peak_creep_err_percent", "observer_lag_ms")
 
@@ -44,10 +46,16 @@ def run_json(scenario_args, bus, out, *extra, timeout=600):
 
 
 def data_streams(mcap_path):
-    """(tx, rx): the (id, payload) of every valid non-heartbeat frame the plant sent / received, in order."""
+    """(tx, rx): the (id, payload) of every valid non-heartbeat frame the plant sent / received, in order,
+    the authentication trailer zeroed (its MAC is of a key made for each run, hil/secoc.py)."""
     frames = read_log(mcap_path, {"/can/frames"}).topic("/can/frames")
-    tx = [(f.arbitration_id, f.data) for f in frames if f.direction == "tx" and f.arbitration_id not in HEARTBEATS]
-    rx = [(f.arbitration_id, f.data) for f in frames
+
+    def payload(f):
+        at = TRAILER_AT[f.arbitration_id]
+        return bytes(f.data[:at]) + bytes(8) + bytes(f.data[at + 8:])
+
+    tx = [(f.arbitration_id, payload(f)) for f in frames if f.direction == "tx" and f.arbitration_id not in HEARTBEATS]
+    rx = [(f.arbitration_id, payload(f)) for f in frames
           if f.direction == "rx" and f.status == "ok" and f.arbitration_id not in HEARTBEATS]
     return tx, rx
 
@@ -225,11 +233,12 @@ def test_garbage_on_the_hub_is_counted_on_both_sides_and_changes_nothing(tmp_pat
             can.Message(arbitration_id=0x123, data=b"\xde\xad\xbe\xef", is_extended_id=False),
             can.Message(arbitration_id=0x1FFFFFFF, data=b"\x00", is_extended_id=True),
             can.Message(arbitration_id=0x100, data=bytes(8), is_extended_id=False),
-            can.Message(arbitration_id=0x100, data=struct.pack("<Idd", 3, nan, 10.0) + bytes(4), is_fd=True,
+            can.Message(arbitration_id=0x100, data=struct.pack("<Idd", 3, nan, 10.0) + bytes(12), is_fd=True,
                         is_extended_id=False),
-            can.Message(arbitration_id=0x100, data=struct.pack("<Idd", 3, 60.0, math.inf) + bytes(4), is_fd=True,
+            can.Message(arbitration_id=0x100, data=struct.pack("<Idd", 3, 60.0, math.inf) + bytes(12), is_fd=True,
                         is_extended_id=False),
-            can.Message(arbitration_id=0x110, data=struct.pack("<Id", 3, 1e12), is_fd=True, is_extended_id=False),
+            can.Message(arbitration_id=0x110, data=struct.pack("<Id", 3, 1e12) + bytes(8), is_fd=True,
+                        is_extended_id=False),
             can.Message(arbitration_id=0x702, data=bytes(3), is_extended_id=False),
         ]
         sent = 0

@@ -28,10 +28,16 @@ def fd(fid, data, **kw):
 def test_dbc_declares_can_fd_frames_with_fixed_ids():
     db = cantools.database.load_file(str(DBC_PATH))
     by_name = {m.name: m for m in db.messages}
-    assert by_name["PlantSensor"].frame_id == 0x100 and by_name["PlantSensor"].length == 24
-    assert by_name["TorqueCommand"].frame_id == 0x110 and by_name["TorqueCommand"].length == 12
-    assert by_name["TcuStatus"].length == 32 and by_name["TcuResult"].length == 64
+    assert by_name["PlantSensor"].frame_id == 0x100 and by_name["PlantSensor"].length == 32
+    assert by_name["TorqueCommand"].frame_id == 0x110 and by_name["TorqueCommand"].length == 20
+    assert by_name["TcuStatus"].length == 48 and by_name["TcuResult"].length == 64
     assert all(m.is_fd for m in db.messages)
+    # every frame ends its signals with the 8-byte authentication trailer (hil/secoc.py)
+    for m in db.messages:
+        fv, mac = m.get_signal_by_name("AuthFreshness"), m.get_signal_by_name("AuthMac")
+        assert (fv.length, mac.length, mac.start) == (16, 48, fv.start + 16), m.name
+        assert all(s.start + s.length <= fv.start for s in m.signals if s not in (fv, mac)), m.name
+        assert fv.start + 64 <= 8 * m.length, m.name
     # measured speeds travel as IEEE doubles: the bus adds no quantisation
     assert by_name["PlantSensor"].get_signal_by_name("MotorSpeed").is_float
     assert by_name["PlantSensor"].get_signal_by_name("MotorSpeed").length == 64
@@ -95,7 +101,7 @@ def test_result_frame_carries_inf_and_nan_scores(codec):
 
 
 def _sensor_bytes(step, omega, v):
-    return struct.pack("<Idd", step, omega, v) + bytes(4)
+    return struct.pack("<Idd", step, omega, v) + bytes(4) + bytes(8)     # + the (zero) authentication trailer
 
 
 @pytest.mark.parametrize("msg, reason", [
@@ -108,8 +114,8 @@ def _sensor_bytes(step, omega, v):
     (fd(0x100, _sensor_bytes(1, 60.0, math.inf)), "non_finite:TrainSpeed"),
     (fd(0x100, _sensor_bytes(1, 60.0, -math.inf)), "non_finite:TrainSpeed"),
     (fd(0x100, _sensor_bytes(1, 1e6, 10.0)), "out_of_range:MotorSpeed"),
-    (fd(0x110, struct.pack("<Id", 1, 1e9)), "out_of_range:TorqueCmd"),
-    (fd(0x120, struct.pack("<IBBHddd", 1, 9, 1, 0, 0.1, 1.0, 10.0)), "out_of_range:Stage"),
+    (fd(0x110, struct.pack("<Id", 1, 1e9) + bytes(8)), "out_of_range:TorqueCmd"),
+    (fd(0x120, struct.pack("<IBBHddd", 1, 9, 1, 0, 0.1, 1.0, 10.0) + bytes(16)), "out_of_range:Stage"),
     (can.Message(arbitration_id=0x701, is_remote_frame=True, dlc=8, is_extended_id=False), "remote_frame"),
     (can.Message(arbitration_id=0x702, is_error_frame=True, is_extended_id=False), "error_frame"),
 ])
@@ -191,7 +197,7 @@ def test_bus_load_of_the_schedule():
     lengths = {m.frame_id: m.length for m in db.messages}
     load = bus_load(db, 1e-3, 2e-3, 1_000_000, 5_000_000)
     per_period = sum(fd_frame_time_s(lengths[i], 1_000_000, 5_000_000) for i in (0x100, 0x110, 0x120))
-    per_hb = sum(fd_frame_time_s(8, 1_000_000, 5_000_000) for _ in range(2))
+    per_hb = sum(fd_frame_time_s(16, 1_000_000, 5_000_000) for _ in range(2))
     assert load["load_percent"] == pytest.approx(100 * (per_period / 1e-3 + per_hb / 2e-3))
     slow = bus_load(db, 1e-3, 2e-3, 250_000, 1_000_000)
     assert slow["load_percent"] > 70 > load["load_percent"]

@@ -25,7 +25,8 @@ def test_replayed_and_forged_frames_are_counted_in_the_summary_and_warned_in_the
     try:
         proc = subprocess.Popen(hil_command() + ["run", "scenarios/ffcc_a.toml", "--bus", f"localbus:{channel}",
                                                  "--out", str(tmp_path), "--no-rrd", "--json",
-                                                 "--set", "run.duration_s=3", "--set", "run.fault_time_s=2.5"],
+                                                 "--set", "run.duration_s=3", "--set", "run.fault_time_s=2.5",
+                                                 "--set", "bus.auth=off"],
                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=subprocess_env(),
                                 cwd=ROOT)
         codec = FrameCodec(1e-3)

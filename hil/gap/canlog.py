@@ -73,7 +73,7 @@ def read_can_log(path, period_s: float) -> tuple[dict, dict, dict, list, dict]:
                 if msg.arbitration_id not in WANTED or msg.is_extended_id:
                     skipped["other_id"] += 1
                     continue
-                frame, status = codec.classify(msg)
+                frame, status = codec.classify(codec.upgrade(msg))
                 if frame is None:
                     skipped[f"{hex(msg.arbitration_id)}:{status}"] += 1
                     continue
