@@ -130,11 +130,12 @@ GARBAGE = [
     "123#DEADBEEF",                                                          # unknown id
     "1FFFFFFF#00",                                                           # extended id
     "100#0011223344556677",                                                  # sensor id, classic 8 bytes
-    "100##1" + _fd_hex(struct.pack("<Idd", 7, math.nan, 10.0) + bytes(4)),   # NaN motor speed
-    "100##1" + _fd_hex(struct.pack("<Idd", 7, 60.0, math.inf) + bytes(4)),   # inf train speed
-    "100##1" + _fd_hex(struct.pack("<Idd", 7, 1e7, 10.0) + bytes(4)),        # out of range
-    "110##1" + _fd_hex(struct.pack("<Id", 7, 1e12)),                         # torque out of range
-    "120##1" + _fd_hex(struct.pack("<IBBHddd", 7, 9, 1, 0, 0.1, 1.0, 0.0)),  # stage 9
+    # (+ a zero authentication trailer: frames are not authenticated on SocketCAN by default)
+    "100##1" + _fd_hex(struct.pack("<Idd", 7, math.nan, 10.0) + bytes(12)),  # NaN motor speed
+    "100##1" + _fd_hex(struct.pack("<Idd", 7, 60.0, math.inf) + bytes(12)),  # inf train speed
+    "100##1" + _fd_hex(struct.pack("<Idd", 7, 1e7, 10.0) + bytes(12)),       # out of range
+    "110##1" + _fd_hex(struct.pack("<Id", 7, 1e12) + bytes(8)),              # torque out of range
+    "120##1" + _fd_hex(struct.pack("<IBBHddd", 7, 9, 1, 0, 0.1, 1.0, 0.0) + bytes(16)),  # stage 9
     "701#R",                                                                 # remote frame
     "702##1" + "00" * 12,                                                    # heartbeat, wrong length
 ]
