@@ -368,6 +368,10 @@ def run(scenario, strategy: str = "nlls", seed: int | None = None, *, bus: str =
         try:
             tcu.open(scenario, strategy, seed, bus, mode, set_args)
             log(format_bus_load(load) + f" on {tcu.handle.name}")
+            if tcu.handle.hub is not None:
+                log(f"warning: bus hub: any process of any user on this machine can join it ({tcu.handle.hub.url}); "
+                    f"frames are {'authenticated' if scenario.bus.auth == 'on' else 'not authenticated'} "
+                    "(the embedded local bus is the default for a reason)")
             if load["load_percent"] > LOAD_WARN_PERCENT:
                 log(f"warning: bus load {load['load_percent']:.1f} % is above {LOAD_WARN_PERCENT:g} % "
                     f"(raise [bus] bitrate/data_bitrate or the exchange period)")

@@ -159,6 +159,32 @@ def test_hub_listens_on_localhost_relays_fd_frames_and_stops():
         socket.create_connection(("127.0.0.1", port), timeout=0.5)
 
 
+def test_the_hub_serves_no_files():
+    """python-can-remote 0.3.0 answers any non-websocket GET with a file below its package directory,
+    ``..`` included (it returned /etc/passwd); the hub ``hil`` starts answers 404 to every one, and
+    still relays frames."""
+    import urllib.error
+    import urllib.request
+    handle = open_bus("hub")
+    try:
+        base = f"http://127.0.0.1:{handle.hub.port}"
+        for path in ("/", "/index.html", "/../../../../../../../../etc/passwd", "/..%2f..%2f..%2fetc/passwd"):
+            req = urllib.request.Request(base + path)
+            req.selector = path                      # sent as written, not normalised by urllib
+            with pytest.raises(urllib.error.HTTPError) as e:
+                urllib.request.urlopen(req, timeout=5)
+            assert e.value.code == 404, path
+        peer = open_bus(handle.peer_spec)
+        try:
+            handle.bus.send(can.Message(arbitration_id=0x100, data=bytes(32), is_fd=True, is_extended_id=False))
+            got = peer.bus.recv(5)
+            assert got is not None and bytes(got.data) == bytes(32)
+        finally:
+            peer.close()
+    finally:
+        handle.close()
+
+
 # -- the same run over two transports ------------------------------------------------------------
 def test_inprocess_and_hub_give_identical_frames_and_identification(inprocess_run, hub_run):
     s_in, path_in = inprocess_run
