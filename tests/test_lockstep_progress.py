@@ -39,7 +39,8 @@ def test_a_sensor_frame_out_of_the_dbc_range_ends_the_run_with_exit_3(tmp_path, 
     scenario = _fast_scenario(tmp_path)
     t0 = time.monotonic()
     r = subprocess.run(hil_command() + ["run", str(scenario), "--bus", bus, "--out", str(tmp_path), "--no-rrd",
-                                        "--set", "bus.lockstep_progress_s=0.5"],
+                                        "--set", "bus.lockstep_progress_s=0.5",
+                                                 "--set", "bus.auth=off"],
                        capture_output=True, text=True, env=subprocess_env(), timeout=150, cwd=ROOT)
     took = time.monotonic() - t0
     assert r.returncode == 3, r.stderr
@@ -60,15 +61,18 @@ def test_a_sensor_frame_out_of_the_dbc_range_ends_the_run_with_exit_3(tmp_path, 
 
 
 def test_a_forged_sensor_frame_from_a_third_node_ends_the_run_naming_it(tmp_path):
-    """A third node on the local bus sends one PlantSensor 50 steps ahead: the TCU takes it and then
-    rejects the plant's own frames as out of sequence; the plant's wait ends at the progress deadline."""
+    """With frame authentication off, a third node on the local bus sends one PlantSensor 50 steps
+    ahead: the TCU takes it and then rejects the plant's own frames as out of sequence; the plant's wait
+    ends at the progress deadline.  (With authentication on, the default there, the forged frame is
+    rejected as ``forged`` and the run goes on: tests/test_secoc.py.)"""
     channel = create_channel()
     proc = None
     spy = can.Bus(interface="localbus", channel=channel)
     try:
         proc = subprocess.Popen(hil_command() + ["run", "scenarios/ffcc_a.toml", "--bus", f"localbus:{channel}",
                                                  "--out", str(tmp_path), "--no-rrd", "--set", "run.duration_s=60",
-                                                 "--set", "run.fault_time_s=55", "--set", "bus.lockstep_progress_s=0.5"],
+                                                 "--set", "run.fault_time_s=55", "--set", "bus.lockstep_progress_s=0.5",
+                                                 "--set", "bus.auth=off"],
                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=subprocess_env(),
                                 cwd=ROOT)
         codec = FrameCodec(1e-3)
