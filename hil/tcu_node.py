@@ -55,8 +55,10 @@ class TcuNode:
         self.plant_state: int | None = None
         self.finished = False
 
-    def handle(self, msg: can.Message) -> list[can.Message]:
-        frame, reason = self.codec.classify(msg)
+    def handle(self, msg: can.Message, classified=None) -> list[can.Message]:
+        """The replies to ``msg``; ``classified``: its ``codec.classify`` result when already taken (a
+        frame is classified once: with authentication a second look would see a replay)."""
+        frame, reason = classified or self.codec.classify(msg)
         if frame is None:
             self.rejected[reason] += 1
             return []
@@ -113,8 +115,9 @@ class TcuNode:
                 "confirmed": bool(ident.strategy.confirmed)}
 
 
-def newest_sensor_only(bus: can.BusABC, first: can.Message, node: TcuNode, limit: int = 1000) -> list[can.Message]:
-    """``first`` and whatever else is already queued, with the stale sensor readings left out
+def newest_sensor_only(bus: can.BusABC, first: can.Message, node: TcuNode, limit: int = 1000) -> list[tuple]:
+    """``first`` and whatever else is already queued, each with its ``classify`` result (for
+    ``TcuNode.handle``: a frame is classified once), with the stale sensor readings left out
     (counted in ``node.stale_skipped``): after a stall the TCU answers the plant's latest reading
     instead of working through a backlog it can never catch up with (real time only: in lockstep
     the plant sends one reading at a time, so a second one in the queue is not the plant's).
@@ -126,18 +129,16 @@ def newest_sensor_only(bus: can.BusABC, first: can.Message, node: TcuNode, limit
     batch = [first]
     while len(batch) < limit and (msg := bus.recv(timeout=0.0)) is not None:
         batch.append(msg)
+    classified = [node.codec.classify(m) for m in batch]
     steps = {}
-    for i, m in enumerate(batch):
-        if m.arbitration_id == SENSOR_ID and not m.is_extended_id:
-            frame, _ = node.codec.classify(m)
-            if frame is not None and node.last_step < frame.value.step <= node.last_step + MAX_STEP_GAP:
-                steps[i] = frame.value.step
-    if len(steps) < 2:
-        return batch
-    newest = max(steps.values())
+    for i, (m, (frame, _)) in enumerate(zip(batch, classified)):
+        if m.arbitration_id == SENSOR_ID and not m.is_extended_id and frame is not None \
+                and node.last_step < frame.value.step <= node.last_step + MAX_STEP_GAP:
+            steps[i] = frame.value.step
+    newest = max(steps.values(), default=None)
     stale = {i for i, step in steps.items() if step < newest}
     node.stale_skipped += len(stale)
-    return [m for i, m in enumerate(batch) if i not in stale]
+    return [(m, c) for i, (m, c) in enumerate(zip(batch, classified)) if i not in stale]
 
 
 def serve(bus: can.BusABC, node: TcuNode, *, silence_s: float, heartbeat_period_s: float,
@@ -179,15 +180,15 @@ def serve(bus: can.BusABC, node: TcuNode, *, silence_s: float, heartbeat_period_
                     raise PeerSilent(f"plant silent for {(now - last_plant) * 1e3:.0f} ms (limit "
                                      f"{silence_s * 1e3:.0f} ms) after step {node.last_step}")
                 continue
-            for msg in (newest_sensor_only(bus, msg, node) if realtime else (msg,)):
+            for msg, classified in (newest_sensor_only(bus, msg, node) if realtime else ((msg, None),)):
                 if msg.arbitration_id in PLANT_IDS and not msg.is_extended_id:
                     before = sum(node.rejected.values())
-                    replies = node.handle(msg)
+                    replies = node.handle(msg, classified)
                     if sum(node.rejected.values()) == before:     # a valid plant frame: the plant lives
                         last_plant = now
                         state[0] = STATE_RUNNING
                 else:
-                    replies = node.handle(msg)
+                    replies = node.handle(msg, classified)
                 for r in replies:
                     sender.send(r)
         state[0] = STATE_FINISHED

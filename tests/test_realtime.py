@@ -59,6 +59,11 @@ def test_a_tcu_stalled_20ms_at_times_does_not_end_a_realtime_run(tmp_path):
     s = json.loads(out)
     assert s["mode"] == "realtime" and s["bus"] == "local"
     assert s["tcu_stale_skipped"] > 0 or "silent" not in err
+    # frames are authenticated here by default: after the stalls (stale frames passed over) no genuine
+    # frame is taken for a replay or a forgery, and commands still arrive (a round trip is measured)
+    assert s["frame_auth"] == "on" and not s["tcu_rejected_frames"] and not s["rejected_frames"], \
+        (s["tcu_rejected_frames"], s["rejected_frames"])
+    assert s["round_trip_p50_us"] is not None
 
 
 def test_recording_queue_overflow_counts_exactly_the_dropped_rows(tmp_path):

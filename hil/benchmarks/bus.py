@@ -92,8 +92,15 @@ def cmd_realtime(args, sets) -> int:
     result = {"scenario": args.scenario, "seconds": seconds, "default_bus": resolve("auto"), "buses": {}}
     with tempfile.TemporaryDirectory() as tmp:
         for bus in buses:
-            runs = [_rt_run(args.scenario, bus, seconds, sets, args.seed, args.strategy, f"{tmp}/{bus}-{i}")
-                    for i in range(args.realtime_runs)]
+            runs = []
+            for i in range(args.realtime_runs):
+                print(f"bench bus: {bus} real-time run {i + 1}/{args.realtime_runs} ({seconds:g} s, {args.strategy})",
+                      file=sys.stderr, flush=True)
+                runs.append(_rt_run(args.scenario, bus, seconds, sets, args.seed, args.strategy, f"{tmp}/{bus}-{i}"))
+                r = runs[-1]
+                print(f"bench bus:   exit {r['exit_code']}, missed/10k {r['missed_per_10k']}, jitter p99 "
+                      f"{r['jitter_p99_us']} us, load {r['loadavg_1min']:.2f}", file=sys.stderr, flush=True)
+            print(f"bench bus: {bus} lockstep run ({seconds:g} s, proposed)", file=sys.stderr, flush=True)
             ls_sets = sets + ["run.exchange_period_s=0.001", f"run.duration_s={seconds}",
                               f"run.fault_time_s={max(seconds - 0.5, seconds / 2)}"]
             s = run_can(load_scenario(args.scenario, parse_set(ls_sets)), "proposed", args.seed, bus=bus,
