@@ -79,13 +79,13 @@ class Authenticator:
     def __init__(self, key: bytes, offsets: dict[int, int]):
         if len(key) != KEY_BYTES:
             raise ConfigError(f"bus.auth_key_file: a key is {KEY_BYTES} bytes, got {len(key)}")
-        self._aes = algorithms.AES(key)
+        self._cmac = CMAC(algorithms.AES(key))   # keyed once; each MAC starts from a copy (1/3 of the cost)
         self.offsets = dict(offsets)
         self._sent: dict[int, int] = {}        # FV of the last frame sent, per id
         self._accepted: dict[int, int] = {}    # FV of the last frame accepted, per id
 
     def _mac(self, fid: int, data: bytes, fv: int) -> bytes:
-        c = CMAC(self._aes)
+        c = self._cmac.copy()
         c.update(fid.to_bytes(2, "big") + data + fv.to_bytes(8, "big"))
         return c.finalize()[:MAC_BYTES]
 
