@@ -98,6 +98,8 @@ EFFECTS: dict[str, EffectSpec] = {s.name: s for s in [
                {"tau_ms": "ms"}, candidate=False, cls="sensor_delay", form="low_pass"),
     EffectSpec("motor_delay", "sensor", {"delay_ms": 5.0}, "the motor encoder alone reports values delay_ms old",
                {"delay_ms": "ms"}, candidate=False, cls="sensor_delay", form="per_signal"),
+    EffectSpec("tachometer_gain", "sensor", {"error_percent": 1.0},
+               "the motor encoder reads speed x (1 + error_percent / 100)", {"error_percent": "%"}, candidate=False),
     EffectSpec("sensor_quantisation", "sensor", {"motor_quantum_rad_s": 0.05, "train_quantum_ms": 0.0},
                "speed sensors quantised (on top of their noise)",
                {"motor_quantum_rad_s": "rad/s", "train_quantum_ms": "m/s"}, form="quantiser"),

@@ -50,7 +50,7 @@ BRISTLE_MAX_SLIP_MS = 3.0
 #: and its relaxation rate (1/s) is capped here (time constant >= 0.25 ms, 2.5 RK4 sub-steps)
 BRISTLE_MAX_RATE_1_S = 4000.0
 #: the sensor-level effects ``RealitySensors`` applies
-SENSOR_EFFECTS = ("sensor_delay", "sensor_lowpass", "motor_delay", "sensor_quantisation")
+SENSOR_EFFECTS = ("sensor_delay", "sensor_lowpass", "motor_delay", "tachometer_gain", "sensor_quantisation")
 
 
 def fill_defaults(effects: dict, cfg: PlantConfig) -> dict:
@@ -322,6 +322,7 @@ class RealitySensors:
         tau = effects.get("sensor_lowpass", {}).get("tau_ms", 0.0) * 1e-3
         self.lowpass = math.exp(-period_s / tau) if tau > 0 else 0.0   # y += (1 - a) (x - y) per period
         self._lp = None
+        self.motor_gain = 1.0 + effects.get("tachometer_gain", {}).get("error_percent", 0.0) / 100.0
         q = effects.get("sensor_quantisation", {})
         self.q_motor = q.get("motor_quantum_rad_s", 0.0)
         self.q_train = q.get("train_quantum_ms", 0.0)
@@ -351,7 +352,7 @@ class RealitySensors:
             keep = int(max(self.delay_periods, self.motor_delay_periods)) + 3
             if len(self._hist) > 4 * keep + 100:   # bounded memory on long runs
                 del self._hist[:len(self._hist) - keep - 1]
-        omega, v = self.inner.measure(motor_speed_rad_s, train_speed_ms)
+        omega, v = self.inner.measure(motor_speed_rad_s * self.motor_gain, train_speed_ms)
         if self.q_motor > 0:
             omega = float(np.round(omega / self.q_motor) * self.q_motor)
         if self.q_train > 0:

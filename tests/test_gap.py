@@ -380,3 +380,50 @@ def test_two_effects_at_once_found_by_forward_selection(tmp_path, scenario):
     assert which["named_set"] == ["adhesion_lag", "sensor_delay"], which["forward"]
     assert out["where"]["earliest"]["stage"] in ("normal", "early")
     assert out["where"]["summary"].startswith("first significant in the")
+
+
+def test_sparse_description_of_known_residuals():
+    """hil/gap/sparse.py on residuals made here: a gain on the motor speed is described by the motor
+    speed with its coefficient; a creep-proportional term by the creep; noise and a 60 Hz sine (no
+    library term follows them) are not described."""
+    from hil.gap.sparse import describe_residual
+    seed = fresh_seed()
+    g = np.random.default_rng(seed)
+    n, dt = 3000, 1e-3
+    t = np.arange(n) * dt
+    creep = np.where(t > 1.5, (t - 1.5) * g.uniform(2, 6), 0.0) + 0.05 * g.standard_normal(n)
+    motor = 250.0 + 5.0 * np.sin(2 * np.pi * t / 3.0) + creep * 6.0      # varies apart from the constant
+    train = 13.0 + 0.1 * t
+    torque = 2000.0 + 300.0 * (t > 1.0)
+    blocks = (np.arange(n) // 20) % 2
+    tr, ho = blocks == 0, blocks == 1
+    noise = 0.01 * g.standard_normal(n)
+    k = float(g.choice([-1, 1]) * g.uniform(0.002, 0.02))
+    d = describe_residual(motor * (1 + k) + noise, motor, train, creep, torque, dt, tr, ho)
+    assert d["described"] and d["variables"] == ["motor_speed"], d["sentence"]
+    assert d["terms"][0]["coef"] == pytest.approx(k, rel=0.1)
+    c = float(g.uniform(0.05, 0.2))
+    d = describe_residual(motor + c * creep + noise, motor, train, creep, torque, dt, tr, ho)
+    assert d["described"] and d["variables"] == ["creep_speed"], d["sentence"]
+    for resid in (noise, 0.05 * np.sin(2 * np.pi * 60.0 * t + g.uniform(0, 6)) + noise):
+        d = describe_residual(motor + resid, motor, train, creep, torque, dt, tr, ho)
+        assert not d["described"] and "no sparse description" in d["sentence"], d["sentence"]
+
+
+def test_a_tachometer_gain_is_none_of_the_candidates_but_described_by_the_motor_speed(tmp_path, scenario):
+    """Issue 18 item 5: an effect outside every class (the motor encoder reads 0.3-2 % high or low)
+    is named by no candidate, and the sparse description says the missing term is the motor speed,
+    with about the gain as its coefficient."""
+    from hil.effects import with_reality
+    g = np.random.default_rng(fresh_seed())
+    err = float(g.choice([-1, 1]) * g.uniform(0.3, 2.0))
+    real = with_reality(scenario, {"tachometer_gain": {"error_percent": err}})
+    s = run(real, "nlls", int(g.integers(1, 1 << 30)), bus="inprocess", out_dir=tmp_path, progress=False, log=print)
+    r = hil("gap", s["mcap"], "--model", FFCC_A, "--json", "--no-identify", timeout=600)
+    assert r.returncode == 0, r.stderr
+    which = json.loads(r.stdout)["which"]
+    d = which["description"]
+    print(f"tachometer error {err:+.3f} % -> {which['named']}; {d['sentence']}")
+    assert which["named"] == "none"
+    assert d["described"] and d["variables"] == ["motor_speed"]
+    assert d["terms"][0]["coef"] == pytest.approx(err / 100, rel=0.4)

@@ -11,7 +11,8 @@ K real runs, each drawn (seeded; the seed is drawn at run time unless given, and
 * ``rail``: the rail's fault curve 1-5 % less (or more) grippy, peak creep sometimes moved: a
   nuisance, whose right answer names no effect;
 * ``two_effect``: one plant effect and one sensor effect at once;
-* ``outside``: an effect outside every class (torque ripple, wheel radius): right answer "none".
+* ``outside``: an effect outside every class (torque ripple, wheel radius, tachometer gain): right answer
+  "none", and a sparse description (``which.description``) naming what the missing term depends on.
 
 Each run is recorded to MCAP, diagnosed through ``hil.gap.read_real_log`` (which drops the truth
 key), and only then compared with the truth.  Scores: top-1 (single effects: the named class is the
@@ -70,7 +71,14 @@ OUTSIDE = {
     "torque_ripple": lambda g: {"amplitude": U(g, 0.01, 0.05), "frequency_hz": U(g, 20.0, 150.0),
                                 "phase_rad": U(g, 0, 2 * math.pi)},
     "wheel_radius": lambda g: {"error_percent": float(g.choice([-1, 1]) * g.uniform(0.05, 0.3))},
+    "tachometer_gain": lambda g: {"error_percent": float(g.choice([-1, 1]) * g.uniform(0.2, 2.0))},
 }
+#: what the missing term of each out-of-library effect depends on: a sparse description of the gap
+#: (``which.description``) is right when it names one of these (a tachometer gain scales the motor
+#: speed read; a wheel radius error changes the creep a wheel speed makes; a torque ripple rides on the
+#: torque, though as a sine no library term follows it)
+OUTSIDE_VARIABLES = {"torque_ripple": {"torque"}, "wheel_radius": {"creep_speed", "motor_speed"},
+                     "tachometer_gain": {"motor_speed"}}
 PLANT_FORMS = ("load_transfer", "compliance", "adhesion_lag", "resistance", "creep_relaxation", "bristle",
                "load_transfer_pitch")
 SENSOR_FORMS = ("sensor_delay", "sensor_quantisation", "can", "sensor_lowpass", "motor_delay")
@@ -184,7 +192,12 @@ def run_case(scenario, kind: str, effects: dict, run_seed: int, out_dir: Path, i
            "false_confident": bool(set(named_set) - set(truth_set)),
            "shrink_percent": out["shrink"]["held_out_gap_shrink_percent"],
            "nominal_gap": which["nominal_held_out_gap"], "best": which["ranking"][0]["effect"],
-           "best_form": which["ranking"][0]["form"], "diagnosis_s": wall, "log": path}
+           "best_form": which["ranking"][0]["form"], "diagnosis_s": wall, "log": path,
+           "description": (which.get("description") or {}).get("sentence"),
+           "described_variables": (which.get("description") or {}).get("variables", [])}
+    if kind == "outside":
+        right = set().union(*(OUTSIDE_VARIABLES[n] for n in effects))
+        rec["description_right"] = bool(set(rec["described_variables"]) & right)
     if len(effects) == 1 and truth_set:
         rec["correct"] = which["named"] == truth_set[0]
     elif not truth_set:
@@ -249,6 +262,7 @@ def summarise(records: list[dict]) -> dict:
         "set_accuracy": _rate(records, "set_correct"),
         "none_accuracy": _rate(nones), "none_accuracy_rail": _rate([r for r in nones if r["kind"] == "rail"]),
         "none_accuracy_outside": _rate([r for r in nones if r["kind"] == "outside"]),
+        "description_right_outside": _rate([r for r in nones if r["kind"] == "outside"], "description_right"),
         "rail_reported": _rate([r for r in records if r["kind"] == "rail"], "rail_reported"),
         "false_confident_rate": _rate(records, "false_confident"),
         "two_effect_both_found": _rate(two, "set_correct"),
@@ -277,6 +291,8 @@ def markdown(result: dict) -> str:
              f"| 'none' on rail curves 1-5 % off | {pct(result['none_accuracy_rail'])} | - |",
              f"| rail curve reported as the rail | {pct(result['rail_reported'])} | - |",
              f"| 'none' on out-of-library effects | {pct(result['none_accuracy_outside'])} | >= 80 % |",
+             f"| sparse description names the right variable (out-of-library) | "
+             f"{pct(result.get('description_right_outside'))} | >= 50 % |",
              f"| two-effect cases, both found | {pct(result['two_effect_both_found'])} | >= 70 % |",
              f"| median held-out shrink when right | {f(result['median_shrink_percent'], '.1f')} % | >= 80 % |",
              f"| median parameter error (matching forms) | {f(result['median_param_err_percent'], '.1f')} % | - |",
@@ -339,7 +355,8 @@ def cmd_gap_bench(args) -> int:
         print(f"  top-1 held-out forms {f(result['top1_accuracy_held_out_forms'], '.3f')}, library forms "
               f"{f(result['top1_accuracy_library_forms'], '.3f')}; set accuracy {f(result['set_accuracy'], '.3f')}; "
               f"'none' accuracy {f(result['none_accuracy'], '.3f')} (rail {f(result['none_accuracy_rail'], '.3f')}, "
-              f"outside {f(result['none_accuracy_outside'], '.3f')})")
+              f"outside {f(result['none_accuracy_outside'], '.3f')}); out-of-library described by the right "
+              f"variable {f(result.get('description_right_outside'), '.3f')}")
         print(f"  false-confident rate {f(result['false_confident_rate'], '.3f')}; two effects both found "
               f"{f(result['two_effect_both_found'], '.3f')}; median shrink when right "
               f"{f(result['median_shrink_percent'], '.1f')} %; median parameter error "

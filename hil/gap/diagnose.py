@@ -48,6 +48,7 @@ from ..trace import clean
 from ..effects import EFFECTS
 from .candidates import RAIL, SIGNALS, UNITS, Context, Fit, PlantCandidate, candidates, fit_nominal
 from .model import ObserverReplica, Simulator, initial_line
+from .sparse import describe_residual
 
 NONE = "none"
 MIN_SHRINK = 0.8           # fraction of the held-out gap a named effect must remove
@@ -241,6 +242,9 @@ class Diagnosis:
                             "gap_before": base["per_signal"][s]["gap"], "gap_after": best["per_signal"][s]["gap"],
                             "noise_floor": sigma[s], "unit": UNITS[s]} for s in SIGNALS}
         unobservable = observability(where["input_constant"])
+        # what the nominal model leaves, described by a sparse regression (when there is a gap)
+        description = describe_residual(ctx.meas["motor"], nominal["motor"], d.train_speed_ms, creep_meas,
+                                        d.torque_cmd_nm, d.period_s, ctx.train, ctx.held) if gap_present else None
         out = {
             "real_log": d.path, "real_log_source": d.source, "model": sc.path, "periods": d.n, "analysis_periods": int(window.sum()),
             "held_out_periods": int(held_mask.sum()), "block_periods": self.block,
@@ -250,6 +254,7 @@ class Diagnosis:
             "which": {"named": named, "named_set": named_set, "verdict": verdict, "gap_present": gap_present,
                       "confidence": confidence, "nominal_held_out_gap": base["gap"], "ranking": ranking,
                       "nuisances": nuisances, "forward": forward, "unobservable": unobservable,
+                      "description": description,
                       "rule": {"min_shrink": MIN_SHRINK, "min_score_gain": MIN_SCORE_GAIN,
                                "margin_score": MIN_MARGIN, "margin_gap_ratio": MARGIN_GAP_RATIO,
                                "min_gap": MIN_GAP}},

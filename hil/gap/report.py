@@ -36,6 +36,9 @@ def text_summary(out: dict) -> str:
                                            f"{_f((r.get('param_ci') or {}).get(k, [None, None])[1], '.3g')}]"
                                            if (r.get("param_ci") or {}).get(k) else "")
                          for k, v in r["params"].items()) + (f"  AT BOUND: {', '.join(bounds)}" if bounds else ""))
+    if which.get("description"):
+        lines.append(f"    DESCRIBED (sparse regression of what the nominal model leaves): "
+                     f"{which['description']['sentence']}")
     for u in which.get("unobservable", []):
         lines.append(f"    not observable in this log: {u['effect']} ({u['why']}); shows with {u['excitation']}")
     for n in which.get("nuisances", []):
@@ -180,7 +183,10 @@ def write_report(out: dict, dg, directory) -> Path:
         v = where["per_stage"][st]
         md.append(f"| {st} | {v['periods']} | " + " | ".join(_f(v[s], ".2f") for s in SIGNALS) + " |")
     md += ["", "(residual RMS in noise-floor units; 1 = as good as the sensors)", "",
-           "## Which effect", "", out["which"]["verdict"], "", "![which](which.png)", "",
+           "## Which effect", "", out["which"]["verdict"], "",
+           *([f"What the nominal model leaves, described (sparse regression): "
+              f"{out['which']['description']['sentence']}", ""] if out["which"].get("description") else []),
+           "![which](which.png)", "",
            "| effect | fitted parameters | score gain | held-out gap shrink |", "|---|---|---|---|"]
     for r in rk:
         md.append(f"| {r['effect']} | " + ", ".join(f"{k}={v:.4g}" for k, v in r["params"].items())
