@@ -35,6 +35,17 @@ class LoadTorqueObserver:
         """Ramp-following lag of the load-torque estimate, 2/p."""
         return 2.0 / self.pole_rad_s
 
+    def state_space(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(A, B, C) of ``update`` as one linear system, for running it over a whole record at once
+        (``hil/gap/model.ObserverReplica``): state x = [omega^, T^_L], inputs u = [T_e, y], output T^_L,
+
+            x(k+1) = A x(k) + B u(k),   A = [[1 - T h_w, -T / J], [-T h_TL, 1]],
+            B = [[T / J, T h_w], [0, T h_TL]],   C = [0, 1]."""
+        T, J, h_w, h_tl = self.period_s, self.inertia, self.gain_speed, self.gain_torque
+        A = np.array([[1 - T * h_w, -T / J], [-T * h_tl, 1.0]])
+        B = np.array([[T / J, T * h_w], [0.0, T * h_tl]])
+        return A, B, np.array([[0.0, 1.0]])
+
     def reset(self, speed_rad_s: float, load_torque_nm: float) -> None:
         self.speed_rad_s = float(speed_rad_s)
         self.load_torque_nm = float(load_torque_nm)

@@ -41,3 +41,28 @@ def test_step_converges_and_ramp_lags_two_over_p():
 def test_rejects_unstable_pole():
     with pytest.raises(ValueError, match="p\\*T"):
         LoadTorqueObserver(J, T, 1500.0)
+
+
+def test_the_gap_diagnosis_replays_the_tcus_observer_exactly():
+    """hil/gap/model.ObserverReplica runs the TCU's LoadTorqueObserver over a whole record as one
+    linear filter (``state_space``): the same mu^ as stepping the observer, on random speeds and
+    commands (seed drawn at test time)."""
+    import secrets
+
+    from hil.config import load_scenario
+    from hil.gap.model import ObserverReplica
+    from identifier.observer import LoadTorqueObserver
+    seed = secrets.randbits(31)
+    print("seed", seed)
+    g = np.random.default_rng(seed)
+    settings = load_scenario("scenarios/ffcc_a.toml").identifier_settings()
+    n = 2000
+    motor = 250.0 + np.cumsum(g.normal(0, 0.05, n))
+    cmd = 2000.0 + 300.0 * g.standard_normal(n)
+    v = settings.vehicle
+    obs = LoadTorqueObserver(v.equivalent_inertia_kgm2, settings.period_s, settings.observer_pole_rad_s)
+    te = np.concatenate([[settings.torque_demand_nm], cmd[:-1]])
+    obs.reset(motor[0], te[0])
+    stepped = np.array([obs.update(motor[k], te[k]) for k in range(n)]) / v.torque_per_mu_nm
+    replayed = ObserverReplica(settings).mu_hat(motor, cmd)
+    assert np.max(np.abs(replayed - stepped)) < 1e-9 * np.max(np.abs(stepped))

@@ -17,6 +17,7 @@ import numpy as np
 from scipy import signal
 
 from plant.params import KMH_PER_MS
+from identifier.observer import LoadTorqueObserver
 from plant.reality import RealityModel
 
 
@@ -86,13 +87,9 @@ class ObserverReplica:
 
     def __init__(self, settings):
         v = settings.vehicle
-        T = settings.period_s
-        p = settings.observer_pole_rad_s
-        J = v.equivalent_inertia_kgm2
-        h_w, h_tl = 2.0 * p, -J * p * p
-        A = np.array([[1 - T * h_w, -T / J], [-T * h_tl, 1.0]])
-        B = np.array([[T / J, T * h_w], [0.0, T * h_tl]])       # inputs (T_e', y')
-        C = np.array([[0.0, 1.0]])
+        # the TCU's own observer, as one linear system (inputs T_e', y'; output T^_L)
+        A, B, C = LoadTorqueObserver(v.equivalent_inertia_kgm2, settings.period_s,
+                                     settings.observer_pole_rad_s).state_space()
         self.tf = [signal.ss2tf(A, B, C, np.zeros((1, 2)), input=i) for i in (0, 1)]
         self.torque_per_mu = v.torque_per_mu_nm
         self.torque_demand = settings.torque_demand_nm
