@@ -21,7 +21,9 @@ def register(sub) -> None:
     p.add_argument("--buses", default="inprocess,hub,auto", help="comma-separated bus specs (default "
                    "inprocess,hub,auto)")
     p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--strategy", default="nlls")
+    p.add_argument("--strategy", default=None,
+                   help="the TCU's strategy (default: proposed for --realtime-runs, the real-time issue's "
+                   "measure; nlls otherwise)")
     p.add_argument("--realtime-seconds", type=float, default=0.0,
                    help="also run this many seconds in real time over --realtime-bus (fault 0.5 s before the end)")
     p.add_argument("--realtime-bus", default="hub")
@@ -83,6 +85,7 @@ def _rt_run(scenario_path, bus, seconds, sets, seed, strategy, out_dir) -> dict:
 
 
 def cmd_realtime(args, sets) -> int:
+    args.strategy = args.strategy or "proposed"
     from ..config import parse_set
     from ..exchange import run as run_can
     from ..link import resolve
@@ -136,6 +139,7 @@ def cmd_bus(args) -> int:
     if args.realtime_runs > 0:
         return cmd_realtime(args, list(args.set or []))
 
+    args.strategy = args.strategy or "nlls"
     sets = list(args.set or [])
     scenario = load_scenario(args.scenario, parse_set(sets))
     rows = []
