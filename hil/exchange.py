@@ -345,6 +345,7 @@ def run(scenario, strategy: str = "nlls", seed: int | None = None, *, bus: str =
     except OSError as e:     # a full disk
         raise LogWriteError(f"cannot create a temporary directory for the frame key: {e.strerror or e}") from None
     scenario, auth_items = authenticate(scenario, bus, tcu.transport, key_dir.name, log)
+    settings = scenario.bus                     # as resolved: the log's bus metadata says auth on/off
     set_args = [*(set_args or []), *auth_items]
     trace = Trace(scenario)
     rec = node = timing = summary = None
