@@ -490,12 +490,15 @@ def frame_run(tmp: Path, seed: int, run_seed: int, garbage: int, forged: int, au
     from ..localbus import LocalBus, create_channel, remove_channel
 
     out = tmp / f"{auth}-{garbage}-{forged}"
+    out.mkdir(parents=True, exist_ok=True)
     channel = create_channel()
     spy = LocalBus(channel)
     extra = ["--set", "bus.auth=off"] if auth == "off" else []
-    proc = subprocess.Popen(hil_cmd("run", SCENARIOS / "ffcc_a.toml", "--bus", f"localbus:{channel}", "--seed",
-                                    run_seed, "--out", out, "--no-rrd", "--json", *FRAME_RUN, *extra),
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=subprocess_env(), cwd=ROOT)
+    # output to files, not pipes: nobody reads a pipe while the third node works
+    with open(out / "stdout", "w") as so, open(out / "stderr", "w") as se:
+        proc = subprocess.Popen(hil_cmd("run", SCENARIOS / "ffcc_a.toml", "--bus", f"localbus:{channel}", "--seed",
+                                        run_seed, "--out", out, "--no-rrd", "--json", *FRAME_RUN, *extra),
+                                stdout=so, stderr=se, stdin=subprocess.DEVNULL, env=subprocess_env(), cwd=ROOT)
     codec = FrameCodec(1e-3)                     # the third node has no key
     forger = Forger(codec, rng)
     plan = _plan(rng, garbage, forged, auth != "off")
@@ -548,11 +551,12 @@ def frame_run(tmp: Path, seed: int, run_seed: int, garbage: int, forged: int, au
                 undelivered["other"] += sum(1 for p in missed if not p.startswith((f"{proc.pid}-", f"{tcu_pid}-")))
         if hung:
             _kill(proc)
-        out_text, err = proc.communicate(timeout=60)
+        proc.wait(60)
     finally:
         _kill(proc)
         spy.shutdown()
         remove_channel(channel)
+    out_text, err = (out / "stdout").read_text(), (out / "stderr").read_text()
     try:
         summary = json.loads(out_text) if out_text.strip() else None
     except ValueError:
