@@ -113,3 +113,19 @@ def test_bad_scenarios_via_the_cli_are_one_line_and_exit_2(tmp_path):
         assert r.returncode == EXIT_USAGE and len(lines) == 1 and says in lines[0], (name, r.stderr)
         assert lines[0].startswith("hil run: error: ")
     assert not (tmp_path / "out").exists()
+
+
+def test_a_value_that_makes_the_plant_diverge_is_one_line_and_exit_2(tmp_path):
+    """Found by ``hil bench robustness`` (scenarios part, seed 1477779603, cases 203 and 300): a scenario
+    that loads but whose physics diverge at once (``[reality.resistance] factor = 1e300``) ended ``hil run``
+    with a FloatingPointError traceback (exit 1)."""
+    path = tmp_path / "diverge.toml"
+    path.write_text((SCENARIOS / "ffcc_a.toml").read_text() + "\n[reality.resistance]\nfactor = 1e300\n")
+    load_scenario(path)                                   # it loads: the value is finite and >= 0
+    for bus in ("inprocess", "local"):
+        r = subprocess.run(hil_command() + ["run", str(path), "--bus", bus, "--out", str(tmp_path / "out"),
+                                            "--no-rrd"], capture_output=True, text=True, env=subprocess_env(),
+                           timeout=120)
+        lines = r.stderr.strip().splitlines()
+        assert r.returncode == EXIT_USAGE and "Traceback" not in r.stderr, (bus, r.stderr)
+        assert lines[-1].startswith("hil run: error: ") and "diverged" in lines[-1], (bus, r.stderr)
