@@ -428,7 +428,13 @@ class _Seen(dict):
         self.history: dict = {}
 
     def __setitem__(self, fid, msg):
+        from ..frames import PLANT_HEARTBEAT_ID, SENSOR_ID, TCU_HEARTBEAT_ID
+
         super().__setitem__(fid, msg)
+        if fid in (PLANT_HEARTBEAT_ID, TCU_HEARTBEAT_ID) and SENSOR_ID not in self:
+            # a heartbeat from before the exchange began may never have reached the other node (it was
+            # starting): sent again it would be fresh there, not a replay
+            return
         h = self.history.setdefault(fid, collections.deque(maxlen=REPLAY_AGE))
         h.append(msg)
 
