@@ -49,7 +49,7 @@ import numpy as np
 from identifier.messages import TorqueCommand
 
 from .effects import TRUTH_KEY
-from .errors import BusError, ConfigError, DeadlinesMissed, LogWriteError, PeerSilent
+from .errors import BusError, ConfigError, DeadlinesMissed, LogWriteError, PeerSilent, PlantError
 from .frames import DBC_PATH, STATE_FAULT, STATE_FINISHED, FrameCodec, bus_load, format_bus_load
 from .link import MODES, GuardedBus, die_with_parent, open_bus, resolve
 from .plant_node import PlantNode, PlantRig
@@ -423,6 +423,13 @@ def run(scenario, strategy: str = "nlls", seed: int | None = None, *, bus: str =
             if node is not None:
                 node.finish(STATE_FAULT)     # the TCU ends too; the log is closed as far as the disk allows
             raise
+        except FloatingPointError as e:      # the plant diverged: a scenario or --reality value out of range
+            if rec and node is not None:
+                rec.event(node.t_s, "ERROR", f"fault: {e}")
+            if node is not None:
+                node.finish(STATE_FAULT)
+            raise PlantError(f"{scenario.path}: {e} (a value of the scenario or of --reality beyond what the "
+                             "physics can integrate?)") from None
         finally:
             try:
                 if rec:

@@ -65,8 +65,9 @@ class TcuNode:
         if frame.name == "PlantSensor":
             reading = frame.value
             if not (self.last_step < reading.step <= self.last_step + MAX_STEP_GAP):    # a run starts at step 0
-                # out of sequence: garbage, unless the next frame continues it (the TCU lost many frames)
-                resync = self._jump is not None and reading.step == self._jump + 1
+                # out of sequence: garbage, unless the next frame continues it (the TCU lost many frames);
+                # never back to a step already answered (a plant does not go back: those are old frames sent again)
+                resync = self._jump is not None and reading.step == self._jump + 1 and reading.step > self.last_step
                 self._jump = reading.step
                 if not resync:
                     self.rejected["bad_sequence"] += 1

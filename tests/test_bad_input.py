@@ -11,94 +11,15 @@ import time
 
 import pytest
 
+from hil.benchmarks.robustness import SET_CHOICES, full_scenario_text, mutate
 from hil.config import load_scenario, parse_scenario, parse_set
 from hil.errors import EXIT_USAGE, HilError
 
 from .conftest import SCENARIOS, hil_command, subprocess_env
 
-#: the paper's scenario with every optional table filled in, so mutations reach them too
-BASE = (SCENARIOS / "ffcc_a.toml").read_text() + """
-[identifier]
-observer_pole_rad_s = 500.0
-baseline_samples = 50
-settle_time_s = 0.008
-window_samples = 6
-max_corrections = 200
-drill_particles = 64
-
-[identifier.options.proposed]
-particles = 200
-noise_block = 8
-init_std = [0.003, 0.02, 0.03]
-projector = "clip"
-
-[identifier.options.nlls]
-window_samples = 7
-
-[identifier.options.bayes]
-particles = 100
-peak_mu = [0.05, 0.25]
-
-[bus]
-heartbeat_period_s = 0.002
-silence_periods = 25
-lockstep_silence_s = 1.0
-startup_timeout_s = 60
-
-[reality.resistance]
-factor = 1.2
-"""
-
-#: what a value may be replaced with: wrong types, extremes, non-finite, huge, negative, strings
-VALUES = ['"text"', '""', "true", "false", "[1, 2]", "[]", "{ a = 1 }", "0", "-1", "-0.0", "1e-300", "-1e-300",
-          "1e300", "-1e300", "nan", "inf", "-inf", "9223372036854775807", "-9223372036854775808", "1000000000",
-          "1e9", "0.5", "2", '"\\u0000"', '"../../x"', "1979-05-27", "[[1], [2]]", '"' + "x" * 300 + '"']
-#: bytes inserted at random places
-JUNK = [b"\xff", b"\xfe\xff", b"\x00", b"\xc3", b"[", b"]", b"=", b'"', b"\n[run]\n", b"\n[[vehicle]]\n",
-        b"[" * 2000, b"\x1b[2J", "é".encode(), b"\r", b"\\"]
-
-
-def mutate(text: str, rng: random.Random) -> tuple[str, bytes]:
-    """One mutation of ``text``: (what was done, the mutant's bytes)."""
-    lines = text.splitlines(keepends=True)
-    assignments = [i for i, line in enumerate(lines) if re.match(r"\s*[A-Za-z_\"]\S*\s*=", line)]
-    headers = [i for i, line in enumerate(lines) if line.startswith("[")]
-    kind = rng.choice(["delete", "value", "value", "value", "junk", "truncate", "table_scalar", "duplicate",
-                       "nest", "rename"])
-    if kind == "delete":
-        i = rng.choice(assignments + headers)
-        del lines[i]
-        return f"delete line {i + 1}", "".join(lines).encode()
-    if kind == "value":
-        i = rng.choice(assignments)
-        key = lines[i].split("=", 1)[0]
-        value = rng.choice(VALUES)
-        lines[i] = f"{key}= {value}\n"
-        return f"line {i + 1}: {key.strip()} = {value[:40]}", "".join(lines).encode()
-    if kind == "junk":
-        data = text.encode()
-        at = rng.randrange(len(data) + 1)
-        junk = rng.choice(JUNK)
-        return f"junk {junk[:10]!r} at byte {at}", data[:at] + junk + data[at:]
-    if kind == "truncate":
-        data = text.encode()
-        at = rng.randrange(len(data))
-        return f"truncated at byte {at}", data[:at]
-    if kind == "table_scalar":
-        i = rng.choice(headers)
-        name = lines[i].strip().strip("[]").split(".")[0]
-        body = "".join(line for line in lines if not line.startswith(f"[{name}"))
-        return f"[{name}] made a scalar", f"{name} = {rng.choice(VALUES)}\n{body}".encode()
-    if kind == "duplicate":
-        i = rng.choice(assignments + headers)
-        lines.insert(i, lines[i])
-        return f"line {i + 1} twice", "".join(lines).encode()
-    if kind == "nest":
-        depth = rng.choice([10, 500, 5000, 100_000])
-        return f"nesting {depth}", (f"deep = {'[' * depth}{']' * depth}\n" + text).encode()
-    i = rng.choice(headers)
-    lines[i] = lines[i].replace("[", "[x", 1)
-    return f"table on line {i + 1} renamed", "".join(lines).encode()
+#: the paper's scenario with every optional table filled in, so mutations reach them too; the mutator
+#: is the library's (``hil bench robustness`` uses the same one)
+BASE = full_scenario_text()
 
 
 def test_base_scenario_loads(tmp_path):
@@ -122,7 +43,7 @@ def test_mutated_scenarios_fail_in_one_line_or_load(tmp_path):
         path.write_bytes(data)
         t0 = time.perf_counter()
         try:
-            s = load_scenario(path, parse_set(rng.choice([[], [], ["run.duration_s=0.9"], ["vehicle.gear_ratio=3"]])))
+            s = load_scenario(path, parse_set(list(rng.choice(SET_CHOICES))))
         except HilError as e:
             msg = str(e)
             assert msg and "\n" not in msg and "\r" not in msg and len(msg) < 600, (seed, n, what, msg)
@@ -192,3 +113,19 @@ def test_bad_scenarios_via_the_cli_are_one_line_and_exit_2(tmp_path):
         assert r.returncode == EXIT_USAGE and len(lines) == 1 and says in lines[0], (name, r.stderr)
         assert lines[0].startswith("hil run: error: ")
     assert not (tmp_path / "out").exists()
+
+
+def test_a_value_that_makes_the_plant_diverge_is_one_line_and_exit_2(tmp_path):
+    """Found by ``hil bench robustness`` (scenarios part, seed 1477779603, cases 203 and 300): a scenario
+    that loads but whose physics diverge at once (``[reality.resistance] factor = 1e300``) ended ``hil run``
+    with a FloatingPointError traceback (exit 1)."""
+    path = tmp_path / "diverge.toml"
+    path.write_text((SCENARIOS / "ffcc_a.toml").read_text() + "\n[reality.resistance]\nfactor = 1e300\n")
+    load_scenario(path)                                   # it loads: the value is finite and >= 0
+    for bus in ("inprocess", "local"):
+        r = subprocess.run(hil_command() + ["run", str(path), "--bus", bus, "--out", str(tmp_path / "out"),
+                                            "--no-rrd"], capture_output=True, text=True, env=subprocess_env(),
+                           timeout=120)
+        lines = r.stderr.strip().splitlines()
+        assert r.returncode == EXIT_USAGE and "Traceback" not in r.stderr, (bus, r.stderr)
+        assert lines[-1].startswith("hil run: error: ") and "diverged" in lines[-1], (bus, r.stderr)

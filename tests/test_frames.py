@@ -214,3 +214,20 @@ def test_tcu_resyncs_after_losing_many_frames_but_not_on_single_garbage(ffcc_a):
     assert node.handle(c.sensor(SensorReading(901, 63.7, 10.0)))             # ... and the stream goes on there
     assert node.handle(c.sensor(SensorReading(902, 63.7, 10.0)))
     assert node.rejected == {"bad_sequence": 2} and node.resyncs == 1 and node.last_step == 902
+
+
+def test_tcu_never_resyncs_back_to_steps_it_answered(ffcc_a):
+    """Two old sensor frames of consecutive steps sent again (a third node replaying what it saw, with
+    frame authentication off) must not pull the TCU back: it would then reject the plant's next frames
+    as out of sequence and the lockstep run would stall (found by ``hil bench robustness``, frames part,
+    auth off, seed 12: the TCU back at step 562 while the plant waited at 753)."""
+    node = TcuNode(ffcc_a, "nlls", 1)
+    c = node.codec
+    for k in range(300):
+        assert node.handle(c.sensor(SensorReading(k, 63.7, 10.0)))
+    assert node.handle(c.sensor(SensorReading(120, 63.7, 10.0))) == []       # replays of steps answered
+    assert node.handle(c.sensor(SensorReading(121, 63.7, 10.0))) == []
+    assert node.handle(c.sensor(SensorReading(122, 63.7, 10.0))) == []
+    assert node.last_step == 299 and node.resyncs == 0
+    assert node.handle(c.sensor(SensorReading(300, 63.7, 10.0)))             # the plant's next frame is taken
+    assert node.rejected == {"bad_sequence": 3} and node.last_step == 300

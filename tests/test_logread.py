@@ -14,10 +14,7 @@ import signal
 import subprocess
 
 import pytest
-from mcap.reader import make_reader
-from mcap.records import Chunk, Message
-from mcap.stream_reader import StreamReader, breakup_chunk
-
+from hil.benchmarks.robustness import chunk_map, expected_messages, in_payload
 from hil.logread import read_log
 
 from .conftest import ROOT, SCENARIOS, hil, hil_command, subprocess_env
@@ -25,24 +22,14 @@ from .conftest import ROOT, SCENARIOS, hil, hil_command, subprocess_env
 
 @pytest.fixture(scope="module")
 def log(tmp_path_factory):
-    """A real 1 s run, its bytes, and per chunk (first byte, end byte, [(topic, log_time)])."""
+    """A real 1 s run, its bytes, and per chunk (first byte, end byte, [(topic, log_time)]) as the mcap
+    library reads them (``hil.benchmarks.robustness.chunk_map``, shared with ``hil bench robustness``)."""
     out = tmp_path_factory.mktemp("log")
     r = hil("run", SCENARIOS / "ffcc_a.toml", "--bus", "inprocess", "--out", out, "--no-rrd", "--json")
     assert r.returncode == 0, r.stderr
-    path = out / "ffcc_a-nlls-1.mcap"
-    with open(path, "rb") as f:
-        reader = make_reader(f)
-        summary = reader.get_summary()
-        topics = {cid: ch.topic for cid, ch in summary.channels.items()}
-        every = collections.Counter((ch.topic, m.log_time) for _, ch, m in reader.iter_messages())
-        spans = sorted((c.chunk_start_offset, c.chunk_start_offset + c.chunk_length) for c in summary.chunk_indexes)
-    with open(path, "rb") as f:
-        chunks = [r for r in StreamReader(f, emit_chunks=True).records if isinstance(r, Chunk)]
-    assert len(chunks) == len(spans) >= 10
-    per_chunk = [[(topics[m.channel_id], m.log_time) for m in breakup_chunk(c) if isinstance(m, Message)]
-                 for c in chunks]
-    assert collections.Counter(x for msgs in per_chunk for x in msgs) == every
-    return path.read_bytes(), [(a, b, msgs) for (a, b), msgs in zip(spans, per_chunk)]
+    data, chunks = chunk_map(out / "ffcc_a-nlls-1.mcap")
+    assert len(chunks) >= 10
+    return data, chunks
 
 
 def _seed() -> random.Random:
@@ -57,20 +44,8 @@ def _read(tmp_path, data: bytes):
     return read_log(path)
 
 
-#: where damage goes in a chunk: past its head (opcode, length, start and end times, sizes, CRC and
-#: compression name: 52 bytes) and its LZ4 frame header (up to 15 bytes), and before the frame's end
-#: mark.  Those fields are covered by no CRC and some are inert (a flipped bit of a time, of the
-#: uncompressed size or of a block-size flag reads the very same records), so a reader that keeps
-#: such a chunk is right; in the compressed payload the chunk's CRC must catch every flip.
-PAYLOAD = (80, 8)
-
-
-def _in_payload(rng, a: int, b: int) -> int:
-    return rng.randrange(a + PAYLOAD[0], b - PAYLOAD[1])
-
-
-def _expect(chunks, intact) -> collections.Counter:
-    return collections.Counter(x for a, b, msgs in chunks if intact(a, b) for x in msgs)
+_in_payload = in_payload          # where damage goes in a chunk: its compressed payload (PAYLOAD)
+_expect = expected_messages
 
 
 def _got(contents) -> collections.Counter:

@@ -1,0 +1,77 @@
+"""``hil bench robustness`` at small counts through the real command line: every part runs its real
+probes (a third node on a localbus channel, mutated scenarios through ``hil run``, damaged MCAP logs,
+broken FMUs, SIGKILLs, a file size limit, two runs' peak RSS), the JSON has the documented shape, and
+the probes find nothing.  The master seed is drawn at test time and printed."""
+import json
+import random
+import secrets
+
+from hil.benchmarks.robustness import DAMAGES, PARTS, damage_log, full_scenario_text, mutate
+
+from .conftest import ROOT, hil
+
+SMALL = ["--garbage", "300", "--forged", "60", "--scenarios", "40", "--scenario-runs", "2", "--logs", "14",
+         "--fmus", "12", "--kills", "1", "--disk", "1", "--memory-seconds", "2,6"]
+
+
+def test_every_part_at_small_counts_finds_no_failure(tmp_path):
+    seed = secrets.randbits(31)
+    print(f"bench seed {seed}")
+    r = hil("bench", "robustness", "--seed", seed, *SMALL, "--json", "--report", tmp_path / "doc", timeout=600,
+            cwd=ROOT)
+    assert f"seed {seed} (repeat with: hil bench robustness --seed {seed} " in r.stderr
+    doc = json.loads(r.stdout)
+    failures = [(name, f) for name, p in doc["parts"].items() for f in p["failures"]]
+    print(json.dumps({name: p["figures"] for name, p in doc["parts"].items()})[:4000])
+    assert not failures, failures
+    assert r.returncode == 0 and doc["passed"] is True, r.stderr[-2000:]
+    assert doc["seed"] == seed and list(doc["parts"]) == list(PARTS)
+    for name, p in doc["parts"].items():
+        assert set(p) >= {"part", "cases", "target", "passed", "figures", "failures", "wall_s"}, name
+        assert p["part"] == name and p["passed"] is True and p["cases"] > 0 and p["target"], name
+    frames = doc["parts"]["frames"]["figures"]
+    for auth in ("on", "off"):
+        x = frames[f"auth_{auth}"]
+        assert x["sent"] == 360 and x["exit"] == 0 and x["frame_auth"] == auth
+        assert x["plant_counted"] == x["expected_plant"] and x["tcu_counted"] == x["expected_tcu"]
+        assert x["expected_plant"] + x["undelivered"]["plant"] == 360
+    assert frames["auth_on"]["identification_unchanged"] is True and not frames["auth_on"]["suspicious"]
+    assert frames["auth_off"]["suspicious"]                     # the forgeries were reported
+    sc = doc["parts"]["scenarios"]["figures"]
+    assert sc["mutants"] == 40 and sc["loaded"] + sc["refused"] == 40 and sc["runs"] == 2
+    assert sc["tracebacks"] == sc["hangs"] == sc["writes_outside_out"] == 0
+    lg = doc["parts"]["logs"]["figures"]
+    assert lg["damaged_logs"] == 14 and set(lg["by_damage"]) == set(DAMAGES)
+    assert lg["missing"] == lg["invented"] == 0 and lg["recovered"] == lg["intact_chunk_messages"] > 0
+    fm = doc["parts"]["fmus"]["figures"]
+    assert fm["broken_fmus"] == 12 == fm["refused"] and fm["loads_from_outside"] == 0 and len(fm["by_kind"]) == 12
+    assert [k["victim"] for k in doc["parts"]["kills"]["figures"]["runs"]] == ["tcu", "plant"]
+    assert len(doc["parts"]["disk"]["figures"]["runs"]) == 3
+    assert doc["parts"]["memory"]["figures"]["ratio"] is not None
+    report = json.loads((tmp_path / "doc" / "robustness.json").read_text())
+    assert report["seed"] == seed and report["parts"].keys() == doc["parts"].keys()
+    assert (tmp_path / "doc" / "robustness.md").read_text().startswith(f"# hil bench robustness --seed {seed} ")
+
+
+def test_bad_arguments_are_one_line_and_exit_2():
+    for args, says in ((["--only", "frames,nope"], "--only: unknown part(s) nope"),
+                       (["--logs", "-1"], "--logs: must be >= 0"),
+                       (["--memory-seconds", "60,10"], "--memory-seconds: need 1 <= A < B")):
+        r = hil("bench", "robustness", *args, timeout=60, cwd=ROOT)
+        lines = r.stderr.strip().splitlines()
+        assert r.returncode == 2 and lines[-1].startswith("hil bench: error: ") and says in lines[-1], r.stderr
+
+
+def test_the_generators_repeat_for_a_seed():
+    """The same seed gives the same mutants and the same damage: a failure's seed and case index repeat it."""
+    seed = secrets.randbits(31)
+    print(f"generator seed {seed}")
+    base = full_scenario_text()
+    a, b = random.Random(seed), random.Random(seed)
+    assert [mutate(base, a) for _ in range(50)] == [mutate(base, b) for _ in range(50)]
+    data = bytes(range(256)) * 2000
+    chunks = [(i, i + 20_000, [("/t", i)]) for i in range(1000, 480_000, 20_000)]
+    a, b = random.Random(seed), random.Random(seed)
+    for kind in DAMAGES:
+        x, y = damage_log(data, chunks, a, kind), damage_log(data, chunks, b, kind)
+        assert x == y and x[0].startswith(kind) and x[1] != data
