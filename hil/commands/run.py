@@ -100,7 +100,9 @@ def apply_reality_args(scenario, items):
 def print_summary(s: dict, file=sys.stdout, heading: str | None = None) -> None:
     """The run summary as text; every figure prints n/a where the source lacks it (e.g. a CAN log has no truth)."""
     print(heading or f"scenario {s['scenario']}  strategy {s['strategy']}  seed {s['seed']}  bus {s['bus']}"
-          + (f"  plant {s['plant']}" if s.get("plant") else ""), file=file)
+          + (f"  plant {s['plant']}" if s.get("plant") else "")
+          + (f"  frames {'authenticated' if s['frame_auth'] == 'on' else 'not authenticated'}"
+             if s.get("frame_auth") else ""), file=file)
     if s.get("reality"):
         print("  reality: " + "; ".join(f"{name}(" + ", ".join(f"{k}={v}" for k, v in (params or {}).items()) + ")"
                                         for name, params in s["reality"].items()), file=file)
