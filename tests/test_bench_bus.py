@@ -3,7 +3,11 @@ import json
 import random
 import subprocess
 
+import pytest
+
 from .conftest import ROOT, hil_command, subprocess_env
+
+pytestmark = pytest.mark.realtime
 
 
 def test_realtime_bench_lists_exit_codes_medians_and_whether_sched_fifo_was_granted():

@@ -452,6 +452,7 @@ def test_standalone_tcu_needs_a_shared_bus():
 
 
 # -- real time and bus load ------------------------------------------------------------------------
+@pytest.mark.realtime
 def test_realtime_over_the_hub_records_timing(tmp_path):
     s, err = run_json(["scenarios/ffcc_a.toml", "--set", "run.duration_s=0.4", "--set", "run.fault_time_s=0.3",
                        "--set", "bus.silence_periods=100", "--set", "bus.max_missed_fraction=1"], "hub", tmp_path,

@@ -18,6 +18,8 @@ from hil.record import Recorder
 from .conftest import ROOT, hil_command, subprocess_env
 from .test_bus import FFCC_A, children_of, cmdline, data_streams, identification, run_json
 
+pytestmark = pytest.mark.realtime
+
 RT_ARGS = ["run", "scenarios/ffcc_a.toml", "--mode", "realtime", "--bus", "local", "--set", "run.duration_s=1.0",
            "--set", "run.fault_time_s=0.5", "--set", "bus.max_missed_fraction=1", "--json"]
 

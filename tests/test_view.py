@@ -126,6 +126,7 @@ def test_the_rrd_streams_in_batches_with_every_point_of_the_log(runs, tmp_path, 
     assert v.returncode == 0, v.stderr
 
 
+@pytest.mark.realtime
 def test_realtime_run_has_timing_in_the_recording(tmp_path):
     from hil.logread import read_log
 
