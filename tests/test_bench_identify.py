@@ -117,14 +117,14 @@ def test_data_limit_recovers_a_curve_its_samples_determine_and_not_one_they_do_n
 def test_family_mode_draws_at_run_time_prints_its_seed_and_judges_against_the_oracle(tmp_path):
     """--family without --seed: the seed is drawn now and printed; --json has the issue's keys; the
     same --seed gives the same draws and verdicts; --report writes the markdown and the JSON."""
-    args = ["--family", "default", "--draws", "3", "--strategies", "bayes,proposed", "--oracle-draws", "300"]
+    args = ["--family", "default", "--draws", "3", "--strategies", "gp,bayes,proposed", "--oracle-draws", "300"]
     p = run(args + ["--json"], tmp_path)
     assert p.returncode == 0, p.stderr
     out = json.loads(p.stdout)
     seed = out["seed"]
     assert f"seed {seed}" in p.stderr                              # printed, so the run can be repeated
-    assert out["recommended"] == "bayes" and out["family"]["name"] == "default"
-    for strat in ("bayes", "proposed"):
+    assert out["recommended"] == "gp" and out["family"]["name"] == "default"
+    for strat in ("gp", "bayes", "proposed"):
         r = out["results"][strat]
         for key in ("confirmed_before_serious_fraction", "correct_fraction", "correct_before_serious_fraction",
                     "wrong_confirmation_fraction", "coverage_peak_mu", "coverage_peak_creep",
@@ -139,12 +139,13 @@ def test_family_mode_draws_at_run_time_prints_its_seed_and_judges_against_the_or
     again = run(args + ["--json", "--seed", str(seed), "--report", str(tmp_path / "rep")], tmp_path)
     assert again.returncode == 0, again.stderr
     out2 = json.loads(again.stdout)
-    assert [d["true_peak_mu"] for d in out2["results"]["bayes"]["draws_detail"]] == \
-        [d["true_peak_mu"] for d in out["results"]["bayes"]["draws_detail"]]
-    assert [d["correct"] for d in out2["results"]["bayes"]["draws_detail"]] == \
-        [d["correct"] for d in out["results"]["bayes"]["draws_detail"]]
+    for strat in ("gp", "bayes"):
+        assert [d["true_peak_mu"] for d in out2["results"][strat]["draws_detail"]] == \
+            [d["true_peak_mu"] for d in out["results"][strat]["draws_detail"]]
+        assert [d["correct"] for d in out2["results"][strat]["draws_detail"]] == \
+            [d["correct"] for d in out["results"][strat]["draws_detail"]]
     md = (tmp_path / "rep" / "identification.md").read_text()
-    assert f"--seed {seed}" in md and "| bayes |" in md and "oracle" in md
+    assert f"--seed {seed}" in md and "| gp |" in md and "| bayes |" in md and "oracle" in md
     assert json.loads((tmp_path / "rep" / "identification.json").read_text())["seed"] == seed
     bad = run(["--family", "nonesuch", "--draws", "2"], tmp_path)
     assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "nonesuch" in bad.stderr

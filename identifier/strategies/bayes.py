@@ -1,5 +1,6 @@
 """``bayes``: the posterior over the fault curve from every reading since the slip began, with
-intervals, confirming only what the data support (beyond the paper; the recommended strategy).
+intervals, confirming only what the data support (beyond the paper; in the exponential form: on
+curves of another form it can confirm a wrong peak, which the form-free ``gp`` does not).
 
 Model (particle j carries one curve phi_j of the prior, identifier/prior.py, and a speed estimate):
 
@@ -171,15 +172,16 @@ class BayesStrategy(Strategy):
     ``identifier/kernels.py``; False runs the numpy reference (``speed_likelihood``, ``prior``)."""
 
     name = "bayes"
+    defaults = DEFAULTS
     observer_aware = True           # every sample from the detected slip start, no settle, no lag pairing
     wants_readings = True           # TractionIdentifier.on_sensor passes every reading to ``on_reading``
 
     def __init__(self, settings, seed: int = 0):
         super().__init__(settings, seed)
-        unknown = set(self.options) - set(DEFAULTS) - {"window_samples", "k_pe", "c_lw", "c_up"}
+        unknown = set(self.options) - set(self.defaults) - {"window_samples", "k_pe", "c_lw", "c_up"}
         if unknown:
             raise ValueError(f"{self.name}: unknown option(s) {', '.join(sorted(unknown))}")
-        o = {**DEFAULTS, **self.options}
+        o = {**self.defaults, **self.options}
         self.opts = o
         self.prior = CurvePrior.from_options({k: v for k, v in o.items() if k in NAMES and v is not None})
         self.n_particles = n = int(o["particles"])

@@ -1,0 +1,271 @@
+"""``gp``: the fault curve without a form: a Gaussian-process prior over mu(v_s) and the exact
+Gaussian posterior from the motor-speed readings since the slip began (beyond the paper; an
+experiment beside ``bayes``, whose exponential form places the peak by its shape).
+
+State z = (omega, m) with m the curve's values at G creeps x_j, log-spaced over [``creep_min_kmh``,
+``creep_max_kmh``]; mu(v) = h(v)^T m, h linear interpolation in log creep (below the first point: the
+first value).  The wheelset (eq. A) and the sensor, with T_e held over the period and the trapezoid
+over the creep's change (as ``bayes``, identifier/speed_likelihood.py):
+
+    omega(k+1) = omega(k) + a (T_e(k) - c g(k)^T m) + w(k),   g(k) = (h(v_s(k)) + h(v_s(k+1))) / 2,
+    m(k+1) = m(k),   a = dt / J,   w ~ N(0, q),   y(k) = omega(k) + n(k),   n ~ N(0, sigma_y^2)
+
+is linear in z given the creeps, so a Kalman filter on z gives the exact posterior N(m^, P_mm):
+
+    b = a c g                                                     (the curve's effect on the speed)
+    omega^- = omega^ + a T_e - b^T m^                              predict
+    P-_0m = P_0m - P_mm b,   P-_00 = P_00 - 2 b^T P_0m + b^T P_mm b + q
+    S = P-_00 + sigma_y^2,   K = P-_{:,0} / S,   e = y - omega^-   innovation
+    z^ = z^- + K e,   P = P- - K P-_{0,:}                           update
+
+Prior: m ~ N(``prior_mu``, s^2 exp(-(ln x_i - ln x_j)^2 / (2 l^2))), s = ``prior_mu_std``, l =
+``length_log`` (a smoothness over a ratio of creeps, not a shape).  sigma_y, q and the train-speed
+line come from the readings before the slip, as in ``bayes``.
+
+Peak: ``draws`` functions from N(m^, P_mm); each one's maximum over the creeps seen so far (a fault
+curve has one peak: a maximum inside the seen range with a fall after it is the peak; a maximum at
+the newest creep says only that the peak lies beyond it, and counts as the prior's highest peak
+creep).  Intervals: quantiles of the draws' peak mu and peak creep.  Confirmation: the interval at
+``confirm_level`` within ``tol_peak_mu`` / ``tol_peak_creep`` of its median (bayes.within_tolerance),
+checked every ``check_samples`` samples.  ``unconfirmed`` when the creep passes the prior's highest
+peak creep or after ``max_samples``.  The published theta is the exponential curve through the
+median peak whose shape is nearest the posterior mean where the data were (``published_theta``):
+the peak and its intervals are what this strategy states; the rest of the curve is a convenience.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..messages import IdentificationEvent
+from ..prior import DEFAULT_BOX, theta_from_phi, theta_from_phi_floats
+from .base import Sample, Strategy
+from .bayes import KMH_PER_MS, BaselineStats, within_tolerance
+
+#: a grid point whose posterior mean + this many standard deviations is below another's mean - as
+#: many is left out of the peak's draws (it holds the maximum with probability < 1e-8)
+PLAUSIBLE_SIGMAS = 4.0
+
+#: the shapes (a, r) the published curve is chosen from: 12 x 12 log-spaced over the prior's box
+SHAPE_GRID = tuple(g.ravel() for g in np.meshgrid(np.geomspace(*DEFAULT_BOX["shape_a"], 12),
+                                                  np.geomspace(*DEFAULT_BOX["shape_r"], 12)))
+
+DEFAULTS = {
+    "grid_points": 64,
+    "creep_min_kmh": 0.02,
+    "creep_max_kmh": 4.0,
+    "upper_peak_creep_kmh": 3.0,         # the highest peak creep the TCU allows (unconfirmed past it)
+    "prior_mu": 0.15,
+    "prior_mu_std": 0.1,
+    "length_log": 1.4,
+    "model_mu_std": 3e-4,
+    "draws": 400,
+    "confirm_level": 0.98,
+    "report_level": 0.90,
+    "tol_peak_mu": 0.03,
+    "tol_peak_creep": 0.10,
+    "check_samples": 5,
+    "min_samples": 5,
+    "max_samples": 400,
+    "baseline_readings": 400,
+    "sigma_y_fallback": 0.005,
+}
+
+
+class GpStrategy(Strategy):
+    """Gaussian-process posterior over the curve's values (module docstring)."""
+
+    name = "gp"
+    defaults = DEFAULTS
+    observer_aware = True
+    wants_readings = True
+
+    def __init__(self, settings, seed: int = 0):
+        super().__init__(settings, seed)
+        unknown = set(self.options) - set(self.defaults) - {"window_samples", "k_pe", "c_lw", "c_up"}
+        if unknown:
+            raise ValueError(f"{self.name}: unknown option(s) {', '.join(sorted(unknown))}")
+        o = self.opts = {**self.defaults, **self.options}
+        veh = settings.vehicle
+        self.period_s = settings.period_s
+        self.inertia = veh.equivalent_inertia_kgm2
+        self.c = veh.torque_per_mu_nm
+        self.creep_per_motor_speed = KMH_PER_MS * veh.wheel_radius_m / veh.gear_ratio
+        g = int(o["grid_points"])
+        self.log_x = np.linspace(math.log(float(o["creep_min_kmh"])), math.log(float(o["creep_max_kmh"])), g)
+        d = self.log_x[:, None] - self.log_x[None, :]
+        self.prior_cov = float(o["prior_mu_std"]) ** 2 * np.exp(-0.5 * (d / float(o["length_log"])) ** 2)
+        self.normals = self.rng.standard_normal((g, int(o["draws"])))
+        self.baseline = BaselineStats(int(o["baseline_readings"]))
+        self._prev: Sample | None = None
+        self.z = self.P = None
+        self._h_prev = None
+        self.seen_lo = self.seen_hi = math.nan
+        self.peak_mu_ci = self.peak_creep_ci = (math.nan, math.nan)
+
+    # -- the model -----------------------------------------------------------------------------
+    def h(self, creep_kmh: float) -> np.ndarray:
+        """Interpolation weights of mu(v) on the grid (linear in log creep)."""
+        g = self.log_x
+        out = np.zeros(g.size)
+        x = math.log(max(creep_kmh, math.exp(g[0])))
+        if x >= g[-1]:
+            out[-1] = 1.0
+            return out
+        i = int(np.searchsorted(g, x, side="right")) - 1
+        f = (x - g[i]) / (g[i + 1] - g[i])
+        out[i], out[i + 1] = 1.0 - f, f
+        return out
+
+    def on_reading(self, step: int, motor_speed_rad_s: float, train_speed_ms: float) -> None:
+        if self._prev is None:
+            self.baseline.add(step, motor_speed_rad_s, train_speed_ms)
+
+    def creep(self, s: Sample) -> float:
+        k0, v0, slope = self._line
+        return self.creep_per_motor_speed * s.motor_speed_rad_s - KMH_PER_MS * (v0 + slope * (s.step - k0))
+
+    def add_sample(self, sample: Sample) -> list[IdentificationEvent]:
+        if self.confirmed or self.gave_up:
+            return []
+        if not all(math.isfinite(x) for x in (sample.creep_speed_kmh, sample.motor_speed_rad_s, sample.train_speed_ms,
+                                               sample.torque_nm)):
+            return []
+        self._v.append(sample.creep_speed_kmh)
+        self._mu.append(sample.mu_hat)
+        if self._prev is None:
+            self._open(sample)
+        else:
+            self._step(sample)
+        self._prev = sample
+        return self._evaluate(sample)
+
+    def _open(self, s: Sample) -> None:
+        o = self.opts
+        sigma_y, line = self.baseline.stats(False)
+        self.sigma_y = sigma_y if math.isfinite(sigma_y) and sigma_y > 0 else float(o["sigma_y_fallback"])
+        self._line = line if self.baseline.count else (s.step, s.train_speed_ms, 0.0)
+        creep_noise_kmh = self.creep_per_motor_speed * self.sigma_y
+        mu_std = math.hypot(float(o["model_mu_std"]), creep_noise_kmh / math.sqrt(2.0))
+        self.q = (self.period_s * self.c / self.inertia * mu_std) ** 2
+        g = self.log_x.size
+        self.z = np.concatenate([[s.motor_speed_rad_s], np.full(g, float(o["prior_mu"]))])
+        self.P = np.zeros((g + 1, g + 1))
+        self.P[0, 0] = self.sigma_y ** 2
+        self.P[1:, 1:] = self.prior_cov
+        v = self.creep(s)
+        self._h_prev = self.h(v)
+        self.seen_lo = self.seen_hi = v
+
+    def _step(self, s: Sample) -> None:
+        periods = max(s.step - self._prev.step, 1)
+        v = self.creep(s)
+        h_new = self.h(v)
+        a = periods * self.period_s / self.inertia
+        b = a * self.c * 0.5 * (self._h_prev + h_new)
+        z, P = self.z, self.P
+        z[0] += a * self._prev.torque_nm - b @ z[1:]                                 # predict
+        p0m = P[0, 1:] - P[1:, 1:] @ b
+        p00 = P[0, 0] - 2.0 * b @ P[0, 1:] + b @ P[1:, 1:] @ b + periods * self.q
+        P[0, 1:] = P[1:, 0] = p0m
+        P[0, 0] = p00
+        S = p00 + self.sigma_y ** 2                                                   # innovation
+        e = s.motor_speed_rad_s - z[0]
+        k = P[:, 0] / S
+        z += k * e                                                                    # update
+        P -= np.outer(k, P[0, :])
+        self._h_prev = h_new
+        self.seen_lo, self.seen_hi = min(self.seen_lo, v), max(self.seen_hi, v)
+
+    # -- the peak --------------------------------------------------------------------------------
+    def peak_draws(self) -> tuple[np.ndarray, np.ndarray]:
+        """(peak mu, peak creep km/h) of each draw from the posterior, over the creeps seen so far."""
+        g = self.log_x
+        inside = (g >= math.log(max(self.seen_lo, math.exp(g[0])))) & (g <= math.log(max(self.seen_hi, math.exp(g[0]))))
+        idx = np.flatnonzero(inside)
+        if idx.size < 3:
+            idx = np.arange(0, max(3, idx.max(initial=0) + 1))
+        # only where the maximum can be: points whose value may reach (4 sigma) what another surely has
+        last_seen = idx[-1]
+        m_all, sd = self.z[1:][idx], np.sqrt(np.clip(np.diag(self.P)[1:][idx], 0.0, None))
+        cand = np.flatnonzero(m_all + PLAUSIBLE_SIGMAS * sd >= np.max(m_all - PLAUSIBLE_SIGMAS * sd))
+        idx = idx[max(cand[0] - 1, 0):min(cand[-1] + 2, idx.size)]
+        m = self.z[1:][idx]
+        cov = self.P[1:, 1:][np.ix_(idx, idx)]
+        cov = 0.5 * (cov + cov.T) + 1e-12 * np.eye(idx.size)
+        try:
+            root = np.linalg.cholesky(cov)
+        except np.linalg.LinAlgError:       # numerically semi-definite: the symmetric root
+            w, vecs = np.linalg.eigh(cov)
+            root = vecs * np.sqrt(np.clip(w, 0.0, None))
+        f = m[:, None] + root @ self.normals[:idx.size]
+        j = np.argmax(f, axis=0)
+        peak_mu = f[j, np.arange(f.shape[1])]
+        # parabola through the maximum and its neighbours (in log creep) where it is inside
+        x = g[idx]
+        jj = np.clip(j, 1, idx.size - 2)
+        fl, fc, fr = (f[jj + d, np.arange(f.shape[1])] for d in (-1, 0, 1))
+        denom = fl - 2.0 * fc + fr
+        with np.errstate(divide="ignore", invalid="ignore"):
+            off = np.where((j == jj) & (denom < 0), 0.5 * (fl - fr) / denom, 0.0)
+        step = x[1] - x[0] if x.size > 1 else 0.0
+        log_peak = x[j] + np.clip(off, -0.5, 0.5) * step
+        creep = np.exp(log_peak)
+        beyond = idx[j] == last_seen          # the newest creep is the highest: the peak lies further on
+        creep[beyond] = float(self.opts["upper_peak_creep_kmh"])
+        return peak_mu, creep
+
+    def _evaluate(self, s: Sample) -> list[IdentificationEvent]:
+        o = self.opts
+        n = len(self._v)
+        check = n % int(o["check_samples"]) == 0
+        ends = s.creep_speed_kmh > float(o["upper_peak_creep_kmh"]) or n >= int(o["max_samples"])
+        if not (check or ends):
+            return []
+        # one set of draws, one quantile pass: the confirmation's interval, the median, the published one
+        conf, rep = float(o["confirm_level"]), float(o["report_level"])
+        q = np.quantile(np.vstack(self.peak_draws()), (0.5 * (1 - conf), 0.5 * (1 - rep), 0.5, 0.5 * (1 + rep),
+                                                       0.5 * (1 + conf)), axis=1)
+        (mu_lo, creep_lo), _, (mu_mid, creep_mid), _, (mu_hi, creep_hi) = q
+        if (check and n >= int(o["min_samples"]) and within_tolerance(mu_lo, mu_mid, mu_hi, float(o["tol_peak_mu"]))
+                and within_tolerance(creep_lo, creep_mid, creep_hi, float(o["tol_peak_creep"]))
+                and creep_hi < float(o["upper_peak_creep_kmh"])):
+            return [self._publish(s, "confirmed", q)]
+        return [self._publish(s, "unconfirmed" if ends else "correction", q)]
+
+    def _publish(self, s: Sample, kind: str, q: np.ndarray) -> IdentificationEvent:
+        """The event of ``kind`` with the median peak and the intervals at ``report_level`` (rows 1-3
+        of ``q``, the quantiles of ``_evaluate``; columns peak mu, peak creep)."""
+        (mu_lo, creep_lo), (mu_mid, creep_mid), (mu_hi, creep_hi) = q[1], q[2], q[3]
+        self.theta = self.published_theta(float(mu_mid), float(creep_mid))
+        self.peak_mu_ci = (float(mu_lo), float(mu_hi))
+        self.peak_creep_ci = (float(creep_lo), float(creep_hi))
+        if kind == "confirmed":
+            self.confirmed = True
+        elif kind == "unconfirmed":
+            self.gave_up = True
+        else:
+            self.corrections += 1
+        return IdentificationEvent(s.step, s.t_s, kind, self.corrections, tuple(float(x) for x in self.theta),
+                                   math.nan, len(self._v), self.peak_mu_ci, self.peak_creep_ci)
+
+    def published_theta(self, peak_mu: float, peak_creep_kmh: float) -> np.ndarray:
+        """The exponential curve (theta) through the median peak whose shape (mu(0), a, r of
+        identifier/prior.py, on SHAPE_GRID) is nearest, in least squares, to the posterior mean at
+        the grid's creeps seen so far: for a controller that wants a whole curve; the intervals are
+        of the peak only."""
+        inside = (self.log_x >= math.log(max(self.seen_lo, 1e-9))) & (self.log_x <= math.log(max(self.seen_hi, 1e-9)))
+        v, m = np.exp(self.log_x[inside]), self.z[1:][inside]
+        mu0 = min(max(float(self.z[1]), 0.0), 0.5 * peak_mu)
+        a, r = SHAPE_GRID
+        phi = np.stack([np.full(a.size, peak_mu), np.full(a.size, peak_creep_kmh), np.full(a.size, mu0), a, r], axis=1)
+        theta = theta_from_phi(phi)
+        if v.size:
+            l0, l1, l2, t1, t2 = (theta[:, i:i + 1] for i in range(5))
+            err = np.sum((l0 + l1 * np.exp(t1 * v) + l2 * np.exp(t2 * v) - m) ** 2, axis=1)
+            return theta[int(np.argmin(err))]
+        return np.array(theta_from_phi_floats((peak_mu, peak_creep_kmh, mu0, 1.0, 2.0)))
+
+    def correct(self, window_v, window_mu):
+        raise NotImplementedError
