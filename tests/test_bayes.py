@@ -1,4 +1,4 @@
-"""The recommended strategy (``bayes``) on synthetic slips the test integrates itself: its intervals
+"""The exponential-form strategy (``bayes``) on synthetic slips the test integrates itself: its intervals
 cover the truth about as often as they say, it does not confirm a curve far from its prior's mass,
 and its compiled passes are its numpy reference's."""
 import math
