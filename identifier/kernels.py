@@ -1059,6 +1059,131 @@ def weighted_quantiles_hist(x, weights, qs, bins, counts, out):
         i += 1
 
 
+# -- the form-free strategy (identifier/strategies/gp.py): its Kalman step and its peak draws ---------
+@njit(**_JIT_EXACT)
+def gp_update(z, P, b, drive, q, sigma2, y, row0):
+    """The strategy's filter step in place on z (1 + G) and P: predict with the curve's effect b (G)
+    and the torque's drive (a T_e), then update with the reading y; ``row0`` (1 + G) is scratch.
+    The same equations as ``GpStrategy._step`` (its module docstring), a pass each."""
+    g = b.size
+    zb = 0.0
+    for i in range(g):
+        zb += b[i] * z[1 + i]
+    z[0] += drive - zb                                              # omega^- = omega^ + a T_e - b^T m^
+    bp0 = 0.0
+    bpb = 0.0
+    for i in range(g):                                              # P-_0m = P_0m - P_mm b
+        pb = 0.0
+        for j in range(g):
+            pb += P[1 + i, 1 + j] * b[j]
+        bp0 += b[i] * P[0, 1 + i]
+        bpb += b[i] * pb
+        row0[1 + i] = P[0, 1 + i] - pb
+    row0[0] = P[0, 0] - 2.0 * bp0 + bpb + q                         # P-_00
+    for i in range(g):
+        P[0, 1 + i] = row0[1 + i]
+        P[1 + i, 0] = row0[1 + i]
+    P[0, 0] = row0[0]
+    s = row0[0] + sigma2                                            # S = P-_00 + sigma_y^2
+    e = y - z[0]
+    n = g + 1
+    for i in range(n):                                              # z^ = z^- + K e,  K = P-_{:,0} / S
+        z[i] += row0[i] / s * e
+    for i in range(n):                                              # P = P- - K P-_{0,:}
+        ki = row0[i] / s
+        for j in range(n):
+            P[i, j] -= ki * row0[j]
+    return e
+
+
+@njit(**_JIT_EXACT)
+def _quantile_sorted(a, q):
+    """numpy.quantile's default (linear) on an ascending ``a``."""
+    pos = q * (a.size - 1)
+    lo = int(math.floor(pos))
+    hi = min(lo + 1, a.size - 1)
+    return a[lo] + (pos - lo) * (a[hi] - a[lo])
+
+
+@njit(**_JIT_EXACT)
+def gp_peak(z, P, i0, i1, sigmas, normals, log_x, upper_kmh, qs, root, cov, f, peak_mu, peak_creep, out):
+    """``GpStrategy._region`` and ``peak_draws`` in one pass, then the quantiles: of the seen grid
+    points i0..i1 (inclusive) keep those whose mean + ``sigmas`` sd reaches the highest mean -
+    ``sigmas`` sd, with a neighbour each side; root <- the Cholesky factor of their covariance; draw
+    d = mean + root normals[:k, d], its maximum's value and creep (a parabola in log creep through
+    the maximum and its neighbours; ``upper_kmh`` where the maximum is the newest seen point i1);
+    out (len(qs), 2) <- the quantiles qs of (peak mu, peak creep).  root, cov (G x G) and f (G) are
+    scratch.  Returns k, the number of points drawn."""
+    floor = -1e300
+    for i in range(i0, i1 + 1):
+        sd = math.sqrt(max(P[1 + i, 1 + i], 0.0))
+        floor = max(floor, z[1 + i] - sigmas * sd)
+    lo, hi = i1, i0
+    for i in range(i0, i1 + 1):
+        sd = math.sqrt(max(P[1 + i, 1 + i], 0.0))
+        if z[1 + i] + sigmas * sd >= floor:
+            lo = min(lo, i)
+            hi = max(hi, i)
+    lo, hi = max(lo - 1, i0), min(hi + 1, i1)
+    k = hi - lo + 1
+    c = cov[:k, :k]
+    for i in range(k):
+        for j in range(k):
+            c[i, j] = 0.5 * (P[1 + lo + i, 1 + lo + j] + P[1 + lo + j, 1 + lo + i])
+        c[i, i] += 1e-12
+    r = root[:k, :k]
+    cholesky_lower(c, r)
+    step = log_x[lo + 1] - log_x[lo] if k > 1 else 0.0
+    for d in range(normals.shape[1]):
+        best = 0
+        for i in range(k):
+            acc = z[1 + lo + i]
+            for j in range(i + 1):
+                acc += r[i, j] * normals[j, d]
+            f[i] = acc
+            if acc > f[best]:
+                best = i
+        peak_mu[d] = f[best]
+        off = 0.0
+        if k >= 3:
+            jj = min(max(best, 1), k - 2)
+            if jj == best:
+                denom = f[jj - 1] - 2.0 * f[jj] + f[jj + 1]
+                if denom < 0.0:
+                    off = min(max(0.5 * (f[jj - 1] - f[jj + 1]) / denom, -0.5), 0.5)
+        peak_creep[d] = upper_kmh if lo + best == i1 else math.exp(log_x[lo + best] + off * step)
+    a = np.sort(peak_mu)
+    b = np.sort(peak_creep)
+    for i in range(qs.size):
+        out[i, 0] = _quantile_sorted(a, qs[i])
+        out[i, 1] = _quantile_sorted(b, qs[i])
+    return k
+
+
+@njit(**_JIT_EXACT)
+def exp_shape_fit(shape_a, shape_r, peak_mu, peak_creep_kmh, mu0, v, m, theta):
+    """theta (5) <- the curve of identifier/prior.py's form through (peak_creep_kmh, peak_mu) with
+    mu(0) = mu0 and the shape (shape_a[i], shape_r[i]) whose values at the creeps v are nearest m in
+    least squares (``GpStrategy.published_theta``; prior.theta_from_phi's equations)."""
+    best = 1e300
+    for i in range(shape_a.size):
+        a, rr = shape_a[i], shape_r[i]
+        t1 = -a / peak_creep_kmh
+        t2 = rr * t1
+        e_a = math.exp(-a)
+        e_ra = math.exp((rr - 1.0) * a)
+        l1 = (peak_mu - mu0) / ((e_a - 1.0) - (e_a - e_ra) / rr)
+        l2 = -(l1 / rr) * e_ra
+        l0 = mu0 - l1 - l2
+        err = 0.0
+        for j in range(v.size):
+            d = l0 + l1 * math.exp(t1 * v[j]) + l2 * math.exp(t2 * v[j]) - m[j]
+            err += d * d
+        if err < best:
+            best = err
+            theta[0], theta[1], theta[2], theta[3], theta[4] = l0, l1, l2, t1, t2
+
+
 def warm_up() -> None:
     """Compile (or load from the cache) every kernel now, e.g. before the fault, not on the first
     sample; once per process."""
@@ -1107,4 +1232,8 @@ def warm_up() -> None:
     cloud_peaks(np.zeros((5, 4)), np.array([0.0, 1.0, -1.0, -0.54, -1.2]), np.empty(4), np.empty(4))
     bayes_mu_at(u16[0], u16[1], u16[2], u16[3], u16[4], 0.5, np.empty(16))
     weighted_quantiles_hist(u16[0], np.full(16, 1 / 16), np.array([0.05, 0.5, 0.95]), 64, np.empty(64), np.empty(3))
+    gp_update(np.zeros(4), np.eye(4), np.full(3, 0.1), 0.0, 1e-6, 1e-4, 0.0, np.empty(4))
+    gp_peak(np.zeros(4), np.eye(4), 0, 2, 4.0, np.zeros((3, 4)), np.arange(3.0), 3.0, np.array([0.1, 0.5, 0.9]),
+            np.empty((3, 3)), np.empty((3, 3)), np.empty(3), np.empty(4), np.empty(4), np.empty((3, 2)))
+    exp_shape_fit(np.ones(2), np.full(2, 2.0), 0.1, 1.0, 0.0, np.ones(3), np.ones(3), np.empty(5))
     _warmed = True

@@ -115,3 +115,25 @@ def test_a_flat_top_of_another_form_is_not_confirmed_wrongly():
             assert judged(e, mp, vp), (mp, vp, p, e)
         covered += e.peak_creep_ci[0] <= vp <= e.peak_creep_ci[1]
     assert covered >= 3
+
+
+def test_compiled_and_numpy_paths_agree():
+    """identifier/kernels.py's gp_update and gp_peak against the strategy's numpy reference on the
+    same slip: the same posterior, the same events and intervals."""
+    rng = fresh_rng()
+    phi = np.array([rng.uniform(0.08, 0.2), rng.uniform(0.8, 1.6), 0.0, rng.uniform(0.6, 1.0), 2.0])
+    pre, samples = slip(curve(theta_from_phi(phi)), phi[0] * 1.06, rng, creep0_kmh=0.3 * phi[1])
+    runs = []
+    for compiled in (True, False):
+        strat = make_strategy("gp", settings(compiled=compiled), seed=7)
+        assert strat._compiled == compiled
+        runs.append((strat, run(strat, pre, samples)))
+    (a, ev_a), (b, ev_b) = runs
+    assert [e.kind for e in ev_a] == [e.kind for e in ev_b] and ev_a[-1].step == ev_b[-1].step
+    np.testing.assert_allclose(a.z, b.z, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(a.P, b.P, rtol=1e-8, atol=1e-14)
+    # rounding (the Cholesky factor's, the sums' order) moves a parabola's vertex by ~1e-8 relative;
+    # a draw whose maximum moved to another grid point would move it by ~1e-1
+    for ea, eb in zip(ev_a, ev_b):
+        np.testing.assert_allclose(ea.peak_mu_ci + ea.peak_creep_ci, eb.peak_mu_ci + eb.peak_creep_ci, rtol=1e-6)
+        np.testing.assert_allclose(ea.params, eb.params, rtol=1e-6)

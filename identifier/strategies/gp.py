@@ -31,6 +31,11 @@ checked every ``check_samples`` samples.  ``unconfirmed`` when the creep passes 
 peak creep or after ``max_samples``.  The published theta is the exponential curve through the
 median peak whose shape is nearest the posterior mean where the data were (``published_theta``):
 the peak and its intervals are what this strategy states; the rest of the curve is a convenience.
+
+The numpy code here is the reference; ``compiled`` (default) runs the filter step, the peak draws
+with their quantiles and the published curve's shape search by their twins in identifier/kernels.py
+(``gp_update``, ``gp_peak``, ``exp_shape_fit``): the numpy calls' overhead, not their arithmetic,
+was the cost of the samples that draw the peak (tests/test_gp.py checks the twins agree).
 """
 from __future__ import annotations
 
@@ -39,9 +44,10 @@ import math
 import numpy as np
 
 from ..messages import IdentificationEvent
-from ..prior import DEFAULT_BOX, theta_from_phi, theta_from_phi_floats
+from ..prior import DEFAULT_BOX, theta_from_phi
 from .base import Sample, Strategy
 from .bayes import KMH_PER_MS, BaselineStats, within_tolerance
+from .mdipf import load_kernels
 
 #: a grid point whose posterior mean + this many standard deviations is below another's mean - as
 #: many is left out of the peak's draws (it holds the maximum with probability < 1e-8)
@@ -70,6 +76,7 @@ DEFAULTS = {
     "max_samples": 400,
     "baseline_readings": 400,
     "sigma_y_fallback": 0.005,
+    "compiled": True,                    # the filter step and the peak draws by identifier/kernels.py; False: numpy
 }
 
 
@@ -97,6 +104,12 @@ class GpStrategy(Strategy):
         d = self.log_x[:, None] - self.log_x[None, :]
         self.prior_cov = float(o["prior_mu_std"]) ** 2 * np.exp(-0.5 * (d / float(o["length_log"])) ** 2)
         self.normals = self.rng.standard_normal((g, int(o["draws"])))
+        self._compiled = bool(o["compiled"]) and load_kernels().AVAILABLE
+        if self._compiled:
+            load_kernels().warm_up()
+        self._row0 = np.empty(g + 1)
+        self._scratch = (np.empty((g, g)), np.empty((g, g)), np.empty(g))      # root, cov, f of kernels.gp_peak
+        self._draw_mu, self._draw_creep = np.empty(int(o["draws"])), np.empty(int(o["draws"]))
         self.baseline = BaselineStats(int(o["baseline_readings"]))
         self._prev: Sample | None = None
         self.z = self.P = None
@@ -165,6 +178,12 @@ class GpStrategy(Strategy):
         a = periods * self.period_s / self.inertia
         b = a * self.c * 0.5 * (self._h_prev + h_new)
         z, P = self.z, self.P
+        if self._compiled:
+            load_kernels().gp_update(z, P, b, a * self._prev.torque_nm, periods * self.q, self.sigma_y ** 2,
+                                     s.motor_speed_rad_s, self._row0)
+            self._h_prev = h_new
+            self.seen_lo, self.seen_hi = min(self.seen_lo, v), max(self.seen_hi, v)
+            return
         z[0] += a * self._prev.torque_nm - b @ z[1:]                                 # predict
         p0m = P[0, 1:] - P[1:, 1:] @ b
         p00 = P[0, 0] - 2.0 * b @ P[0, 1:] + b @ P[1:, 1:] @ b + periods * self.q
@@ -179,18 +198,30 @@ class GpStrategy(Strategy):
         self.seen_lo, self.seen_hi = min(self.seen_lo, v), max(self.seen_hi, v)
 
     # -- the peak --------------------------------------------------------------------------------
-    def peak_draws(self) -> tuple[np.ndarray, np.ndarray]:
-        """(peak mu, peak creep km/h) of each draw from the posterior, over the creeps seen so far."""
+    def _seen(self) -> tuple[int, int]:
+        """The grid indices (first, last) of the creeps seen so far (at least three points)."""
         g = self.log_x
-        inside = (g >= math.log(max(self.seen_lo, math.exp(g[0])))) & (g <= math.log(max(self.seen_hi, math.exp(g[0]))))
-        idx = np.flatnonzero(inside)
-        if idx.size < 3:
-            idx = np.arange(0, max(3, idx.max(initial=0) + 1))
-        # only where the maximum can be: points whose value may reach (4 sigma) what another surely has
-        last_seen = idx[-1]
+        i0 = int(np.searchsorted(g, math.log(max(self.seen_lo, 1e-300)), side="left"))
+        i1 = int(np.searchsorted(g, math.log(max(self.seen_hi, 1e-300)), side="right")) - 1
+        if i1 - i0 < 2:
+            i0, i1 = 0, max(2, i1)
+        return i0, i1
+
+    def _region(self):
+        """(grid indices, position of the newest seen creep among them or -1): the seen creeps
+        where the maximum can be (points whose mean + PLAUSIBLE_SIGMAS sd reach what another surely
+        has), with a neighbour on each side for the parabola."""
+        i0, i1 = self._seen()
+        idx = np.arange(i0, i1 + 1)
         m_all, sd = self.z[1:][idx], np.sqrt(np.clip(np.diag(self.P)[1:][idx], 0.0, None))
         cand = np.flatnonzero(m_all + PLAUSIBLE_SIGMAS * sd >= np.max(m_all - PLAUSIBLE_SIGMAS * sd))
         idx = idx[max(cand[0] - 1, 0):min(cand[-1] + 2, idx.size)]
+        return idx, (idx.size - 1 if idx[-1] == i1 else -1)
+
+    def peak_draws(self) -> tuple[np.ndarray, np.ndarray]:
+        """(peak mu, peak creep km/h) of each draw from the posterior, over the creeps seen so far:
+        the numpy reference of ``kernels.gp_peak``."""
+        idx, last_pos = self._region()
         m = self.z[1:][idx]
         cov = self.P[1:, 1:][np.ix_(idx, idx)]
         cov = 0.5 * (cov + cov.T) + 1e-12 * np.eye(idx.size)
@@ -200,21 +231,31 @@ class GpStrategy(Strategy):
             w, vecs = np.linalg.eigh(cov)
             root = vecs * np.sqrt(np.clip(w, 0.0, None))
         f = m[:, None] + root @ self.normals[:idx.size]
+        cols = np.arange(f.shape[1])
         j = np.argmax(f, axis=0)
-        peak_mu = f[j, np.arange(f.shape[1])]
-        # parabola through the maximum and its neighbours (in log creep) where it is inside
-        x = g[idx]
-        jj = np.clip(j, 1, idx.size - 2)
-        fl, fc, fr = (f[jj + d, np.arange(f.shape[1])] for d in (-1, 0, 1))
-        denom = fl - 2.0 * fc + fr
-        with np.errstate(divide="ignore", invalid="ignore"):
-            off = np.where((j == jj) & (denom < 0), 0.5 * (fl - fr) / denom, 0.0)
+        peak_mu = f[j, cols]
+        x = self.log_x[idx]
+        off = np.zeros(f.shape[1])
+        if idx.size >= 3:       # parabola through the maximum and its neighbours (in log creep) where it is inside
+            jj = np.clip(j, 1, idx.size - 2)
+            fl, fc, fr = (f[jj + d, cols] for d in (-1, 0, 1))
+            denom = fl - 2.0 * fc + fr
+            with np.errstate(divide="ignore", invalid="ignore"):
+                off = np.clip(np.where((j == jj) & (denom < 0), 0.5 * (fl - fr) / denom, 0.0), -0.5, 0.5)
         step = x[1] - x[0] if x.size > 1 else 0.0
-        log_peak = x[j] + np.clip(off, -0.5, 0.5) * step
-        creep = np.exp(log_peak)
-        beyond = idx[j] == last_seen          # the newest creep is the highest: the peak lies further on
-        creep[beyond] = float(self.opts["upper_peak_creep_kmh"])
+        creep = np.exp(x[j] + off * step)
+        creep[j == last_pos] = float(self.opts["upper_peak_creep_kmh"])     # the peak lies further on
         return peak_mu, creep
+
+    def peak_quantiles(self, qs: np.ndarray) -> np.ndarray:
+        """(len(qs), 2): the quantiles ``qs`` of the draws' peak mu and peak creep."""
+        if not self._compiled:
+            return np.quantile(np.vstack(self.peak_draws()), qs, axis=1)
+        out = np.empty((qs.size, 2))
+        load_kernels().gp_peak(self.z, self.P, *self._seen(), PLAUSIBLE_SIGMAS, self.normals, self.log_x,
+                               float(self.opts["upper_peak_creep_kmh"]), qs, *self._scratch, self._draw_mu,
+                               self._draw_creep, out)
+        return out
 
     def _evaluate(self, s: Sample) -> list[IdentificationEvent]:
         o = self.opts
@@ -225,8 +266,7 @@ class GpStrategy(Strategy):
             return []
         # one set of draws, one quantile pass: the confirmation's interval, the median, the published one
         conf, rep = float(o["confirm_level"]), float(o["report_level"])
-        q = np.quantile(np.vstack(self.peak_draws()), (0.5 * (1 - conf), 0.5 * (1 - rep), 0.5, 0.5 * (1 + rep),
-                                                       0.5 * (1 + conf)), axis=1)
+        q = self.peak_quantiles(np.array([0.5 * (1 - conf), 0.5 * (1 - rep), 0.5, 0.5 * (1 + rep), 0.5 * (1 + conf)]))
         (mu_lo, creep_lo), _, (mu_mid, creep_mid), _, (mu_hi, creep_hi) = q
         if (check and n >= int(o["min_samples"]) and within_tolerance(mu_lo, mu_mid, mu_hi, float(o["tol_peak_mu"]))
                 and within_tolerance(creep_lo, creep_mid, creep_hi, float(o["tol_peak_creep"]))
@@ -251,21 +291,23 @@ class GpStrategy(Strategy):
                                    math.nan, len(self._v), self.peak_mu_ci, self.peak_creep_ci)
 
     def published_theta(self, peak_mu: float, peak_creep_kmh: float) -> np.ndarray:
-        """The exponential curve (theta) through the median peak whose shape (mu(0), a, r of
-        identifier/prior.py, on SHAPE_GRID) is nearest, in least squares, to the posterior mean at
-        the grid's creeps seen so far: for a controller that wants a whole curve; the intervals are
-        of the peak only."""
-        inside = (self.log_x >= math.log(max(self.seen_lo, 1e-9))) & (self.log_x <= math.log(max(self.seen_hi, 1e-9)))
-        v, m = np.exp(self.log_x[inside]), self.z[1:][inside]
+        """The exponential curve (theta) through the median peak whose shape (a, r of
+        identifier/prior.py, on SHAPE_GRID; mu(0) the posterior mean's, at most half the peak) is
+        nearest, in least squares, to the posterior mean at the grid's creeps seen so far: for a
+        controller that wants a whole curve; the intervals are of the peak only."""
+        i0, i1 = self._seen()
+        v, m = np.exp(self.log_x[i0:i1 + 1]), self.z[1 + i0:2 + i1]
         mu0 = min(max(float(self.z[1]), 0.0), 0.5 * peak_mu)
         a, r = SHAPE_GRID
+        if self._compiled:
+            theta = np.empty(5)
+            load_kernels().exp_shape_fit(a, r, peak_mu, peak_creep_kmh, mu0, v, m, theta)
+            return theta
         phi = np.stack([np.full(a.size, peak_mu), np.full(a.size, peak_creep_kmh), np.full(a.size, mu0), a, r], axis=1)
         theta = theta_from_phi(phi)
-        if v.size:
-            l0, l1, l2, t1, t2 = (theta[:, i:i + 1] for i in range(5))
-            err = np.sum((l0 + l1 * np.exp(t1 * v) + l2 * np.exp(t2 * v) - m) ** 2, axis=1)
-            return theta[int(np.argmin(err))]
-        return np.array(theta_from_phi_floats((peak_mu, peak_creep_kmh, mu0, 1.0, 2.0)))
+        l0, l1, l2, t1, t2 = (theta[:, i:i + 1] for i in range(5))
+        err = np.sum((l0 + l1 * np.exp(t1 * v) + l2 * np.exp(t2 * v) - m) ** 2, axis=1)
+        return theta[int(np.argmin(err))]
 
     def correct(self, window_v, window_mu):
         raise NotImplementedError
