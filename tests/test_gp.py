@@ -137,3 +137,23 @@ def test_compiled_and_numpy_paths_agree():
     for ea, eb in zip(ev_a, ev_b):
         np.testing.assert_allclose(ea.peak_mu_ci + ea.peak_creep_ci, eb.peak_mu_ci + eb.peak_creep_ci, rtol=1e-6)
         np.testing.assert_allclose(ea.params, eb.params, rtol=1e-6)
+
+
+def test_intervals_cover_the_truth_about_as_often_as_they_say():
+    """40 exponential curves of the bench's families' peak box: the last 90 % intervals hold the true
+    peak mu and peak creep in at least 30 (36 expected if calibrated; fewer than 30 has probability
+    ~0.2 % then): a guard against a gross miscalibration, the bench measures it."""
+    from identifier.prior import CurvePrior
+    from .test_bayes import draw_curve
+    rng = fresh_rng()
+    prior = CurvePrior.from_options({"peak_mu": [0.05, 0.25], "peak_creep_kmh": [0.4, 3.0], "shape_a": [0.3, 2.5],
+                                     "shape_r": [1.3, 4.0]})
+    trials, covered_mu, covered_creep = 40, 0, 0
+    for i in range(trials):
+        phi, theta = draw_curve(rng, prior)
+        pre, samples = slip(curve(theta), phi[0] * 1.06, rng, creep0_kmh=0.3 * phi[1])
+        e = run(make_strategy("gp", settings(), seed=i), pre, samples)[-1]
+        covered_mu += e.peak_mu_ci[0] <= phi[0] <= e.peak_mu_ci[1]
+        covered_creep += e.peak_creep_ci[0] <= phi[1] <= e.peak_creep_ci[1]
+    print("90 % intervals covered peak mu", covered_mu, "peak creep", covered_creep, "of", trials)
+    assert covered_mu >= 30 and covered_creep >= 30
