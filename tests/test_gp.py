@@ -32,7 +32,8 @@ def judged(event, peak_mu, peak_creep_kmh):
 def test_the_filter_equals_the_batch_gaussian_posterior():
     """The curve values' posterior after a few samples, by the strategy's Kalman filter, against the
     same linear-Gaussian model conditioned in one go here: x = (omega_0, w_1..w_K, m), independent
-    priors, y_k = omega_0 + sum_j (a T_j - b_j^T m + w_j) + n_k."""
+    priors, y_k = omega_0 + sum_j (a T_j - b_j^T m + w_j) + n_k, w_j ~ N(0, q_j) with the q_j the filter
+    took (they follow the posterior mean's slope: test_the_process_noise_follows_the_slope)."""
     rng = fresh_rng()
     strat = make_strategy("gp", settings(grid_points=12, creep_min_kmh=0.1, creep_max_kmh=3.0, length_log=0.3,
                                         prior_mu=0.15, prior_mu_std=0.1))
@@ -44,12 +45,14 @@ def test_the_filter_equals_the_batch_gaussian_posterior():
         y = omega + 0.005 * rng.standard_normal()
         samples.append(Sample(k, k * PERIOD_S, 0.0, math.nan, math.nan, y, 10.0, 2000.0 + 100 * rng.random()))
         omega += 0.04 + 0.01 * rng.random()
+    qs = []
     for s in samples:
         strat.add_sample(s)
+        qs.append(strat.q_last if len(qs) else None)      # the process noise of each step (the slope's)
     # the batch posterior, built from the model's definition (module docstring of identifier/strategies/gp.py)
     g = strat.log_x.size
     K = len(samples) - 1
-    sigma2, q = strat.sigma_y ** 2, strat.q
+    sigma2 = strat.sigma_y ** 2
     a = PERIOD_S / INERTIA
     d = strat.log_x[:, None] - strat.log_x[None, :]
     prior_cov = 0.1 ** 2 * np.exp(-0.5 * (d / 0.3) ** 2)
@@ -57,7 +60,7 @@ def test_the_filter_equals_the_batch_gaussian_posterior():
     mean = np.concatenate([[samples[0].motor_speed_rad_s], np.zeros(K), np.full(g, 0.15)])
     cov = np.zeros((n, n))
     cov[0, 0] = sigma2
-    cov[1:1 + K, 1:1 + K] = q * np.eye(K)
+    cov[1:1 + K, 1:1 + K] = np.diag(qs[1:])
     cov[1 + K:, 1 + K:] = prior_cov
     rows, offsets = [], []
     row, offset = np.zeros(n), 0.0
@@ -157,3 +160,25 @@ def test_intervals_cover_the_truth_about_as_often_as_they_say():
         covered_creep += e.peak_creep_ci[0] <= phi[1] <= e.peak_creep_ci[1]
     print("90 % intervals covered peak mu", covered_mu, "peak creep", covered_creep, "of", trials)
     assert covered_mu >= 30 and covered_creep >= 30
+
+
+def test_the_process_noise_follows_the_slope():
+    """q = (dt c / J)^2 (model_mu_std^2 + slope^2 creep_var / 2): with the posterior mean set to a line
+    of known slope in v_s, slope_per_kmh returns it, and the step's q carries it."""
+    rng = fresh_rng()
+    model_mu_std = rng.uniform(1e-4, 1e-3)
+    strat = make_strategy("gp", settings(model_mu_std=model_mu_std))
+    for k in range(50):
+        strat.on_reading(k, 250.0 + 0.005 * rng.standard_normal(), 10.0)
+    y0 = 250.0
+    strat.add_sample(Sample(50, 0.05, 0.0, math.nan, math.nan, y0, 10.0, 2000.0))
+    slope = rng.uniform(0.02, 0.3)
+    strat.z[1:] = 0.05 + slope * np.exp(strat.log_x)
+    v = rng.uniform(0.3, 2.0)
+    assert abs(strat.slope_per_kmh(v) - slope) < 1e-9
+    y1 = (v / 3.6 + 10.0) * GEAR / RADIUS        # a reading at creep v
+    strat.add_sample(Sample(51, 0.051, v, math.nan, math.nan, y1, 10.0, 2000.0))
+    sigma_y = strat.sigma_y
+    creep_noise = 3.6 * RADIUS / GEAR * sigma_y
+    expected = (PERIOD_S * TORQUE_PER_MU / INERTIA) ** 2 * (model_mu_std ** 2 + slope ** 2 * creep_noise ** 2 / 2)
+    assert abs(strat.q_last / expected - 1) < 1e-6

@@ -65,7 +65,7 @@ DEFAULTS = {
     "prior_mu": 0.15,
     "prior_mu_std": 0.1,
     "length_log": 1.4,
-    "model_mu_std": 3e-4,
+    "model_mu_std": 6.5e-4,
     "draws": 400,
     "confirm_level": 0.98,
     "report_level": 0.90,
@@ -131,6 +131,15 @@ class GpStrategy(Strategy):
         out[i], out[i + 1] = 1.0 - f, f
         return out
 
+    def slope_per_kmh(self, creep_kmh: float) -> float:
+        """d mu / d v_s of the posterior mean at ``creep_kmh`` (its grid interval; 0 outside the grid)."""
+        g = self.log_x
+        x = math.log(max(creep_kmh, 1e-300))
+        i = int(np.searchsorted(g, x, side="right")) - 1
+        if i < 0 or i >= g.size - 1:
+            return 0.0
+        return (self.z[2 + i] - self.z[1 + i]) / (math.exp(g[i + 1]) - math.exp(g[i]))
+
     def on_reading(self, step: int, motor_speed_rad_s: float, train_speed_ms: float) -> None:
         if self._prev is None:
             self.baseline.add(step, motor_speed_rad_s, train_speed_ms)
@@ -159,9 +168,9 @@ class GpStrategy(Strategy):
         sigma_y, line = self.baseline.stats(False)
         self.sigma_y = sigma_y if math.isfinite(sigma_y) and sigma_y > 0 else float(o["sigma_y_fallback"])
         self._line = line if self.baseline.count else (s.step, s.train_speed_ms, 0.0)
-        creep_noise_kmh = self.creep_per_motor_speed * self.sigma_y
-        mu_std = math.hypot(float(o["model_mu_std"]), creep_noise_kmh / math.sqrt(2.0))
-        self.q = (self.period_s * self.c / self.inertia * mu_std) ** 2
+        # q: the model error, and the creep's noise carried into mu by the curve's slope there
+        self._creep_var_kmh2 = 0.5 * (self.creep_per_motor_speed * self.sigma_y) ** 2      # halved by the trapezoid
+        self._model_var = float(o["model_mu_std"]) ** 2
         g = self.log_x.size
         self.z = np.concatenate([[s.motor_speed_rad_s], np.full(g, float(o["prior_mu"]))])
         self.P = np.zeros((g + 1, g + 1))
@@ -178,15 +187,18 @@ class GpStrategy(Strategy):
         a = periods * self.period_s / self.inertia
         b = a * self.c * 0.5 * (self._h_prev + h_new)
         z, P = self.z, self.P
+        slope = self.slope_per_kmh(v)
+        q = periods * (self.period_s * self.c / self.inertia) ** 2 * (self._model_var + slope * slope * self._creep_var_kmh2)
+        self.q_last = q
         if self._compiled:
-            load_kernels().gp_update(z, P, b, a * self._prev.torque_nm, periods * self.q, self.sigma_y ** 2,
+            load_kernels().gp_update(z, P, b, a * self._prev.torque_nm, q, self.sigma_y ** 2,
                                      s.motor_speed_rad_s, self._row0)
             self._h_prev = h_new
             self.seen_lo, self.seen_hi = min(self.seen_lo, v), max(self.seen_hi, v)
             return
         z[0] += a * self._prev.torque_nm - b @ z[1:]                                 # predict
         p0m = P[0, 1:] - P[1:, 1:] @ b
-        p00 = P[0, 0] - 2.0 * b @ P[0, 1:] + b @ P[1:, 1:] @ b + periods * self.q
+        p00 = P[0, 0] - 2.0 * b @ P[0, 1:] + b @ P[1:, 1:] @ b + q
         P[0, 1:] = P[1:, 0] = p0m
         P[0, 0] = p00
         S = p00 + self.sigma_y ** 2                                                   # innovation
