@@ -1161,13 +1161,15 @@ def gp_peak(z, P, i0, i1, sigmas, normals, log_x, upper_kmh, qs, root, cov, f, p
 
 
 @njit(**_JIT_EXACT)
-def exp_shape_fit(shape_a, shape_r, peak_mu, peak_creep_kmh, mu0, v, m, theta):
+def exp_shape_fit(mu_at_zero, shape_a, shape_r, peak_mu, peak_creep_kmh, v, m, theta):
     """theta (5) <- the curve of identifier/prior.py's form through (peak_creep_kmh, peak_mu) with
-    mu(0) = mu0 and the shape (shape_a[i], shape_r[i]) whose values at the creeps v are nearest m in
-    least squares (``GpStrategy.published_theta``; prior.theta_from_phi's equations)."""
+    mu(0) = mu_at_zero[i] and the shape (shape_a[i], shape_r[i]) whose values at the creeps v are
+    nearest m in least squares (``GpStrategy.fit_shape``; prior.theta_from_phi's equations).
+    Returns that i."""
     best = 1e300
+    best_i = 0
     for i in range(shape_a.size):
-        a, rr = shape_a[i], shape_r[i]
+        a, rr, mu0 = shape_a[i], shape_r[i], mu_at_zero[i]
         t1 = -a / peak_creep_kmh
         t2 = rr * t1
         e_a = math.exp(-a)
@@ -1181,7 +1183,9 @@ def exp_shape_fit(shape_a, shape_r, peak_mu, peak_creep_kmh, mu0, v, m, theta):
             err += d * d
         if err < best:
             best = err
+            best_i = i
             theta[0], theta[1], theta[2], theta[3], theta[4] = l0, l1, l2, t1, t2
+    return best_i
 
 
 def warm_up() -> None:
@@ -1235,5 +1239,5 @@ def warm_up() -> None:
     gp_update(np.zeros(4), np.eye(4), np.full(3, 0.1), 0.0, 1e-6, 1e-4, 0.0, np.empty(4))
     gp_peak(np.zeros(4), np.eye(4), 0, 2, 4.0, np.zeros((3, 4)), np.arange(3.0), 3.0, np.array([0.1, 0.5, 0.9]),
             np.empty((3, 3)), np.empty((3, 3)), np.empty(3), np.empty(4), np.empty(4), np.empty((3, 2)))
-    exp_shape_fit(np.ones(2), np.full(2, 2.0), 0.1, 1.0, 0.0, np.ones(3), np.ones(3), np.empty(5))
+    exp_shape_fit(np.zeros(2), np.ones(2), np.full(2, 2.0), 0.1, 1.0, np.ones(3), np.ones(3), np.empty(5))
     _warmed = True

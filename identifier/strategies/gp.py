@@ -29,8 +29,9 @@ creep).  Intervals: quantiles of the draws' peak mu and peak creep.  Confirmatio
 ``confirm_level`` within ``tol_peak_mu`` / ``tol_peak_creep`` of its median (bayes.within_tolerance),
 checked every ``check_samples`` samples.  ``unconfirmed`` when the creep passes the prior's highest
 peak creep or after ``max_samples``.  The published theta is the exponential curve through the
-median peak whose shape is nearest the posterior mean where the data were (``published_theta``):
-the peak and its intervals are what this strategy states; the rest of the curve is a convenience.
+median peak whose shape is nearest the posterior mean where the data were (``fit_shape``, on a
+sample that draws no peak): the peak and its intervals are what this strategy states; the rest of
+the curve is a convenience.
 
 The numpy code here is the reference; ``compiled`` (default) runs the filter step, the peak draws
 with their quantiles and the published curve's shape search by their twins in identifier/kernels.py
@@ -44,7 +45,7 @@ import math
 import numpy as np
 
 from ..messages import IdentificationEvent
-from ..prior import DEFAULT_BOX, theta_from_phi
+from ..prior import DEFAULT_BOX, theta_from_phi, theta_from_phi_floats
 from .base import Sample, Strategy
 from .bayes import KMH_PER_MS, BaselineStats, within_tolerance
 from .mdipf import load_kernels
@@ -53,9 +54,17 @@ from .mdipf import load_kernels
 #: many is left out of the peak's draws (it holds the maximum with probability < 1e-8)
 PLAUSIBLE_SIGMAS = 4.0
 
-#: the shapes (a, r) the published curve is chosen from: 12 x 12 log-spaced over the prior's box
-SHAPE_GRID = tuple(g.ravel() for g in np.meshgrid(np.geomspace(*DEFAULT_BOX["shape_a"], 12),
-                                                  np.geomspace(*DEFAULT_BOX["shape_r"], 12)))
+#: the shapes (mu(0), a, r) the published curve is chosen from: 3 x 8 x 8 over the prior's box (mu(0)
+#: lies below the creeps a slip shows, so it is chosen with the shape, not read off the posterior)
+SHAPE_GRID = tuple(g.ravel() for g in np.meshgrid(np.linspace(*DEFAULT_BOX["mu_at_zero"], 3),
+                                                  np.geomspace(*DEFAULT_BOX["shape_a"], 8),
+                                                  np.geomspace(*DEFAULT_BOX["shape_r"], 8), indexing="ij"))
+#: the published curve's shape until the first fit
+NOMINAL_SHAPE = (0.0, 1.0, 2.0)
+#: the sample (modulo ``check_samples``) that fits the published shape, away from the peak's draws
+SHAPE_SAMPLE = 2
+#: the most seen creeps the shape is fitted at (evenly picked from the seen grid points)
+SHAPE_FIT_POINTS = 8
 
 DEFAULTS = {
     "grid_points": 64,
@@ -110,12 +119,29 @@ class GpStrategy(Strategy):
         self._row0 = np.empty(g + 1)
         self._scratch = (np.empty((g, g)), np.empty((g, g)), np.empty(g))      # root, cov, f of kernels.gp_peak
         self._draw_mu, self._draw_creep = np.empty(int(o["draws"])), np.empty(int(o["draws"]))
+        self._warm_up()
+        self._shape = NOMINAL_SHAPE           # (mu(0), a, r) of the published curve (``fit_shape``)
+        self.theta_peak = None                # the last published median peak (mu, creep km/h)
         self.baseline = BaselineStats(int(o["baseline_readings"]))
         self._prev: Sample | None = None
         self.z = self.P = None
         self._h_prev = None
         self.seen_lo = self.seen_hi = math.nan
         self.peak_mu_ci = self.peak_creep_ci = (math.nan, math.nan)
+
+    def _warm_up(self) -> None:
+        """Run the peak's and the published curve's code once on the prior, before the fault: their
+        first call in a process costs several times a later one (numpy's and numba's first-use work),
+        and the first sample that checks the peak would pay it."""
+        g = self.log_x.size
+        self.z = np.concatenate([[0.0], np.full(g, float(self.opts["prior_mu"]))])
+        self.P = np.zeros((g + 1, g + 1))
+        self.P[1:, 1:] = self.prior_cov
+        self.seen_lo, self.seen_hi = 0.3, 1.0
+        q = self.peak_quantiles(np.array([0.05, 0.5, 0.95]))
+        self.fit_shape(float(q[1, 0]), float(q[1, 1]))
+        self.z = self.P = None
+        self.seen_lo = self.seen_hi = math.nan
 
     # -- the model -----------------------------------------------------------------------------
     def h(self, creep_kmh: float) -> np.ndarray:
@@ -165,7 +191,7 @@ class GpStrategy(Strategy):
 
     def _open(self, s: Sample) -> None:
         o = self.opts
-        sigma_y, line = self.baseline.stats(False)
+        sigma_y, line = self.baseline.stats(self._compiled)
         self.sigma_y = sigma_y if math.isfinite(sigma_y) and sigma_y > 0 else float(o["sigma_y_fallback"])
         self._line = line if self.baseline.count else (s.step, s.train_speed_ms, 0.0)
         # q: the model error, and the creep's noise carried into mu by the curve's slope there
@@ -274,6 +300,8 @@ class GpStrategy(Strategy):
         n = len(self._v)
         check = n % int(o["check_samples"]) == 0
         ends = s.creep_speed_kmh > float(o["upper_peak_creep_kmh"]) or n >= int(o["max_samples"])
+        if n % int(o["check_samples"]) == SHAPE_SAMPLE and self.theta_peak is not None and not ends:
+            self._shape = self.fit_shape(*self.theta_peak)     # on a sample that draws no peak
         if not (check or ends):
             return []
         # one set of draws, one quantile pass: the confirmation's interval, the median, the published one
@@ -290,7 +318,9 @@ class GpStrategy(Strategy):
         """The event of ``kind`` with the median peak and the intervals at ``report_level`` (rows 1-3
         of ``q``, the quantiles of ``_evaluate``; columns peak mu, peak creep)."""
         (mu_lo, creep_lo), (mu_mid, creep_mid), (mu_hi, creep_hi) = q[1], q[2], q[3]
-        self.theta = self.published_theta(float(mu_mid), float(creep_mid))
+        self.theta_peak = (float(mu_mid), float(creep_mid))
+        mu0, a, r = self._shape
+        self.theta = np.array(theta_from_phi_floats((float(mu_mid), float(creep_mid), min(mu0, 0.5 * float(mu_mid)), a, r)))
         self.peak_mu_ci = (float(mu_lo), float(mu_hi))
         self.peak_creep_ci = (float(creep_lo), float(creep_hi))
         if kind == "confirmed":
@@ -302,24 +332,22 @@ class GpStrategy(Strategy):
         return IdentificationEvent(s.step, s.t_s, kind, self.corrections, tuple(float(x) for x in self.theta),
                                    math.nan, len(self._v), self.peak_mu_ci, self.peak_creep_ci)
 
-    def published_theta(self, peak_mu: float, peak_creep_kmh: float) -> np.ndarray:
-        """The exponential curve (theta) through the median peak whose shape (a, r of
-        identifier/prior.py, on SHAPE_GRID; mu(0) the posterior mean's, at most half the peak) is
-        nearest, in least squares, to the posterior mean at the grid's creeps seen so far: for a
-        controller that wants a whole curve; the intervals are of the peak only."""
+    def fit_shape(self, peak_mu: float, peak_creep_kmh: float) -> tuple[float, float, float]:
+        """(mu(0), a, r) of identifier/prior.py's form, on SHAPE_GRID, whose curve through the peak
+        (peak_creep_kmh, peak_mu) is nearest in least squares to the posterior mean at up to
+        SHAPE_FIT_POINTS of the grid's creeps seen so far: the shape of the published curve."""
         i0, i1 = self._seen()
-        v, m = np.exp(self.log_x[i0:i1 + 1]), self.z[1 + i0:2 + i1]
-        mu0 = min(max(float(self.z[1]), 0.0), 0.5 * peak_mu)
-        a, r = SHAPE_GRID
+        pick = np.arange(i0, i1 + 1, max(1, (i1 - i0) // (SHAPE_FIT_POINTS - 1)))
+        v, m = np.exp(self.log_x[pick]), self.z[1 + pick]
+        mu0, a, r = SHAPE_GRID
+        mu0 = np.minimum(mu0, 0.5 * peak_mu)
         if self._compiled:
-            theta = np.empty(5)
-            load_kernels().exp_shape_fit(a, r, peak_mu, peak_creep_kmh, mu0, v, m, theta)
-            return theta
-        phi = np.stack([np.full(a.size, peak_mu), np.full(a.size, peak_creep_kmh), np.full(a.size, mu0), a, r], axis=1)
-        theta = theta_from_phi(phi)
-        l0, l1, l2, t1, t2 = (theta[:, i:i + 1] for i in range(5))
-        err = np.sum((l0 + l1 * np.exp(t1 * v) + l2 * np.exp(t2 * v) - m) ** 2, axis=1)
-        return theta[int(np.argmin(err))]
+            i = load_kernels().exp_shape_fit(mu0, a, r, peak_mu, peak_creep_kmh, v, m, np.empty(5))
+        else:
+            phi = np.stack([np.full(a.size, peak_mu), np.full(a.size, peak_creep_kmh), mu0, a, r], axis=1)
+            l0, l1, l2, t1, t2 = (col[:, None] for col in theta_from_phi(phi).T)
+            i = int(np.argmin(np.sum((l0 + l1 * np.exp(t1 * v) + l2 * np.exp(t2 * v) - m) ** 2, axis=1)))
+        return float(mu0[i]), float(a[i]), float(r[i])
 
     def correct(self, window_v, window_mu):
         raise NotImplementedError
