@@ -66,7 +66,7 @@ def test_the_filter_equals_the_batch_gaussian_posterior():
     row, offset = np.zeros(n), 0.0
     row[0] = 1.0
     for j in range(1, K + 1):
-        h = lambda s: strat.h(strat.creep(s))  # noqa: E731
+        h = lambda s: strat.h(strat.creep_for_likelihood(s))  # noqa: E731
         b = a * TORQUE_PER_MU * 0.5 * (h(samples[j - 1]) + h(samples[j]))
         row = row.copy()
         row[j] += 1.0

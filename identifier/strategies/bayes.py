@@ -69,10 +69,9 @@ from ..messages import IdentificationEvent
 from ..prior import NAMES, CurvePrior, theta_from_phi, theta_from_phi_floats
 from ..pf import weighted_quantiles
 from ..speed_likelihood import SpeedFilter
-from .base import Sample, Strategy
+from .base import Sample
 from .mdipf import load_kernels
-
-KMH_PER_MS = 3.6
+from .speed_model import KMH_PER_MS, BaselineStats, SpeedModelStrategy  # noqa: F401 (BaselineStats: tests)
 #: bins of the compiled quantiles' histogram (kernels.weighted_quantiles_hist): its error is below
 #: (max - min) / QUANTILE_BINS, e.g. 0.0013 km/h of peak creep over the default prior
 QUANTILE_BINS = 2048
@@ -114,67 +113,13 @@ def _log_prior_u(u: np.ndarray) -> np.ndarray:
     return -np.sum(np.abs(u) + 2.0 * np.log1p(np.exp(-np.abs(u))), axis=0)
 
 
-class BaselineStats:
-    """What the readings before the slip tell: the motor-speed noise (second differences) and the
-    train speed as a straight line in the step (least squares over the last ``size`` readings).
-    The readings go into ring buffers (a few stores per reading); the statistics are computed once,
-    at the slip's first sample, on ``size`` numbers."""
-
-    def __init__(self, size: int):
-        self.size = size
-        self._buf = np.zeros((3, size))        # step, motor speed, train speed
-        self.count = 0
-
-    def add(self, step: int, motor_speed_rad_s: float, train_speed_ms: float) -> None:
-        i = self.count % self.size
-        buf = self._buf
-        buf[0, i], buf[1, i], buf[2, i] = step, motor_speed_rad_s, train_speed_ms
-        self.count += 1
-
-    def _ordered(self, row: int) -> np.ndarray:
-        """The buffer's row ``row``, oldest reading first."""
-        n = min(self.count, self.size)
-        i = self.count % self.size
-        x = self._buf[row]
-        return x[:n] if self.count <= self.size else np.concatenate([x[i:], x[:i]])
-
-    def stats(self, compiled: bool) -> tuple[float, tuple[float, float, float]]:
-        """(motor-speed noise, train-speed line): ``motor_noise_rad_s`` and ``train_speed_line``, by
-        ``kernels.baseline_stats`` when ``compiled`` (one call instead of two dozen numpy ones)."""
-        if self.count < 2:
-            return math.nan, (self._buf[0, 0], self._buf[2, 0] if self.count else math.nan, 0.0)
-        if compiled:
-            sigma, k0, v0, slope = load_kernels().baseline_stats(self._buf, self.count)
-            return sigma, (k0, v0, slope)
-        return self.motor_noise_rad_s(), self.train_speed_line()
-
-    def motor_noise_rad_s(self) -> float:
-        y = self._ordered(1)
-        if y.size < 8:
-            return math.nan
-        d2 = y[2:] - 2.0 * y[1:-1] + y[:-2]
-        return float(np.sqrt(np.mean(d2 * d2) / 6.0))
-
-    def train_speed_line(self) -> tuple[float, float, float]:
-        """(step0, v at step0, slope per step) of the least-squares line through the last readings."""
-        k, v = self._ordered(0), self._ordered(2)
-        if k.size < 2:
-            return (k[-1] if k.size else 0.0), (v[-1] if v.size else math.nan), 0.0
-        k0 = float(k.mean())
-        dk = k - k0
-        slope = float(dk @ (v - v.mean()) / max(dk @ dk, 1e-12))
-        return k0, float(v.mean()), slope
-
-
-class BayesStrategy(Strategy):
+class BayesStrategy(SpeedModelStrategy):
     """Particle posterior over the prior's curves with a Kalman likelihood of the motor speed
     (module docstring).  ``compiled`` (default) runs the cloud's step, move and intervals by
     ``identifier/kernels.py``; False runs the numpy reference (``speed_likelihood``, ``prior``)."""
 
     name = "bayes"
     defaults = DEFAULTS
-    observer_aware = True           # every sample from the detected slip start, no settle, no lag pairing
-    wants_readings = True           # TractionIdentifier.on_sensor passes every reading to ``on_reading``
 
     def __init__(self, settings, seed: int = 0):
         super().__init__(settings, seed)
@@ -196,8 +141,6 @@ class BayesStrategy(Strategy):
         if not float(o["discrepancy_mu_std"]) >= 0:
             raise ValueError(f"{self.name}: discrepancy_mu_std must be >= 0, got {o['discrepancy_mu_std']}")
         veh = settings.vehicle
-        self.period_s = settings.period_s
-        self.creep_per_motor_speed = KMH_PER_MS * veh.wheel_radius_m / veh.gear_ratio   # km/h per rad/s
         self.filter = SpeedFilter(settings.period_s, veh.equivalent_inertia_kgm2, veh.torque_per_mu_nm, math.nan,
                                   math.nan)
         self._compiled = bool(o.get("compiled", True)) and load_kernels().AVAILABLE
@@ -223,12 +166,9 @@ class BayesStrategy(Strategy):
         self.accepted = 0
         self.baseline = BaselineStats(int(o["baseline_readings"]))
         self.omega = None                      # per-particle speed estimate (after the first sample)
-        self._prev: Sample | None = None
         self._step_out = np.empty(2)
         self._nis_recent: deque[float] = deque(maxlen=int(o["fit_window"]))
-        self.samples_seen: list[Sample] = []    # what the likelihood used (the offline oracle replays them)
         self._m_prev: np.ndarray | None = None
-        self._line = None
         self.resamples = 0
         self._pending = None                   # the move under way after a resampling (``_move``)
         self.ess = float(n)
@@ -254,39 +194,11 @@ class BayesStrategy(Strategy):
         l0, l1, l2, t1, t2 = self._theta
         return l0 + l1 * np.exp(t1 * creep_speed_kmh) + l2 * np.exp(t2 * creep_speed_kmh)
 
-    # -- readings and samples --------------------------------------------------------------------
-    def on_reading(self, step: int, motor_speed_rad_s: float, train_speed_ms: float) -> None:
-        """Every reading before the slip: the baseline of the noise and of the train speed."""
-        if self._prev is None:
-            self.baseline.add(step, motor_speed_rad_s, train_speed_ms)
-
-    def creep_for_likelihood(self, s: Sample) -> float:
-        """v_s from the measured motor speed and the smoothed train speed (km/h)."""
-        k0, v0, slope = self._line
-        return self.creep_per_motor_speed * s.motor_speed_rad_s - KMH_PER_MS * (v0 + slope * (s.step - k0))
-
-    def add_sample(self, sample: Sample) -> list[IdentificationEvent]:
-        if self.confirmed or self.gave_up:
-            return []
-        if not all(math.isfinite(x) for x in (sample.creep_speed_kmh, sample.motor_speed_rad_s, sample.train_speed_ms,
-                                               sample.torque_nm)):
-            return []           # (mu^ is not used: it is kept for the paper's fit metrics only)
-        self._v.append(sample.creep_speed_kmh)
-        self._mu.append(sample.mu_hat)
-        self.samples_seen.append(sample)
-        if self._prev is None:
-            self._open(sample)
-        else:
-            self._step(sample)
-        self._prev = sample
-        return self._evaluate(sample)
-
+    # -- samples (the loop: speed_model.SpeedModelStrategy) -------------------------------------------
     def _open(self, s: Sample) -> None:
         """The first sample of the slip: the baseline is final; every particle starts at y."""
         f = self.filter
-        sigma_y, line = self.baseline.stats(self._compiled)
-        f.sigma_y_rad_s = sigma_y if math.isfinite(sigma_y) and sigma_y > 0 else float(self.opts["sigma_y_fallback"])
-        self._line = line if self.baseline.count else (s.step, s.train_speed_ms, 0.0)
+        f.sigma_y_rad_s = self.open_baseline(s, self.opts["sigma_y_fallback"])
         # q: model error plus the creep noise carried into M (a slope of MAX_SLOPE_PER_KMH x the creep noise)
         creep_noise_kmh = self.creep_per_motor_speed * f.sigma_y_rad_s
         mu_std = math.hypot(float(self.opts["model_mu_std"]), MAX_SLOPE_PER_KMH * creep_noise_kmh / math.sqrt(2.0))
@@ -541,9 +453,6 @@ class BayesStrategy(Strategy):
             self.corrections += 1
         return IdentificationEvent(s.step, s.t_s, kind, self.corrections, tuple(float(x) for x in self.theta),
                                    math.nan, len(self._v), self.peak_mu_ci, self.peak_creep_ci)
-
-    def correct(self, window_v, window_mu):          # the window loop of Strategy is not used here
-        raise NotImplementedError
 
 
 def within_tolerance(lo: float, estimate: float, hi: float, tol: float) -> bool:

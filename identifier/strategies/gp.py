@@ -46,9 +46,10 @@ import numpy as np
 
 from ..messages import IdentificationEvent
 from ..prior import DEFAULT_BOX, theta_from_phi, theta_from_phi_floats
-from .base import Sample, Strategy
-from .bayes import KMH_PER_MS, BaselineStats, within_tolerance
+from .base import Sample
+from .bayes import within_tolerance
 from .mdipf import load_kernels
+from .speed_model import BaselineStats, SpeedModelStrategy
 
 #: a grid point whose posterior mean + this many standard deviations is below another's mean - as
 #: many is left out of the peak's draws (it holds the maximum with probability < 1e-8)
@@ -89,13 +90,11 @@ DEFAULTS = {
 }
 
 
-class GpStrategy(Strategy):
+class GpStrategy(SpeedModelStrategy):
     """Gaussian-process posterior over the curve's values (module docstring)."""
 
     name = "gp"
     defaults = DEFAULTS
-    observer_aware = True
-    wants_readings = True
 
     def __init__(self, settings, seed: int = 0):
         super().__init__(settings, seed)
@@ -104,10 +103,8 @@ class GpStrategy(Strategy):
             raise ValueError(f"{self.name}: unknown option(s) {', '.join(sorted(unknown))}")
         o = self.opts = {**self.defaults, **self.options}
         veh = settings.vehicle
-        self.period_s = settings.period_s
         self.inertia = veh.equivalent_inertia_kgm2
         self.c = veh.torque_per_mu_nm
-        self.creep_per_motor_speed = KMH_PER_MS * veh.wheel_radius_m / veh.gear_ratio
         g = int(o["grid_points"])
         self.log_x = np.linspace(math.log(float(o["creep_min_kmh"])), math.log(float(o["creep_max_kmh"])), g)
         d = self.log_x[:, None] - self.log_x[None, :]
@@ -123,7 +120,6 @@ class GpStrategy(Strategy):
         self._shape = NOMINAL_SHAPE           # (mu(0), a, r) of the published curve (``fit_shape``)
         self.theta_peak = None                # the last published median peak (mu, creep km/h)
         self.baseline = BaselineStats(int(o["baseline_readings"]))
-        self._prev: Sample | None = None
         self.z = self.P = None
         self._h_prev = None
         self.seen_lo = self.seen_hi = math.nan
@@ -166,34 +162,9 @@ class GpStrategy(Strategy):
             return 0.0
         return (self.z[2 + i] - self.z[1 + i]) / (math.exp(g[i + 1]) - math.exp(g[i]))
 
-    def on_reading(self, step: int, motor_speed_rad_s: float, train_speed_ms: float) -> None:
-        if self._prev is None:
-            self.baseline.add(step, motor_speed_rad_s, train_speed_ms)
-
-    def creep(self, s: Sample) -> float:
-        k0, v0, slope = self._line
-        return self.creep_per_motor_speed * s.motor_speed_rad_s - KMH_PER_MS * (v0 + slope * (s.step - k0))
-
-    def add_sample(self, sample: Sample) -> list[IdentificationEvent]:
-        if self.confirmed or self.gave_up:
-            return []
-        if not all(math.isfinite(x) for x in (sample.creep_speed_kmh, sample.motor_speed_rad_s, sample.train_speed_ms,
-                                               sample.torque_nm)):
-            return []
-        self._v.append(sample.creep_speed_kmh)
-        self._mu.append(sample.mu_hat)
-        if self._prev is None:
-            self._open(sample)
-        else:
-            self._step(sample)
-        self._prev = sample
-        return self._evaluate(sample)
-
     def _open(self, s: Sample) -> None:
         o = self.opts
-        sigma_y, line = self.baseline.stats(self._compiled)
-        self.sigma_y = sigma_y if math.isfinite(sigma_y) and sigma_y > 0 else float(o["sigma_y_fallback"])
-        self._line = line if self.baseline.count else (s.step, s.train_speed_ms, 0.0)
+        self.sigma_y = self.open_baseline(s, o["sigma_y_fallback"])
         # q: the model error, and the creep's noise carried into mu by the curve's slope there
         self._creep_var_kmh2 = 0.5 * (self.creep_per_motor_speed * self.sigma_y) ** 2      # halved by the trapezoid
         self._model_var = float(o["model_mu_std"]) ** 2
@@ -202,13 +173,13 @@ class GpStrategy(Strategy):
         self.P = np.zeros((g + 1, g + 1))
         self.P[0, 0] = self.sigma_y ** 2
         self.P[1:, 1:] = self.prior_cov
-        v = self.creep(s)
+        v = self.creep_for_likelihood(s)
         self._h_prev = self.h(v)
         self.seen_lo = self.seen_hi = v
 
     def _step(self, s: Sample) -> None:
         periods = max(s.step - self._prev.step, 1)
-        v = self.creep(s)
+        v = self.creep_for_likelihood(s)
         h_new = self.h(v)
         a = periods * self.period_s / self.inertia
         b = a * self.c * 0.5 * (self._h_prev + h_new)
@@ -348,6 +319,3 @@ class GpStrategy(Strategy):
             l0, l1, l2, t1, t2 = (col[:, None] for col in theta_from_phi(phi).T)
             i = int(np.argmin(np.sum((l0 + l1 * np.exp(t1 * v) + l2 * np.exp(t2 * v) - m) ** 2, axis=1)))
         return float(mu0[i]), float(a[i]), float(r[i])
-
-    def correct(self, window_v, window_mu):
-        raise NotImplementedError
