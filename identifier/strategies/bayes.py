@@ -71,7 +71,7 @@ from ..pf import weighted_quantiles
 from ..speed_likelihood import SpeedFilter
 from .base import Sample
 from .mdipf import load_kernels
-from .speed_model import KMH_PER_MS, BaselineStats, SpeedModelStrategy  # noqa: F401 (BaselineStats: tests)
+from .speed_model import BaselineStats, SpeedModelStrategy  # noqa: F401 (BaselineStats: tests import it here)
 #: bins of the compiled quantiles' histogram (kernels.weighted_quantiles_hist): its error is below
 #: (max - min) / QUANTILE_BINS, e.g. 0.0013 km/h of peak creep over the default prior
 QUANTILE_BINS = 2048
@@ -123,11 +123,7 @@ class BayesStrategy(SpeedModelStrategy):
 
     def __init__(self, settings, seed: int = 0):
         super().__init__(settings, seed)
-        unknown = set(self.options) - set(self.defaults) - {"window_samples", "k_pe", "c_lw", "c_up"}
-        if unknown:
-            raise ValueError(f"{self.name}: unknown option(s) {', '.join(sorted(unknown))}")
-        o = {**self.defaults, **self.options}
-        self.opts = o
+        o = self.opts = self.merged_options()
         self.prior = CurvePrior.from_options({k: v for k, v in o.items() if k in NAMES and v is not None})
         self.n_particles = n = int(o["particles"])
         if not 10 <= n <= 1_000_000:
@@ -444,15 +440,7 @@ class BayesStrategy(SpeedModelStrategy):
         return []
 
     def _publish(self, s: Sample, kind: str) -> IdentificationEvent:
-        self.theta, self.peak_mu_ci, self.peak_creep_ci = self.summary(float(self.opts["report_level"]))
-        if kind == "confirmed":
-            self.confirmed = True
-        elif kind == "unconfirmed":
-            self.gave_up = True
-        else:
-            self.corrections += 1
-        return IdentificationEvent(s.step, s.t_s, kind, self.corrections, tuple(float(x) for x in self.theta),
-                                   math.nan, len(self._v), self.peak_mu_ci, self.peak_creep_ci)
+        return self.event(s, kind, *self.summary(float(self.opts["report_level"])))
 
 
 def within_tolerance(lo: float, estimate: float, hi: float, tol: float) -> bool:

@@ -98,10 +98,7 @@ class GpStrategy(SpeedModelStrategy):
 
     def __init__(self, settings, seed: int = 0):
         super().__init__(settings, seed)
-        unknown = set(self.options) - set(self.defaults) - {"window_samples", "k_pe", "c_lw", "c_up"}
-        if unknown:
-            raise ValueError(f"{self.name}: unknown option(s) {', '.join(sorted(unknown))}")
-        o = self.opts = {**self.defaults, **self.options}
+        o = self.opts = self.merged_options()
         veh = settings.vehicle
         self.inertia = veh.equivalent_inertia_kgm2
         self.c = veh.torque_per_mu_nm
@@ -291,17 +288,8 @@ class GpStrategy(SpeedModelStrategy):
         (mu_lo, creep_lo), (mu_mid, creep_mid), (mu_hi, creep_hi) = q[1], q[2], q[3]
         self.theta_peak = (float(mu_mid), float(creep_mid))
         mu0, a, r = self._shape
-        self.theta = np.array(theta_from_phi_floats((float(mu_mid), float(creep_mid), min(mu0, 0.5 * float(mu_mid)), a, r)))
-        self.peak_mu_ci = (float(mu_lo), float(mu_hi))
-        self.peak_creep_ci = (float(creep_lo), float(creep_hi))
-        if kind == "confirmed":
-            self.confirmed = True
-        elif kind == "unconfirmed":
-            self.gave_up = True
-        else:
-            self.corrections += 1
-        return IdentificationEvent(s.step, s.t_s, kind, self.corrections, tuple(float(x) for x in self.theta),
-                                   math.nan, len(self._v), self.peak_mu_ci, self.peak_creep_ci)
+        theta = theta_from_phi_floats((float(mu_mid), float(creep_mid), min(mu0, 0.5 * float(mu_mid)), a, r))
+        return self.event(s, kind, theta, (float(mu_lo), float(mu_hi)), (float(creep_lo), float(creep_hi)))
 
     def fit_shape(self, peak_mu: float, peak_creep_kmh: float) -> tuple[float, float, float]:
         """(mu(0), a, r) of identifier/prior.py's form, on SHAPE_GRID, whose curve through the peak

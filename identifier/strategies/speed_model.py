@@ -88,6 +88,27 @@ class SpeedModelStrategy(Strategy):
         self._line = None
         self.samples_seen: list[Sample] = []
 
+    def merged_options(self) -> dict:
+        """The class's ``defaults`` with the scenario's ``[identifier.options.NAME]`` over them; an
+        unknown key is refused by name."""
+        unknown = set(self.options) - set(self.defaults) - {"window_samples", "k_pe", "c_lw", "c_up"}
+        if unknown:
+            raise ValueError(f"{self.name}: unknown option(s) {', '.join(sorted(unknown))}")
+        return {**self.defaults, **self.options}
+
+    def event(self, s: Sample, kind: str, theta, peak_mu_ci, peak_creep_ci) -> IdentificationEvent:
+        """The event of ``kind`` (correction, confirmed, unconfirmed) with the curve and its intervals;
+        the strategy's state follows it (``confirmed``, ``gave_up``, ``corrections``)."""
+        self.theta, self.peak_mu_ci, self.peak_creep_ci = np.asarray(theta, float), peak_mu_ci, peak_creep_ci
+        if kind == "confirmed":
+            self.confirmed = True
+        elif kind == "unconfirmed":
+            self.gave_up = True
+        else:
+            self.corrections += 1
+        return IdentificationEvent(s.step, s.t_s, kind, self.corrections, tuple(float(x) for x in self.theta),
+                                   math.nan, len(self._v), self.peak_mu_ci, self.peak_creep_ci)
+
     def on_reading(self, step: int, motor_speed_rad_s: float, train_speed_ms: float) -> None:
         """Every reading before the slip: the baseline of the noise and of the train speed."""
         if self._prev is None:
