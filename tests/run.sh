@@ -43,6 +43,16 @@ status=0
 VCAN_RUNNER=$(ls tests/uml/run_vcan_tests.sh tests/uml/run_in_uml.sh 2>/dev/null | head -n 1 || true)
 VCAN_LOG=$(mktemp /tmp/hil-vcan-log.XXXXXX)
 vcan_pid=""
+cleanup() {   # interrupted or done: the background vcan run (and the UML under it) stops with us, its log goes
+  if [ -n "$vcan_pid" ]; then
+    command -v pkill >/dev/null && pkill -TERM -P "$vcan_pid" 2>/dev/null
+    kill "$vcan_pid" 2>/dev/null || true
+  fi
+  rm -f "$VCAN_LOG"
+}
+trap cleanup EXIT
+trap 'exit 130' INT
+trap 'exit 143' TERM
 if [ -n "$VCAN_RUNNER" ]; then
   echo "== pytest -m vcan (SocketCAN vcan0, $VCAN_RUNNER) started beside the host tests; its output follows them" >&2
   bash "$VCAN_RUNNER" > "$VCAN_LOG" 2>&1 < /dev/null &
@@ -66,8 +76,8 @@ if [ -n "$vcan_pid" ]; then
   echo "== pytest -m vcan (SocketCAN vcan0, $VCAN_RUNNER): exit $vcan_rc" >&2
   cat "$VCAN_LOG"
   [ "$vcan_rc" = 0 ] || status=$vcan_rc
+  vcan_pid=""
 fi
-rm -f "$VCAN_LOG"
 
 echo "== pytest (host, the real-time tests, alone on the machine)" >&2
 rt_rc=0
