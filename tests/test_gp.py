@@ -5,6 +5,7 @@ import math
 import secrets
 
 import numpy as np
+import pytest
 
 from identifier import IdentifierSettings, VehicleModel
 from identifier.prior import theta_from_phi
@@ -182,3 +183,11 @@ def test_the_process_noise_follows_the_slope():
     creep_noise = 3.6 * RADIUS / GEAR * sigma_y
     expected = (PERIOD_S * TORQUE_PER_MU / INERTIA) ** 2 * (model_mu_std ** 2 + slope ** 2 * creep_noise ** 2 / 2)
     assert abs(strat.q_last / expected - 1) < 1e-6
+
+
+@pytest.mark.parametrize("key, value", [("grid_points", 3), ("length_log", 0.0), ("draws", 2.5),
+                                        ("confirm_level", 1.0), ("creep_max_kmh", 0.01),
+                                        ("upper_peak_creep_kmh", 9.0), ("model_mu_std", math.nan), ("bogus", 1)])
+def test_bad_options_are_refused_by_name(key, value):
+    with pytest.raises(ValueError, match=key):
+        make_strategy("gp", settings(**{key: value}))

@@ -1,6 +1,7 @@
 """``gp``: the fault curve without a form: a Gaussian-process prior over mu(v_s) and the exact
-Gaussian posterior from the motor-speed readings since the slip began (beyond the paper; an
-experiment beside ``bayes``, whose exponential form places the peak by its shape).
+Gaussian posterior from the motor-speed readings since the slip began (beyond the paper; the
+recommended strategy: ``bayes``'s exponential form places the peak by its shape, which on curves of
+another form confirms wrong peaks; docs/identification.md measures both).
 
 State z = (omega, m) with m the curve's values at G creeps x_j, log-spaced over [``creep_min_kmh``,
 ``creep_max_kmh``]; mu(v) = h(v)^T m, h linear interpolation in log creep (below the first point: the
@@ -19,8 +20,13 @@ is linear in z given the creeps, so a Kalman filter on z gives the exact posteri
     z^ = z^- + K e,   P = P- - K P-_{0,:}                           update
 
 Prior: m ~ N(``prior_mu``, s^2 exp(-(ln x_i - ln x_j)^2 / (2 l^2))), s = ``prior_mu_std``, l =
-``length_log`` (a smoothness over a ratio of creeps, not a shape).  sigma_y, q and the train-speed
-line come from the readings before the slip, as in ``bayes``.
+``length_log`` (a smoothness over a ratio of creeps, not a shape).  sigma_y and the train-speed line
+come from the readings before the slip (speed_model.py, as for ``bayes``).  The process noise is a
+model-error allowance plus the creep's noise carried into mu by the posterior mean's slope there:
+
+    q = (a c)^2 (model_mu_std^2 + (dm^/dv_s)^2 sigma_v^2 / 2),   sigma_v = the creep's noise (km/h)
+
+(halved: the trapezoid averages two creeps).
 
 Peak: ``draws`` functions from N(m^, P_mm); each one's maximum over the creeps seen so far (a fault
 curve has one peak: a maximum inside the seen range with a fall after it is the peak; a maximum at
@@ -68,24 +74,24 @@ SHAPE_SAMPLE = 2
 SHAPE_FIT_POINTS = 8
 
 DEFAULTS = {
-    "grid_points": 64,
-    "creep_min_kmh": 0.02,
+    "grid_points": 64,                   # G, the creeps the curve is known at
+    "creep_min_kmh": 0.02,               # the grid's first and last creep (log-spaced between)
     "creep_max_kmh": 4.0,
     "upper_peak_creep_kmh": 3.0,         # the highest peak creep the TCU allows (unconfirmed past it)
-    "prior_mu": 0.15,
+    "prior_mu": 0.15,                    # the prior's mean and standard deviation of mu at every creep
     "prior_mu_std": 0.1,
-    "length_log": 1.4,
-    "model_mu_std": 6.5e-4,
-    "draws": 400,
-    "confirm_level": 0.98,
-    "report_level": 0.90,
-    "tol_peak_mu": 0.03,
+    "length_log": 1.4,                   # the prior's smoothness: a correlation length in ln(creep)
+    "model_mu_std": 6.5e-4,              # model-error allowance, mu per period (process noise q)
+    "draws": 400,                        # posterior draws for the peak's quantiles
+    "confirm_level": 0.98,               # the interval that must be within tolerance to confirm
+    "report_level": 0.90,                # the interval published with every event
+    "tol_peak_mu": 0.03,                 # half-width / centre allowed at confirmation
     "tol_peak_creep": 0.10,
-    "check_samples": 5,
-    "min_samples": 5,
-    "max_samples": 400,
-    "baseline_readings": 400,
-    "sigma_y_fallback": 0.005,
+    "check_samples": 5,                  # the peak is drawn (and an event published) every this many samples
+    "min_samples": 5,                    # no confirmation before this many
+    "max_samples": 400,                  # unconfirmed after this many
+    "baseline_readings": 400,            # readings before the slip for sigma_y and the train-speed line
+    "sigma_y_fallback": 0.005,           # rad/s, when there is no baseline
     "compiled": True,                    # the filter step and the peak draws by identifier/kernels.py; False: numpy
 }
 
@@ -99,6 +105,7 @@ class GpStrategy(SpeedModelStrategy):
     def __init__(self, settings, seed: int = 0):
         super().__init__(settings, seed)
         o = self.opts = self.merged_options()
+        self._check(o)
         veh = settings.vehicle
         self.inertia = veh.equivalent_inertia_kgm2
         self.c = veh.torque_per_mu_nm
@@ -121,6 +128,25 @@ class GpStrategy(SpeedModelStrategy):
         self._h_prev = None
         self.seen_lo = self.seen_hi = math.nan
         self.peak_mu_ci = self.peak_creep_ci = (math.nan, math.nan)
+
+    def _check(self, o: dict) -> None:
+        """Bad options are refused by name, before anything is built on them."""
+        def need(ok: bool, key: str, what: str) -> None:
+            if not ok:
+                raise ValueError(f"{self.name}: {key} must be {what}, got {o[key]!r}")
+        for key, low in (("grid_points", 8), ("draws", 50), ("check_samples", 1), ("min_samples", 1),
+                         ("max_samples", 1), ("baseline_readings", 2)):
+            need(isinstance(o[key], int) and not isinstance(o[key], bool) and o[key] >= low, key, f"an integer >= {low}")
+        for key in ("creep_min_kmh", "creep_max_kmh", "upper_peak_creep_kmh", "prior_mu_std", "length_log",
+                    "tol_peak_mu", "tol_peak_creep", "sigma_y_fallback"):
+            need(isinstance(o[key], (int, float)) and math.isfinite(o[key]) and o[key] > 0, key, "a number > 0")
+        for key in ("prior_mu", "model_mu_std"):
+            need(isinstance(o[key], (int, float)) and math.isfinite(o[key]) and o[key] >= 0, key, "a number >= 0")
+        for key in ("confirm_level", "report_level"):
+            need(isinstance(o[key], (int, float)) and 0.5 < o[key] < 1.0, key, "in (0.5, 1)")
+        need(o["creep_max_kmh"] > o["creep_min_kmh"], "creep_max_kmh", f"above creep_min_kmh ({o['creep_min_kmh']})")
+        need(o["creep_min_kmh"] < o["upper_peak_creep_kmh"] <= o["creep_max_kmh"], "upper_peak_creep_kmh",
+             "within the grid's creeps")
 
     def _warm_up(self) -> None:
         """Run the peak's and the published curve's code once on the prior, before the fault: their
