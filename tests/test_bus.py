@@ -9,14 +9,13 @@ import os
 import signal
 import socket
 import subprocess
-import sys
 import time
-from pathlib import Path
 
 import can
 import pytest
 from mcap.reader import make_reader
 
+from hil.benchmarks.robustness import alive, children_of, cmdline  # noqa: F401 (alive: other tests import it here)
 from hil.errors import BusError
 from hil.link import Hub, open_bus
 from hil.frames import PLANT_HEARTBEAT_ID, TCU_HEARTBEAT_ID, FrameCodec, load_dbc
@@ -62,31 +61,6 @@ def data_streams(mcap_path):
 
 def identification(summary):
     return {k: summary[k] for k in IDENT_KEYS}
-
-
-def children_of(pid):
-    out = []
-    for task in Path(f"/proc/{pid}/task").glob("*"):
-        try:
-            out += [int(x) for x in (task / "children").read_text().split()]
-        except OSError:
-            pass
-    return out
-
-
-def cmdline(pid):
-    try:
-        return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()
-    except OSError:
-        return ""
-
-
-def alive(pid):
-    try:
-        state = Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0]
-    except OSError:
-        return False
-    return state != "Z"
 
 
 def wait_for(pred, timeout, what):

@@ -23,6 +23,7 @@ from fmpy.validation import validate_fmu
 from hil.exchange import run
 from hil.logread import read_log
 from hil.plants import make_plant
+from hil.benchmarks.robustness import rezip
 from hil.config import load_scenario
 from plant import WheelsetPlant
 from plant.fmu import export_fmu, model_param_names, parameter_values
@@ -165,18 +166,6 @@ def test_identification_identical_with_fmu_and_casadi_plant(wheelset_fmu, tmp_pa
 
 
 # -- bad FMUs and bad mappings ---------------------------------------------------------------------------
-def _rezip(src: Path, dst: Path, drop_prefix: str | None = None, edit_md=None) -> Path:
-    with zipfile.ZipFile(src) as zin, zipfile.ZipFile(dst, "w") as zout:
-        for item in zin.infolist():
-            if drop_prefix and item.filename.startswith(drop_prefix):
-                continue
-            data = zin.read(item)
-            if item.filename == "modelDescription.xml" and edit_md:
-                data = edit_md(data.decode()).encode()
-            zout.writestr(item, data)
-    return dst
-
-
 def test_bad_fmus_give_one_clear_error(wheelset_fmu, tmp_path):
     cfg = load_scenario(SCENARIOS / "ffcc_a.toml").plant_config()
     text = tmp_path / "text.fmu"
@@ -185,10 +174,10 @@ def test_bad_fmus_give_one_clear_error(wheelset_fmu, tmp_path):
         FmuPlant(text, cfg)
     with pytest.raises(FmuError, match="no such FMU file"):
         FmuPlant(tmp_path / "missing.fmu", cfg)
-    no_bin = _rezip(wheelset_fmu, tmp_path / "nobin.fmu", drop_prefix=f"binaries/{fmpy.platform}/")
+    no_bin = rezip(wheelset_fmu, tmp_path / "nobin.fmu", drop_prefix=f"binaries/{fmpy.platform}/")
     with pytest.raises(FmuError, match=f"no binary for this platform {fmpy.platform} .*C sources"):
         FmuPlant(no_bin, cfg)
-    me_only = _rezip(wheelset_fmu, tmp_path / "me.fmu", edit_md=lambda md: md.replace(
+    me_only = rezip(wheelset_fmu, tmp_path / "me.fmu", edit_md=lambda md: md.replace(
         "<CoSimulation ", '<ModelExchange ').replace("</CoSimulation>", "</ModelExchange>"))
     with pytest.raises(FmuError, match="Model Exchange only; the loop needs a Co-Simulation FMU"):
         FmuPlant(me_only, cfg)
@@ -199,7 +188,7 @@ def test_bad_fmus_give_one_clear_error(wheelset_fmu, tmp_path):
             zout.writestr(item, b"\x7fELF garbage" if item.filename.startswith("binaries/") else zin.read(item))
     with pytest.raises(FmuError, match="garbage.fmu: cannot load or instantiate the FMU's binary"):
         FmuPlant(garbage, cfg)
-    other_guid = _rezip(wheelset_fmu, tmp_path / "guid.fmu", edit_md=lambda md: md.replace('guid="{', 'guid="{0'))
+    other_guid = rezip(wheelset_fmu, tmp_path / "guid.fmu", edit_md=lambda md: md.replace('guid="{', 'guid="{0'))
     with pytest.raises(FmuError, match="GUID mismatch"):
         FmuPlant(other_guid, cfg)
 
@@ -371,7 +360,7 @@ def test_a_model_identifier_that_is_a_path_is_refused_and_nothing_runs(wheelset_
     cfg = load_scenario(SCENARIOS / "ffcc_a.toml").plant_config()
     ident = fmpy.read_model_description(str(wheelset_fmu)).coSimulation.modelIdentifier
     for i, evil in enumerate([str(marker_library / "evil"), "../../evil"]):
-        fmu = _rezip(wheelset_fmu, tmp_path / f"evil{i}.fmu",
+        fmu = rezip(wheelset_fmu, tmp_path / f"evil{i}.fmu",
                      edit_md=lambda md: md.replace(f'modelIdentifier="{ident}"', f'modelIdentifier="{evil}"'))
         with pytest.raises(FmuError) as e:
             FmuPlant(fmu, cfg)
@@ -463,7 +452,7 @@ def test_the_unpacked_size_cap_is_settable_and_counted_while_unpacking(wheelset_
 def test_a_folder_and_an_fmi1_fmu_get_the_right_line(wheelset_fmu, tmp_path):
     folder = tmp_path / "unzipped.fmu"
     folder.mkdir()
-    fmi1 = _rezip(wheelset_fmu, tmp_path / "fmi1.fmu", edit_md=lambda md: md.replace('fmiVersion="2.0"',
+    fmi1 = rezip(wheelset_fmu, tmp_path / "fmi1.fmu", edit_md=lambda md: md.replace('fmiVersion="2.0"',
                                                                                          'fmiVersion="1.0"'))
     for fmu, says in ((folder, "unzipped.fmu: is a folder; an FMU is a single .fmu file (a zip archive)"),
                       (fmi1, "fmi1.fmu: FMI 1.0 is not supported (need FMI 2.0 or 3.0 Co-Simulation)")):

@@ -885,7 +885,9 @@ FMU_KINDS = ("ident_abs", "ident_rel", "member_escape", "zip_bomb", "not_zip", "
              "me_only", "garbage_binary", "other_guid", "liar")
 
 
-def _rezip(src: Path, dst: Path, drop_prefix: str | None = None, edit_md=None, edit_binary=None) -> Path:
+def rezip(src: Path, dst: Path, drop_prefix: str | None = None, edit_md=None, edit_binary=None) -> Path:
+    """``src`` (an FMU, a zip) copied to ``dst`` without the members under ``drop_prefix``, its
+    modelDescription.xml passed through ``edit_md`` (text) and its binaries through ``edit_binary``."""
     with zipfile.ZipFile(src) as zin, zipfile.ZipFile(dst, "w") as zout:
         for item in zin.infolist():
             if drop_prefix and item.filename.startswith(drop_prefix):
@@ -906,7 +908,7 @@ def broken_fmu(kind: str, good: Path, dest: Path, rng: random.Random, marker_lib
     ident = fmpy.read_model_description(str(good)).coSimulation.modelIdentifier
     if kind in ("ident_abs", "ident_rel"):
         evil = str(marker_lib.with_suffix("")) if kind == "ident_abs" else "../" * rng.randint(1, 6) + "evil"
-        return _rezip(good, dest, edit_md=lambda md: md.replace(f'modelIdentifier="{ident}"',
+        return rezip(good, dest, edit_md=lambda md: md.replace(f'modelIdentifier="{ident}"',
                                                                 f'modelIdentifier="{evil}"')), f"modelIdentifier {evil}"
     if kind == "member_escape":
         member = rng.choice(["../", "../../escaped/", "/abs/", "resources/../../", "binaries/../../../",
@@ -932,17 +934,17 @@ def broken_fmu(kind: str, good: Path, dest: Path, rng: random.Random, marker_lib
         dest.mkdir()
         return dest, "a folder"
     if kind == "fmi1":
-        return _rezip(good, dest, edit_md=lambda md: md.replace('fmiVersion="2.0"', 'fmiVersion="1.0"')), "FMI 1.0"
+        return rezip(good, dest, edit_md=lambda md: md.replace('fmiVersion="2.0"', 'fmiVersion="1.0"')), "FMI 1.0"
     if kind == "no_binary":
-        return _rezip(good, dest, drop_prefix=f"binaries/{fmpy.platform}/"), "no binary for this platform"
+        return rezip(good, dest, drop_prefix=f"binaries/{fmpy.platform}/"), "no binary for this platform"
     if kind == "me_only":
-        return _rezip(good, dest, edit_md=lambda md: md.replace("<CoSimulation ", "<ModelExchange ").replace(
+        return rezip(good, dest, edit_md=lambda md: md.replace("<CoSimulation ", "<ModelExchange ").replace(
             "</CoSimulation>", "</ModelExchange>")), "Model Exchange only"
     if kind == "garbage_binary":
-        return _rezip(good, dest, edit_binary=lambda b: b"\x7fELF" + rng.randbytes(rng.randint(0, 4096))), \
+        return rezip(good, dest, edit_binary=lambda b: b"\x7fELF" + rng.randbytes(rng.randint(0, 4096))), \
             "a binary that is not a shared library"
     if kind == "other_guid":
-        return _rezip(good, dest, edit_md=lambda md: md.replace('guid="{', 'guid="{0')), "another export's GUID"
+        return rezip(good, dest, edit_md=lambda md: md.replace('guid="{', 'guid="{0')), "another export's GUID"
     if kind == "liar":
         shutil.copy(good, dest)
         with zipfile.ZipFile(dest, "a", zipfile.ZIP_DEFLATED) as z:

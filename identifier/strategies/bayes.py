@@ -71,7 +71,7 @@ from ..pf import weighted_quantiles
 from ..speed_likelihood import SpeedFilter
 from .base import Sample
 from .mdipf import load_kernels
-from .speed_model import BaselineStats, SpeedModelStrategy  # noqa: F401 (BaselineStats: tests import it here)
+from .speed_model import BaselineStats, SpeedModelStrategy, within_tolerance  # noqa: F401 (BaselineStats: tests)
 #: bins of the compiled quantiles' histogram (kernels.weighted_quantiles_hist): its error is below
 #: (max - min) / QUANTILE_BINS, e.g. 0.0013 km/h of peak creep over the default prior
 QUANTILE_BINS = 2048
@@ -441,10 +441,3 @@ class BayesStrategy(SpeedModelStrategy):
 
     def _publish(self, s: Sample, kind: str) -> IdentificationEvent:
         return self.event(s, kind, *self.summary(float(self.opts["report_level"])))
-
-
-def within_tolerance(lo: float, estimate: float, hi: float, tol: float) -> bool:
-    """Every value of [lo, hi] would find ``estimate`` within ``tol`` of itself (relative): lo >=
-    estimate / (1 + tol) and hi <= estimate / (1 - tol).  So when the truth is in the interval, the
-    estimate is correct by the bench's own measure (|estimate - truth| <= tol truth)."""
-    return estimate > 0 and lo >= estimate / (1.0 + tol) and hi <= estimate / (1.0 - tol)

@@ -32,7 +32,7 @@ Peak: ``draws`` functions from N(m^, P_mm); each one's maximum over the creeps s
 curve has one peak: a maximum inside the seen range with a fall after it is the peak; a maximum at
 the newest creep says only that the peak lies beyond it, and counts as the prior's highest peak
 creep).  Intervals: quantiles of the draws' peak mu and peak creep.  Confirmation: the interval at
-``confirm_level`` within ``tol_peak_mu`` / ``tol_peak_creep`` of its median (bayes.within_tolerance),
+``confirm_level`` within ``tol_peak_mu`` / ``tol_peak_creep`` of its median (speed_model.within_tolerance),
 checked every ``check_samples`` samples.  ``unconfirmed`` when the creep passes the prior's highest
 peak creep or after ``max_samples``.  The published theta is the exponential curve through the
 median peak whose shape is nearest the posterior mean where the data were (``fit_shape``, on a
@@ -53,9 +53,8 @@ import numpy as np
 from ..messages import IdentificationEvent
 from ..prior import DEFAULT_BOX, theta_from_phi, theta_from_phi_floats
 from .base import Sample
-from .bayes import within_tolerance
 from .mdipf import load_kernels
-from .speed_model import BaselineStats, SpeedModelStrategy
+from .speed_model import BaselineStats, SpeedModelStrategy, within_tolerance
 
 #: a grid point whose posterior mean + this many standard deviations is below another's mean - as
 #: many is left out of the peak's draws (it holds the maximum with probability < 1e-8)
@@ -117,6 +116,8 @@ class GpStrategy(SpeedModelStrategy):
         self._compiled = bool(o["compiled"]) and load_kernels().AVAILABLE
         if self._compiled:
             load_kernels().warm_up()
+        conf, rep = float(o["confirm_level"]), float(o["report_level"])
+        self._levels = np.array([0.5 * (1 - conf), 0.5 * (1 - rep), 0.5, 0.5 * (1 + rep), 0.5 * (1 + conf)])
         self._row0 = np.empty(g + 1)
         self._scratch = (np.empty((g, g)), np.empty((g, g)), np.empty(g))      # root, cov, f of kernels.gp_peak
         self._draw_mu, self._draw_creep = np.empty(int(o["draws"])), np.empty(int(o["draws"]))
@@ -299,8 +300,7 @@ class GpStrategy(SpeedModelStrategy):
         if not (check or ends):
             return []
         # one set of draws, one quantile pass: the confirmation's interval, the median, the published one
-        conf, rep = float(o["confirm_level"]), float(o["report_level"])
-        q = self.peak_quantiles(np.array([0.5 * (1 - conf), 0.5 * (1 - rep), 0.5, 0.5 * (1 + rep), 0.5 * (1 + conf)]))
+        q = self.peak_quantiles(self._levels)
         (mu_lo, creep_lo), _, (mu_mid, creep_mid), _, (mu_hi, creep_hi) = q
         if (check and n >= int(o["min_samples"]) and within_tolerance(mu_lo, mu_mid, mu_hi, float(o["tol_peak_mu"]))
                 and within_tolerance(creep_lo, creep_mid, creep_hi, float(o["tol_peak_creep"]))

@@ -1,7 +1,7 @@
 """What the strategies that model the motor speed itself (``bayes``, ``gp``) share: the readings
 before the slip (the sensor's noise and the train speed, ``BaselineStats``), the creep they use, and
 the sample loop (the slip's first sample opens the model, each later one steps it, every one is
-evaluated).  Why readings before the slip: the likelihood's scale is then the sensor's, measured,
+evaluated), and the confirmation's tolerance test (``within_tolerance``).  Why readings before the slip: the likelihood's scale is then the sensor's, measured,
 not a tuning knob, and the creep uses a smoothed train speed instead of a noisy one."""
 from __future__ import annotations
 
@@ -153,3 +153,10 @@ class SpeedModelStrategy(Strategy):
 
     def correct(self, window_v, window_mu):          # the window loop of Strategy is not used here
         raise NotImplementedError
+
+
+def within_tolerance(lo: float, estimate: float, hi: float, tol: float) -> bool:
+    """Every value of [lo, hi] would find ``estimate`` within ``tol`` of itself (relative): lo >=
+    estimate / (1 + tol) and hi <= estimate / (1 - tol).  So when the truth is in the interval, the
+    estimate is correct by the bench's own measure (|estimate - truth| <= tol truth)."""
+    return estimate > 0 and lo >= estimate / (1.0 + tol) and hi <= estimate / (1.0 - tol)
