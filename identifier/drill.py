@@ -7,9 +7,13 @@ first samples of an identification cost 2-3 times what the same work costs warm 
 ``hil bench identify``: the filter's opening ~70-80 us cold against ~25 us warm).
 
 So, while monitoring (and through the settle time after a detection), every reading also feeds one
-sample of a synthetic slip to a small copy of the strategy (``drill_particles`` particles, its own
-random generator): the same code runs on a few kilobytes of data, once per sample, so it is warm
-when the real slip comes.  The drill shares nothing mutable with the real strategy, so the real
+sample of a synthetic slip to a small copy of the strategy (its ``drill_size_option`` set to
+``drill_particles``: particles, or a ``gp``'s posterior draws; its own random generator): the same
+code runs on a few kilobytes of data, once per sample, so it is warm when the real slip comes.  A
+strategy that models the motor speed (``wants_readings``) gets a slip of speed readings, made by
+integrating the wheelset J dw/dt = T - c mu(v_s) on the prior curve (Euler, ``_SUBSTEPS`` per
+period) under a torque 6 % above its peak, after ``DRILL_BASELINE`` readings before the slip; the
+others get (creep, mu) samples on the prior curve.  The drill shares nothing mutable with the real strategy, so the real
 identification's results are the same with or without it; only its cost changes.
 
 A drill that has confirmed (or run out of samples) starts again from a template built up front,
@@ -20,17 +24,28 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import math
 
 import numpy as np
 
-from .curve import mu_model
-from .strategies import Sample, make_strategy
+from .curve import mu_model, peak
+from .strategies import STRATEGIES, Sample, make_strategy
 
 #: the synthetic slip: creep speeds (km/h) the drill's samples span, their count, and the noise
 #: (mu units) on the prior curve, enough for the confidence check to pass as on real samples
 DRILL_CREEP_KMH = (0.5, 0.9)
 DRILL_SAMPLES = 60
 DRILL_NOISE_STD = 0.001
+#: the speed slip (strategies that model the motor speed): readings before it, the most samples,
+#: the highest creep as a multiple of the prior curve's peak creep, the train speed, the noise of
+#: the motor-speed readings, the torque over the curve's peak and the integration's sub-steps
+DRILL_BASELINE = 100
+DRILL_SPEED_SAMPLES = 200
+DRILL_CREEP_OVER_PEAK = (0.3, 2.5)
+DRILL_TRAIN_SPEED_MS = 10.0
+DRILL_SPEED_NOISE_RAD_S = 0.005
+DRILL_TORQUE_OVER_PEAK = 1.06
+_SUBSTEPS = 10
 #: attributes copied from the template per reading while the drill restarts (~15 us of copying)
 _RESTART_ATTRIBUTES = 16
 
@@ -44,14 +59,20 @@ class Drill:
     def __init__(self, settings, strategy: str, particles: int, seed: int = 0):
         options = {k: dict(v) if isinstance(v, dict) else v for k, v in settings.options.items()}
         mine = options.setdefault(strategy, {})
-        mine["particles"] = int(particles)
+        mine[STRATEGIES[strategy].drill_size_option] = int(particles)
         self.settings = dataclasses.replace(settings, options=options)
         self._template = make_strategy(strategy, self.settings, seed)
-        theta = np.asarray(settings.initial_guess, float)
-        creep = np.linspace(*DRILL_CREEP_KMH, DRILL_SAMPLES)
-        mu = mu_model(creep, theta) + np.random.default_rng(seed).normal(0.0, DRILL_NOISE_STD, creep.size)
-        period = settings.period_s
-        self._samples = [Sample(k, k * period, float(v), float(m)) for k, (v, m) in enumerate(zip(creep, mu))]
+        rng = np.random.default_rng(seed)
+        if getattr(self._template, "wants_readings", False):
+            pre, self._samples = speed_slip(settings, rng)
+            for step, motor_speed_rad_s, train_speed_ms in pre:
+                self._template.on_reading(step, motor_speed_rad_s, train_speed_ms)
+        else:
+            theta = np.asarray(settings.initial_guess, float)
+            creep = np.linspace(*DRILL_CREEP_KMH, DRILL_SAMPLES)
+            mu = mu_model(creep, theta) + rng.normal(0.0, DRILL_NOISE_STD, creep.size)
+            period = settings.period_s
+            self._samples = [Sample(k, k * period, float(v), float(m)) for k, (v, m) in enumerate(zip(creep, mu))]
         self.strategy = None
         self._next = 0
         self._restart: list | None = None     # (new object, remaining template items) while restarting
@@ -84,6 +105,32 @@ class Drill:
         del items[:_RESTART_ATTRIBUTES]
         if not items:
             self.strategy, self._restart, self._next = new, None, 0
+
+
+def speed_slip(settings, rng) -> tuple[list, list]:
+    """(readings before the slip as (step, motor speed, train speed), the slip's samples): the
+    wheelset on the prior curve (``initial_guess``) under a torque ``DRILL_TORQUE_OVER_PEAK`` times
+    its peak's, from ``DRILL_CREEP_OVER_PEAK``[0] to [1] times its peak creep."""
+    veh, dt = settings.vehicle, settings.period_s
+    theta = np.asarray(settings.initial_guess, float)
+    peak_creep_kmh, peak_mu = peak(theta)
+    kmh_per_rad_s = 3.6 * veh.wheel_radius_m / veh.gear_ratio
+    train_kmh = 3.6 * DRILL_TRAIN_SPEED_MS
+    torque_nm = DRILL_TORQUE_OVER_PEAK * peak_mu * veh.torque_per_mu_nm
+    omega = (DRILL_CREEP_OVER_PEAK[0] * peak_creep_kmh + train_kmh) / kmh_per_rad_s
+    noise = DRILL_SPEED_NOISE_RAD_S * rng.standard_normal(DRILL_BASELINE + DRILL_SPEED_SAMPLES)
+    pre = [(k, omega + noise[k], DRILL_TRAIN_SPEED_MS) for k in range(DRILL_BASELINE)]
+    samples = []
+    for k in range(DRILL_BASELINE, DRILL_BASELINE + DRILL_SPEED_SAMPLES):
+        y = omega + noise[k]
+        creep_kmh = kmh_per_rad_s * y - train_kmh
+        samples.append(Sample(k, k * dt, creep_kmh, math.nan, math.nan, y, DRILL_TRAIN_SPEED_MS, torque_nm))
+        if creep_kmh > DRILL_CREEP_OVER_PEAK[1] * peak_creep_kmh:
+            break
+        for _ in range(_SUBSTEPS):          # J dw/dt = T - c mu(v_s)
+            mu = float(mu_model(np.array([kmh_per_rad_s * omega - train_kmh]), theta)[0])
+            omega += dt / _SUBSTEPS * (torque_nm - veh.torque_per_mu_nm * mu) / veh.equivalent_inertia_kgm2
+    return pre, samples
 
 
 def _copy(value):

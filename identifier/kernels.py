@@ -1061,24 +1061,29 @@ def weighted_quantiles_hist(x, weights, qs, bins, counts, out):
 
 # -- the form-free strategy (identifier/strategies/gp.py): its Kalman step and its peak draws ---------
 @njit(**_JIT_EXACT)
-def gp_update(z, P, b, drive, q, sigma2, y, row0):
-    """The strategy's filter step in place on z (1 + G) and P: predict with the curve's effect b (G)
-    and the torque's drive (a T_e), then update with the reading y; ``row0`` (1 + G) is scratch.
-    The same equations as ``GpStrategy._step`` (its module docstring), a pass each."""
-    g = b.size
+def gp_update(z, P, b_idx, b_w, drive, q, sigma2, y, row0):
+    """The strategy's filter step in place on z (1 + G) and P: predict with the curve's effect
+    b = sum_k b_w[k] e_(b_idx[k]) (G; a few non-zeros, the interpolation weights of two creeps) and
+    the torque's drive (a T_e), then update with the reading y; ``row0`` (1 + G) is scratch.  The
+    same equations as ``GpStrategy._step`` (its module docstring), a pass each; b's sparsity makes
+    the predict O(G), the update is O(G^2)."""
+    g = z.size - 1
+    nb = b_idx.size
     zb = 0.0
-    for i in range(g):
-        zb += b[i] * z[1 + i]
-    z[0] += drive - zb                                              # omega^- = omega^ + a T_e - b^T m^
     bp0 = 0.0
-    bpb = 0.0
+    for k in range(nb):
+        zb += b_w[k] * z[1 + b_idx[k]]
+        bp0 += b_w[k] * P[0, 1 + b_idx[k]]
+    z[0] += drive - zb                                              # omega^- = omega^ + a T_e - b^T m^
     for i in range(g):                                              # P-_0m = P_0m - P_mm b
         pb = 0.0
-        for j in range(g):
-            pb += P[1 + i, 1 + j] * b[j]
-        bp0 += b[i] * P[0, 1 + i]
-        bpb += b[i] * pb
+        for k in range(nb):
+            pb += P[1 + i, 1 + b_idx[k]] * b_w[k]
         row0[1 + i] = P[0, 1 + i] - pb
+    bpb = 0.0
+    for k in range(nb):                                             # b^T P_mm b
+        for l in range(nb):
+            bpb += b_w[k] * P[1 + b_idx[k], 1 + b_idx[l]] * b_w[l]
     row0[0] = P[0, 0] - 2.0 * bp0 + bpb + q                         # P-_00
     for i in range(g):
         P[0, 1 + i] = row0[1 + i]
@@ -1112,8 +1117,8 @@ def gp_peak(z, P, i0, i1, sigmas, normals, log_x, upper_kmh, qs, root, cov, f, p
     ``sigmas`` sd, with a neighbour each side; root <- the Cholesky factor of their covariance; draw
     d = mean + root normals[:k, d], its maximum's value and creep (a parabola in log creep through
     the maximum and its neighbours; ``upper_kmh`` where the maximum is the newest seen point i1);
-    out (len(qs), 2) <- the quantiles qs of (peak mu, peak creep).  root, cov (G x G) and f (G) are
-    scratch.  Returns k, the number of points drawn."""
+    out (len(qs), 2) <- the quantiles qs of (peak mu, peak creep).  root, cov (G x G) and f (G x draws)
+    are scratch (the draws row by row: contiguous, so the inner loop vectorises).  Returns k, the number of points drawn."""
     floor = -1e300
     for i in range(i0, i1 + 1):
         sd = math.sqrt(max(P[1 + i, 1 + i], 0.0))
@@ -1134,23 +1139,27 @@ def gp_peak(z, P, i0, i1, sigmas, normals, log_x, upper_kmh, qs, root, cov, f, p
     r = root[:k, :k]
     cholesky_lower(c, r)
     step = log_x[lo + 1] - log_x[lo] if k > 1 else 0.0
-    for d in range(normals.shape[1]):
+    n_draws = normals.shape[1]
+    for i in range(k):                  # f[i, d] = mean_i + sum_j<=i root_ij normals_jd, row by row
+        for d in range(n_draws):
+            f[i, d] = z[1 + lo + i]
+        for j in range(i + 1):
+            rij = r[i, j]
+            for d in range(n_draws):
+                f[i, d] += rij * normals[j, d]
+    for d in range(n_draws):
         best = 0
-        for i in range(k):
-            acc = z[1 + lo + i]
-            for j in range(i + 1):
-                acc += r[i, j] * normals[j, d]
-            f[i] = acc
-            if acc > f[best]:
+        for i in range(1, k):
+            if f[i, d] > f[best, d]:
                 best = i
-        peak_mu[d] = f[best]
+        peak_mu[d] = f[best, d]
         off = 0.0
         if k >= 3:
             jj = min(max(best, 1), k - 2)
             if jj == best:
-                denom = f[jj - 1] - 2.0 * f[jj] + f[jj + 1]
+                denom = f[jj - 1, d] - 2.0 * f[jj, d] + f[jj + 1, d]
                 if denom < 0.0:
-                    off = min(max(0.5 * (f[jj - 1] - f[jj + 1]) / denom, -0.5), 0.5)
+                    off = min(max(0.5 * (f[jj - 1, d] - f[jj + 1, d]) / denom, -0.5), 0.5)
         peak_creep[d] = upper_kmh if lo + best == i1 else math.exp(log_x[lo + best] + off * step)
     a = np.sort(peak_mu)
     b = np.sort(peak_creep)
@@ -1161,30 +1170,44 @@ def gp_peak(z, P, i0, i1, sigmas, normals, log_x, upper_kmh, qs, root, cov, f, p
 
 
 @njit(**_JIT_EXACT)
-def exp_shape_fit(mu_at_zero, shape_a, shape_r, peak_mu, peak_creep_kmh, v, m, theta):
-    """theta (5) <- the curve of identifier/prior.py's form through (peak_creep_kmh, peak_mu) with
-    mu(0) = mu_at_zero[i] and the shape (shape_a[i], shape_r[i]) whose values at the creeps v are
-    nearest m in least squares (``GpStrategy.fit_shape``; prior.theta_from_phi's equations).
-    Returns that i."""
+def exp_shape_fit(mu0_axis, a_axis, r_axis, peak_mu, peak_creep_kmh, v, m, theta):
+    """theta (5) <- the curve of identifier/prior.py's form through (peak_creep_kmh, peak_mu) whose
+    values at the creeps v are nearest m in least squares, over the grid mu(0) x a x r of the three
+    axes (mu(0) capped at peak_mu / 2; ``GpStrategy.fit_shape``; prior.theta_from_phi's equations).
+    Returns the flat index ((i_mu0 * len(a) + i_a) * len(r) + i_r) of the first minimum, as
+    numpy.argmin over the grid ``meshgrid(mu0, a, r, indexing="ij")`` would.  The exponentials
+    depend on (a, r) only, so they are computed once for all mu(0)."""
     best = 1e300
     best_i = 0
-    for i in range(shape_a.size):
-        a, rr, mu0 = shape_a[i], shape_r[i], mu_at_zero[i]
+    na, nr = a_axis.size, r_axis.size
+    e1 = np.empty(v.size)
+    e2 = np.empty(v.size)
+    for ia in range(na):
+        a = a_axis[ia]
         t1 = -a / peak_creep_kmh
-        t2 = rr * t1
         e_a = math.exp(-a)
-        e_ra = math.exp((rr - 1.0) * a)
-        l1 = (peak_mu - mu0) / ((e_a - 1.0) - (e_a - e_ra) / rr)
-        l2 = -(l1 / rr) * e_ra
-        l0 = mu0 - l1 - l2
-        err = 0.0
         for j in range(v.size):
-            d = l0 + l1 * math.exp(t1 * v[j]) + l2 * math.exp(t2 * v[j]) - m[j]
-            err += d * d
-        if err < best:
-            best = err
-            best_i = i
-            theta[0], theta[1], theta[2], theta[3], theta[4] = l0, l1, l2, t1, t2
+            e1[j] = math.exp(t1 * v[j])
+        for ir in range(nr):
+            rr = r_axis[ir]
+            t2 = rr * t1
+            e_ra = math.exp((rr - 1.0) * a)
+            for j in range(v.size):
+                e2[j] = math.exp(t2 * v[j])
+            for im in range(mu0_axis.size):
+                mu0 = min(mu0_axis[im], 0.5 * peak_mu)
+                l1 = (peak_mu - mu0) / ((e_a - 1.0) - (e_a - e_ra) / rr)
+                l2 = -(l1 / rr) * e_ra
+                l0 = mu0 - l1 - l2
+                err = 0.0
+                for j in range(v.size):
+                    d = l0 + l1 * e1[j] + l2 * e2[j] - m[j]
+                    err += d * d
+                i = (im * na + ia) * nr + ir
+                if err < best or (err == best and i < best_i):
+                    best = err
+                    best_i = i
+                    theta[0], theta[1], theta[2], theta[3], theta[4] = l0, l1, l2, t1, t2
     return best_i
 
 
@@ -1236,8 +1259,8 @@ def warm_up() -> None:
     cloud_peaks(np.zeros((5, 4)), np.array([0.0, 1.0, -1.0, -0.54, -1.2]), np.empty(4), np.empty(4))
     bayes_mu_at(u16[0], u16[1], u16[2], u16[3], u16[4], 0.5, np.empty(16))
     weighted_quantiles_hist(u16[0], np.full(16, 1 / 16), np.array([0.05, 0.5, 0.95]), 64, np.empty(64), np.empty(3))
-    gp_update(np.zeros(4), np.eye(4), np.full(3, 0.1), 0.0, 1e-6, 1e-4, 0.0, np.empty(4))
+    gp_update(np.zeros(4), np.eye(4), np.array([0, 1, 1, 2]), np.full(4, 0.1), 0.0, 1e-6, 1e-4, 0.0, np.empty(4))
     gp_peak(np.zeros(4), np.eye(4), 0, 2, 4.0, np.zeros((3, 4)), np.arange(3.0), 3.0, np.array([0.1, 0.5, 0.9]),
-            np.empty((3, 3)), np.empty((3, 3)), np.empty(3), np.empty(4), np.empty(4), np.empty((3, 2)))
+            np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 4)), np.empty(4), np.empty(4), np.empty((3, 2)))
     exp_shape_fit(np.zeros(2), np.ones(2), np.full(2, 2.0), 0.1, 1.0, np.ones(3), np.ones(3), np.empty(5))
     _warmed = True

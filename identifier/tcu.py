@@ -112,9 +112,11 @@ class TractionIdentifier:
         self._last_torque = settings.torque_demand_nm
         # a small copy of the strategy identifying a synthetic slip while there is no real one, so the
         # strategy's code is warm when the fault comes (identifier/drill.py); not for strategies
-        # whose samples are not all cheap (``Strategy.keeps_warm``)
+        # whose samples are not all cheap (``Strategy.keeps_warm``), nor for those that model the
+        # observer's output (the drill has speed readings or (creep, mu) samples, not an observer)
         self.drill = (Drill(settings, strategy, settings.drill_particles, seed)
-                      if settings.drill_particles > 0 and self.strategy.keeps_warm and not self._observer_aware else None)
+                      if settings.drill_particles > 0 and self.strategy.keeps_warm
+                      and (self._wants_readings or not self._observer_aware) else None)
 
     def stage(self) -> int:
         if self.strategy.confirmed:
@@ -149,8 +151,8 @@ class TractionIdentifier:
         torque = self.command_nm(reading.step)           # what is applied from this reading to the next
         self._last_torque = torque
         events = []
-        if self.drill is not None and (self.detector.detected_step is None
-                                       or reading.step - self.detector.detected_step < self._settle_steps - 1):
+        if self.drill is not None and (self.detector.detected_step is None or (
+                not self._observer_aware and reading.step - self.detector.detected_step < self._settle_steps - 1)):
             self.drill.tick()       # monitoring, or settling: the strategy's first sample is still ahead
         if self._wants_readings:
             self.strategy.on_reading(reading.step, reading.motor_speed_rad_s, reading.train_speed_ms)

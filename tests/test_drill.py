@@ -35,8 +35,9 @@ def identify(settings, strategy, readings):
     return ident, events
 
 
-@pytest.mark.parametrize("strategy", ["proposed", "mdipf", "proposed_fast"])
-def test_the_drill_runs_while_monitoring_and_changes_no_result(ffcc_a_run, strategy):
+@pytest.mark.parametrize("strategy, cycles", [("proposed", 10), ("mdipf", 10), ("proposed_fast", 10),
+                                              ("gp", 5)])      # gp's slip: ~100 samples a cycle
+def test_the_drill_runs_while_monitoring_and_changes_no_result(ffcc_a_run, strategy, cycles):
     sc, readings = ffcc_a_run
     with_drill = sc.identifier_settings()
     assert with_drill.drill_particles > 0                       # on by default
@@ -46,29 +47,53 @@ def test_the_drill_runs_while_monitoring_and_changes_no_result(ffcc_a_run, strat
     assert plain.drill is None
     assert ident.drill.error is None
     # ~500 monitoring readings: the drill went through whole identifications, not just their start
-    assert ident.drill.cycles >= 10
+    assert ident.drill.cycles >= cycles
     assert ident.strategy.confirmed and plain.strategy.confirmed
-    assert [(e.step, e.kind, e.params) for e in events] == [(e.step, e.kind, e.params) for e in plain_events]
+    assert [(e.step, e.kind, e.params, e.peak_mu_ci, e.peak_creep_ci) for e in events] == \
+        [(e.step, e.kind, e.params, e.peak_mu_ci, e.peak_creep_ci) for e in plain_events]
 
 
-def test_the_drill_stops_once_the_strategy_has_samples(ffcc_a_run):
+def test_the_speed_drill_goes_through_the_peak_and_confirms():
+    """gp's drill (a slip of speed readings on the prior curve): its copy draws the peak and confirms
+    within the tolerance of the prior curve's own peak, so the code a real slip runs is the code it
+    keeps warm; the copy is small (the drill's draws, not the strategy's)."""
+    from hil.config import load_scenario
+    from identifier.curve import peak
+    from tests.conftest import SCENARIOS
+
+    settings = load_scenario(SCENARIOS / "ffcc_a.toml").identifier_settings()
+    drill = Drill(settings, "gp", 64, seed=secrets.randbits(32))
+    assert drill._template.normals.shape[1] == 64
+    kinds = []
+    for _ in range(600):
+        drill.tick()
+        s = drill.strategy
+        if s is not None and s.confirmed and not kinds:
+            kinds.append("confirmed")
+            creep_kmh, mu = peak(np.asarray(settings.initial_guess, float))
+            assert abs(s.theta_peak[0] / mu - 1) < 0.03 and abs(s.theta_peak[1] / creep_kmh - 1) < 0.1
+    assert drill.error is None and kinds == ["confirmed"] and drill.cycles >= 1
+
+
+@pytest.mark.parametrize("strategy", ["proposed", "gp"])
+def test_the_drill_stops_once_the_strategy_has_samples(ffcc_a_run, strategy):
     sc, readings = ffcc_a_run
-    ident = TractionIdentifier(sc.identifier_settings(), "proposed", 3)
+    ident = TractionIdentifier(sc.identifier_settings(), strategy, 3)
     ticks_at_first_sample = None
     for r in readings:
         ident.on_sensor(r)
         drill = ident.drill
         state = (drill.cycles, drill._next, id(drill.strategy))
-        if ident.strategy.samples == 1:
-            ticks_at_first_sample = state
-        elif ident.strategy.samples > 1:
+        if ident.strategy.samples and ticks_at_first_sample is None:
+            ticks_at_first_sample = state       # (gp takes the samples since the slip's start at once)
+        elif ident.strategy.samples:
             assert state == ticks_at_first_sample                # nothing moved after the first sample
         if ident.strategy.samples > 8:
             break
     assert ticks_at_first_sample is not None
 
 
-@pytest.mark.parametrize("strategy", ["nlls", "proposed_mu0", "proposed_raw", "proposed_oa"])
+@pytest.mark.parametrize("strategy", ["nlls", "proposed_mu0", "proposed_raw", "proposed_oa", "bayes"])
 def test_no_drill_for_strategies_with_costly_samples_or_their_own_feed(ffcc_a_run, strategy):
     sc, _ = ffcc_a_run
     assert TractionIdentifier(sc.identifier_settings(), strategy, 3).drill is None

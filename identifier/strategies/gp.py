@@ -46,6 +46,7 @@ was the cost of the samples that draw the peak (tests/test_gp.py checks the twin
 """
 from __future__ import annotations
 
+import bisect
 import math
 
 import numpy as np
@@ -62,9 +63,10 @@ PLAUSIBLE_SIGMAS = 4.0
 
 #: the shapes (mu(0), a, r) the published curve is chosen from: 3 x 8 x 8 over the prior's box (mu(0)
 #: lies below the creeps a slip shows, so it is chosen with the shape, not read off the posterior)
-SHAPE_GRID = tuple(g.ravel() for g in np.meshgrid(np.linspace(*DEFAULT_BOX["mu_at_zero"], 3),
-                                                  np.geomspace(*DEFAULT_BOX["shape_a"], 8),
-                                                  np.geomspace(*DEFAULT_BOX["shape_r"], 8), indexing="ij"))
+SHAPE_AXES = (np.linspace(*DEFAULT_BOX["mu_at_zero"], 3), np.geomspace(*DEFAULT_BOX["shape_a"], 8),
+              np.geomspace(*DEFAULT_BOX["shape_r"], 8))
+#: the same grid flat (mu(0) slowest, r fastest): the numpy reference's, and kernels.exp_shape_fit's index
+SHAPE_GRID = tuple(g.ravel() for g in np.meshgrid(*SHAPE_AXES, indexing="ij"))
 #: the published curve's shape until the first fit
 NOMINAL_SHAPE = (0.0, 1.0, 2.0)
 #: the sample (modulo ``check_samples``) that fits the published shape, away from the peak's draws
@@ -100,6 +102,12 @@ class GpStrategy(SpeedModelStrategy):
 
     name = "gp"
     defaults = DEFAULTS
+    drill_size_option = "draws"         # the TCU's drill (identifier/drill.py) runs a copy with few draws
+
+    @property
+    def keeps_warm(self) -> bool:
+        # compiled, every sample's work is bounded (one filter step, every 5th the peak's draws)
+        return self._compiled
 
     def __init__(self, settings, seed: int = 0):
         super().__init__(settings, seed)
@@ -110,8 +118,12 @@ class GpStrategy(SpeedModelStrategy):
         self.c = veh.torque_per_mu_nm
         g = int(o["grid_points"])
         self.log_x = np.linspace(math.log(float(o["creep_min_kmh"])), math.log(float(o["creep_max_kmh"])), g)
+        self._log_x_list = self.log_x.tolist()        # for bisect: a scalar search without numpy's overhead
         d = self.log_x[:, None] - self.log_x[None, :]
         self.prior_cov = float(o["prior_mu_std"]) ** 2 * np.exp(-0.5 * (d / float(o["length_log"])) ** 2)
+        self._z0 = np.concatenate([[0.0], np.full(g, float(o["prior_mu"]))])    # the prior of z, omega's set at the slip
+        self._P0 = np.zeros((g + 1, g + 1))
+        self._P0[1:, 1:] = self.prior_cov
         self.normals = self.rng.standard_normal((g, int(o["draws"])))
         self._compiled = bool(o["compiled"]) and load_kernels().AVAILABLE
         if self._compiled:
@@ -119,14 +131,16 @@ class GpStrategy(SpeedModelStrategy):
         conf, rep = float(o["confirm_level"]), float(o["report_level"])
         self._levels = np.array([0.5 * (1 - conf), 0.5 * (1 - rep), 0.5, 0.5 * (1 + rep), 0.5 * (1 + conf)])
         self._row0 = np.empty(g + 1)
-        self._scratch = (np.empty((g, g)), np.empty((g, g)), np.empty(g))      # root, cov, f of kernels.gp_peak
+        # root, cov, f of kernels.gp_peak, written once now: a page first touched on a sample costs there
+        self._scratch = (np.full((g, g), 0.0), np.full((g, g), 0.0), np.full((g, int(o["draws"])), 0.0))
         self._draw_mu, self._draw_creep = np.empty(int(o["draws"])), np.empty(int(o["draws"]))
         self._warm_up()
         self._shape = NOMINAL_SHAPE           # (mu(0), a, r) of the published curve (``fit_shape``)
         self.theta_peak = None                # the last published median peak (mu, creep km/h)
         self.baseline = BaselineStats(int(o["baseline_readings"]))
         self.z = self.P = None
-        self._h_prev = None
+        self._ix_prev = None                  # (grid index, fraction) of the previous sample's creep (``_interp``)
+        self._b_idx, self._b_w = np.zeros(4, np.intp), np.zeros(4)     # b's non-zeros for kernels.gp_update
         self.seen_lo = self.seen_hi = math.nan
         self.peak_mu_ci = self.peak_creep_ci = (math.nan, math.nan)
 
@@ -153,10 +167,7 @@ class GpStrategy(SpeedModelStrategy):
         """Run the peak's and the published curve's code once on the prior, before the fault: their
         first call in a process costs several times a later one (numpy's and numba's first-use work),
         and the first sample that checks the peak would pay it."""
-        g = self.log_x.size
-        self.z = np.concatenate([[0.0], np.full(g, float(self.opts["prior_mu"]))])
-        self.P = np.zeros((g + 1, g + 1))
-        self.P[1:, 1:] = self.prior_cov
+        self.z, self.P = self._z0.copy(), self._P0.copy()
         self.seen_lo, self.seen_hi = 0.3, 1.0
         q = self.peak_quantiles(np.array([0.05, 0.5, 0.95]))
         self.fit_shape(float(q[1, 0]), float(q[1, 1]))
@@ -164,25 +175,30 @@ class GpStrategy(SpeedModelStrategy):
         self.seen_lo = self.seen_hi = math.nan
 
     # -- the model -----------------------------------------------------------------------------
-    def h(self, creep_kmh: float) -> np.ndarray:
-        """Interpolation weights of mu(v) on the grid (linear in log creep)."""
-        g = self.log_x
-        out = np.zeros(g.size)
-        x = math.log(max(creep_kmh, math.exp(g[0])))
+    def _interp(self, creep_kmh: float) -> tuple[int, float]:
+        """(i, f): mu(v) = (1 - f) m_i + f m_(i+1), linear in log creep; below the first grid creep
+        the first value, above the last the last."""
+        g = self._log_x_list
+        x = max(math.log(creep_kmh) if creep_kmh > 0.0 else g[0], g[0])
         if x >= g[-1]:
-            out[-1] = 1.0
-            return out
-        i = int(np.searchsorted(g, x, side="right")) - 1
-        f = (x - g[i]) / (g[i + 1] - g[i])
+            return len(g) - 2, 1.0
+        i = bisect.bisect_right(g, x) - 1
+        return i, (x - g[i]) / (g[i + 1] - g[i])
+
+    def h(self, creep_kmh: float) -> np.ndarray:
+        """Interpolation weights of mu(v) on the grid (``_interp`` as a G-vector)."""
+        i, f = self._interp(creep_kmh)
+        out = np.zeros(self.log_x.size)
         out[i], out[i + 1] = 1.0 - f, f
         return out
 
     def slope_per_kmh(self, creep_kmh: float) -> float:
         """d mu / d v_s of the posterior mean at ``creep_kmh`` (its grid interval; 0 outside the grid)."""
-        g = self.log_x
-        x = math.log(max(creep_kmh, 1e-300))
-        i = int(np.searchsorted(g, x, side="right")) - 1
-        if i < 0 or i >= g.size - 1:
+        g = self._log_x_list
+        if not creep_kmh > 0.0:
+            return 0.0
+        i = bisect.bisect_right(g, math.log(creep_kmh)) - 1
+        if i < 0 or i >= len(g) - 1:
             return 0.0
         return (self.z[2 + i] - self.z[1 + i]) / (math.exp(g[i + 1]) - math.exp(g[i]))
 
@@ -192,31 +208,39 @@ class GpStrategy(SpeedModelStrategy):
         # q: the model error, and the creep's noise carried into mu by the curve's slope there
         self._creep_var_kmh2 = 0.5 * (self.creep_per_motor_speed * self.sigma_y) ** 2      # halved by the trapezoid
         self._model_var = float(o["model_mu_std"]) ** 2
-        g = self.log_x.size
-        self.z = np.concatenate([[s.motor_speed_rad_s], np.full(g, float(o["prior_mu"]))])
-        self.P = np.zeros((g + 1, g + 1))
+        self.z = self._z0.copy()
+        self.z[0] = s.motor_speed_rad_s
+        self.P = self._P0.copy()
         self.P[0, 0] = self.sigma_y ** 2
-        self.P[1:, 1:] = self.prior_cov
         v = self.creep_for_likelihood(s)
-        self._h_prev = self.h(v)
+        self._ix_prev = self._interp(v)
         self.seen_lo = self.seen_hi = v
 
     def _step(self, s: Sample) -> None:
         periods = max(s.step - self._prev.step, 1)
         v = self.creep_for_likelihood(s)
-        h_new = self.h(v)
+        ix_new = self._interp(v)
         a = periods * self.period_s / self.inertia
-        b = a * self.c * 0.5 * (self._h_prev + h_new)
         z, P = self.z, self.P
         slope = self.slope_per_kmh(v)
         q = periods * (self.period_s * self.c / self.inertia) ** 2 * (self._model_var + slope * slope * self._creep_var_kmh2)
         self.q_last = q
-        if self._compiled:
-            load_kernels().gp_update(z, P, b, a * self._prev.torque_nm, q, self.sigma_y ** 2,
+        (ip, fp), (i_new, f_new) = self._ix_prev, ix_new
+        self._ix_prev = ix_new
+        self.seen_lo, self.seen_hi = min(self.seen_lo, v), max(self.seen_hi, v)
+        half_ac = 0.5 * a * self.c
+        if self._compiled:      # b = a c g with g's four non-zeros (two creeps' interpolation weights)
+            idx, w = self._b_idx, self._b_w
+            idx[0], idx[1], idx[2], idx[3] = ip, ip + 1, i_new, i_new + 1
+            w[0], w[1], w[2], w[3] = half_ac * (1.0 - fp), half_ac * fp, half_ac * (1.0 - f_new), half_ac * f_new
+            load_kernels().gp_update(z, P, idx, w, a * self._prev.torque_nm, q, self.sigma_y ** 2,
                                      s.motor_speed_rad_s, self._row0)
-            self._h_prev = h_new
-            self.seen_lo, self.seen_hi = min(self.seen_lo, v), max(self.seen_hi, v)
             return
+        b = np.zeros(self.log_x.size)                                                 # b = a c g
+        b[ip] += half_ac * (1.0 - fp)
+        b[ip + 1] += half_ac * fp
+        b[i_new] += half_ac * (1.0 - f_new)
+        b[i_new + 1] += half_ac * f_new
         z[0] += a * self._prev.torque_nm - b @ z[1:]                                 # predict
         p0m = P[0, 1:] - P[1:, 1:] @ b
         p00 = P[0, 0] - 2.0 * b @ P[0, 1:] + b @ P[1:, 1:] @ b + q
@@ -227,17 +251,18 @@ class GpStrategy(SpeedModelStrategy):
         k = P[:, 0] / S
         z += k * e                                                                    # update
         P -= np.outer(k, P[0, :])
-        self._h_prev = h_new
-        self.seen_lo, self.seen_hi = min(self.seen_lo, v), max(self.seen_hi, v)
 
     # -- the peak --------------------------------------------------------------------------------
     def _seen(self) -> tuple[int, int]:
-        """The grid indices (first, last) of the creeps seen so far (at least three points)."""
-        g = self.log_x
-        i0 = int(np.searchsorted(g, math.log(max(self.seen_lo, 1e-300)), side="left"))
-        i1 = int(np.searchsorted(g, math.log(max(self.seen_hi, 1e-300)), side="right")) - 1
+        """The grid indices (first, last) of the creeps seen so far; while they span fewer than three
+        points, the three from the one below the seen creeps (the peak's draws need a neighbour on
+        each side; a wider fallback, e.g. from the grid's start, costs the first checks most)."""
+        g = self._log_x_list
+        i0 = bisect.bisect_left(g, math.log(max(self.seen_lo, 1e-300)))
+        i1 = bisect.bisect_right(g, math.log(max(self.seen_hi, 1e-300))) - 1
         if i1 - i0 < 2:
-            i0, i1 = 0, max(2, i1)
+            i1 = min(max(i1 + 1, 2), len(g) - 1)
+            i0 = i1 - 2
         return i0, i1
 
     def _region(self):
@@ -327,7 +352,7 @@ class GpStrategy(SpeedModelStrategy):
         mu0, a, r = SHAPE_GRID
         mu0 = np.minimum(mu0, 0.5 * peak_mu)
         if self._compiled:
-            i = load_kernels().exp_shape_fit(mu0, a, r, peak_mu, peak_creep_kmh, v, m, np.empty(5))
+            i = load_kernels().exp_shape_fit(*SHAPE_AXES, peak_mu, peak_creep_kmh, v, m, np.empty(5))
         else:
             phi = np.stack([np.full(a.size, peak_mu), np.full(a.size, peak_creep_kmh), mu0, a, r], axis=1)
             l0, l1, l2, t1, t2 = (col[:, None] for col in theta_from_phi(phi).T)
