@@ -42,7 +42,11 @@ the curve is a convenience.
 The numpy code here is the reference; ``compiled`` (default) runs the filter step, the peak draws
 with their quantiles and the published curve's shape search by their twins in identifier/kernels.py
 (``gp_update``, ``gp_peak``, ``exp_shape_fit``): the numpy calls' overhead, not their arithmetic,
-was the cost of the samples that draw the peak (tests/test_gp.py checks the twins agree).
+was the cost of the samples that draw the peak (tests/test_gp.py checks the twins agree).  b has at
+most four non-zeros (two creeps' interpolation weights), so the twin's predict is O(G); the update
+stays O(G^2).  Compiled, every sample's work is bounded, so the TCU's drill (identifier/drill.py)
+keeps this code warm before the fault with a copy of few draws on a synthetic slip: the first
+samples after a fault otherwise cost about twice what the same work costs warm.
 """
 from __future__ import annotations
 
