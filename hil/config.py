@@ -41,6 +41,8 @@ class BusSettings:
                                           # seconds: the sensor frame is sent again, after as many more the
                                           # run ends (exit 3) naming the step and the likely cause
     startup_timeout_s: float = 60.0       # wait for the other side's first frame
+    lockstep_spin_s: float = 0.002        # lockstep: poll the bus this long before sleeping in it (waking a
+                                          # sleeper costs tens of us a frame; 0: always sleep)
     deadline_fraction: float = 0.9        # realtime: the command is due this far into the period
     max_missed_fraction: float = 0.01     # realtime: a run missing more deadlines than this fraction of its
                                           # steps ends with exit 5 (after the logs are written)
@@ -132,7 +134,7 @@ IDENTIFIER_RANGES = {
 BUS_RANGES = {
     "bitrate": (1_000, 100_000_000), "data_bitrate": (1_000, 100_000_000), "heartbeat_period_s": (1e-4, 10.0),
     "silence_periods": (1, 1_000_000), "lockstep_silence_s": (1e-3, 86_400.0),
-    "lockstep_progress_s": (1e-3, 86_400.0), "startup_timeout_s": (1e-3, 86_400.0),
+    "lockstep_progress_s": (1e-3, 86_400.0), "startup_timeout_s": (1e-3, 86_400.0), "lockstep_spin_s": (0.0, 1.0),
     "deadline_fraction": (1e-3, 0.999), "rt_priority": (0, 99), "max_missed_fraction": (0.0, 1.0),
 }
 #: the PlantSensor signals' ranges in hil/hil.dbc (motor speed rad/s, train speed m/s); a scenario whose
@@ -424,7 +426,7 @@ def _bus(path, data) -> BusSettings:
                 raise _fail(path, f"[bus] {key}", f"must be a list of CPU numbers (0..4095), got {value!r}")
             values[key] = tuple(value)
             continue
-        floor_ok = key in ("rt_priority", "max_missed_fraction")
+        floor_ok = key in ("rt_priority", "max_missed_fraction", "lockstep_spin_s")
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
                 or not (value >= 0 if floor_ok else value > 0):
             raise _fail(path, f"[bus] {key}", f"must be a {'non-negative' if floor_ok else 'positive'} number, "

@@ -29,7 +29,7 @@ from .trace import Trace
 
 
 #: the longest the plant node writes log rows before it looks at the bus again
-FLUSH_SLICE_S = 50e-6
+FLUSH_SLICE_S = 20e-6
 #: pacing: a wait ends in the bus this long before its time (a bus may round its timeout up to 1 ms and
 #: the scheduler wakes a sleeper late); the rest is polled, sleeping POLL_SLICE_S between polls
 WAKE_MARGIN_S = 1.2e-3
@@ -98,6 +98,7 @@ class PlantNode:
         self.watch_silence = watch_silence
         self.silence_s = silence_limit_s(self.settings, mode, self.period_s)
         self.progress_s = self.settings.lockstep_progress_s if mode == "lockstep" else None
+        self.spin_s = self.settings.lockstep_spin_s if mode == "lockstep" else 0.0
         self.heartbeat_s = heartbeat_period_s(self.settings, mode)
         self.rejected = RejectCounter()
         self.commands: dict[int, TorqueCommand] = {}
@@ -255,25 +256,42 @@ class PlantNode:
         """Receive one frame, or wait at most until ``until`` (perf_counter) or the next heartbeat.
 
         While nothing has arrived it writes queued log rows (``Recorder.flush``) in slices of at most
-        ``FLUSH_SLICE_S``, so the log is written while the TCU computes, not on the loop's path."""
+        ``FLUSH_SLICE_S``, so the log is written while the TCU computes, not on the loop's path.  With
+        nothing to write, lockstep polls the bus for up to ``[bus] lockstep_spin_s`` before it sleeps in
+        it: the TCU's answer then finds this process awake (a sleeper's wake-up costs tens of us a
+        frame, and lockstep runs as fast as the bus allows)."""
         now = time.perf_counter()
         self.heartbeat_if_due(now)
         timeout = self.next_hb - now
         if until is not None:
             timeout = min(timeout, until - now)
+        msg = None
         if self.rec is not None and self.rec.pending:
             msg = self.bus.recv(timeout=0.0)
             if msg is None:
                 self.rec.flush(now + max(min(FLUSH_SLICE_S, timeout), 0.0))
-        elif timeout > WAKE_MARGIN_S:       # sleep in the bus until shortly before the time ...
-            msg = self.bus.recv(timeout=min(timeout - WAKE_MARGIN_S, self.silence_s / 4))
-        else:                               # ... then poll, yielding the CPU between polls (never a spin)
-            msg = self.bus.recv(timeout=0.0)
-            if msg is None and timeout > 0.0:
-                time.sleep(min(timeout, POLL_SLICE_S))
+            timeout = None
+        elif until is None and self.spin_s > 0.0:
+            # lockstep: poll a while first (waking a sleeper costs tens of us a frame), then sleep
+            msg = self._spin(now + min(self.spin_s, max(timeout, 0.0)))
+            timeout = self.next_hb - time.perf_counter()
+        if msg is None and timeout is not None:
+            if timeout > WAKE_MARGIN_S:     # sleep in the bus until shortly before the time ...
+                msg = self.bus.recv(timeout=min(timeout - WAKE_MARGIN_S, self.silence_s / 4))
+            else:                           # ... then poll, yielding the CPU between polls (never a spin)
+                msg = self.bus.recv(timeout=0.0)
+                if msg is None and timeout > 0.0:
+                    time.sleep(min(timeout, POLL_SLICE_S))
         if msg is not None:
             self.on_rx(msg)
         self.check_alive()
+
+    def _spin(self, until: float) -> can.Message | None:
+        """Poll the bus (never sleeping) until a frame comes or ``until`` (perf_counter) passes."""
+        recv, clock = self.bus.recv, time.perf_counter
+        while (msg := recv(timeout=0.0)) is None and clock() < until:
+            pass
+        return msg
 
     def drain(self) -> None:
         """Record what is still queued."""

@@ -143,9 +143,11 @@ def newest_sensor_only(bus: can.BusABC, first: can.Message, node: TcuNode, limit
 
 
 def serve(bus: can.BusABC, node: TcuNode, *, silence_s: float, heartbeat_period_s: float,
-          startup_timeout_s: float, realtime: bool = False, log=None) -> None:
+          startup_timeout_s: float, realtime: bool = False, spin_s: float = 0.0, log=None) -> None:
     """Answer frames until the plant says it finished; raises PeerSilent when the plant goes quiet
-    for longer than ``silence_s`` (or never shows up within ``startup_timeout_s``)."""
+    for longer than ``silence_s`` (or never shows up within ``startup_timeout_s``).  ``spin_s``
+    (lockstep): poll the bus this long after each frame before sleeping in it, so the next sensor
+    frame finds the node awake (``[bus] lockstep_spin_s``)."""
     sender = Sender(bus)
     codec = node.codec
     state = [STATE_STARTING]
@@ -170,8 +172,15 @@ def serve(bus: can.BusABC, node: TcuNode, *, silence_s: float, heartbeat_period_
     t0 = time.monotonic()
     last_plant = None
     try:
+        spinning = spin_s > 0.0 and not realtime
         while not node.finished:
-            msg = bus.recv(timeout=min(0.05, silence_s / 4))
+            msg = None
+            if spinning:
+                end = time.perf_counter() + spin_s
+                while (msg := bus.recv(timeout=0.0)) is None and time.perf_counter() < end:
+                    pass
+            if msg is None:
+                msg = bus.recv(timeout=min(0.05, silence_s / 4))
             now = time.monotonic()
             if msg is None:
                 if last_plant is None:
@@ -270,7 +279,7 @@ def run_tcu(args) -> int:
         serve(GuardedBus(handle.bus, handle.name), node, silence_s=silence_limit_s(settings, args.mode, period),
               heartbeat_period_s=heartbeat_period_s(settings, args.mode),
               startup_timeout_s=settings.startup_timeout_s if args.wait is None else args.wait,
-              realtime=args.mode == "realtime")
+              realtime=args.mode == "realtime", spin_s=settings.lockstep_spin_s)
         if node.plant_state == STATE_FAULT:
             error = PlantFault(f"the plant reported a fault after step {node.last_step}")
     except PeerSilent as e:
