@@ -172,6 +172,22 @@ def test_inprocess_and_hub_give_identical_frames_and_identification(inprocess_ru
     assert tx_hub == tx_in and rx_hub == rx_in
 
 
+@pytest.mark.parametrize("spin_s", ["0", "0.002"])
+def test_local_lockstep_polling_or_sleeping_gives_the_inprocess_frames(tmp_path, inprocess_run, spin_s):
+    """[bus] lockstep_spin_s decides only how each node waits for the other: polled or asleep in
+    the bus, the local run's frames and identification are the in-process run's."""
+    s_in, path_in = inprocess_run
+    s, _ = run_json(FFCC_A, "local", tmp_path, "--set", f"bus.lockstep_spin_s={spin_s}")
+    assert s["bus"].startswith("local") and s["identified"]
+    assert identification(s) == identification(s_in)
+    assert data_streams(tmp_path / "ffcc_a-nlls-1.mcap") == data_streams(path_in)
+
+
+def test_a_negative_lockstep_spin_is_refused_by_name():
+    r = hil_run(["scenarios/ffcc_a.toml", "--bus", "inprocess", "--set", "bus.lockstep_spin_s=-0.001"], check=False)
+    assert r.returncode == 2 and "[bus] lockstep_spin_s" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+
+
 def test_frames_change_nothing_against_the_identifier_fed_directly(inprocess_run):
     """The same sensor readings fed straight into a TractionIdentifier, no frames, no bus (as the
     bench does): the frames' doubles add no quantisation, so the identification is the same."""
