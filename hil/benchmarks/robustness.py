@@ -1050,30 +1050,38 @@ def part_fmus(seed: int, count: int, log) -> dict:
 
 
 # -- kills ---------------------------------------------------------------------------------------------
+#: what kill_run kills: the TCU and the plant of a local-bus run, the hub process of a hub run
+KILL_VICTIMS = ("tcu", "plant", "hub")
+
+
 def kill_run(tmp: Path, victim: str, seed: int, min_bytes: int) -> dict:
-    """A local-bus run SIGKILLed (its TCU or the plant) once its log has ``min_bytes``."""
+    """A run SIGKILLed once its log has ``min_bytes``: its TCU or the plant (over the local bus), or
+    the hub process the plant started (over the hub)."""
     from ..logread import read_log
 
     out = tmp / f"{victim}-{seed}"
     path = out / f"ffcc_a-nlls-{seed}.mcap"
-    proc = subprocess.Popen(hil_cmd("run", SCENARIOS / "ffcc_a.toml", "--bus", "local", "--seed", seed, "--out", out,
+    bus = "hub" if victim == "hub" else "local"
+    proc = subprocess.Popen(hil_cmd("run", SCENARIOS / "ffcc_a.toml", "--bus", bus, "--seed", seed, "--out", out,
                                     "--no-rrd", "--set", "run.duration_s=60", "--set", "run.fault_time_s=55"),
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=subprocess_env(), cwd=ROOT)
-    res = {"victim": victim, "seed": seed, "kill_at_bytes": min_bytes}
+    res = {"victim": victim, "bus": bus, "seed": seed, "kill_at_bytes": min_bytes}
     try:
         end = time.monotonic() + 120
-        tcu = None
+        tcu = hub = None
         while time.monotonic() < end and proc.poll() is None:
+            kids = children_of(proc.pid)
             if tcu is None:
-                kids = [p for p in children_of(proc.pid) if "hil.tcu_node" in cmdline(p)]
-                tcu = kids[0] if kids else None
-            if path.exists() and path.stat().st_size >= min_bytes and tcu is not None:
+                tcu = next((p for p in kids if "hil.tcu_node" in cmdline(p)), None)
+            if hub is None and bus == "hub":
+                hub = next((p for p in kids if "can_remote" in cmdline(p)), None)
+            if path.exists() and path.stat().st_size >= min_bytes and tcu is not None and (hub or bus != "hub"):
                 break
             time.sleep(0.02)
         if proc.poll() is not None:
             res["error"] = f"the run ended before the kill (exit {proc.returncode})"
             return res
-        os.kill(tcu if victim == "tcu" else proc.pid, signal.SIGKILL)
+        os.kill({"tcu": tcu, "hub": hub}.get(victim, proc.pid), signal.SIGKILL)
         try:
             _, err = proc.communicate(timeout=60)
         except subprocess.TimeoutExpired:
@@ -1095,13 +1103,14 @@ def kill_run(tmp: Path, victim: str, seed: int, min_bytes: int) -> dict:
 
 
 def part_kills(seed: int, count: int, log) -> dict:
-    part = Part("kills", seed, f"SIGKILL of the TCU and of the plant, {count} each: the TCU's gives exit 3 and a log "
-                "closed with the fault; the plant's leaves no TCU and a log readable up to the kill")
+    part = Part("kills", seed, f"SIGKILL of the TCU, of the plant and of the hub, {count} each: the TCU's and the "
+                "hub's give exit 3 in one line and a log closed with the fault; the plant's leaves no TCU and a log "
+                "readable up to the kill")
     rng = random.Random(f"{seed}:kills")
     runs = []
     with tempfile.TemporaryDirectory(prefix="hil-robust-kills-") as tmp:
-        for i in range(2 * count):
-            victim = ("tcu", "plant")[i % 2]
+        for i in range(len(KILL_VICTIMS) * count):
+            victim = KILL_VICTIMS[i % len(KILL_VICTIMS)]
             run_seed, at = rng.randrange(1, 10 ** 6), rng.randrange(100_000, 600_000)
             log(f"bench robustness: kills: case {i}: SIGKILL the {victim} at {at} log bytes (seed {run_seed})")
             r = kill_run(Path(tmp), victim, run_seed, at)
@@ -1117,8 +1126,9 @@ def part_kills(seed: int, count: int, log) -> dict:
                 part.fail(i, what, "the TCU process outlived its run")
             if not r["messages"] or not r["states"]:
                 part.fail(i, what, "nothing readable in the log")
-            if victim == "tcu":
-                if r["exit"] != 3 or "TCU process exited" not in r["last_line"]:
+            if victim in ("tcu", "hub"):
+                says = "TCU process exited" if victim == "tcu" else "its hub process or interface is gone"
+                if r["exit"] != 3 or says not in r["last_line"] or not r["last_line"].startswith("hil run: error: "):
                     part.fail(i, what, f"exit {r['exit']}: {r['last_line']}")
                 if r["damage"] or not r["ended_early"].startswith("fault at step"):
                     part.fail(i, what, f"log not closed with the fault: damage {r['damage']}, {r['ended_early']!r}")
@@ -1140,54 +1150,93 @@ def _tcus_of(seed: int) -> list[int]:
             and "hil.tcu_node" in (c := cmdline(int(p.name))) and f"--seed {seed} " in c]
 
 
+def _mount_tmpfs(path: Path, size_bytes: int) -> str | None:
+    """A tmpfs of ``size_bytes`` mounted at ``path`` (made here); None, or why it could not be."""
+    path.mkdir(parents=True, exist_ok=True)
+    try:
+        r = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size_bytes},mode=0700", "tmpfs", str(path)],
+                           capture_output=True, text=True, timeout=30)
+    except (OSError, subprocess.TimeoutExpired) as e:
+        return f"mount: {e}"
+    return None if r.returncode == 0 else (r.stderr.strip() or f"mount exit {r.returncode}")[:200]
+
+
+def _unmount(path: Path) -> None:
+    subprocess.run(["umount", str(path)], capture_output=True, timeout=30)
+
+
 def part_disk(seed: int, count: int, log) -> dict:
     from ..logread import read_log
 
-    part = Part("disk", seed, f"a file size limit (RLIMIT_FSIZE) hit mid-run {count} times, and a limit of 0: exit 2 "
-                "in one line, the TCU stopped, the log readable up to the limit, no empty log")
+    part = Part("disk", seed, f"a full disk mid-run: {count} file size limits (RLIMIT_FSIZE) and {count} small tmpfs "
+                "(where mounting is allowed), and a limit of 0: exit 2 in one line, the TCU stopped, the log readable "
+                "up to the limit, no empty log")
     rng = random.Random(f"{seed}:disk")
     runs = []
     with tempfile.TemporaryDirectory(prefix="hil-robust-disk-") as tmp:
-        cases = [("local", rng.randrange(300_000, 1_500_000), 10.0) for _ in range(count)]
-        cases += [("inprocess", 0, 1.0), ("local", 0, 1.0)]
-        for i, (bus, limit, seconds) in enumerate(cases):
+        cases = [("fsize", "local", rng.randrange(300_000, 1_500_000), 10.0) for _ in range(count)]
+        cases += [("fsize", "inprocess", 0, 1.0), ("fsize", "local", 0, 1.0)]
+        cases += [("tmpfs", "local", rng.randrange(300_000, 1_500_000), 10.0) for _ in range(count)]
+        tmpfs_refused = None
+        for i, (kind, bus, limit, seconds) in enumerate(cases):
             run_seed = rng.randrange(100_000, 1_000_000)
-            out = Path(tmp) / str(i)
-            log(f"bench robustness: disk: case {i}: {bus}, file size limit {limit} bytes (seed {run_seed})")
-            r = subprocess.run(hil_cmd("run", SCENARIOS / "ffcc_a.toml", "--bus", bus, "--seed", run_seed, "--out",
-                                       out, "--no-rrd", "--set", f"run.duration_s={seconds}",
-                                       "--set", f"run.fault_time_s={seconds / 2}"),
-                               cwd=ROOT, env=subprocess_env(), capture_output=True, text=True,
-                               timeout=RUN_TIMEOUT_S, preexec_fn=_limited(limit))
-            time.sleep(0.5)
-            part.cases += 1
-            what = f"{bus}, limit {limit} bytes, run seed {run_seed}"
-            last = _last_line(r.stderr)
-            logs = sorted(out.glob("*.mcap")) if out.exists() else []
-            rec = {"bus": bus, "limit": limit, "seed": run_seed, "exit": r.returncode, "last_line": last[:200],
-                   "log_bytes": logs[0].stat().st_size if logs else None, "tcu_left": bool(_tcus_of(run_seed))}
-            if r.returncode != 2 or "Traceback" in r.stderr or not last.startswith("hil run: error: "):
-                part.fail(i, what, f"exit {r.returncode}: {last}")
-            if rec["tcu_left"]:
-                part.fail(i, what, "the TCU process outlived its run")
-            if limit == 0:
-                left = _tree(out) if out.exists() else set()
-                rec["files_left"] = sorted(left)
-                if left:
-                    part.fail(i, what, f"files left: {sorted(left)}")
-            else:
-                if "cannot write the log" not in last:
-                    part.fail(i, what, f"the last line does not say the log could not be written: {last}")
-                if len(logs) != 1 or not 0 < logs[0].stat().st_size <= limit:
-                    part.fail(i, what, f"logs {[(p.name, p.stat().st_size) for p in logs]}")
-                else:
-                    got = read_log(logs[0])
-                    rec.update(messages=got.message_count, cut=got.cut)
-                    if not (got.cut and got.message_count > 0 and got.topic("/plant/state")):
-                        part.fail(i, what, f"the log is not readable up to the limit: {got.problem()}")
-            runs.append(rec)
-    part.figures = {"runs": runs}
+            mount = Path(tmp) / f"tmpfs{i}"
+            out = mount / "out" if kind == "tmpfs" else Path(tmp) / str(i)
+            if kind == "tmpfs":
+                if tmpfs_refused is None:
+                    tmpfs_refused = _mount_tmpfs(mount, limit) or ""
+                    if tmpfs_refused:
+                        log(f"bench robustness: disk: no tmpfs here ({tmpfs_refused}); only file size limits")
+                elif not tmpfs_refused:
+                    tmpfs_refused = _mount_tmpfs(mount, limit) or ""
+                if tmpfs_refused:
+                    continue
+                st = os.statvfs(mount)
+                limit = st.f_blocks * st.f_frsize         # what the kernel made of it (whole pages)
+            log(f"bench robustness: disk: case {i}: {bus}, {'tmpfs of' if kind == 'tmpfs' else 'file size limit'} "
+                f"{limit} bytes (seed {run_seed})")
+            try:
+                r = subprocess.run(hil_cmd("run", SCENARIOS / "ffcc_a.toml", "--bus", bus, "--seed", run_seed, "--out",
+                                           out, "--no-rrd", "--set", f"run.duration_s={seconds}",
+                                           "--set", f"run.fault_time_s={seconds / 2}"),
+                                   cwd=ROOT, env=subprocess_env(), capture_output=True, text=True,
+                                   timeout=RUN_TIMEOUT_S, preexec_fn=_limited(limit) if kind == "fsize" else None)
+                time.sleep(0.5)
+                part.cases += 1
+                runs.append(_judge_disk_run(part, i, kind, bus, limit, run_seed, out, r, read_log))
+            finally:
+                if kind == "tmpfs":
+                    _unmount(mount)
+    part.figures = {"runs": runs, "tmpfs_refused": tmpfs_refused or None}
     return part.done()
+
+
+def _judge_disk_run(part, i, kind, bus, limit, run_seed, out, r, read_log) -> dict:
+    what = f"{bus}, {'tmpfs' if kind == 'tmpfs' else 'limit'} {limit} bytes, run seed {run_seed}"
+    last = _last_line(r.stderr)
+    logs = sorted(out.glob("*.mcap")) if out.exists() else []
+    rec = {"kind": kind, "bus": bus, "limit": limit, "seed": run_seed, "exit": r.returncode, "last_line": last[:200],
+           "log_bytes": logs[0].stat().st_size if logs else None, "tcu_left": bool(_tcus_of(run_seed))}
+    if r.returncode != 2 or "Traceback" in r.stderr or not last.startswith("hil run: error: "):
+        part.fail(i, what, f"exit {r.returncode}: {last}")
+    if rec["tcu_left"]:
+        part.fail(i, what, "the TCU process outlived its run")
+    if limit == 0:
+        left = _tree(out) if out.exists() else set()
+        rec["files_left"] = sorted(left)
+        if left:
+            part.fail(i, what, f"files left: {sorted(left)}")
+        return rec
+    if "cannot write the log" not in last:
+        part.fail(i, what, f"the last line does not say the log could not be written: {last}")
+    if len(logs) != 1 or not 0 < logs[0].stat().st_size <= limit:
+        part.fail(i, what, f"logs {[(p.name, p.stat().st_size) for p in logs]}")
+    else:
+        got = read_log(logs[0])
+        rec.update(messages=got.message_count, cut=got.cut)
+        if not (got.cut and got.message_count > 0 and got.topic("/plant/state")):
+            part.fail(i, what, f"the log is not readable up to the limit: {got.problem()}")
+    return rec
 
 
 # -- memory --------------------------------------------------------------------------------------------
@@ -1377,8 +1426,9 @@ def headline(r: dict) -> str:
         return "; ".join(f"{r_['victim']}: exit {r_.get('exit')}, {r_.get('messages')} messages readable"
                          for r_ in f["runs"])
     if name == "disk":
-        return "; ".join(f"{r_['bus']} limit {r_['limit']}: exit {r_['exit']}, log {r_.get('log_bytes')} B, "
-                         f"{r_.get('messages', '-')} messages" for r_ in f["runs"])
+        return "; ".join(f"{r_['bus']} {r_['kind']} {r_['limit']}: exit {r_['exit']}, log {r_.get('log_bytes')} B, "
+                         f"{r_.get('messages', '-')} messages" for r_ in f["runs"]) \
+            + (f"; no tmpfs here: {f['tmpfs_refused']}" if f.get("tmpfs_refused") else "")
     if name == "memory":
         a, b = f["runs"]
         return f"peak RSS {a['peak_rss_mb']} MB ({a['seconds']:g} s) -> {b['peak_rss_mb']} MB ({b['seconds']:g} s): " \
