@@ -258,7 +258,8 @@ def _tcu_counters(report: dict | None) -> dict:
     """What only the TCU knows (None for an external TCU)."""
     report = report or {}
     return {"tcu_rejected_frames": report.get("rejected_frames"), "tcu_rejected_readings": report.get("rejected_readings"),
-            "tcu_events": report.get("events"), "tcu_stale_skipped": report.get("stale_skipped")}
+            "tcu_events": report.get("events"), "tcu_stale_skipped": report.get("stale_skipped"),
+            "tcu_resent": report.get("resent")}
 
 
 def _set_rt_priority(priority: int, log):

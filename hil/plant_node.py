@@ -26,6 +26,7 @@ from .secoc import node_key
 from .record import (Recorder, write_command, write_frame, write_identification, write_plant_state, write_sensor,
                      write_status)
 from .trace import Trace
+from .verdicts import ANSWERED_TWICE, BAD_SEQUENCE, DUPLICATE, FOREIGN, FRESH, LATE, REJECTED, kind
 
 
 #: the longest the plant node writes log rows before it looks at the bus again
@@ -129,7 +130,7 @@ class PlantNode:
         self.sender.send(msg)
         self.frames_tx += 1
         if self.rec:
-            write_frame(self.rec, self.t_s, msg, "tx", "ok", time.time_ns())
+            write_frame(self.rec, self.t_s, msg, "tx", FRESH, time.time_ns())
 
     def send_sensor(self) -> None:
         """Sense the plant at its current step and send the reading; that step's command is awaited."""
@@ -170,7 +171,7 @@ class PlantNode:
         frame, status = self.codec.classify(msg)
         if frame is not None:
             status = self._accept(frame)
-        if status not in ("ok", "late"):
+        if kind(status) == REJECTED:
             self.rejected[status] += 1
         elif msg.arbitration_id in TCU_IDS:
             self.last_tcu_rx = time.monotonic()
@@ -178,65 +179,65 @@ class PlantNode:
             write_frame(self.rec, self.t_s, msg, "rx", status, wall_ns)
 
     def _accept(self, frame) -> str:
-        """Sequence checks of a decoded frame; "ok" records and traces it."""
+        """Sequence checks of a decoded frame (its verdict, ``hil/verdicts.py``); FRESH records and traces it."""
         name, v, rec, current = frame.name, frame.value, self.rec, self.awaited
         if name == "TorqueCommand":
             if v.step < current:
                 if v.step < len(self.answered) and self.answered[v.step]:
                     self.notice("answered_twice", f"a second TorqueCommand for step {v.step}, already answered")
-                    return "answered_twice"
+                    return ANSWERED_TWICE
                 self.late_commands += 1
-                return "late"
+                return LATE
             if v.step > current:
-                return "bad_sequence"
+                return BAD_SEQUENCE
             if v.step in self.commands:      # the first one stays
                 self.notice("duplicate_command", f"a second TorqueCommand for the pending step {v.step}")
-                return "duplicate"
+                return DUPLICATE
             if v.step >= len(self.answered):
                 self.answered.extend(bytes(max(v.step + 1 - len(self.answered), 4096)))
             self.answered[v.step] = 1
             self.commands[v.step] = v
             if rec:
                 write_command(rec, v, self.period_s)
-            return "ok"
+            return FRESH
         if name == "TcuStatus":
             st, obs = v
             if not (self.last_status_step < st.step <= current):
-                return "bad_sequence"
+                return BAD_SEQUENCE
             self.last_status_step = st.step
             self.trace.observer(obs)
             self.settle_results(st.step)
             if rec:
                 write_status(rec, st, obs, self.period_s)
-            return "ok"
+            return FRESH
         if name == "TcuResult":
             if not (self.last_result_step <= v.step <= current):
-                return "bad_sequence"
+                return BAD_SEQUENCE
             self.last_result_step = v.step
             if v.t_s < self.fault_time_s:
                 self.notice("result_before_fault", f"an identification result ({v.kind}) at t = {v.t_s:.4f} s, "
                             f"before the fault at {self.fault_time_s:g} s")
             self.trace.result(v)
-            return "ok"
+            return FRESH
         if name == "TcuInterval":
-            return "ok" if self.trace.interval(v) else "bad_sequence"
+            return FRESH if self.trace.interval(v) else BAD_SEQUENCE
         if name == "TcuSample":
             if v.index != self.last_sample_index + 1 or not (0 <= v.step <= current):
-                return "bad_sequence"
+                return BAD_SEQUENCE
             self.last_sample_index = v.index
             self.trace.sample(v.creep_speed_kmh, v.mu_hat)
             self.trace.detected(v.detected_step)
-            return "ok"
+            return FRESH
         if name == "TcuHeartbeat":
             if v.step > max(current, 0):
                 self.notice("heartbeat_ahead", f"a TCU heartbeat at step {v.step}, past the plant's step {current}")
             self.tcu_state = v.state
             self.tcu_step = v.step
-            return "ok"
+            return FRESH
         if name == "PlantSensor":
             self.notice("sensor_from_another_node", f"a PlantSensor frame for step {v.step} this plant did not "
                         "send")
-        return "foreign"        # plant frames from another node on the bus
+        return FOREIGN        # plant frames from another node on the bus
 
     def notice(self, what: str, text: str) -> None:
         """Count something the stream shows to be wrong (a third node on the bus, a replay); the first of
@@ -364,14 +365,14 @@ class PlantNode:
         against the DBC as this side can), the TCU's heartbeat step, the frames rejected here."""
         frame, status = self._plain_codec.classify(self._sensor_msg)
         if frame is None:
-            kind, _, signal = status.partition(":")
+            reason, _, signal = status.partition(":")
             m = self.codec.db.get_message_by_frame_id(self._sensor_msg.arbitration_id)
             value = m.decode(bytes(self._sensor_msg.data), decode_choices=False).get(signal) if signal else None
-            if kind == "out_of_range":
+            if reason == "out_of_range":
                 s = m.get_signal_by_name(signal)
                 return (f"TCU rejected the sensor frame: {signal} {value:.6g} is out of the DBC range "
                         f"[{s.minimum:g}, {s.maximum:g}]")
-            if kind == "non_finite":
+            if reason == "non_finite":
                 return f"TCU rejected the sensor frame: {signal} is {value}, not a finite number"
             return f"TCU rejected the sensor frame: {status}"
         new = {r: n - rejected_before.get(r, 0) for r, n in self.rejected.items() if n > rejected_before.get(r, 0)}

@@ -32,6 +32,7 @@ from .frames import (PLANT_IDS, SENSOR_ID, STATE_FAULT, STATE_FINISHED, STATE_NA
                      FrameCodec, RejectCounter, SampleReport)
 from .link import GuardedBus, Sender, heartbeat_period_s, silence_limit_s
 from .secoc import node_key
+from .verdicts import BAD_SEQUENCE, FRESH, RESENT, newest, sensor_sequence
 
 #: a sensor step may jump ahead by at most this many periods (frames lost); beyond it is garbage
 MAX_STEP_GAP = 100
@@ -52,6 +53,8 @@ class TcuNode:
         self.events = 0
         self.samples_sent = 0
         self.stale_skipped = 0       # sensor frames passed over after a stall (newest_sensor_only)
+        self.resent = 0              # the last answered step's reading again: its command sent again
+        self._last_command = None    # the TorqueCommand of the last answered step
         self.plant_state: int | None = None
         self.finished = False
 
@@ -64,19 +67,24 @@ class TcuNode:
             return []
         if frame.name == "PlantSensor":
             reading = frame.value
-            if not (self.last_step < reading.step <= self.last_step + MAX_STEP_GAP):    # a run starts at step 0
+            verdict = sensor_sequence(reading.step, self.last_step, MAX_STEP_GAP)    # a run starts at step 0
+            if verdict == RESENT:       # the plant's lockstep resend: its command was lost; the same again
+                self.resent += 1
+                return [self.codec.command(self._last_command)] if self._last_command is not None else []
+            if verdict != FRESH:
                 # out of sequence: garbage, unless the next frame continues it (the TCU lost many frames);
                 # never back to a step already answered (a plant does not go back: those are old frames sent again)
                 resync = self._jump is not None and reading.step == self._jump + 1 and reading.step > self.last_step
                 self._jump = reading.step
                 if not resync:
-                    self.rejected["bad_sequence"] += 1
+                    self.rejected[BAD_SEQUENCE] += 1
                     return []
                 self.resyncs += 1
             self._jump = None
             self.last_step = reading.step
             self.sensor_frames += 1
             out = self.identifier.on_sensor(reading)
+            self._last_command = out.command
             self.events += len(out.events)
             c = self.codec
             # the command first: the plant waits for it; samples, results and status follow
@@ -109,7 +117,7 @@ class TcuNode:
     def report(self) -> dict:
         ident = self.identifier
         return {"detected_step": ident.detector.detected_step, "events": self.events, "samples": self.samples_sent,
-                "stale_skipped": self.stale_skipped,
+                "stale_skipped": self.stale_skipped, "resent": self.resent,
                 "sensor_frames": self.sensor_frames, "last_step": self.last_step, "resyncs": self.resyncs,
                 "rejected_frames": dict(self.rejected), "rejected_readings": ident.rejected_readings,
                 "plant_state": None if self.plant_state is None else STATE_NAMES.get(self.plant_state),
@@ -131,13 +139,10 @@ def newest_sensor_only(bus: can.BusABC, first: can.Message, node: TcuNode, limit
     while len(batch) < limit and (msg := bus.recv(timeout=0.0)) is not None:
         batch.append(msg)
     classified = [node.codec.classify(m) for m in batch]
-    steps = {}
-    for i, (m, (frame, _)) in enumerate(zip(batch, classified)):
-        if m.arbitration_id == SENSOR_ID and not m.is_extended_id and frame is not None \
-                and node.last_step < frame.value.step <= node.last_step + MAX_STEP_GAP:
-            steps[i] = frame.value.step
-    newest = max(steps.values(), default=None)
-    stale = {i for i, step in steps.items() if step < newest}
+    steps = {i: frame.value.step for i, (m, (frame, _)) in enumerate(zip(batch, classified))
+             if m.arbitration_id == SENSOR_ID and not m.is_extended_id and frame is not None
+             and sensor_sequence(frame.value.step, node.last_step, MAX_STEP_GAP) == FRESH}
+    stale = newest(steps)
     node.stale_skipped += len(stale)
     return [(m, c) for i, (m, c) in enumerate(zip(batch, classified)) if i not in stale]
 

@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from .logread import LogError, read_log, scenario_from_log
+from .verdicts import REJECTED, kind
 
 CREEP_TIMELINE = "creep_m_per_h"
 TIME_TIMELINE = "sim_time"
@@ -262,7 +263,7 @@ class _Stream:
             b = int(math.floor(m.t_s / BUS_BIN_S))
             self._bin("frames_tx", b, float(m.direction == "tx"))
             self._bin("frames_rx", b, float(m.direction == "rx"))
-            self._bin("rejected", b, float(m.status not in ("ok", "late")))
+            self._bin("rejected", b, float(kind(m.status) == REJECTED))
             self.nb = max(self.nb, b + 1)
         elif topic == "/loop/timing":
             self.timings += 1

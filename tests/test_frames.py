@@ -231,3 +231,59 @@ def test_tcu_never_resyncs_back_to_steps_it_answered(ffcc_a):
     assert node.last_step == 299 and node.resyncs == 0
     assert node.handle(c.sensor(SensorReading(300, 63.7, 10.0)))             # the plant's next frame is taken
     assert node.rejected == {"bad_sequence": 3} and node.last_step == 300
+
+
+def test_a_resent_reading_of_the_last_step_is_answered_with_the_same_command(ffcc_a):
+    """The plant's lockstep resend (a new frame for the pending step after its command was lost):
+    the TCU answers it again with the command it sent for that step, counts it as ``resent`` (not
+    rejected), and its identifier does not see the reading twice."""
+    node = TcuNode(ffcc_a, "nlls", 1)
+    c = node.codec
+    rng = np.random.default_rng()
+    last = int(rng.integers(5, 200))
+    for k in range(last + 1):
+        first = node.handle(c.sensor(SensorReading(k, 63.7 + 0.01 * k, 10.0)))
+    again = node.handle(c.sensor(SensorReading(last, 63.7, 10.0)))
+    assert len(again) == 1 and again[0].arbitration_id == COMMAND_ID
+    assert c.classify(again[0])[0].value == c.classify(first[0])[0].value       # the same step and torque
+    assert node.resent == 1 and node.rejected == {} and node.sensor_frames == last + 1
+    assert node.report()["resent"] == 1
+    assert node.handle(c.sensor(SensorReading(last + 1, 63.7, 10.0)))[0].arbitration_id == COMMAND_ID
+
+
+def test_every_reason_a_frame_is_refused_for_is_in_the_one_verdict_table(codec):
+    """hil/verdicts.py is the one table: whatever the codec, the authenticator or a node answers
+    for a frame is one of its verdicts (random garbage, another key's frames, every sequence case)."""
+    import tempfile
+    from pathlib import Path
+
+    from hil.secoc import read_key, write_key
+    from hil.verdicts import ACTED, PASSED, REJECTED, VERDICTS, kind, newest, sensor_sequence
+
+    rng = np.random.default_rng()
+    seen = set()
+    ids = [SENSOR_ID, COMMAND_ID, STATUS_ID, RESULT_ID, PLANT_HEARTBEAT_ID, TCU_HEARTBEAT_ID, 0x7FF, 0x0]
+    with tempfile.TemporaryDirectory() as d:
+        key_a, key_b = (read_key(write_key(Path(d) / name)) for name in ("a.key", "b.key"))
+    sender, receiver, stranger = (FrameCodec(1e-3, codec.db, auth=k) for k in (key_a, key_a, key_b))
+    for c in (codec, receiver):
+        for i in range(2000):
+            n = int(rng.choice([0, 8, 20, 32, 48, 64]))
+            msg = can.Message(arbitration_id=int(rng.choice(ids)), data=rng.bytes(n), is_fd=n > 8,
+                              is_extended_id=bool(i % 7 == 0), is_error_frame=bool(i % 97 == 0))
+            seen.add(c.classify(msg)[1])
+    good = sender.sensor(SensorReading(1, 63.7, 10.0))
+    verdicts = [receiver.classify(good)[1], receiver.classify(good)[1], stranger.classify(good)[1]]
+    assert verdicts == ["ok", "replayed", "forged"]
+    seen |= set(verdicts)
+    seen |= {sensor_sequence(s, 10, 100) for s in (11, 10, 9, 200, -1)}
+    assert {sensor_sequence(11, 10, 100), sensor_sequence(10, 10, 100), sensor_sequence(9, 10, 100)} == \
+        {"ok", "resent", "bad_sequence"}
+    assert sensor_sequence(0, -1, 100) == "ok" and sensor_sequence(-1, -1, 100) == "bad_sequence"
+    assert newest({0: 5, 3: 7, 4: 6}) == {0, 4} and newest({}) == set()
+    print(sorted(seen))
+    for verdict in seen:
+        assert verdict.split(":", 1)[0] in VERDICTS, verdict
+    assert {kind(v) for v in VERDICTS} == {ACTED, PASSED, REJECTED}
+    assert kind("forged") == REJECTED and kind("late") == PASSED and kind("non_finite:MotorSpeed") == REJECTED
+    assert kind("no such verdict") == REJECTED
