@@ -304,7 +304,6 @@ def test_can_log_with_garbage_frames_skips_and_counts_them(rig_run, scenario):
 
 
 def test_can_log_with_many_steps_out_of_sequence_names_the_frame(rig_run, scenario):
-    import can
     from hil.frames import FrameCodec
     from identifier.messages import SensorReading
     codec = FrameCodec(scenario.run.exchange_period_s)

@@ -3,7 +3,6 @@ drawn fault curves: it knows the family's prior, so its intervals must cover the
 and it may not be later than the strategy that uses a broader prior on the same samples."""
 import secrets
 
-import numpy as np
 
 from hil.benchmarks.identify import generate, replay, run_oracle
 from hil.config import parse_scenario

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from hil.errors import ConfigError
-from hil.frames import COMMAND_ID, RESULT_ID, SENSOR_ID, STATE_RUNNING, FrameCodec
+from hil.frames import COMMAND_ID, SENSOR_ID, STATE_RUNNING, FrameCodec
 from hil.localbus import create_channel, remove_channel
 from hil.secoc import read_key, write_key
 from identifier.messages import IdentificationEvent, SensorReading, TorqueCommand

@@ -13,7 +13,6 @@ import struct
 import subprocess
 import time
 
-import can
 import pytest
 
 from hil.link import open_bus, vcan_available

@@ -112,7 +112,6 @@ class Strategy(ABC):
         return events + self._on_window(sample, v, mu)
 
     def _on_window(self, sample: Sample, v: np.ndarray, mu: np.ndarray) -> list[IdentificationEvent]:
-        s = self.settings
         if self._candidate is not None:
             if self._candidate_window is not None:
                 self._candidate_standard_error()

@@ -46,7 +46,6 @@ import math
 import numpy as np
 from scipy.optimize import least_squares
 
-from .. import pf
 from ..observer import LoadTorqueObserver
 from ..curve import jacobian, mu_model
 from .nlls import NllsStrategy, bounded_lm, fit_curve_grid, parameter_bounds
