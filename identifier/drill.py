@@ -6,15 +6,17 @@ the fault the strategy's Python paths and compiled kernels have left the CPU's c
 first samples of an identification cost 2-3 times what the same work costs warm (measured with
 ``hil bench identify``: the filter's opening ~70-80 us cold against ~25 us warm).
 
-So, while monitoring (and through the settle time after a detection), every reading also feeds one
-sample of a synthetic slip to a small copy of the strategy (its ``drill_size_option`` set to
-``drill_particles``: particles, or a ``gp``'s posterior draws; its own random generator): the same
+So, while monitoring (and, for strategies fed from the slip's settled samples, through the settle
+time after a detection), every reading also feeds one sample of a synthetic slip to a small copy of
+the strategy (its ``drill_size_option`` set to ``drill_particles``, at least its
+``drill_size_min``: particles, or a ``gp``'s posterior draws; its own random generator): the same
 code runs on a few kilobytes of data, once per sample, so it is warm when the real slip comes.  A
 strategy that models the motor speed (``wants_readings``) gets a slip of speed readings, made by
 integrating the wheelset J dw/dt = T - c mu(v_s) on the prior curve (Euler, ``_SUBSTEPS`` per
 period) under a torque 6 % above its peak, after ``DRILL_BASELINE`` readings before the slip; the
-others get (creep, mu) samples on the prior curve.  The drill shares nothing mutable with the real strategy, so the real
-identification's results are the same with or without it; only its cost changes.
+others get (creep, mu) samples on the prior curve.  The drill shares nothing mutable with the real
+strategy, so the real identification's results are the same with or without it; only its cost
+changes.
 
 A drill that has confirmed (or run out of samples) starts again from a template built up front,
 copied a few attributes per reading (``_RESTART_ATTRIBUTES``), so no reading carries a whole
@@ -59,7 +61,8 @@ class Drill:
     def __init__(self, settings, strategy: str, particles: int, seed: int = 0):
         options = {k: dict(v) if isinstance(v, dict) else v for k, v in settings.options.items()}
         mine = options.setdefault(strategy, {})
-        mine[STRATEGIES[strategy].drill_size_option] = int(particles)
+        cls = STRATEGIES[strategy]
+        mine[cls.drill_size_option] = max(int(particles), cls.drill_size_min)
         self.settings = dataclasses.replace(settings, options=options)
         self._template = make_strategy(strategy, self.settings, seed)
         rng = np.random.default_rng(seed)

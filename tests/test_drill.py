@@ -73,6 +73,7 @@ def test_the_speed_drill_goes_through_the_peak_and_confirms():
             creep_kmh, mu = peak(np.asarray(settings.initial_guess, float))
             assert abs(s.theta_peak[0] / mu - 1) < 0.03 and abs(s.theta_peak[1] / creep_kmh - 1) < 0.1
     assert drill.error is None and kinds == ["confirmed"] and drill.cycles >= 1
+    assert Drill(settings, "gp", 4)._template.normals.shape[1] == 50     # gp's fewest draws, not an error
 
 
 @pytest.mark.parametrize("strategy", ["proposed", "gp"])

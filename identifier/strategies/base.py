@@ -52,8 +52,9 @@ class Strategy(ABC):
     #: True: every sample's work is small (no whole-data refit), so a TractionIdentifier may run a
     #: small copy of this strategy on a synthetic slip while monitoring (identifier/drill.py)
     keeps_warm: bool = False
-    #: the option the drill sets to ``drill_particles`` to make its copy small
+    #: the option the drill sets to ``drill_particles`` (at least ``drill_size_min``) to make its copy small
     drill_size_option: str = "particles"
+    drill_size_min: int = 2
 
     def __init__(self, settings: IdentifierSettings, seed: int = 0):
         self.settings = settings

@@ -107,6 +107,7 @@ class GpStrategy(SpeedModelStrategy):
     name = "gp"
     defaults = DEFAULTS
     drill_size_option = "draws"         # the TCU's drill (identifier/drill.py) runs a copy with few draws
+    drill_size_min = 50                 # (the fewest ``_check`` allows)
 
     @property
     def keeps_warm(self) -> bool:
