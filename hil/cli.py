@@ -6,7 +6,9 @@ from __future__ import annotations
 import argparse
 import importlib
 import pkgutil
+import signal
 import sys
+import threading
 
 from . import commands
 from .errors import EXIT_INTERRUPTED, HilError
@@ -33,7 +35,23 @@ def _caused_by_interrupt(error: BaseException) -> bool:
     return False
 
 
+class _Interrupts:
+    """The SIGINT handler of a whole command: raises ``KeyboardInterrupt`` and remembers that it
+    did.  A library may swallow the interrupt while it imports (an optional import that catches the
+    ImportError the interrupt became); the command still ends as interrupted: ``main`` looks after
+    the imports and at the end, and ``hil.record.interrupts_between_writes`` before a run starts."""
+
+    interrupted = False
+
+    def __call__(self, signum, frame):
+        self.interrupted = True
+        raise KeyboardInterrupt
+
+
 def main(argv=None) -> int:
+    interrupts = _Interrupts()
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, interrupts)
     try:
         # the imports (numpy, scipy, casadi ...) take about a second: a Ctrl-C then is an interrupt too
         parser = build_parser()
@@ -47,15 +65,22 @@ def main(argv=None) -> int:
             raise
         print("hil: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+    if interrupts.interrupted:          # swallowed by an import
+        print("hil: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
     args = parser.parse_args(argv)
     try:
-        return int(args.func(args) or 0)
+        code = int(args.func(args) or 0)
     except HilError as e:
         print(f"hil {args.command}: error: {e}", file=sys.stderr)
         return e.exit_code
     except KeyboardInterrupt:
         print(f"hil {args.command}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+    if interrupts.interrupted:          # swallowed on the way: the user asked to stop
+        print(f"hil {args.command}: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    return code
 
 
 if __name__ == "__main__":

@@ -92,6 +92,10 @@ class interrupts_between_writes:
         if threading.current_thread() is threading.main_thread():
             for sig in (signal.SIGINT, signal.SIGTERM):
                 self.old[sig] = signal.signal(sig, _InterruptGuard.handler)
+            if getattr(self.old[signal.SIGINT], "interrupted", False):
+                # an interrupt the command's handler saw (hil.cli) but something swallowed: no run
+                self.__exit__()
+                raise KeyboardInterrupt
         return self
 
     def __exit__(self, *exc):

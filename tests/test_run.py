@@ -126,6 +126,27 @@ def test_ctrl_c_during_start_up_is_one_line_not_a_traceback(tmp_path, delay_s):
     assert "Traceback" not in err and err.strip().splitlines()[-1].endswith("interrupted")
 
 
+def test_an_interrupt_something_swallowed_still_stops_the_run():
+    """A Ctrl-C that a library swallows while hil imports (an optional import that catches the
+    ImportError the interrupt became: seen once in CI, exit 0 after a full run) is remembered by the
+    command's handler, and the run does not start (``interrupts_between_writes``)."""
+    from hil.cli import _Interrupts
+    from hil.record import interrupts_between_writes
+
+    handler = _Interrupts()
+    old = signal.signal(signal.SIGINT, handler)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            handler(signal.SIGINT, None)              # the interrupt ...
+        with interrupts_between_writes():             # ... swallowed (caught here): nothing remembers it but
+            pass                                      # the handler; a run would start only if it was not seen
+        raise AssertionError("a run started although Ctrl-C was pressed")
+    except KeyboardInterrupt:
+        assert signal.getsignal(signal.SIGINT) is handler     # the run's own handlers put back
+    finally:
+        signal.signal(signal.SIGINT, old)
+
+
 @pytest.mark.parametrize("name, refused", [("../../elsewhere/pwned", False), ("{tmp}/abs/pwned", False),
                                            ("a\\u0000b", True), ("../" * 100, True), ("x" * 300, False),
                                            ("/../..", True)])
