@@ -397,6 +397,16 @@ class Sender:
                     time.sleep(0.0005)
 
 
+def poll_until(bus: can.BusABC, until: float) -> can.Message | None:
+    """A frame from ``bus``, polled without sleeping until one comes or ``until`` (perf_counter)
+    passes: lockstep's wait before sleeping in the bus (``[bus] lockstep_spin_s``; a node woken by
+    the kernel answers later than one that is awake)."""
+    recv, clock = bus.recv, time.perf_counter
+    while (msg := recv(timeout=0.0)) is None and clock() < until:
+        pass
+    return msg
+
+
 def silence_limit_s(settings, mode: str, period_s: float) -> float:
     """How long the peer may send nothing before it counts as silent (wall seconds).
 

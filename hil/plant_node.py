@@ -21,12 +21,12 @@ from plant import SensorModel, WheelsetPlant
 from .effects import Reality
 from .errors import NoProgress, PeerSilent
 from .frames import STATE_FAULT, STATE_RUNNING, STATE_STARTING, TCU_IDS, FrameCodec, RejectCounter
-from .link import Sender, heartbeat_period_s, silence_limit_s
+from .link import Sender, heartbeat_period_s, poll_until, silence_limit_s
 from .secoc import node_key
 from .record import (Recorder, write_command, write_frame, write_identification, write_plant_state, write_sensor,
                      write_status)
 from .trace import Trace
-from .verdicts import ANSWERED_TWICE, BAD_SEQUENCE, DUPLICATE, FOREIGN, FRESH, LATE, REJECTED, kind
+from .verdicts import ANSWERED_TWICE, BAD_SEQUENCE, DUPLICATE, FOREIGN, FRESH, LATE, NOT_REJECTED
 
 
 #: the longest the plant node writes log rows before it looks at the bus again
@@ -171,7 +171,7 @@ class PlantNode:
         frame, status = self.codec.classify(msg)
         if frame is not None:
             status = self._accept(frame)
-        if kind(status) == REJECTED:
+        if status not in NOT_REJECTED:
             self.rejected[status] += 1
         elif msg.arbitration_id in TCU_IDS:
             self.last_tcu_rx = time.monotonic()
@@ -274,7 +274,7 @@ class PlantNode:
             timeout = None
         elif until is None and self.spin_s > 0.0:
             # lockstep: poll a while first (waking a sleeper costs tens of us a frame), then sleep
-            msg = self._spin(now + min(self.spin_s, max(timeout, 0.0)))
+            msg = poll_until(self.bus, now + min(self.spin_s, max(timeout, 0.0)))
             timeout = self.next_hb - time.perf_counter()
         if msg is None and timeout is not None:
             if timeout > WAKE_MARGIN_S:     # sleep in the bus until shortly before the time ...
@@ -286,13 +286,6 @@ class PlantNode:
         if msg is not None:
             self.on_rx(msg)
         self.check_alive()
-
-    def _spin(self, until: float) -> can.Message | None:
-        """Poll the bus (never sleeping) until a frame comes or ``until`` (perf_counter) passes."""
-        recv, clock = self.bus.recv, time.perf_counter
-        while (msg := recv(timeout=0.0)) is None and clock() < until:
-            pass
-        return msg
 
     def drain(self) -> None:
         """Record what is still queued."""

@@ -175,8 +175,8 @@ class Recorder:
 
     Deferred writing (``defer(queue_limit, block_when_full)``): ``write`` only queues the row (about a
     microsecond) and ``flush(until)`` encodes and writes queued rows while there is time; the plant
-    node does it while it waits for the TCU.  When the waits are shorter than the writing (lockstep:
-    nine rows a period at ~7 us each), the queue fills and rows are written in line.  A full queue
+    node does it while it waits for the TCU.  When the waits are shorter than the writing (lockstep;
+    the README measures it), the queue fills and rows are written in line.  A full queue
     either writes at once (``block_when_full``: lockstep, where nothing is
     late) or drops the row and counts it (``overflow``: real time, where the loop must not wait).
     Queued rows are what a SIGKILL can lose beyond the unfinished chunk, so ``queue_limit`` bounds

@@ -30,7 +30,7 @@ from identifier import STRATEGIES, TractionIdentifier
 from .errors import EXIT_INTERRUPTED, EXIT_OK, BusError, ConfigError, HilError, PeerSilent, PlantFault
 from .frames import (PLANT_IDS, SENSOR_ID, STATE_FAULT, STATE_FINISHED, STATE_NAMES, STATE_RUNNING, STATE_STARTING,
                      FrameCodec, RejectCounter, SampleReport)
-from .link import GuardedBus, Sender, heartbeat_period_s, silence_limit_s
+from .link import GuardedBus, Sender, heartbeat_period_s, poll_until, silence_limit_s
 from .secoc import node_key
 from .verdicts import BAD_SEQUENCE, FRESH, RESENT, newest, sensor_sequence
 
@@ -179,11 +179,7 @@ def serve(bus: can.BusABC, node: TcuNode, *, silence_s: float, heartbeat_period_
     try:
         spinning = spin_s > 0.0 and not realtime
         while not node.finished:
-            msg = None
-            if spinning:
-                end = time.perf_counter() + spin_s
-                while (msg := bus.recv(timeout=0.0)) is None and time.perf_counter() < end:
-                    pass
+            msg = poll_until(bus, time.perf_counter() + spin_s) if spinning else None
             if msg is None:
                 msg = bus.recv(timeout=min(0.05, silence_s / 4))
             now = time.monotonic()

@@ -54,6 +54,10 @@ VERDICTS: dict[str, tuple[str, str]] = {
 }
 
 
+#: the verdicts a node does not count as rejected (a set for the per-frame check)
+NOT_REJECTED = frozenset(v for v, (what, _) in VERDICTS.items() if what != REJECTED)
+
+
 def kind(verdict: str) -> str:
     """ACTED, PASSED or REJECTED for ``verdict`` (a reason with a ``:detail`` by its prefix); a
     verdict this table does not have (a log of another version, a damaged string) is REJECTED."""

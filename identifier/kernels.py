@@ -1117,8 +1117,9 @@ def gp_peak(z, P, i0, i1, sigmas, normals, log_x, upper_kmh, qs, root, cov, f, p
     ``sigmas`` sd, with a neighbour each side; root <- the Cholesky factor of their covariance; draw
     d = mean + root normals[:k, d], its maximum's value and creep (a parabola in log creep through
     the maximum and its neighbours; ``upper_kmh`` where the maximum is the newest seen point i1);
-    out (len(qs), 2) <- the quantiles qs of (peak mu, peak creep).  root, cov (G x G) and f (G x draws)
-    are scratch (the draws row by row: contiguous, so the inner loop vectorises).  Returns k, the number of points drawn."""
+    out (len(qs), 2) <- the quantiles qs of (peak mu, peak creep).  root, cov (G x G) and f
+    (G x draws) are scratch (the draws row by row: contiguous, so the inner loop vectorises).
+    Returns k, the number of points drawn."""
     floor = -1e300
     for i in range(i0, i1 + 1):
         sd = math.sqrt(max(P[1 + i, 1 + i], 0.0))

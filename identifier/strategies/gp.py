@@ -45,8 +45,8 @@ with their quantiles and the published curve's shape search by their twins in id
 was the cost of the samples that draw the peak (tests/test_gp.py checks the twins agree).  b has at
 most four non-zeros (two creeps' interpolation weights), so the twin's predict is O(G); the update
 stays O(G^2).  Compiled, every sample's work is bounded, so the TCU's drill (identifier/drill.py)
-keeps this code warm before the fault with a copy of few draws on a synthetic slip: the first
-samples after a fault otherwise cost about twice what the same work costs warm.
+keeps this code warm before the fault with a copy of few draws on a synthetic slip: code that has
+not run since the monitoring began costs more on the first samples after a fault than warm.
 """
 from __future__ import annotations
 
@@ -136,8 +136,7 @@ class GpStrategy(SpeedModelStrategy):
         conf, rep = float(o["confirm_level"]), float(o["report_level"])
         self._levels = np.array([0.5 * (1 - conf), 0.5 * (1 - rep), 0.5, 0.5 * (1 + rep), 0.5 * (1 + conf)])
         self._row0 = np.empty(g + 1)
-        # root, cov, f of kernels.gp_peak, written once now: a page first touched on a sample costs there
-        self._scratch = (np.full((g, g), 0.0), np.full((g, g), 0.0), np.full((g, int(o["draws"])), 0.0))
+        self._scratch = (np.empty((g, g)), np.empty((g, g)), np.empty((g, int(o["draws"]))))  # root, cov, f: gp_peak
         self._draw_mu, self._draw_creep = np.empty(int(o["draws"])), np.empty(int(o["draws"]))
         self._warm_up()
         self._shape = NOMINAL_SHAPE           # (mu(0), a, r) of the published curve (``fit_shape``)
