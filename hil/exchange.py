@@ -63,6 +63,16 @@ LOAD_WARN_PERCENT = 70.0
 #: the log rows a run may hold back for writing (what a SIGKILL can lose beyond the unfinished chunk)
 RECORD_QUEUE_S, ROWS_PER_PERIOD = 0.5, 10
 CHILD_EXIT_TIMEOUT_S = 20.0
+
+
+def log_writer(mode: str, transport: str, cpus: int | None = None) -> str:
+    """Where a run's log rows are encoded (``Recorder.defer``): in a writer process of their own,
+    unless two lockstep nodes poll on a machine of two CPUs or fewer, where a third busy process can
+    only take its CPU from them (the plant then writes while it waits for the TCU).  docs/realtime.md
+    has the measurements behind the rule."""
+    cpus = cpus or os.cpu_count() or 1
+    return "inline" if mode == "lockstep" and transport != "inprocess" and cpus <= 2 else "process"
+
 TRANSPORTS = ("inprocess", "process", "external")
 
 
@@ -386,7 +396,8 @@ def run(scenario, strategy: str = "nlls", seed: int | None = None, *, bus: str =
                               **{k: repr(v) for k, v in dataclasses.asdict(settings).items()},
                               "load_percent": f"{load['load_percent']:.2f}"})
             if rec:      # rows are written while the plant waits for the TCU (Recorder.defer)
-                rec.defer(max(int(RECORD_QUEUE_S / period) * ROWS_PER_PERIOD, 1000), block_when_full=mode == "lockstep")
+                rec.defer(max(int(RECORD_QUEUE_S / period) * ROWS_PER_PERIOD, 1000), block_when_full=mode == "lockstep",
+                          writer=log_writer(mode, tcu.transport))
             node = PlantNode(PlantRig(scenario, seed, trace, rec, plant=plant),
                              GuardedBus(tcu.handle.bus, tcu.handle.name), mode,
                              strategy=strategy, watch=tcu.child, watch_silence=tcu.node is None)

@@ -29,7 +29,7 @@ from .trace import Trace
 from .verdicts import ANSWERED_TWICE, BAD_SEQUENCE, DUPLICATE, FOREIGN, FRESH, LATE, NOT_REJECTED
 
 
-#: the longest the plant node writes log rows before it looks at the bus again
+#: the longest the plant node writes log rows in line before it looks at the bus again
 FLUSH_SLICE_S = 20e-6
 #: pacing: a wait ends in the bus this long before its time (a bus may round its timeout up to 1 ms and
 #: the scheduler wakes a sleeper late); the rest is polled, sleeping POLL_SLICE_S between polls
@@ -256,21 +256,22 @@ class PlantNode:
     def poll(self, until: float | None) -> None:
         """Receive one frame, or wait at most until ``until`` (perf_counter) or the next heartbeat.
 
-        While nothing has arrived it writes queued log rows (``Recorder.flush``) in slices of at most
-        ``FLUSH_SLICE_S``, so the log is written while the TCU computes, not on the loop's path.  With
-        nothing to write, lockstep polls the bus for up to ``[bus] lockstep_spin_s`` before it sleeps in
-        it: the TCU's answer then finds this process awake (a sleeper's wake-up costs tens of us a
-        frame, and lockstep runs as fast as the bus allows)."""
+        While nothing has arrived it writes queued log rows (``Recorder.work``, when the log is
+        written in line) in slices of at most ``FLUSH_SLICE_S``, so the log is written while the
+        TCU computes, not on the loop's path.
+        With nothing to do for the log, lockstep polls the bus for up to ``[bus] lockstep_spin_s``
+        before it sleeps in it: the TCU's answer then finds this process awake (a sleeper's wake-up
+        costs tens of us a frame, and lockstep runs as fast as the bus allows)."""
         now = time.perf_counter()
         self.heartbeat_if_due(now)
         timeout = self.next_hb - now
         if until is not None:
             timeout = min(timeout, until - now)
         msg = None
-        if self.rec is not None and self.rec.pending:
+        if self.rec is not None and self.rec.work_due:
             msg = self.bus.recv(timeout=0.0)
             if msg is None:
-                self.rec.flush(now + max(min(FLUSH_SLICE_S, timeout), 0.0))
+                self.rec.work(now + max(min(FLUSH_SLICE_S, timeout), 0.0))
             timeout = None
         elif until is None and self.spin_s > 0.0:
             # lockstep: poll a while first (waking a sleeper costs tens of us a frame), then sleep

@@ -14,9 +14,9 @@ leave the process chunk by chunk; only the small chunk index grows with the run.
 """
 from __future__ import annotations
 
+import collections
 import contextlib
 import hashlib
-import collections
 import json
 import os
 import re
@@ -33,6 +33,7 @@ from mcap_protobuf.schema import build_file_descriptor_set
 from identifier.messages import STAGE_NAMES
 
 from .errors import ConfigError, LogWriteError
+from .logwriter import CLOSE, META, WriterGone, WriterProcess
 from .schemas import PROFILE, TOPICS, TYPES
 
 CHUNK_SIZE = 32 * 1024
@@ -160,6 +161,9 @@ class McapFile:
     def metadata(self, name: str, data: dict) -> None:
         self._writer.add_metadata(name, data)
 
+    def fileno(self) -> int:
+        return self._file._fd
+
     def finish(self) -> None:
         self._writer.finish()
         self._file.close()
@@ -173,15 +177,31 @@ class McapFile:
 class Recorder:
     """``write(topic, t_s, **fields)`` appends one message; ``close(summary)`` finishes the file.
 
-    Deferred writing (``defer(queue_limit, block_when_full)``): ``write`` only queues the row (about a
-    microsecond) and ``flush(until)`` encodes and writes queued rows while there is time; the plant
-    node does it while it waits for the TCU.  When the waits are shorter than the writing (lockstep;
-    the README measures it), the queue fills and rows are written in line.  A full queue
-    either writes at once (``block_when_full``: lockstep, where nothing is
-    late) or drops the row and counts it (``overflow``: real time, where the loop must not wait).
-    Queued rows are what a SIGKILL can lose beyond the unfinished chunk, so ``queue_limit`` bounds
-    that loss.  (A writer process of its own was tried: the pickling and a third busy process on two
-    cores made lockstep slower.)"""
+    In line (as created): every ``write`` encodes and writes its row.  Deferred
+    (``defer(queue_limit, block_when_full, writer)``), ``write`` only appends the row (about a
+    microsecond) and the encoding happens off the loop's path, in one of two places:
+
+    - ``writer="process"``: a writer process takes the file over (``hil.logwriter``) and encodes
+      beside the loop; ``write`` ships the rows through a pipe, a batch at a time (a third of a
+      microsecond a row).  Rows in
+      the pipe outlive a SIGKILL of this process (the child writes them and finishes the file with
+      an error event).  Best where a CPU is free for it (real time, a single-process run).
+    - ``writer="inline"``: this process writes queued rows while it waits (``work(until)`` writes
+      until then).  Best where no CPU is free (two lockstep nodes polling on two CPUs: a third busy
+      process takes its CPU from them).
+
+    Rows not yet written or shipped are ``pending``; they are what a SIGKILL of this process loses,
+    so ``queue_limit`` bounds that loss.  At ``queue_limit`` ``write`` either writes or waits for
+    room (``block_when_full``: lockstep, where nothing is late) or drops the row and counts it
+    (``overflow``: real time, where the loop must not wait).  A failed write (a full disk) raises
+    ``LogWriteError`` (from the writer process: at the next ``write`` or ``work`` after it said
+    so); later rows are dropped (``dropped``)."""
+
+    #: rows appended before they are shipped to the writer process (one pipe write)
+    BATCH_ROWS = 64
+    #: how long ``close`` waits for the writer process to finish the file
+    CLOSE_TIMEOUT_S = 120.0
+    WRITERS = ("process", "inline")
 
     def __init__(self, path: str | os.PathLike, chunk_size: int = CHUNK_SIZE):
         self.path = Path(path)
@@ -201,53 +221,121 @@ class Recorder:
         self.closed = False
         self.failed: str | None = None      # why writing failed; from then on rows are dropped
         self.dropped = 0
+        self._proc: WriterProcess | None = None
         self._queue: collections.deque | None = None
         self._queue_limit = 0
         self._block_when_full = True
         self.overflow = 0
         self.queued_max = 0
 
-    def defer(self, queue_limit: int, block_when_full: bool) -> None:
-        """From now on ``write`` queues rows for ``flush`` (class docstring)."""
-        self._queue = collections.deque()
-        self._queue_limit = queue_limit
+    def defer(self, queue_limit: int, block_when_full: bool, writer: str = "process") -> None:
+        """From now on rows are written off the loop's path (class docstring)."""
+        if writer not in self.WRITERS:
+            raise ValueError(f"writer {writer!r}: one of {', '.join(self.WRITERS)}")
+        if self._proc is not None or self._queue is not None or self.failed:
+            return
+        self._queue_limit = max(int(queue_limit), 1)
         self._block_when_full = block_when_full
+        if writer == "inline":
+            self._queue = collections.deque()
+            return
+        self._proc = WriterProcess(self._file, "the run's process ended without closing its log (killed?); "
+                                               "the rows it had not handed to the log's writer are lost")
+        self._file = None
+
+    @property
+    def writer_pid(self) -> int | None:
+        """The writer process (None: rows are written in this process)."""
+        return self._proc.pid if self._proc is not None else None
 
     @property
     def pending(self) -> int:
-        """Rows queued, not yet written."""
+        """Rows appended but not yet written (in line) or handed to the writer process."""
+        if self._proc is not None:
+            return self._proc.unshipped
         return len(self._queue) if self._queue is not None else 0
 
     @property
+    def work_due(self) -> bool:
+        """``work`` has queued rows to write in line (a writer process needs no waits: ``write``
+        ships each batch of ``BATCH_ROWS`` rows as it fills)."""
+        return bool(self._queue)
+
+    @property
     def messages(self) -> int:
-        """Rows written or queued so far."""
-        return self._written + self.pending
+        """Rows written, queued or handed to the writer so far."""
+        return self._written + (len(self._queue) if self._queue is not None else 0)
 
     def write(self, topic: str, log_t_s: float, /, **fields) -> None:
-        q = self._queue
-        if q is None:
+        if self._proc is None and self._queue is None:
             self._write(topic, log_t_s, fields)
             return
-        if len(q) >= self._queue_limit:
-            if not self._block_when_full:
+        if self.failed:
+            self.dropped += 1
+            return
+        if self.pending >= self._queue_limit:
+            self._make_room(block=self._block_when_full)
+            if self.pending >= self._queue_limit:
                 self.overflow += 1
                 return
-            self.flush(max_rows=len(q) - self._queue_limit + 1)
-        q.append((topic, log_t_s, fields))
-        if len(q) > self.queued_max:
-            self.queued_max = len(q)
+        if self._proc is not None:
+            self._proc.put((topic, log_t_s, fields))
+            self._written += 1
+            if self._proc.batched >= self.BATCH_ROWS:
+                self._ship(block=False)
+        else:
+            self._queue.append((topic, log_t_s, fields))
+        if self.pending > self.queued_max:
+            self.queued_max = self.pending
 
-    def flush(self, until: float | None = None, max_rows: int | None = None) -> int:
-        """Write queued rows, oldest first, until ``time.perf_counter()`` passes ``until`` (None: no
-        limit; at least one row is written) or ``max_rows`` are; returns how many were."""
-        q = self._queue
-        n = 0
+    def work(self, until: float | None = None) -> int:
+        """Use a wait for the log: ship the appended rows to the writer process (as far as the pipe
+        takes them without waiting), or write queued rows in line until ``time.perf_counter()``
+        passes ``until`` (None: all; at least one row is written).  Returns how many rows are still
+        pending."""
+        if self.failed:
+            return self.pending
+        if self._proc is not None:
+            self._ship(block=False)
+        elif self._queue:
+            self._write_queued(until)
+        return self.pending
+
+    def _make_room(self, block: bool) -> None:
+        if self._proc is not None:
+            self._ship(block)
+        elif block:
+            self._write_queued(None, max_rows=len(self._queue) - self._queue_limit + 1)
+
+    def _write_queued(self, until: float | None, max_rows: int | None = None) -> None:
+        q, n = self._queue, 0
         while q and (max_rows is None or n < max_rows):
             if until is not None and n and time.perf_counter() >= until:
                 break
             self._write(*q.popleft())
             n += 1
-        return n
+
+    def _ship(self, block: bool) -> None:
+        proc = self._proc
+        _InterruptGuard.depth += 1
+        try:
+            proc.ship()
+            if block:
+                while proc.unshipped >= self._queue_limit:
+                    proc.push(block=True, timeout_s=0.5)
+                    self._check_writer()
+            self._check_writer()
+        except WriterGone as e:
+            self._check_writer()            # a failure it reported first says more
+            raise self._fail(OSError(0, str(e))) from None
+        finally:
+            _InterruptGuard.leave()
+
+    def _check_writer(self) -> None:
+        status = self._proc.read_status()
+        if status.get("failed") and not self.failed:
+            self._written = status.get("written", self._written)
+            raise self._fail(OSError(0, status["failed"]))
 
     def _write(self, topic: str, log_t_s: float, fields: dict) -> None:
         if self.failed:
@@ -265,7 +353,10 @@ class Recorder:
     def _fail(self, e: OSError) -> LogWriteError:
         """Writing failed: later rows are dropped, the file is closed as it is; the error to raise."""
         self.failed = e.strerror or str(e)
-        self._file.abandon()
+        if self._proc is not None:
+            self._proc.kill()
+        else:
+            self._file.abandon()
         return LogWriteError(f"{self.path}: cannot write the log: {self.failed} (after {self._written} messages; "
                              "what reached the file stays readable)")
 
@@ -275,12 +366,17 @@ class Recorder:
                 self.path.unlink()
 
     def metadata(self, name: str, data: dict) -> None:
+        data = {k: v if isinstance(v, str) else json.dumps(v) for k, v in data.items()}
         with self.atomic():
-            self.flush()
             if self.failed:
                 return
+            if self._queue:
+                self._write_queued(None)
+            if self._proc is not None:
+                self._proc.put((META, name, data))
+                return
             try:
-                self._file.metadata(name, {k: v if isinstance(v, str) else json.dumps(v) for k, v in data.items()})
+                self._file.metadata(name, data)
             except OSError as e:
                 raise self._fail(e) from None
 
@@ -297,32 +393,48 @@ class Recorder:
         self.write("/run/events", t_s, t_s=t_s, level=level, text=text)
 
     def close(self, summary: dict | None = None) -> None:
-        """Write the queued rows, the summary and the footer.  After a failed write (``failed``) the file
-        is only closed (what reached it stays readable; an empty file is removed); a failure here
+        """Write the pending rows, the summary and the footer.  After a failed write (``failed``) the
+        file is only closed (what reached it stays readable; an empty file is removed); a failure here
         raises ``LogWriteError``, after the file is closed."""
         if self.closed:
             return
         try:
-            with self.atomic():         # the queued rows, summary, metadata and footer go out together
-                self.flush()
-                self._queue = None
+            with self.atomic():         # the pending rows, summary, metadata and footer go out together
                 if summary is not None and not self.failed:
                     fields = {k: summary[k] for k in ("identified", "rt_percent", "t_fault_s", "t_serious_s",
                                                       "t_identified_s", "r2", "peak_mu_err_percent",
                                                       "peak_creep_err_percent")
                               if summary.get(k) is not None}
+                    self._queue_limit = max(self._queue_limit, self.pending + 2)   # the end is never dropped
                     self.write("/run/summary", summary.get("sim_s", 0.0), json=json.dumps(summary), **fields)
                     self.metadata("summary", {"json": json.dumps(summary)})
                 if not self.failed:
-                    try:
-                        self._file.finish()
-                    except OSError as e:
-                        raise self._fail(e) from None
+                    self._finish()
         finally:
             self.closed = True
-            self._queue = None
+            if self._proc is not None and not self._proc.ended:
+                self._proc.kill()
             if self.failed:
                 self._remove_if_empty()
+
+    def _finish(self) -> None:
+        if self._proc is None:
+            if self._queue:
+                self._write_queued(None)
+            self._queue = None
+            try:
+                self._file.finish()
+            except OSError as e:
+                raise self._fail(e) from None
+            return
+        self._proc.put((CLOSE,))
+        try:
+            status = self._proc.finish(self.CLOSE_TIMEOUT_S)
+        except WriterGone as e:
+            status = {**self._proc.read_status(), "failed": self._proc.status.get("failed") or str(e)}
+        if status.get("failed") or "written" not in status:
+            self._written = status.get("written", self._written)
+            raise self._fail(OSError(0, status.get("failed") or "the log's writer process ended without a word"))
 
 
 # -- where a log goes -----------------------------------------------------------------------------------

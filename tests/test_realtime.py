@@ -68,16 +68,65 @@ def test_a_tcu_stalled_20ms_at_times_does_not_end_a_realtime_run(tmp_path):
 
 
 def test_recording_queue_overflow_counts_exactly_the_dropped_rows(tmp_path):
+    """Rows written in line while the loop waits: a full queue drops and counts each row beyond it."""
     limit, extra = 10, random.randrange(1, 50)
     print(f"extra rows {extra}")
     rec = Recorder(tmp_path / "q.mcap")
-    rec.defer(queue_limit=limit, block_when_full=False)
+    rec.defer(queue_limit=limit, block_when_full=False, writer="inline")
     for i in range(limit + extra):
         rec.event(i * 1e-3, "info", f"row {i}")
     assert rec.overflow == extra and rec.pending == limit
     rec.close({"done": True})
     rows = read_log(tmp_path / "q.mcap", {"/run/events"}).topic("/run/events")
     assert [r.text for r in rows] == [f"row {i}" for i in range(limit)]
+
+
+def test_a_stalled_writer_process_fills_the_pipe_then_the_queue_and_the_rest_is_counted(tmp_path):
+    """The writer process stopped (SIGSTOP): the pipe and then the queue fill, never blocking the
+    loop; every row after that is dropped and counted, and the rows kept are the first ones, whole."""
+    limit = random.randrange(100, 2000)
+    print(f"queue limit {limit}")
+    rec = Recorder(tmp_path / "p.mcap")
+    rec.defer(queue_limit=limit, block_when_full=False, writer="process")
+    pid = rec.writer_pid
+    assert pid and pid != os.getpid()
+    os.kill(pid, signal.SIGSTOP)
+    try:
+        n, t0 = 0, time.perf_counter()
+        while rec.overflow < 1000:          # the pipe holds ~1 MiB: tens of thousands of these rows
+            rec.event(n * 1e-3, "info", f"row {n} " + "x" * 40)
+            n += 1
+            assert rec.pending <= limit
+            assert n < 2_000_000, "the queue never overflowed"
+        loop_s = time.perf_counter() - t0
+    finally:
+        os.kill(pid, signal.SIGCONT)
+    kept = n - rec.overflow
+    print(f"{n} rows written, {kept} kept, {rec.overflow} dropped, {loop_s:.2f} s")
+    assert kept > limit
+    rec.close({"done": True})
+    rows = read_log(tmp_path / "p.mcap", {"/run/events"}).topic("/run/events")
+    assert [r.text.split()[1] for r in rows] == [str(i) for i in range(kept)]
+
+
+def test_a_run_killed_mid_run_leaves_a_log_its_writer_process_closed(tmp_path):
+    """SIGKILL of ``hil run`` (a single process: its log has a writer process): the writer writes
+    every row it was handed, says the run ended without closing its log, and finishes the file."""
+    from .conftest import kill_run_when_log_reaches
+    path = tmp_path / "ffcc_a-nlls-1.mcap"
+    kill_run_when_log_reaches(["run", "scenarios/ffcc_a.toml", "--bus", "inprocess", "--out", str(tmp_path),
+                               "--set", "run.duration_s=60", "--set", "run.fault_time_s=50"], path, 400_000)
+    end = time.monotonic() + 30
+    log = read_log(path)
+    while time.monotonic() < end and log.cut:        # the writer finishes once the pipe is read to its end
+        time.sleep(0.1)
+        log = read_log(path)
+    assert not log.cut and not log.damaged            # the footer is there: the writer closed the file
+    assert not log.complete and "ended without closing its log" in log.ended_early
+    states = log.topic("/plant/state")
+    assert [m.step for m in states] == list(range(len(states))) and len(states) > 200
+    events = log.topic("/run/events")
+    assert events[-1].level == "ERROR" and "killed?" in events[-1].text
 
 
 def test_local_and_inprocess_buses_give_the_same_frames_in_lockstep(tmp_path):
