@@ -202,7 +202,10 @@ def _child(file, rows_fd: int, status_fd: int, on_orphan_text: str) -> int:
         head = pipe.read(4)
         if len(head) < 4:
             break                                   # the parent died without CLOSE
-        body = pipe.read(_LEN.unpack(head)[0])
+        size = _LEN.unpack(head)[0]
+        body = pipe.read(size)
+        if len(body) < size:
+            break                                   # ... halfway through a batch
         items = pickle.loads(body)
         for item in items:
             if failed is not None:
@@ -217,8 +220,8 @@ def _child(file, rows_fd: int, status_fd: int, on_orphan_text: str) -> int:
                     file.write(*item)
                     written += 1
                     last_t = item[1]
-            except OSError as e:
-                failed = e.strerror or str(e)
+            except Exception as e:  # noqa: BLE001 - a disk error, or a row the schema refuses: said, not lost
+                failed = (e.strerror or str(e)) if isinstance(e, OSError) else f"{type(e).__name__}: {e}"
                 file.abandon()
                 report(failed=failed, written=written)
     orphaned = not closed and failed is None

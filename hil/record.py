@@ -182,10 +182,9 @@ class Recorder:
     microsecond) and the encoding happens off the loop's path, in one of two places:
 
     - ``writer="process"``: a writer process takes the file over (``hil.logwriter``) and encodes
-      beside the loop; ``write`` ships the rows through a pipe, a batch at a time (a third of a
-      microsecond a row).  Rows in
-      the pipe outlive a SIGKILL of this process (the child writes them and finishes the file with
-      an error event).  Best where a CPU is free for it (real time, a single-process run).
+      beside the loop; ``write`` ships the rows through a pipe, a batch at a time.  Rows in the
+      pipe outlive a SIGKILL of this process (the child writes them and finishes the file with an
+      error event).  Best where a CPU is free for it (real time, a single-process run).
     - ``writer="inline"``: this process writes queued rows while it waits (``work(until)`` writes
       until then).  Best where no CPU is free (two lockstep nodes polling on two CPUs: a third busy
       process takes its CPU from them).

@@ -10,11 +10,12 @@ from .conftest import ROOT, hil_command, subprocess_env
 pytestmark = pytest.mark.realtime
 
 
-def test_realtime_bench_lists_exit_codes_medians_and_whether_sched_fifo_was_granted():
+def test_realtime_bench_lists_exit_codes_medians_and_whether_sched_fifo_was_granted(tmp_path):
     seed = random.randrange(1, 10_000)
     print(f"seed {seed}")
     r = subprocess.run([*hil_command(), "bench", "bus", "--realtime-runs", "1", "--realtime-seconds", "1",
-                        "--seed", str(seed), "--set", "bus.rt_priority=10", "--json"],
+                        "--lockstep-seconds", "1", "--seed", str(seed), "--set", "bus.rt_priority=10", "--json",
+                        "--doc", str(tmp_path)],
                        cwd=ROOT, env=subprocess_env(), capture_output=True, text=True, timeout=170)
     assert r.returncode == 0, r.stderr
     out = json.loads(r.stdout)
@@ -24,9 +25,19 @@ def test_realtime_bench_lists_exit_codes_medians_and_whether_sched_fifo_was_gran
         assert {"runs", "exit_codes", "missed_per_10k", "jitter_p99_us", "round_trip_p99_us",
                 "lockstep_speed"} <= set(b), bus
         assert len(b["runs"]) == 1 and b["exit_codes"] == [b["runs"][0]["exit_code"]]
-        assert b["lockstep_speed"] > 0
+        assert b["lockstep_speed"] > 0 and b["lockstep_speeds"] == [b["lockstep_speed"]]
         run = b["runs"][0]
         assert isinstance(run["sched_fifo_granted"], bool)      # asked for: granted or refused, never silent
         if run["exit_code"] == 0:
             assert 0 <= run["missed_per_10k"] <= 10_000 and run["jitter_p99_us"] >= 0
         print(bus, run)
+    # the targets, each judged or said to be unmeasured, in the JSON and in the document the bench wrote
+    targets = {t["target"]: t for t in out["targets"]}
+    speed = out["buses"]["inprocess"]["lockstep_speeds"][0]
+    (inproc,) = [t for name, t in targets.items() if name.startswith("inprocess lockstep >= 8x")]
+    assert inproc["met"] == (speed >= 8.0)
+    fifo = out["buses"]["local"]["runs"][0]["sched_fifo_granted"]
+    assert any(t["met"] is None for t in out["targets"]) == (not fifo)
+    doc = (tmp_path / "realtime.md").read_text()
+    assert json.loads((tmp_path / "realtime.json").read_text())["targets"] == out["targets"]
+    assert "| target | measured |" in doc and f"{speed:.2f}x" in doc

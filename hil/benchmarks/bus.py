@@ -32,6 +32,13 @@ def register(sub) -> None:
                    "--realtime-buses, each a `hil run --mode realtime --json` process, and a lockstep run per bus "
                    "(1 ms period, strategy proposed) for its speed")
     p.add_argument("--realtime-buses", default="local,hub,inprocess")
+    p.add_argument("--lockstep-runs", type=int, default=None,
+                   help="with --realtime-runs: lockstep runs per bus for the speed, taken in turns across the buses "
+                   "(default: as many as --realtime-runs)")
+    p.add_argument("--lockstep-seconds", type=float, default=10.0,
+                   help="with --realtime-runs: simulated seconds of each lockstep run (default 10)")
+    p.add_argument("--doc", metavar="DIR", default=None,
+                   help="with --realtime-runs: also write DIR/realtime.md and DIR/realtime.json (e.g. docs)")
     p.add_argument("--set", action="append", metavar="TABLE.KEY=VALUE", help="scenario override (all runs)")
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_bus)
@@ -84,15 +91,67 @@ def _rt_run(scenario_path, bus, seconds, sets, seed, strategy, out_dir) -> dict:
             "error": r.stderr.strip().splitlines()[-1] if r.returncode and r.stderr.strip() else None}
 
 
-def cmd_realtime(args, sets) -> int:
-    args.strategy = args.strategy or "proposed"
+#: the real-time issue's targets: (missed per 10 000 at most, jitter p99 at most us) for SCHED_FIFO runs of the
+#: default bus, and lockstep speed at least (two processes, in-process)
+TARGET_MISSED_PER_10K, TARGET_JITTER_P99_US = 10.0, 100.0
+TARGET_LOCKSTEP, TARGET_LOCKSTEP_INPROCESS = 5.0, 8.0
+
+
+def _lockstep_speed(args, bus: str, sets: list, out_dir: str) -> dict:
     from ..config import parse_set
     from ..exchange import run as run_can
+
+    d = args.lockstep_seconds
+    ls_sets = sets + ["run.exchange_period_s=0.001", f"run.duration_s={d}", f"run.fault_time_s={max(d - 0.5, d / 2)}"]
+    s = run_can(load_scenario(args.scenario, parse_set(ls_sets)), "proposed", args.seed, bus=bus, out_dir=out_dir,
+                progress=False, set_args=ls_sets, log=lambda text: None)
+    return {"speed": s["sim_s"] / s["wall_s"], "bus": s["bus"], "load": __import__("os").getloadavg()[0]}
+
+
+def verdicts(result: dict) -> list[tuple[str, str, bool | None]]:
+    """(target, measured, met) for the real-time issue's targets; met None: not measured here (e.g.
+    SCHED_FIFO not asked for or refused, a bus not in the run)."""
+    out = []
+    default = result["default_bus"]
+    rt = result["buses"].get("local") or result["buses"].get(default)
+    if rt is not None:
+        runs = rt["runs"]
+        fifo = [r for r in runs if r["sched_fifo_granted"]]
+        rng = lambda key, rs: (f"{min(r[key] for r in rs):.1f}-{max(r[key] for r in rs):.1f}"  # noqa: E731
+                               if rs and all(r[key] is not None for r in rs) else "-")
+        if fifo:
+            ok = all(r["missed_per_10k"] is not None and r["missed_per_10k"] <= TARGET_MISSED_PER_10K for r in fifo)
+            out.append((f"local, SCHED_FIFO: <= {TARGET_MISSED_PER_10K:g} missed per 10 000 in every run",
+                        f"{rng('missed_per_10k', fifo)} over {len(fifo)} runs", ok))
+            ok = all(r["jitter_p99_us"] is not None and r["jitter_p99_us"] <= TARGET_JITTER_P99_US for r in fifo)
+            out.append((f"local, SCHED_FIFO: jitter p99 <= {TARGET_JITTER_P99_US:g} us in every run",
+                        f"{rng('jitter_p99_us', fifo)} us", ok))
+        else:
+            out.append(("local, SCHED_FIFO targets", "SCHED_FIFO not asked for or refused: not measured", None))
+        out.append(("local: no run ends in exit 3", f"exit codes {rt['exit_codes']}", 3 not in rt["exit_codes"]))
+    for bus, b in result["buses"].items():
+        speeds = b["lockstep_speeds"]
+        target = TARGET_LOCKSTEP_INPROCESS if bus == "inprocess" else TARGET_LOCKSTEP
+        if bus in ("local", "inprocess") and speeds:
+            out.append((f"{bus} lockstep >= {target:g}x real time (1 ms, proposed)",
+                        f"{min(speeds):.2f}-{max(speeds):.2f}, median {b['lockstep_speed']:.2f} over {len(speeds)} "
+                        f"runs", min(speeds) >= target))
+    return out
+
+
+def cmd_realtime(args, sets) -> int:
+    import os
+    import time
+
     from ..link import resolve
 
+    args.strategy = args.strategy or "proposed"
     seconds = args.realtime_seconds or 5.0
+    lockstep_runs = args.realtime_runs if args.lockstep_runs is None else args.lockstep_runs
     buses = [b.strip() for b in args.realtime_buses.split(",") if b.strip()]
-    result = {"scenario": args.scenario, "seconds": seconds, "default_bus": resolve("auto"), "buses": {}}
+    result = {"scenario": args.scenario, "seconds": seconds, "lockstep_seconds": args.lockstep_seconds,
+              "default_bus": resolve("auto"), "cpus": os.cpu_count(), "sets": sets,
+              "date_utc": time.strftime("%Y-%m-%d %H:%M", time.gmtime()), "buses": {}}
     with tempfile.TemporaryDirectory() as tmp:
         for bus in buses:
             runs = []
@@ -103,33 +162,89 @@ def cmd_realtime(args, sets) -> int:
                 r = runs[-1]
                 print(f"bench bus:   exit {r['exit_code']}, missed/10k {r['missed_per_10k']}, jitter p99 "
                       f"{r['jitter_p99_us']} us, load {r['loadavg_1min']:.2f}", file=sys.stderr, flush=True)
-            print(f"bench bus: {bus} lockstep run ({seconds:g} s, proposed)", file=sys.stderr, flush=True)
-            ls_sets = sets + ["run.exchange_period_s=0.001", f"run.duration_s={seconds}",
-                              f"run.fault_time_s={max(seconds - 0.5, seconds / 2)}"]
-            s = run_can(load_scenario(args.scenario, parse_set(ls_sets)), "proposed", args.seed, bus=bus,
-                        out_dir=f"{tmp}/{bus}-ls", progress=False, set_args=ls_sets, log=lambda text: None)
-            speed = s["sim_s"] / s["wall_s"]
             result["buses"][bus] = {
                 "runs": runs, "exit_codes": [r["exit_code"] for r in runs],
                 "missed_per_10k": _median([r["missed_per_10k"] for r in runs]),
                 "jitter_p99_us": _median([r["jitter_p99_us"] for r in runs]),
                 "round_trip_p99_us": _median([r["round_trip_p99_us"] for r in runs]),
-                "lockstep_speed": speed}
+                "lockstep_speeds": [], "lockstep_loads": []}
+        for i in range(lockstep_runs):                  # in turns: a load change touches every bus alike
+            for bus in buses:
+                print(f"bench bus: {bus} lockstep run {i + 1}/{lockstep_runs} ({args.lockstep_seconds:g} s, proposed)",
+                      file=sys.stderr, flush=True)
+                ls = _lockstep_speed(args, bus, sets, f"{tmp}/{bus}-ls")
+                result["buses"][bus]["lockstep_speeds"].append(ls["speed"])
+                result["buses"][bus]["lockstep_loads"].append(ls["load"])
+                print(f"bench bus:   {ls['speed']:.2f} sim s / wall s, load {ls['load']:.2f}", file=sys.stderr, flush=True)
+        for b in result["buses"].values():
+            b["lockstep_speed"] = _median(b["lockstep_speeds"])
+    result["targets"] = [{"target": t, "measured": m, "met": ok} for t, m, ok in verdicts(result)]
+    if args.doc:
+        from pathlib import Path
+        d = Path(args.doc)
+        d.mkdir(parents=True, exist_ok=True)
+        (d / "realtime.json").write_text(json.dumps(result, indent=1))
+        (d / "realtime.md").write_text(realtime_markdown(args, result))
+        print(f"bench bus: wrote {d / 'realtime.md'} and {d / 'realtime.json'}", file=sys.stderr)
     if args.json:
         print(json.dumps(result))
         return 0
-    f = lambda x, fmt="7.0f": "      -" if x is None else format(x, fmt)  # noqa: E731
-    print(f"{args.scenario}: {args.realtime_runs} real-time run(s) of {seconds:g} s per bus; auto is "
-          f"{result['default_bus']} here")
+    print(realtime_text(args, result))
+    return 0
+
+
+def _fmt(x, fmt="7.0f") -> str:
+    return "-" if x is None else format(x, fmt)
+
+
+def realtime_text(args, result) -> str:
+    lines = [f"{args.scenario}: {args.realtime_runs} real-time run(s) of {result['seconds']:g} s per bus; auto is "
+             f"{result['default_bus']} here ({result['cpus']} CPUs)"]
     for bus, b in result["buses"].items():
-        print(f"  {bus}: lockstep {b['lockstep_speed']:.2f} sim s/wall s (1 ms, proposed)")
+        speeds = ", ".join(f"{x:.2f}" for x in b["lockstep_speeds"])
+        lines.append(f"  {bus}: lockstep {_fmt(b['lockstep_speed'], '.2f')} sim s/wall s median ({speeds}; 1 ms, "
+                     "proposed)")
         for r in b["runs"]:
             fifo = {None: "not asked", True: "granted", False: "REFUSED"}[r["sched_fifo_granted"]]
-            print(f"    exit {r['exit_code']}  missed/10k {f(r['missed_per_10k'], '6.1f')}  jitter p50/p99/max "
-                  f"{f(r['jitter_p50_us'])}/{f(r['jitter_p99_us'])}/{f(r['jitter_max_us'])} us  round trip p50/p99 "
-                  f"{f(r['round_trip_p50_us'])}/{f(r['round_trip_p99_us'])} us  skipped {r['tcu_stale_skipped']}  "
-                  f"load {r['loadavg_1min']:.2f}  SCHED_FIFO {fifo}" + (f"  ({r['error']})" if r["error"] else ""))
-    return 0
+            lines.append(f"    exit {r['exit_code']}  missed/10k {_fmt(r['missed_per_10k'], '6.1f')}  jitter p50/p99/max "
+                         f"{_fmt(r['jitter_p50_us'])}/{_fmt(r['jitter_p99_us'])}/{_fmt(r['jitter_max_us'])} us  round "
+                         f"trip p50/p99 {_fmt(r['round_trip_p50_us'])}/{_fmt(r['round_trip_p99_us'])} us  skipped "
+                         f"{r['tcu_stale_skipped']}  load {r['loadavg_1min']:.2f}  SCHED_FIFO {fifo}"
+                         + (f"  ({r['error']})" if r["error"] else ""))
+    lines.append("targets:")
+    for t in result["targets"]:
+        lines.append(f"  {'MET' if t['met'] else 'not measured' if t['met'] is None else 'NOT MET'}: {t['target']}: "
+                     f"{t['measured']}")
+    return "\n".join(lines)
+
+
+def realtime_markdown(args, result) -> str:
+    cmd = (f"hil bench bus {args.scenario} --realtime-runs {args.realtime_runs} --realtime-seconds "
+           f"{result['seconds']:g} --realtime-buses {args.realtime_buses} --lockstep-seconds {args.lockstep_seconds:g}"
+           + "".join(f" --set {x}" for x in result["sets"]) + (f" --doc {args.doc}" if args.doc else ""))
+    out = ["# Real time and lockstep speed", "",
+           f"Written by `{cmd}` on {result['date_utc']} UTC ({result['cpus']} CPUs; `auto` is "
+           f"`{result['default_bus']}` here). Each real-time run is a `hil run --mode realtime --json` process "
+           f"(FFCC-a, strategy `{args.strategy}`, 1 ms period); lockstep runs ({result['lockstep_seconds']:g} "
+           "simulated s, `proposed`) are taken in turns across the buses. The machine is shared: the load "
+           "average is beside each run.", "", "## Targets", "", "| target | measured | |", "|---|---|---|"]
+    for t in result["targets"]:
+        out.append(f"| {t['target']} | {t['measured']} | {'met' if t['met'] else 'not measured' if t['met'] is None else '**not met**'} |")
+    for bus, b in result["buses"].items():
+        out += ["", f"## {bus}", "",
+                "Lockstep: " + ", ".join(f"{x:.2f}x (load {ld:.2f})" for x, ld in zip(b["lockstep_speeds"],
+                                                                                   b["lockstep_loads"]))
+                + f"; median {_fmt(b['lockstep_speed'], '.2f')}x.", ""]
+        if b["runs"]:
+            out += ["| run | exit | missed / 10k | jitter p50 / p99 / max (us) | round trip p50 / p99 (us) | "
+                    "stale skipped | load | SCHED_FIFO |", "|---|---|---|---|---|---|---|---|"]
+            for i, r in enumerate(b["runs"], 1):
+                fifo = {None: "not asked", True: "granted", False: "REFUSED"}[r["sched_fifo_granted"]]
+                out.append(f"| {i} | {r['exit_code']} | {_fmt(r['missed_per_10k'], '.1f')} | {_fmt(r['jitter_p50_us'], '.0f')} / "
+                           f"{_fmt(r['jitter_p99_us'], '.0f')} / {_fmt(r['jitter_max_us'], '.0f')} | "
+                           f"{_fmt(r['round_trip_p50_us'], '.0f')} / {_fmt(r['round_trip_p99_us'], '.0f')} | "
+                           f"{r['tcu_stale_skipped']} | {r['loadavg_1min']:.2f} | {fifo} |")
+    return "\n".join(out) + "\n"
 
 
 def cmd_bus(args) -> int:
