@@ -17,8 +17,8 @@ only code that holds no lock another thread could have held (the file object, ``
 a bus socket or a terminal held by the run is not kept open by the writer.
 
 Crash safety.  Rows in the pipe outlive the parent: when the parent dies without ``CLOSE`` (SIGKILL),
-the child reads to the end of the pipe, adds a ``/run/events`` error row and a ``fault`` metadata
-record saying so, and finishes the file; what is lost is what the parent had not yet shipped (the
+the child reads to the end of the pipe, calls ``on_orphan(file, last_t_s)`` (the recorder's: an
+error event and a ``fault`` record saying so) and finishes the file; what is lost is what the parent had not yet shipped (the
 recorder bounds it).  The child ignores SIGINT and SIGTERM (a Ctrl-C reaches the whole process
 group; the parent decides) and runs at normal priority on any CPU, whatever the loop's real-time
 priority and affinity.
@@ -48,7 +48,7 @@ class WriterGone(OSError):
 class WriterProcess:
     """The parent's handle on the writer child (module docstring)."""
 
-    def __init__(self, file, on_orphan_text: str):
+    def __init__(self, file, on_orphan):
         rows_r, rows_w = os.pipe()
         status_r, status_w = os.pipe()
         with contextlib.suppress(OSError):
@@ -59,7 +59,7 @@ class WriterProcess:
             try:
                 os.close(rows_w)
                 os.close(status_r)
-                code = _child(file, rows_r, status_w, on_orphan_text)
+                code = _child(file, rows_r, status_w, on_orphan)
             finally:
                 os._exit(code)
         os.close(rows_r)
@@ -175,7 +175,7 @@ class WriterProcess:
 
 
 # -- child side --------------------------------------------------------------------------------------
-def _child(file, rows_fd: int, status_fd: int, on_orphan_text: str) -> int:
+def _child(file, rows_fd: int, status_fd: int, on_orphan) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, signal.SIG_IGN)
     keep = {rows_fd, status_fd, file.fileno()}
@@ -227,8 +227,7 @@ def _child(file, rows_fd: int, status_fd: int, on_orphan_text: str) -> int:
     orphaned = not closed and failed is None
     if orphaned:
         try:
-            file.write("/run/events", last_t, {"t_s": last_t, "level": "ERROR", "text": on_orphan_text})
-            file.metadata("fault", {"reason": on_orphan_text, "t_s": repr(last_t)})
+            on_orphan(file, last_t)
             file.finish()
         except OSError as e:
             failed = e.strerror or str(e)

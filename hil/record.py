@@ -69,9 +69,13 @@ class _InterruptGuard:
 
     depth = 0
     pending = False
+    remember = None     # the command's handler (hil.cli): told of every interrupt, so none is lost to a
+                        # library that catches KeyboardInterrupt (seen in CI: a run went on to exit 0)
 
     @classmethod
     def handler(cls, signum, frame):
+        if getattr(cls.remember, "interrupted", None) is False:
+            cls.remember.interrupted = True
         if cls.depth:
             cls.pending = True
         else:
@@ -93,6 +97,7 @@ class interrupts_between_writes:
         if threading.current_thread() is threading.main_thread():
             for sig in (signal.SIGINT, signal.SIGTERM):
                 self.old[sig] = signal.signal(sig, _InterruptGuard.handler)
+            _InterruptGuard.remember = self.old[signal.SIGINT]
             if getattr(self.old[signal.SIGINT], "interrupted", False):
                 # an interrupt the command's handler saw (hil.cli) but something swallowed: no run
                 self.__exit__()
@@ -102,6 +107,7 @@ class interrupts_between_writes:
     def __exit__(self, *exc):
         for sig, old in self.old.items():
             signal.signal(sig, old)
+        _InterruptGuard.remember = None
 
 
 class _DirectFile:
@@ -174,6 +180,17 @@ class McapFile:
             self._file.close()
 
 
+#: what the writer process records when the run's process dies without closing the log
+ORPHANED = ("the run's process ended without closing its log (killed?); the rows it had not handed to the "
+            "log's writer are lost")
+
+
+def _orphaned(file: McapFile, t_s: float) -> None:
+    """The writer process's last rows when the run died (``hil.logwriter``): an error event, a fault."""
+    file.write("/run/events", t_s, {"t_s": t_s, "level": "ERROR", "text": ORPHANED})
+    file.metadata("fault", {"reason": ORPHANED, "t_s": repr(t_s)})
+
+
 class Recorder:
     """``write(topic, t_s, **fields)`` appends one message; ``close(summary)`` finishes the file.
 
@@ -238,8 +255,8 @@ class Recorder:
         if writer == "inline":
             self._queue = collections.deque()
             return
-        self._proc = WriterProcess(self._file, "the run's process ended without closing its log (killed?); "
-                                               "the rows it had not handed to the log's writer are lost")
+        with self.atomic():     # a Ctrl-C waits until the fork is done (at-fork handlers would swallow it)
+            self._proc = WriterProcess(self._file, _orphaned)
         self._file = None
 
     @property
