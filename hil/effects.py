@@ -60,7 +60,7 @@ EFFECTS: dict[str, EffectSpec] = {s.name: s for s in [
                {"half_bogie_distance_m": None, "half_wheelbase_m": None, "coupler_height_m": None,
                 "bogie_height_m": None, "pitch_hz": 4.0, "pitch_damping": 0.2},
                "axle load transfer reached through a bogie pitch mode (second order, pitch_hz, pitch_damping)",
-               {"bogie_height_m": "m", "pitch_hz": "Hz", "pitch_damping": "-"}, candidate=False,
+               {"bogie_height_m": "m", "pitch_hz": "Hz", "pitch_damping": "-"},
                cls="load_transfer", form="pitch_mode"),
     EffectSpec("torque_lag", "plant", {"tau_s": 0.005}, "first-order motor/inverter torque lag",
                {"tau_s": "s"}, form="first_order"),
@@ -71,16 +71,19 @@ EFFECTS: dict[str, EffectSpec] = {s.name: s for s in [
                form="stiffness_backlash"),
     EffectSpec("drivetrain_damping", "plant", {"viscous_nm_s_rad": 5.0, "coulomb_nm": 50.0},
                "drivetrain losses: viscous (x motor speed) and Coulomb torque taken off the motor torque",
-               {"viscous_nm_s_rad": "N·m·s/rad", "coulomb_nm": "N·m"}, candidate=False, cls="compliance",
+               {"viscous_nm_s_rad": "N·m·s/rad", "coulomb_nm": "N·m"}, cls="compliance",
                form="viscous_coulomb"),
+    EffectSpec("gear_efficiency", "plant", {"efficiency": 0.97},
+               "drivetrain losses as a gear efficiency: the torque reaching the wheelset is efficiency x the "
+               "motor's", {"efficiency": "-"}, cls="compliance", form="efficiency"),
     EffectSpec("adhesion_lag", "plant", {"tau_s": 0.01}, "adhesion dynamics: mu relaxes to the curve with tau_s",
                {"tau_s": "s"}, form="mu_lag"),
     EffectSpec("creep_relaxation", "plant", {"relaxation_length_m": 0.3},
                "adhesion dynamics: mu relaxes to the curve over a rolled length (tau = L / v_train)",
-               {"relaxation_length_m": "m"}, candidate=False, cls="adhesion_lag", form="creep_relaxation"),
+               {"relaxation_length_m": "m"}, cls="adhesion_lag", form="creep_relaxation"),
     EffectSpec("bristle", "plant", {"stiffness_per_m": 200.0, "damping_s_per_m": 0.0},
                "adhesion dynamics, LuGre-type bristle: z' = w - |w| z / g(v_s), mu = s0 z + s1 z'",
-               {"stiffness_per_m": "1/m", "damping_s_per_m": "s/m"}, candidate=False, cls="adhesion_lag",
+               {"stiffness_per_m": "1/m", "damping_s_per_m": "s/m"}, cls="adhesion_lag",
                form="bristle"),
     EffectSpec("resistance", "plant", {"factor": 1.5}, "running resistance = factor x the Davis polynomial",
                {"factor": "-"}, form="davis_factor"),
@@ -95,9 +98,9 @@ EFFECTS: dict[str, EffectSpec] = {s.name: s for s in [
     EffectSpec("sensor_delay", "sensor", {"delay_ms": 3.0}, "speed sensors report values delay_ms old",
                {"delay_ms": "ms"}, form="pure_delay"),
     EffectSpec("sensor_lowpass", "sensor", {"tau_ms": 4.0}, "speed sensors low-pass filtered (first order, tau_ms)",
-               {"tau_ms": "ms"}, candidate=False, cls="sensor_delay", form="low_pass"),
+               {"tau_ms": "ms"}, cls="sensor_delay", form="low_pass"),
     EffectSpec("motor_delay", "sensor", {"delay_ms": 5.0}, "the motor encoder alone reports values delay_ms old",
-               {"delay_ms": "ms"}, candidate=False, cls="sensor_delay", form="per_signal"),
+               {"delay_ms": "ms"}, cls="sensor_delay", form="per_signal"),
     EffectSpec("tachometer_gain", "sensor", {"error_percent": 1.0},
                "the motor encoder reads speed x (1 + error_percent / 100)", {"error_percent": "%"}, candidate=False),
     EffectSpec("sensor_quantisation", "sensor", {"motor_quantum_rad_s": 0.05, "train_quantum_ms": 0.0},
@@ -143,6 +146,8 @@ def check_effect(name: str, params: dict, where: str = "reality") -> dict:
         raise ValueError(f"{where} {name}.tau_s: must be > 0, got {out['tau_s']}")
     if name == "compliance" and out["stiffness_nm_rad"] <= 0:
         raise ValueError(f"{where} compliance.stiffness_nm_rad: must be > 0, got {out['stiffness_nm_rad']}")
+    if name == "gear_efficiency" and not 0 < out["efficiency"] <= 1:
+        raise ValueError(f"{where} gear_efficiency.efficiency: must be in (0, 1], got {out['efficiency']}")
     if name == "can" and not out["loss"] < 1:
         raise ValueError(f"{where} can.loss: must be < 1, got {out['loss']}")
     return out

@@ -16,6 +16,8 @@ A "real" run is the nominal plant plus one or more of these effects.  Three leve
   - ``compliance``     drivetrain torsional compliance (stiffness, damping, referred to the motor
     shaft) with gear backlash (half-width, motor-side rad): motor rotor and wheelset become two
     inertias J_m and J_d / (eta R_g^2) joined by the shaft; the motor encoder sees the rotor.
+  - ``drivetrain_damping``, ``gear_efficiency``  drivetrain losses: viscous (x motor speed) plus
+    Coulomb torque taken off the motor torque; or the torque scaled by a gear efficiency.
   - ``adhesion_lag``   adhesion dynamics: mu relaxes towards the curve's value with time constant
     tau_s (d mu / dt = (mu_curve(v_s) - mu) / tau), so mu lags a changing creep and a rail switch.
   - ``resistance``     running-resistance mismatch: the Davis polynomial scaled by ``factor``.
@@ -43,7 +45,7 @@ from .params import KMH_PER_MS
 
 
 #: the plant-level effects this module integrates, in the order they act on the torque path
-PLANT_ORDER = ("torque_lag", "torque_ripple", "drivetrain_damping", "compliance", "wheel_radius", "rail_curve",
+PLANT_ORDER = ("torque_lag", "torque_ripple", "drivetrain_damping", "gear_efficiency", "compliance", "wheel_radius", "rail_curve",
                "adhesion_lag", "creep_relaxation", "bristle", "load_transfer", "load_transfer_pitch", "resistance")
 #: slip velocity (m/s) above which the bristle model's relaxation rate stops growing (10.8 km/h)
 BRISTLE_MAX_SLIP_MS = 3.0
@@ -124,6 +126,8 @@ class RealityModel:
         if "drivetrain_damping" in e:
             dd = e["drivetrain_damping"]
             torque = torque - dd["viscous_nm_s_rad"] * omega_m - dd["coulomb_nm"] * ca.tanh(omega_m / 0.1)
+        if "gear_efficiency" in e:
+            torque = torque * e["gear_efficiency"]["efficiency"]
         omega_wheel = x[self._i("omega_w")] if "compliance" in e else omega_m
         radius = p.wheel_radius_m * (1 + e["wheel_radius"]["error_percent"] / 100) if "wheel_radius" in e \
             else p.wheel_radius_m

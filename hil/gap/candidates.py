@@ -24,9 +24,12 @@ from plant.reality import fill_defaults
 
 from ..effects import EFFECTS
 
-from .model import Simulator, lattice_quantum, shift
+from .model import Simulator, lattice_quantum, lowpass, shift
 
 SIGNALS = ("motor", "train", "mu_hat")
+#: the sensor-side forms a context can hold underneath its models (periods): ``Context.predict``'s
+#: arguments, and the ``Fit.extra`` keys a sensor-form candidate leaves for forward selection
+SENSOR_FORMS_OF_CONTEXT = ("sensor_delay", "can_delay", "lowpass_tau", "motor_delay")
 UNITS = {"motor": "rad/s", "train": "m/s", "mu_hat": "-", "creep": "km/h"}
 
 
@@ -61,7 +64,7 @@ class Context:
         self.mu_gain = observer.noise_gain()
         self._sims = {}
         self.base_effects = {}                                  # plant effects held fixed underneath
-        self.base_delays = {"sensor_delay": 0.0, "can_delay": 0.0}   # and delays (periods)
+        self.base_delays = {k: 0.0 for k in SENSOR_FORMS_OF_CONTEXT}   # and sensor forms (periods)
         self.base_names = ()
 
     def simulator(self, effect, fit_params, fixed):
@@ -79,20 +82,37 @@ class Context:
         if "plant" in fit.extra:
             name, params = fit.extra["plant"]
             c.base_effects[name] = dict(params)
-        c.base_delays["sensor_delay"] += fit.extra.get("sensor_delay", 0.0)
-        c.base_delays["can_delay"] += fit.extra.get("can_delay", 0.0)
+        for k in SENSOR_FORMS_OF_CONTEXT:
+            c.base_delays[k] += fit.extra.get(k, 0.0)
         if "can_frames" in fit.extra:
             c.base_delays["can_delay"] += fit.params["delay_ms"] * 1e-3 / self.data.period_s
         c.base_names = self.base_names + (fit.name,)
         return c
 
-    def predict(self, motor, train, sensor_delay=0.0, can_delay=0.0) -> dict:
-        """Measured-signal predictions from the plant trajectory: sensors see it ``sensor_delay`` periods
-        late; the TCU sees the sensor values another ``can_delay`` periods late (each plus the base's)."""
-        sensor_delay += self.base_delays["sensor_delay"]
-        can_delay += self.base_delays["can_delay"]
+    def on_top_of_effects(self, effects: dict, **sensor_periods) -> "Context":
+        """This context with plant ``effects`` {name: full params} and sensor forms (periods, by
+        ``SENSOR_FORMS_OF_CONTEXT`` key) held fixed underneath every model (the bench's oracle: the
+        truth as the model)."""
+        import copy
+        c = copy.copy(self)
+        c.base_effects = {**self.base_effects, **{k: dict(v) for k, v in effects.items()}}
+        c.base_delays = dict(self.base_delays)
+        for k, v in sensor_periods.items():
+            c.base_delays[k] += v
+        c.base_names = self.base_names + tuple(effects)
+        return c
+
+    def predict(self, motor, train, sensor_delay=0.0, can_delay=0.0, lowpass_tau=0.0, motor_delay=0.0) -> dict:
+        """Measured-signal predictions from the plant trajectory: sensors low-pass it with
+        ``lowpass_tau`` periods, see it ``sensor_delay`` periods late and the motor encoder another
+        ``motor_delay``; the TCU sees the sensor values another ``can_delay`` periods late (each plus
+        the base's), in ``plant.reality.RealitySensors``' order."""
+        b = self.base_delays
+        motor, train = lowpass(motor, lowpass_tau + b["lowpass_tau"]), lowpass(train, lowpass_tau + b["lowpass_tau"])
+        sensor_delay += b["sensor_delay"]
         m_s, t_s = shift(motor, sensor_delay), shift(train, sensor_delay)
-        m_tcu = shift(m_s, can_delay)
+        m_s = shift(m_s, motor_delay + b["motor_delay"])
+        m_tcu = shift(m_s, can_delay + b["can_delay"])
         return {"motor": m_s, "train": t_s, "mu_hat": self.observer.mu_hat(m_tcu, self.data.torque_cmd_nm)}
 
     def residuals(self, pred: dict, sigma: dict, mask) -> np.ndarray:
@@ -218,21 +238,32 @@ class PlantCandidate:
 
 @dataclass(frozen=True)
 class SensorDelayCandidate:
-    """Both sensor signals (and so the TCU) see the plant ``delay`` late; the measured start is then
-    the state ``delay`` earlier, so the initial state is refitted with the delay."""
+    """Sensors that report the plant late, in one of three forms (``form``): ``pure`` (both speed
+    sensors, and so the TCU, see the plant ``delay`` late), ``low_pass`` (both filtered, first order,
+    time constant ``delay``) or ``per_signal`` (the motor encoder alone ``delay`` late).  The measured
+    start is then the state about ``delay`` earlier on the delayed signals, so the initial state is
+    refitted with the delay."""
 
     name: str = "sensor_delay"
+    form: str = "pure"
+    param: str = "delay_ms"
     max_periods: float = 20.0
+
+    #: form -> the Context.predict argument (and Fit.extra key) it sets
+    ARGUMENT = {"pure": "sensor_delay", "low_pass": "lowpass_tau", "per_signal": "motor_delay"}
 
     def fit(self, ctx: Context, nominal: Fit) -> Fit:
         sim = ctx.simulator(None, (), {})
         torque = ctx.data.torque_cmd_nm
         x0_nom = ctx.x0
         T = ctx.data.period_s
+        arg = self.ARGUMENT[self.form]
+        # which initial-state components the delay moves (the motor alone for a per-signal delay)
+        lagged = np.array([1.0, 0.0]) if self.form == "per_signal" else np.ones(2)
 
         def pred_of(u):
-            motor, train = sim.run([], x0_nom + ctx.x0_slope * u[0] * T + u[1:], torque)
-            return ctx.predict(motor, train, sensor_delay=u[0]), (motor, train)
+            motor, train = sim.run([], x0_nom + lagged * ctx.x0_slope * u[0] * T + u[1:], torque)
+            return ctx.predict(motor, train, **{arg: u[0]}), (motor, train)
 
         def resid(u):
             return ctx.residuals(pred_of(u)[0], ctx.sigma_nom, ctx.train)
@@ -245,13 +276,13 @@ class SensorDelayCandidate:
                        [np.array([d0, 0.0, 0.0]), nominal_start], ctx.sigma_nom)
         pred, (motor, train) = pred_of(best.x)
         d = float(best.x[0])
-        x0 = x0_nom + ctx.x0_slope * d * T + best.x[1:]
+        x0 = x0_nom + lagged * ctx.x0_slope * d * T + best.x[1:]
         half = interval_halfwidths(best)
         h = float(half[0]) if half is not None and math.isfinite(half[0]) else None
-        return Fit(self.name, {"delay_ms": d * T * 1e3}, 1, pred, dict(ctx.sigma_nom), 2 * float(best.cost),
-                   extra={"sensor_delay": d, "x0": x0.tolist(), "plant_motor": motor, "plant_train": train,
-                          "at_bound": {"delay_ms": bool(d <= 1e-3 or d >= self.max_periods - 1e-3)},
-                          "param_ci": {"delay_ms": [max(d - h, 0.0) * T * 1e3, (d + h) * T * 1e3] if h else None}})
+        return Fit(self.name, {self.param: d * T * 1e3}, 1, pred, dict(ctx.sigma_nom), 2 * float(best.cost),
+                   extra={arg: d, "x0": x0.tolist(), "plant_motor": motor, "plant_train": train,
+                          "at_bound": {self.param: bool(d <= 1e-3 or d >= self.max_periods - 1e-3)},
+                          "param_ci": {self.param: [max(d - h, 0.0) * T * 1e3, (d + h) * T * 1e3] if h else None}})
 
 
 def match_frames(tcu_creep, sensor_creep, max_back: int = 40) -> tuple[np.ndarray, float]:
@@ -405,8 +436,9 @@ class QuantisationCandidate:
 RAIL = PlantCandidate("rail_curve", ("peak_mu_scale", "creep_scale"), (0.85, 0.85), (1.18, 1.18), (True, True), (17, 7))
 
 
-def candidates(scenario) -> list:
-    """The candidate list the diagnosis tries (every EffectSpec with candidate=True)."""
+def candidates(scenario, exclude=()) -> list:
+    """The candidate list the diagnosis tries: every EffectSpec with candidate=True, one candidate per
+    form, but the effects named in ``exclude`` (the blind bench holds the truth's own form out)."""
     out = [
         PlantCandidate("load_transfer", ("bogie_height_m",), (0.0,), (6.0,), (False,)),
         PlantCandidate("torque_lag", ("tau_s",), (2e-4,), (0.1,), (True,)),
@@ -416,8 +448,19 @@ def candidates(scenario) -> list:
         PlantCandidate("adhesion_lag", ("tau_s",), (2e-4,), (0.2,), (True,)),
         PlantCandidate("resistance", ("factor",), (0.0,), (5.0,), (False,)),
         SensorDelayCandidate(),
+        # the other forms of the classes above (each class names its best form)
+        PlantCandidate("load_transfer_pitch", ("bogie_height_m", "pitch_hz"), (0.0, 0.5), (6.0, 20.0), (False, True),
+                       (7, 5)),
+        PlantCandidate("drivetrain_damping", ("viscous_nm_s_rad", "coulomb_nm"), (0.0, 0.0), (20.0, 400.0),
+                       (False, False), (5, 5)),
+        PlantCandidate("gear_efficiency", ("efficiency",), (0.5,), (1.0,), (False,), (11,)),
+        PlantCandidate("creep_relaxation", ("relaxation_length_m",), (2e-3,), (10.0,), (True,)),
+        PlantCandidate("bristle", ("stiffness_per_m", "damping_s_per_m"), (5.0, 0.0), (1e4, 0.05), (True, False),
+                       (9, 3)),
+        SensorDelayCandidate("sensor_lowpass", "low_pass", "tau_ms"),
+        SensorDelayCandidate("motor_delay", "per_signal", "delay_ms"),
         QuantisationCandidate(),
         CanCandidate(),
     ]
     assert {c.name for c in out} == {n for n, s in EFFECTS.items() if s.candidate}
-    return out
+    return [c for c in out if c.name not in exclude]

@@ -164,7 +164,10 @@ def peak_errors_vs_curve(theta, curve) -> dict:
 # -- the diagnosis --------------------------------------------------------------------------------------
 class Diagnosis:
     def __init__(self, data, scenario, *, block: int = 20, max_creep_kmh: float = 8.0, identify: bool = True,
-                 progress: bool = False):
+                 progress: bool = False, exclude=()):
+        """``exclude``: effect names (forms) not to offer as candidates (the blind bench holds the
+        truth's own form out)."""
+        self.exclude = tuple(exclude)
         self.data = data
         self.scenario = scenario
         self.block = block
@@ -207,7 +210,7 @@ class Diagnosis:
         where = self.where(ctx, ctx.predict(m_line, t_line), m_line, t_line, creep_meas)
 
         fits = []
-        for cand in candidates(sc):
+        for cand in candidates(sc, self.exclude):
             _log(self.progress, f"fitting candidate {cand.name}")
             try:
                 fit = cand.fit(ctx, nom_fit)
@@ -230,11 +233,11 @@ class Diagnosis:
         ranking.sort(key=lambda r: -r["score_gain"])
         best = ranking[0]
         named, named_set, verdict, nuisances, confidence = self.judge(base, ranking, rail, gap_present)
-        best_fit = next(f for f in fits if f.name == best["effect"])
+        best_fit = next(f for f in fits if f.name == best["candidate"])
         forward = None
         if gap_present and FORWARD_MIN_SHARE <= best["held_out_shrink"] < FORWARD_MAX_SHARE and \
                 best["held_out_gap"] > NOISE_GAP:
-            forward = self.forward(ctx, nom_fit, base, best_fit, best, rail_fit, rail)
+            forward = self.forward(ctx, nom_fit, base, best_fit, best, rail_fit, rail, ranking)
             if forward is not None and forward["accepted"]:
                 named, named_set, verdict, confidence = self.rejudge(named, named_set, verdict, confidence, best,
                                                                      forward)
@@ -269,6 +272,7 @@ class Diagnosis:
                        best_fit.name, "creep": creep_meas, "window": window, "sigma": sigma,
                        "held": held_mask}
         self.ctx, self.fits, self.nominal = ctx, fits, nominal
+        self.base, self.rail, self.ranking = base, rail, ranking
         return clean(out)
 
     def normal_running_replay(self, ctx: Context):
@@ -285,7 +289,8 @@ class Diagnosis:
         sc_ = self.score(ctx, fit)
         shrink = 1 - sc_["gap"] / base["gap"] if base["gap"] > 0 else 0.0
         spec = EFFECTS.get(fit.name)
-        return {"effect": fit.name, "form": spec.form if spec else "", "params": fit.params, "k": fit.k,
+        return {"effect": spec.effect_class if spec else fit.name, "form": spec.form if spec else "",
+                "candidate": fit.name, "params": fit.params, "k": fit.k,
                 "score_gain": base["score"] - sc_["score"], "held_out_shrink": shrink,
                 "share": min(max(shrink, 0.0), 1.0), "held_out_gap": sc_["gap"],
                 "held_out_gap_own_floor": sc_["gap_own_floor"], "at_bound": fit.extra.get("at_bound", {}),
@@ -303,7 +308,7 @@ class Diagnosis:
     def judge(self, base, ranking, rail, gap_present):
         """(named, named_set, verdict, nuisances, confidence) -- see the module docstring, step 3."""
         best = ranking[0]
-        runner = next((r for r in ranking[1:]), None)
+        runner = next((r for r in ranking[1:] if r["effect"] != best["effect"]), None)   # another class's best
         nuisances = []
         if rail is not None:
             p = rail["params"]
@@ -347,7 +352,8 @@ class Diagnosis:
                           f"{MIN_SHRINK * 100:.0f} %{bound_note}"), nuisances, "none"
 
     # -- forward selection -----------------------------------------------------------------------------
-    def forward(self, ctx: Context, nom_fit: Fit, base: dict, first: Fit, first_row: dict, rail_fit, rail) -> dict:
+    def forward(self, ctx: Context, nom_fit: Fit, base: dict, first: Fit, first_row: dict, rail_fit, rail,
+                ranking) -> dict:
         """Second step of forward selection: every other candidate fitted on top of the first (its
         parameters held), judged on held-out data against the first alone.  Sensor-level pairs are not
         tried (a delay on a delay is one delay).  Accepted when the best second effect removes at least
@@ -360,8 +366,14 @@ class Diagnosis:
         ctx2 = ctx.on_top_of(first)
         pseudo = self._pseudo(first, nom_fit)
         rows, fits2 = [], {}
-        for cand in candidates(self.scenario):
-            if cand.name == first.name or cand.name == "torque_lag" and self.data.torque_cmd_nm.std() < 1e-9:
+        # a second effect of another class, in the form that explained most alone (one fit per class)
+        best_forms = {}
+        for r in ranking:
+            best_forms.setdefault(r["effect"], r["candidate"])
+        for cand in candidates(self.scenario, self.exclude):
+            if EFFECTS[cand.name].effect_class == first_row["effect"] or best_forms.get(
+                    EFFECTS[cand.name].effect_class) != cand.name or \
+                    cand.name == "torque_lag" and self.data.torque_cmd_nm.std() < 1e-9:
                 continue
             if sensor_first and not isinstance(cand, PlantCandidate):
                 continue
@@ -379,9 +391,9 @@ class Diagnosis:
         runner = rows[1] if len(rows) > 1 else None
         # the first was fitted alone and absorbed part of the second: refit each on top of the other
         # (one round of coordinate descent), keeping the refit only if it scores better
-        by_name = {c.name: c for c in candidates(self.scenario)}
+        by_name = {c.name: c for c in candidates(self.scenario, self.exclude)}
         try:
-            f2 = fits2[second["effect"]]
+            f2 = fits2[second["candidate"]]
             _log(self.progress, f"forward selection: refitting {first.name} on top of {f2.name}, then back")
             f1b = by_name[first.name].fit(ctx.on_top_of(f2), self._pseudo(f2, nom_fit))
             f2b = by_name[f2.name].fit(ctx.on_top_of(f1b), self._pseudo(f1b, nom_fit))
@@ -396,7 +408,8 @@ class Diagnosis:
         accepted = (second["score_gain"] - first_row["score_gain"] >= MIN_MARGIN and removed >= FORWARD_MIN_REMAINDER
                     and (runner is None or self.beats(second, runner)) and not bounded
                     and second["held_out_shrink"] >= MIN_SHRINK)
-        out = {"first": first.name, "second": second["effect"], "second_form": second["form"],
+        out = {"first": first_row["effect"], "first_form": first_row["form"], "second": second["effect"],
+               "second_form": second["form"],
                "second_params": second["params"], "first_params": second.get("first_params", first.params),
                "pair_held_out_shrink": second["held_out_shrink"],
                "second_removes_of_remainder": removed, "accepted": bool(accepted),
@@ -405,7 +418,7 @@ class Diagnosis:
         if accepted and rail_fit is not None:
             # is the first effect the rail in disguise?  the rail curve plus the same second effect
             try:
-                cand = next(c for c in candidates(self.scenario) if c.name == second["effect"])
+                cand = by_name[second["candidate"]]
                 r2 = cand.fit(ctx.on_top_of(rail_fit), Fit("rail_curve", rail_fit.params, 0, rail_fit.pred,
                                                             dict(ctx.sigma_nom), extra={
                                                                 "x0": rail_fit.extra["x0"],

@@ -124,6 +124,17 @@ def shift(x: np.ndarray, delay_periods: float) -> np.ndarray:
     return np.interp(k, np.arange(len(x), dtype=float), x)
 
 
+def lowpass(x: np.ndarray, tau_periods: float) -> np.ndarray:
+    """x through the first-order low-pass ``y_k = a y_(k-1) + (1 - a) x_k``, ``a = exp(-1/tau)``, from
+    ``y_0 = x_0`` (as ``plant.reality.RealitySensors`` filters a reading per period)."""
+    if tau_periods <= 0:
+        return x
+    from scipy.signal import lfilter
+    a = math.exp(-1.0 / tau_periods)
+    y, _ = lfilter([1 - a], [1.0, -a], x[1:], zi=[a * x[0]])
+    return np.concatenate([x[:1], y])
+
+
 def lattice_quantum(values: np.ndarray, q_min: float, q_max: float) -> tuple[float, float]:
     """(quantum, coherence): the spacing q of the lattice the values sit on, and how well they do.
 

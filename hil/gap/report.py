@@ -143,7 +143,7 @@ def write_report(out: dict, dg, directory) -> Path:
     # 4. which: ranking
     rk = out["which"]["ranking"]
     fig, ax = plt.subplots(figsize=(8, 3.5))
-    ax.barh([r["effect"] for r in rk][::-1], [r["held_out_shrink"] * 100 for r in rk][::-1],
+    ax.barh([f"{r['effect']} ({r['form']})" for r in rk][::-1], [r["held_out_shrink"] * 100 for r in rk][::-1],
             color=["tab:green" if r["effect"] == out["which"]["named"] else "0.6" for r in rk][::-1])
     ax.axvline(out["which"]["rule"]["min_shrink"] * 100, color="k", ls="--", lw=0.8)
     ax.set_xlabel("held-out gap shrink [%] (dashed: minimum to name an effect; it must also beat the runner-up "
