@@ -256,9 +256,9 @@ class PlantNode:
     def poll(self, until: float | None) -> None:
         """Receive one frame, or wait at most until ``until`` (perf_counter) or the next heartbeat.
 
-        While nothing has arrived it writes queued log rows (``Recorder.work``, when the log is
-        written in line) in slices of at most ``FLUSH_SLICE_S``, so the log is written while the
-        TCU computes, not on the loop's path.
+        While nothing has arrived it gives the log its due (``Recorder.work``: a batch of rows shipped
+        to the writer process, or queued rows written in line in slices of at most ``FLUSH_SLICE_S``),
+        so the log costs the loop nothing between a deadline and the sensor frame.
         With nothing to do for the log, lockstep polls the bus for up to ``[bus] lockstep_spin_s``
         before it sleeps in it: the TCU's answer then finds this process awake (a sleeper's wake-up
         costs tens of us a frame, and lockstep runs as fast as the bus allows)."""

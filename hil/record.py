@@ -199,7 +199,7 @@ class Recorder:
     microsecond) and the encoding happens off the loop's path, in one of two places:
 
     - ``writer="process"``: a writer process takes the file over (``hil.logwriter``) and encodes
-      beside the loop; ``write`` ships the rows through a pipe, a batch at a time.  Rows in the
+      beside the loop; ``work`` (in a wait) ships the rows through a pipe, a batch at a time.  Rows in the
       pipe outlive a SIGKILL of this process (the child writes them and finishes the file with an
       error event).  Best where a CPU is free for it (real time, a single-process run).
     - ``writer="inline"``: this process writes queued rows while it waits (``work(until)`` writes
@@ -213,8 +213,10 @@ class Recorder:
     ``LogWriteError`` (from the writer process: at the next ``write`` or ``work`` after it said
     so); later rows are dropped (``dropped``)."""
 
-    #: rows appended before they are shipped to the writer process (one pipe write)
+    #: rows appended before ``work`` ships them to the writer process (one pickle and one pipe write,
+    #: in a wait of the loop); ``write`` ships them itself at SHIP_IN_LINE_ROWS (a loop that never waits)
     BATCH_ROWS = 64
+    SHIP_IN_LINE_ROWS = 4 * BATCH_ROWS
     #: how long ``close`` waits for the writer process to finish the file
     CLOSE_TIMEOUT_S = 120.0
     WRITERS = ("process", "inline")
@@ -273,8 +275,10 @@ class Recorder:
 
     @property
     def work_due(self) -> bool:
-        """``work`` has queued rows to write in line (a writer process needs no waits: ``write``
-        ships each batch of ``BATCH_ROWS`` rows as it fills)."""
+        """``work`` has something to do: a batch of ``BATCH_ROWS`` rows to ship to the writer process,
+        or queued rows to write in line."""
+        if self._proc is not None:
+            return self._proc.batched >= self.BATCH_ROWS
         return bool(self._queue)
 
     @property
@@ -297,7 +301,7 @@ class Recorder:
         if self._proc is not None:
             self._proc.put((topic, log_t_s, fields))
             self._written += 1
-            if self._proc.batched >= self.BATCH_ROWS:
+            if self._proc.batched >= self.SHIP_IN_LINE_ROWS:    # no wait came to ship them in
                 self._ship(block=False)
         else:
             self._queue.append((topic, log_t_s, fields))

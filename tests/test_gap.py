@@ -10,12 +10,13 @@ import time
 import numpy as np
 import pytest
 
+
 from hil.benchmarks.gap import DEFAULT_MIX, draw_case, run_case
 from hil.gap import diagnose, read_real_log
 from hil.gap.data import describe
 from hil.logread import read_log
 from hil.exchange import run
-from hil.effects import TRUTH_KEY
+from hil.effects import EFFECTS, TRUTH_KEY
 from hil.config import load_scenario
 
 from .conftest import SCENARIOS, hil
@@ -157,6 +158,21 @@ def test_bench_gap_json_keys(tmp_path):
     assert json.loads((tmp_path / "doc" / "gap.json").read_text())["cases"] == 2
     assert sum(sum(row.values()) for row in out["confusion"].values()) == 2
     assert "case 2/2" in r.stderr
+    # a held-out case: its form is not among the candidates (the class's other forms are); the truth
+    # itself is scored as a candidate (the limit) wherever it has an exact model
+    for k in ("held_out_separable", "held_out_beyond_the_log", "wrong_beyond_the_log", "wrong_separable"):
+        assert isinstance(out[k], int)
+    for rec in out["records"]:
+        if rec["kind"] == "held_out_form":
+            (form,) = rec["effects"]
+            assert rec["excluded"] == [form] and form not in rec["ranked_candidates"]
+            siblings = {n for n, s in EFFECTS.items() if s.candidate and n != form
+                        and s.effect_class == EFFECTS[form].effect_class}
+            assert siblings and siblings <= set(rec["ranked_candidates"])
+            if rec["nominal_gap"] >= 0.5:
+                assert isinstance(rec["oracle"]["separable"], bool) and rec["oracle"]["shrink_percent"] > 0
+        else:
+            assert rec["excluded"] == []
 
 
 def test_torque_lag_found_when_the_command_varies(tmp_path, scenario):

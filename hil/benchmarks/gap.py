@@ -199,7 +199,7 @@ def run_case(scenario, kind: str, effects: dict, run_seed: int, out_dir: Path, i
            "best_form": which["ranking"][0]["form"], "diagnosis_s": wall, "log": path,
            "description": (which.get("description") or {}).get("sentence"),
            "described_variables": (which.get("description") or {}).get("variables", []),
-           "oracle": limit}
+           "oracle": limit, "excluded": held_out, "ranked_candidates": [r["candidate"] for r in which["ranking"]]}
     if kind == "outside":
         right = set().union(*(OUTSIDE_VARIABLES[n] for n in effects))
         rec["description_right"] = bool(set(rec["described_variables"]) & right)
