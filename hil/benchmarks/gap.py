@@ -230,7 +230,8 @@ def oracle(dg, effects: dict, truth_set: list) -> dict | None:
     """The information limit of one case: the truth itself (its own equations and parameters, only
     the initial state fitted) scored as one more candidate by the diagnosis' own rules.  ``separable``:
     it removes a material share and beats, by the diagnosis' margin (``Diagnosis.beats``), the rail
-    nuisance and every candidate of a class the truth does not have.  A case the truth itself cannot be
+    nuisance and the best candidate of a class the truth does not have (of several effects: the best
+    single candidate).  A case the truth itself cannot be
     told apart in is beyond what any candidate could be expected to name from this log.  None where a
     truth effect has no exact model here (quantisation, a tachometer gain, the CAN bus)."""
     from plant.reality import fill_defaults
@@ -249,7 +250,9 @@ def oracle(dg, effects: dict, truth_set: list) -> dict | None:
     fit = fit_nominal(ctx)
     fit.name = "truth"
     row = dg._entry(dg.ctx, fit, dg.base)
-    others = [r for r in dg.ranking if r["effect"] not in truth_set]
+    # the alternatives: another class's best for one effect; for several, any single candidate too (a
+    # pair is told apart only when it beats the best single effect: the second one shows)
+    others = [r for r in dg.ranking if len(truth_set) > 1 or r["effect"] not in truth_set]
     material = row["held_out_shrink"] >= MIN_SHRINK and row["score_gain"] > MIN_SCORE_GAIN
     over_rail = dg.rail is None or dg.beats(row, dg.rail)
     over_others = all(dg.beats(row, r) for r in others[:1])

@@ -285,6 +285,56 @@ class SensorDelayCandidate:
                           "param_ci": {self.param: [max(d - h, 0.0) * T * 1e3, (d + h) * T * 1e3] if h else None}})
 
 
+def fit_pair(ctx: Context, plant: PlantCandidate, sensor: SensorDelayCandidate, plant_params: dict,
+             delay_periods: float, x0) -> Fit:
+    """A plant effect and a sensor form fitted together: their parameters and the initial state by one
+    least-squares fit, from the values forward selection reached (a greedy pair is fitted one effect
+    at a time: the first, fitted alone, absorbed part of the second, and one refit round does not
+    undo it).  The Fit carries the sensor form's name and parameter; ``extra["plant_params"]`` the
+    plant effect's."""
+    fixed = fill_defaults({plant.name: dict(EFFECTS[plant.name].params)}, ctx.cfg)[plant.name]
+    sim = ctx.simulator(plant.name, plant.fit_params, fixed)
+    torque = ctx.data.torque_cmd_nm
+    T = ctx.data.period_s
+    np_ = len(plant.fit_params)
+    arg = sensor.ARGUMENT[sensor.form]
+    lagged = np.array([1.0, 0.0]) if sensor.form == "per_signal" else np.ones(2)
+    lo = np.array([math.log(v) if lg else v for v, lg in zip(plant.lo, plant.log)] + [0.0])
+    hi = np.array([math.log(v) if lg else v for v, lg in zip(plant.hi, plant.log)] + [sensor.max_periods])
+
+    def theta_of(u):
+        return np.array([math.exp(v) if lg else v for v, lg in zip(u[:np_], plant.log)])
+
+    def start_of(u):
+        return ctx.x0 + lagged * ctx.x0_slope * u[np_] * T + u[np_ + 1:]
+
+    def resid(u):
+        try:
+            motor, train = sim.run(theta_of(u), start_of(u), torque)
+        except (FloatingPointError, RuntimeError):
+            return np.full(n_res, 1e3)
+        return ctx.residuals(ctx.predict(motor, train, **{arg: u[np_]}), ctx.sigma_nom, ctx.train)
+
+    u0 = np.array([math.log(plant_params[n]) if lg else plant_params[n] for n, lg in zip(plant.fit_params, plant.log)]
+                  + [delay_periods])
+    u0 = np.clip(u0, lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
+    n_res = len(resid(np.concatenate([u0, np.zeros(2)])))
+    dx0 = np.asarray(x0, float) - start_of(np.concatenate([u0, np.zeros(2)]))
+    best = _fit_ls(resid, None, lo, hi, np.maximum(hi - lo, 1e-9) / 10, [np.concatenate([u0, dx0])],
+                   ctx.sigma_nom)
+    theta, d = theta_of(best.x), float(best.x[np_])
+    motor, train = sim.run(theta, start_of(best.x), torque)
+    span = hi - lo
+    at_bound = {n: bool(best.x[i] - lo[i] <= 1e-3 * span[i] or hi[i] - best.x[i] <= 1e-3 * span[i])
+                for i, n in enumerate([*plant.fit_params, sensor.param])}
+    return Fit(sensor.name, {sensor.param: d * T * 1e3}, np_ + 1, ctx.predict(motor, train, **{arg: d}),
+               dict(ctx.sigma_nom), 2 * float(best.cost),
+               extra={arg: d, "x0": start_of(best.x).tolist(), "plant_motor": motor, "plant_train": train,
+                      "plant": (plant.name, dict(fixed, **dict(zip(plant.fit_params, map(float, theta))))),
+                      "plant_params": dict(zip(plant.fit_params, map(float, theta))),
+                      "at_bound": at_bound, "param_ci": {}})
+
+
 def match_frames(tcu_creep, sensor_creep, max_back: int = 40) -> tuple[np.ndarray, float]:
     """For each TCU period k, the sensor frame j(k) <= k whose creep the TCU used (the newest exact
     copy in the last ``max_back`` frames), and the fraction of periods with an exact copy."""

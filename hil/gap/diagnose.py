@@ -46,7 +46,8 @@ from plant import SensorModel
 
 from ..trace import clean
 from ..effects import EFFECTS
-from .candidates import RAIL, SIGNALS, UNITS, Context, Fit, PlantCandidate, candidates, fit_nominal
+from .candidates import (RAIL, SIGNALS, UNITS, Context, Fit, PlantCandidate, SensorDelayCandidate, candidates,
+                         fit_nominal, fit_pair)
 from .model import ObserverReplica, Simulator, initial_line
 from .sparse import describe_residual
 
@@ -56,8 +57,9 @@ MIN_MARGIN = 25.0          # held-out score by which it must beat the runner-up 
 MARGIN_GAP_RATIO = 0.5     # ... the gap it leaves must be at most this fraction of theirs, unless ...
 NOISE_GAP = 0.5            # ... theirs is already this close to the noise floor (noise units)
 FORWARD_MIN_SHARE = 0.3    # forward selection starts from a best single effect removing at least this, and
-FORWARD_MAX_SHARE = 0.9    # ... and at most this (a form that differs from its candidate's leaves up to ~8 %:
-                           #     a second effect fitted into that remainder would be a false name)
+FORWARD_MAX_SHARE = 0.9    # ... and below this (a form that differs from its candidate's leaves up to ~8 %:
+                           #     a second effect fitted into that remainder would be a false name) unless ...
+FORWARD_MIN_LEFT = 2.5     # ... it leaves at least this many noise units (a form's misfit left 0.6-1.6)
 FORWARD_MIN_REMAINDER = 0.5  # accepts a second one removing at least this fraction of what the first left
 MIN_SCORE_GAIN = 25.0      # held-out NLL + BIC penalty improvement over the nominal model
 MIN_GAP = 0.5              # combined gap (noise units) below which there is no gap to explain
@@ -235,12 +237,12 @@ class Diagnosis:
         named, named_set, verdict, nuisances, confidence = self.judge(base, ranking, rail, gap_present)
         best_fit = next(f for f in fits if f.name == best["candidate"])
         forward = None
-        if gap_present and FORWARD_MIN_SHARE <= best["held_out_shrink"] < FORWARD_MAX_SHARE and \
-                best["held_out_gap"] > NOISE_GAP:
+        if gap_present and FORWARD_MIN_SHARE <= best["held_out_shrink"] and best["held_out_gap"] > NOISE_GAP and \
+                (best["held_out_shrink"] < FORWARD_MAX_SHARE or best["held_out_gap"] >= FORWARD_MIN_LEFT):
             forward = self.forward(ctx, nom_fit, base, best_fit, best, rail_fit, rail, ranking)
             if forward is not None and forward["accepted"]:
                 named, named_set, verdict, confidence = self.rejudge(named, named_set, verdict, confidence, best,
-                                                                     forward)
+                                                                     forward, ranking)
         shrink_table = {s: {"rmse_before": base["per_signal"][s]["rmse"], "rmse_after": best["per_signal"][s]["rmse"],
                             "gap_before": base["per_signal"][s]["gap"], "gap_after": best["per_signal"][s]["gap"],
                             "noise_floor": sigma[s], "unit": UNITS[s]} for s in SIGNALS}
@@ -392,8 +394,9 @@ class Diagnosis:
         # the first was fitted alone and absorbed part of the second: refit each on top of the other
         # (one round of coordinate descent), keeping the refit only if it scores better
         by_name = {c.name: c for c in candidates(self.scenario, self.exclude)}
+        f1_now, f2_now = first, fits2[second["candidate"]]      # the pair as it stands
         try:
-            f2 = fits2[second["candidate"]]
+            f2 = f2_now
             _log(self.progress, f"forward selection: refitting {first.name} on top of {f2.name}, then back")
             f1b = by_name[first.name].fit(ctx.on_top_of(f2), self._pseudo(f2, nom_fit))
             f2b = by_name[f2.name].fit(ctx.on_top_of(f1b), self._pseudo(f1b, nom_fit))
@@ -401,7 +404,29 @@ class Diagnosis:
             if row["score_gain"] > second["score_gain"]:
                 second = row
                 second["first_params"] = f1b.params
+                f1_now, f2_now = f1b, f2b
         except Exception:  # noqa: BLE001 - keep the greedy pair
+            pass
+        # a plant effect and a sensor form: fit both together, from where the pair stands
+        try:
+            c1, c2 = by_name[first.name], by_name[second["candidate"]]
+            plant_c, sensor_c, plant_f, sensor_f = (c1, c2, f1_now, f2_now) if isinstance(c1, PlantCandidate) \
+                else (c2, c1, f2_now, f1_now)
+            if isinstance(plant_c, PlantCandidate) and isinstance(sensor_c, SensorDelayCandidate):
+                _log(self.progress, f"forward selection: {plant_c.name} and {sensor_c.name} fitted together")
+                jf = fit_pair(ctx, plant_c, sensor_c, plant_f.params,
+                              sensor_f.extra[SensorDelayCandidate.ARGUMENT[sensor_c.form]], f2_now.extra["x0"])
+                if c2.name == sensor_c.name:          # the second is the sensor form: the row as it is
+                    row, first_params = self._entry(ctx, jf, base), jf.extra["plant_params"]
+                else:                                 # the second is the plant effect: name the row after it
+                    jp = Fit(plant_c.name, jf.extra["plant_params"], jf.k, jf.pred, jf.sigma, jf.train_cost,
+                             extra={**jf.extra, "at_bound": {k: v for k, v in jf.extra["at_bound"].items()
+                                                             if k in plant_c.fit_params}})
+                    row, first_params = self._entry(ctx, jp, base), jf.params
+                if row["score_gain"] > second["score_gain"]:
+                    second = row
+                    second["first_params"] = first_params
+        except Exception:  # noqa: BLE001 - keep the pair as it is
             pass
         removed = 1 - second["held_out_gap"] / first_row["held_out_gap"] if first_row["held_out_gap"] > 0 else 0.0
         bounded = [k for k, v in second["at_bound"].items() if v]
@@ -443,8 +468,11 @@ class Diagnosis:
                           "plant_motor": fit.extra.get("plant_motor", nom_fit.extra["plant_motor"]),
                           "plant_train": fit.extra.get("plant_train", nom_fit.extra["plant_train"])})
 
-    def rejudge(self, named, named_set, verdict, confidence, best, fw):
-        """The answer once forward selection accepted a second effect."""
+    def rejudge(self, named, named_set, verdict, confidence, best, fw, ranking=()):
+        """The answer once forward selection accepted a second effect.  A first effect that was only
+        "most likely" alone because it did not beat the rail nuisance by the margin is named with the
+        second when the pair beats the rail curve with the same second effect (that comparison is the
+        test of the first against the rail, now that the second no longer hides in its remainder)."""
         first, second = fw["first"], fw["second"]
         pair = (f"{second} ({fw['second_form']}) on top of {first} removes {fw['second_removes_of_remainder'] * 100:.0f} % "
                 f"of what {first} left (together {fw['pair_held_out_shrink'] * 100:.0f} % of the gap), fitted "
@@ -456,7 +484,9 @@ class Diagnosis:
         if fw["pair_vs_rail"] == "not_separable":
             return second, [second], (f"{second} found, and rail or {self._what(first)}: not separable in this log; "
                                       f"{pair}"), "confident"
-        if confidence == "tentative":
+        runner = next((r for r in ranking if r["effect"] != best["effect"]), None)
+        only_the_rail = (runner is None or self.beats(best, runner)) and not any(best["at_bound"].values())
+        if confidence == "tentative" and not (only_the_rail and "rail_pair" in fw):
             return second, [second], (f"{second} found; {pair}; {first} is only the most likely first effect "
                                       f"({verdict})"), "confident"
         return first, sorted([first, second]), (f"{first} and {second} explain the gap: {first} removes "
