@@ -332,6 +332,9 @@ class Diagnosis:
         over_rail = rail is None or self.beats(best, rail)
         bounded = [k for k, v in best["at_bound"].items() if v]
         bound_note = f" (fit at its bound: {', '.join(bounded)})" if bounded else ""
+        # a fit with every parameter at a bound is pinned (the effect vanishes or runs off its range): no
+        # name; one parameter of several at a bound (viscous loss 0 beside a Coulomb loss) is only said
+        pinned = bool(bounded) and len(bounded) == len(best["at_bound"])
         if rail_material and (rail is not None and (not material or self.beats(rail, best))):
             n = nuisances[0]
             return NONE, [], (f"the rail's curve differs: peak mu {n['peak_mu_percent']:+.1f} %, peak creep "
@@ -341,11 +344,11 @@ class Diagnosis:
             return NONE, [], (f"rail or {self._what(best['effect'])}: not separable in this log (the rail's curve "
                               f"scaled by {nuisances[0]['peak_mu_percent']:+.1f} % removes "
                               f"{rail['share'] * 100:.0f} %, {desc})"), nuisances, "not_separable"
-        if material and over_runner and over_rail and not bounded:
-            return best["effect"], [best["effect"]], (f"{best['effect']} explains the gap: {desc}"), nuisances, \
+        if material and over_runner and over_rail and not pinned:
+            return best["effect"], [best["effect"]], (f"{best['effect']} explains the gap: {desc}{bound_note}"), nuisances, \
                 "confident"
         if material:
-            why = "its fit sits at a bound" if bounded else (
+            why = "its fit sits at a bound" if pinned else (
                 f"it does not beat {runner['effect']} ({runner['share'] * 100:.0f} %) by the margin" if not over_runner
                 else "it does not beat the rail-curve nuisance by the margin")
             return NONE, [], (f"none named with confidence: most likely {desc}{bound_note}; {why}"), nuisances, \
@@ -360,7 +363,7 @@ class Diagnosis:
         parameters held), judged on held-out data against the first alone.  Sensor-level pairs are not
         tried (a delay on a delay is one delay).  Accepted when the best second effect removes at least
         ``FORWARD_MIN_REMAINDER`` of what the first left, gains ``MIN_MARGIN`` in held-out score, beats the
-        runner-up second effect by the margin and its fit is not at a bound; the pair is then compared
+        runner-up second effect by the margin and its fit is not pinned at its bounds; the pair is then compared
         with the rail curve plus the same second effect."""
         if first.name == "sensor_quantisation":
             return None
@@ -430,6 +433,7 @@ class Diagnosis:
             pass
         removed = 1 - second["held_out_gap"] / first_row["held_out_gap"] if first_row["held_out_gap"] > 0 else 0.0
         bounded = [k for k, v in second["at_bound"].items() if v]
+        bounded = bounded if len(bounded) == len(second["at_bound"]) else []      # pinned, as in ``judge``
         accepted = (second["score_gain"] - first_row["score_gain"] >= MIN_MARGIN and removed >= FORWARD_MIN_REMAINDER
                     and (runner is None or self.beats(second, runner)) and not bounded
                     and second["held_out_shrink"] >= MIN_SHRINK)
