@@ -21,8 +21,8 @@
      "rail or axle load: not separable in this log" (named "none", confidence "not_separable");
    - the best effect removes >= ``MIN_SHRINK``, gains ``MIN_SCORE_GAIN`` over the nominal model, beats
      the runner-up and the rail curve by the margin (``beats``: a held-out score better by
-     ``MIN_MARGIN`` and a remaining gap at most ``MARGIN_GAP_RATIO`` of theirs) and its fit is not at a
-     bound: named (confidence "confident");
+     ``MIN_MARGIN`` and a remaining gap at most ``MARGIN_GAP_RATIO`` of theirs) and its fit is not
+     pinned (every parameter at a bound): named (confidence "confident");
    - it removes >= ``MIN_SHRINK`` without that margin: "none named with confidence: most likely X"
      ("tentative"); otherwise "none of the candidates" ("none").
    No noise-floor test: an effect written with other equations than its candidate leaves a
