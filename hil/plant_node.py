@@ -35,6 +35,9 @@ FLUSH_SLICE_S = 20e-6
 #: the scheduler wakes a sleeper late); the rest is polled, sleeping POLL_SLICE_S between polls
 WAKE_MARGIN_S = 1.2e-3
 POLL_SLICE_S = 50e-6
+#: ... and the last SPIN_S are polled without sleeping (a sleeper wakes tens of us late: the period's
+#: start would jitter by that; at most this much of each period is spent polling)
+SPIN_S = 150e-6
 
 
 class PlantRig:
@@ -280,10 +283,10 @@ class PlantNode:
         if msg is None and timeout is not None:
             if timeout > WAKE_MARGIN_S:     # sleep in the bus until shortly before the time ...
                 msg = self.bus.recv(timeout=min(timeout - WAKE_MARGIN_S, self.silence_s / 4))
-            else:                           # ... then poll, yielding the CPU between polls (never a spin)
+            else:                           # ... then poll, yielding the CPU between polls, all but SPIN_S
                 msg = self.bus.recv(timeout=0.0)
-                if msg is None and timeout > 0.0:
-                    time.sleep(min(timeout, POLL_SLICE_S))
+                if msg is None and timeout > SPIN_S:
+                    time.sleep(min(timeout - SPIN_S, POLL_SLICE_S))
         if msg is not None:
             self.on_rx(msg)
         self.check_alive()
