@@ -141,9 +141,10 @@ GARBAGE = [
 
 
 def test_cansend_garbage_during_a_run_is_counted_and_the_run_still_identifies(tmp_path):
-    # a 4 s run (fault at 3.5 s): long enough for 30 cansend calls while both nodes are on the bus (with
-    # 2 s, the TCU once finished before the last frame came: 29 counted against the plant's 30)
-    args = [*FFCC_A, "--set", "run.duration_s=4.0", "--set", "run.fault_time_s=3.5"]
+    # a 10 s run (fault at 9.5 s): long enough for 30 cansend calls while both nodes are on the bus (2 s:
+    # the TCU once finished before the last frame came; 4 s: once the frame codec was compiled from the
+    # DBC, a run in UML ended before the last cansend)
+    args = [*FFCC_A, "--set", "run.duration_s=10.0", "--set", "run.fault_time_s=9.5"]
     ref, _ = run_json(args, "inprocess", tmp_path / "ref")
     watch = open_bus("socketcan:vcan0")
     proc = subprocess.Popen(hil_command() + ["run", *args, "--bus", "socketcan:vcan0", "--out", str(tmp_path),
