@@ -68,8 +68,8 @@ CHILD_EXIT_TIMEOUT_S = 20.0
 def log_writer(mode: str, transport: str, cpus: int | None = None) -> str:
     """Where a run's log rows are encoded (``Recorder.defer``): in a writer process of their own,
     unless two lockstep nodes poll on a machine of two CPUs or fewer, where a third busy process can
-    only take its CPU from them (the plant then writes while it waits for the TCU).  docs/realtime.md
-    has the measurements behind the rule."""
+    only take its CPU from them (the plant then writes while it waits for the TCU; the README gives
+    the measurement behind the rule)."""
     cpus = cpus or os.cpu_count() or 1
     return "inline" if mode == "lockstep" and transport != "inprocess" and cpus <= 2 else "process"
 

@@ -16,12 +16,12 @@ only code that holds no lock another thread could have held (the file object, ``
 ``os.read``) and leaves with ``os._exit``.  It closes every inherited descriptor but its three, so
 a bus socket or a terminal held by the run is not kept open by the writer.
 
-Crash safety.  Rows in the pipe outlive the parent: when the parent dies without ``CLOSE`` (SIGKILL),
+Crash safety. Rows in the pipe outlive the parent: when the parent dies without ``CLOSE`` (SIGKILL),
 the child reads to the end of the pipe, calls ``on_orphan(file, last_t_s)`` (the recorder's: an
-error event and a ``fault`` record saying so) and finishes the file; what is lost is what the parent had not yet shipped (the
-recorder bounds it).  The child ignores SIGINT and SIGTERM (a Ctrl-C reaches the whole process
-group; the parent decides) and runs at normal priority on any CPU, whatever the loop's real-time
-priority and affinity.
+error event and a ``fault`` record saying so) and finishes the file; what is lost is what the parent
+had not yet shipped (the recorder bounds it). The child ignores SIGINT and SIGTERM (a Ctrl-C reaches
+the whole process group; the parent decides) and runs at normal priority on any CPU, whatever the
+loop's real-time priority and affinity.
 """
 from __future__ import annotations
 

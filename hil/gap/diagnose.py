@@ -59,7 +59,7 @@ NOISE_GAP = 0.5            # ... theirs is already this close to the noise floor
 FORWARD_MIN_SHARE = 0.3    # forward selection starts from a best single effect removing at least this, and
 FORWARD_MAX_SHARE = 0.9    # ... and below this (a form that differs from its candidate's leaves up to ~8 %:
                            #     a second effect fitted into that remainder would be a false name) unless ...
-FORWARD_MIN_LEFT = 2.5     # ... it leaves at least this many noise units (a form's misfit left 0.6-1.6)
+FORWARD_MIN_LEFT = 2.5     # ... it leaves at least this many noise units (above what a form's misfit leaves)
 FORWARD_MIN_REMAINDER = 0.5  # accepts a second one removing at least this fraction of what the first left
 MIN_SCORE_GAIN = 25.0      # held-out NLL + BIC penalty improvement over the nominal model
 MIN_GAP = 0.5              # combined gap (noise units) below which there is no gap to explain
