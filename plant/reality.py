@@ -20,6 +20,8 @@ A "real" run is the nominal plant plus one or more of these effects.  Three leve
     Coulomb torque taken off the motor torque; or the torque scaled by a gear efficiency.
   - ``adhesion_lag``   adhesion dynamics: mu relaxes towards the curve's value with time constant
     tau_s (d mu / dt = (mu_curve(v_s) - mu) / tau), so mu lags a changing creep and a rail switch.
+    Its other forms: ``creep_relaxation`` (tau = L / v_train: relaxation over a rolled length) and
+    ``bristle`` (LuGre-type: a bristle state whose relaxation rate is |w| / g(v_s), plus damping).
   - ``resistance``     running-resistance mismatch: the Davis polynomial scaled by ``factor``.
   - ``torque_ripple``  (not a diagnosis candidate) sinusoidal ripple on the motor torque.
   - ``wheel_radius``   (not a diagnosis candidate) true wheel radius off the nominal one.
@@ -47,9 +49,8 @@ from .params import KMH_PER_MS
 #: the plant-level effects this module integrates, in the order they act on the torque path
 PLANT_ORDER = ("torque_lag", "torque_ripple", "drivetrain_damping", "gear_efficiency", "compliance", "wheel_radius", "rail_curve",
                "adhesion_lag", "creep_relaxation", "bristle", "load_transfer", "load_transfer_pitch", "resistance")
-#: slip velocity (m/s) above which the bristle model's relaxation rate stops growing (10.8 km/h)
-BRISTLE_MAX_SLIP_MS = 3.0
-#: and its relaxation rate (1/s) is capped here (time constant >= 0.25 ms, 2.5 RK4 sub-steps)
+#: the bristle model's relaxation rate (1/s) is capped here (time constant >= 0.25 ms, 2.5 RK4
+#: sub-steps, a quarter period): the cap slows only transients faster than a sample, never the steady state
 BRISTLE_MAX_RATE_1_S = 4000.0
 #: the sensor-level effects ``RealitySensors`` applies
 SENSOR_EFFECTS = ("sensor_delay", "sensor_lowpass", "motor_delay", "tachometer_gain", "sensor_quantisation")
@@ -145,16 +146,16 @@ class RealityModel:
             rate = ca.fmax(ca.fabs(v_t), 0.1) / e["creep_relaxation"]["relaxation_length_m"]
             dx[self._i("mu_state")] = (mu_curve - mu) * rate
         elif "bristle" in e:
-            # LuGre-type bristle: z' = w - |w| z / g, g = mu_curve(v_s) / sigma0 (steady state z = g for w>0),
-            # mu = sigma0 z + sigma1 z' ; w = slip velocity (m/s).  The decay rate's |w| is capped at
-            # BRISTLE_MAX_SLIP_MS (beyond the diagnosis' window) so free spinning stays integrable.
+            # LuGre-type bristle: z' = w - |w| z / g = (|w| / g) (g sgn(w) - z), g = mu_curve(v_s) / sigma0,
+            # mu = sigma0 z + sigma1 z' (w slip velocity, m/s).  Written as a relaxation towards the steady
+            # deflection g sgn(w) so that capping its rate (stiffness) keeps the steady state mu = mu_curve.
             br = e["bristle"]
             s0, s1 = br["stiffness_per_m"], br["damping_s_per_m"]
             w = v_s / KMH_PER_MS
             g = ca.fmax(ca.fabs(mu_curve), 1e-6) / s0
             z = x[self._i("bristle_z")]
-            rate = ca.fmin(ca.fmin(ca.fabs(w), BRISTLE_MAX_SLIP_MS) / g, BRISTLE_MAX_RATE_1_S)
-            zdot = w - rate * z
+            rate = ca.fmin(ca.fabs(w) / g, BRISTLE_MAX_RATE_1_S)
+            zdot = rate * (g * ca.sign(w) - z)
             dx[self._i("bristle_z")] = zdot
             mu = s0 * z + s1 * zdot
         else:
@@ -216,7 +217,7 @@ class RealityModel:
         if "rail_curve" in e and t0 >= cfg.fault_time_s:
             rc = e["rail_curve"]
             mu0 = float(rc["peak_mu_scale"] * curve.mu_at(v_s / float(rc["creep_scale"]), x0_nominal[1]))
-        if "adhesion_lag" in e or "creep_relaxation" in e:
+        if "mu_state" in self.state_names:
             x[self._i("mu_state")] = mu0
         if "bristle" in e:
             x[self._i("bristle_z")] = mu0 / float(e["bristle"]["stiffness_per_m"])

@@ -113,6 +113,28 @@ def test_adhesion_lag_slows_the_fault_switch(scenario):
     assert moved == pytest.approx(1 - math.exp(-cfg.exchange_period_s / tau), abs=0.02)
 
 
+@pytest.mark.parametrize("creep_kmh", [0.5, 3.0, 5.0, 7.0])
+def test_bristle_at_its_steady_deflection_is_on_the_curve_at_any_slip(scenario, creep_kmh):
+    """LuGre: with the bristle at g = mu_curve / sigma0 and sliding forward, z' = 0 and mu = mu_curve,
+    however fast it slides (the integration's cap on the relaxation rate must not move the steady state:
+    it once turned the bristle into a viscous friction above a few km/h of slip)."""
+    import casadi as ca
+    from plant.params import KMH_PER_MS
+    from plant.reality import RealityModel
+    cfg = scenario.plant_config()
+    p = cfg.params
+    s0 = 60.0
+    model = RealityModel(cfg, {"bristle": {"stiffness_per_m": s0, "damping_s_per_m": 0.01}})
+    v_t = 20.0
+    omega_m = (v_t + creep_kmh / KMH_PER_MS) / p.wheel_radius_m * p.gear_ratio
+    t = cfg.fault_time_s + 0.1
+    mu_curve = float(cfg.fault_curve.mu_at(creep_kmh, v_t))
+    x = ca.DM([omega_m, v_t, mu_curve / s0])
+    dx, mu, _, _ = model.rhs(x, 1000.0, t)
+    assert float(dx[model.state_names.index("bristle_z")]) == pytest.approx(0.0, abs=1e-12)
+    assert float(mu) == pytest.approx(mu_curve, rel=1e-9)
+
+
 def test_sensor_delay_and_quantisation():
     inner = SensorModel(SensorConfig(), seed=1)
     s = RealitySensors(inner, {"sensor_delay": {"delay_ms": 2.5}}, 1e-3)
