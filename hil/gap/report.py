@@ -65,7 +65,7 @@ def text_summary(out: dict) -> str:
                      f"nominal replay peak mu range {_f((ident['nominal_replay'].get('peak_mu_range') or [None])[0], '.4f')}"
                      f"-{_f((ident['nominal_replay'].get('peak_mu_range') or [None, None])[1], '.4f')})")
         for k, v in ident["curve_shift"].items():
-            lines.append(f"    {k}: {v:+.2f} %" if not isinstance(v, bool) else f"    {k}: {v}")
+            lines.append(f"    {k}: {v}" if isinstance(v, bool) else f"    {k}: {_f(v, '+.2f')} %")
     return "\n".join(lines)
 
 
