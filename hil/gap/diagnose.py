@@ -25,6 +25,8 @@
      pinned (every parameter at a bound): named (confidence "confident");
    - it removes >= ``MIN_SHRINK`` without that margin: "none named with confidence: most likely X"
      ("tentative"); otherwise "none of the candidates" ("none").
+   A quantiser changes the noise, not the mean, so it is judged apart (``quantiser``): speeds on a
+   lattice coarser than the scenario's own are named beside whatever explains the mean.
    No noise-floor test: an effect written with other equations than its candidate leaves a
    remainder above the noise and is still the right answer when it beats every alternative.
 4. HOW FAR: held-out RMSE per signal before/after; "gap RMSE" = sqrt(max(RMSE^2 - noise floor^2, 0)),
@@ -62,6 +64,7 @@ FORWARD_MAX_SHARE = 0.9    # ... and below this (a form that differs from its ca
 FORWARD_MIN_LEFT = 2.5     # ... it leaves at least this many noise units (above what a form's misfit leaves)
 FORWARD_MIN_REMAINDER = 0.5  # accepts a second one removing at least this fraction of what the first left
 MIN_SCORE_GAIN = 25.0      # held-out NLL + BIC penalty improvement over the nominal model
+QUANTUM_OVER_SCENARIO = 1.5  # a lattice of speeds this many times the scenario's own quantum is a quantiser to name
 MIN_GAP = 0.5              # combined gap (noise units) below which there is no gap to explain
                            # (measured on nominal runs: up to about 0.3 from the noise alone)
 WHERE_SIGNIFICANT = 2.0    # a stage's residual RMS (noise units) from which the gap counts as significant there
@@ -243,6 +246,13 @@ class Diagnosis:
             if forward is not None and forward["accepted"]:
                 named, named_set, verdict, confidence = self.rejudge(named, named_set, verdict, confidence, best,
                                                                      forward, ranking)
+        lattice = self.quantiser(fits)
+        if lattice and "sensor_quantisation" not in named_set:
+            # a quantiser changes the noise, not the mean: it is named beside whatever explains the mean
+            named_set = sorted(named_set + ["sensor_quantisation"])
+            if named == NONE:
+                named, confidence = "sensor_quantisation", "confident"
+            verdict = f"{verdict}; and {lattice}"
         shrink_table = {s: {"rmse_before": base["per_signal"][s]["rmse"], "rmse_after": best["per_signal"][s]["rmse"],
                             "gap_before": base["per_signal"][s]["gap"], "gap_after": best["per_signal"][s]["gap"],
                             "noise_floor": sigma[s], "unit": UNITS[s]} for s in SIGNALS}
@@ -277,6 +287,21 @@ class Diagnosis:
         self.base, self.rail, self.ranking = base, rail, ranking
         return clean(out)
 
+    def quantiser(self, fits) -> str:
+        """What the quantisation candidate found, when the measured speeds sit on a lattice (coherence
+        > 0.9, so never on continuous readings) at least ``QUANTUM_OVER_SCENARIO`` times the scenario's
+        own quantum: a sentence, else ""."""
+        fit = next((f for f in fits if f.name == "sensor_quantisation"), None)
+        if fit is None:
+            return ""
+        sens = self.scenario.sensors
+        own = {"motor_quantum_rad_s": sens.motor_speed_quantum_rad_s, "train_quantum_ms": sens.train_speed_quantum_ms}
+        found = {k: q for k, q in fit.params.items() if q > 0 and q >= QUANTUM_OVER_SCENARIO * own.get(k, 0.0)}
+        if not found:
+            return ""
+        return ("the speed sensors are quantised: " + ", ".join(f"{k}={q:.4g}" for k, q in found.items())
+                + f" ({fit.note})")
+
     def normal_running_replay(self, ctx: Context):
         """The nominal model fitted on the pre-fault samples only: the reference of the WHERE statistics."""
         d = self.data
@@ -306,6 +331,17 @@ class Diagnosis:
         if b["score_gain"] + MIN_MARGIN > a["score_gain"]:
             return False
         return a["held_out_gap"] <= MARGIN_GAP_RATIO * b["held_out_gap"] or b["held_out_gap"] <= NOISE_GAP
+
+    @staticmethod
+    def beats_on_top(a: dict, b: dict, first: dict) -> bool:
+        """Second effect ``a`` beats second effect ``b`` on top of ``first``: a better held-out score by
+        MIN_MARGIN, and it removes at least 1 / MARGIN_GAP_RATIO times as much of the gap ``first`` left
+        (the margin judged on what is left to explain: ``beats``' ratio of whole gaps is out of reach of a
+        right second effect when its form differs from the truth's and leaves a remainder of its own)."""
+        if b["score_gain"] + MIN_MARGIN > a["score_gain"]:
+            return False
+        left = first["held_out_gap"]
+        return MARGIN_GAP_RATIO * (left - a["held_out_gap"]) >= left - b["held_out_gap"]
 
     def judge(self, base, ranking, rail, gap_present):
         """(named, named_set, verdict, nuisances, confidence) -- see the module docstring, step 3."""
@@ -359,25 +395,22 @@ class Diagnosis:
     # -- forward selection -----------------------------------------------------------------------------
     def forward(self, ctx: Context, nom_fit: Fit, base: dict, first: Fit, first_row: dict, rail_fit, rail,
                 ranking) -> dict:
-        """Second step of forward selection: every other candidate fitted on top of the first (its
-        parameters held), judged on held-out data against the first alone.  Sensor-level pairs are not
+        """Second step of forward selection: every form of every other class fitted on top of the first
+        (its parameters held), judged on held-out data against the first alone.  Sensor-level pairs are not
         tried (a delay on a delay is one delay).  Accepted when the best second effect removes at least
         ``FORWARD_MIN_REMAINDER`` of what the first left, gains ``MIN_MARGIN`` in held-out score, beats the
-        runner-up second effect by the margin and its fit is not pinned at its bounds; the pair is then compared
-        with the rail curve plus the same second effect."""
+        best second effect of another class by the margin (``beats_on_top``) and its fit is not pinned at
+        its bounds; the pair is then compared with the rail curve plus the same second effect."""
         if first.name == "sensor_quantisation":
             return None
         sensor_first = "plant" not in first.extra
         ctx2 = ctx.on_top_of(first)
         pseudo = self._pseudo(first, nom_fit)
         rows, fits2 = [], {}
-        # a second effect of another class, in the form that explained most alone (one fit per class)
-        best_forms = {}
-        for r in ranking:
-            best_forms.setdefault(r["effect"], r["candidate"])
+        # a second effect of another class, in each of its forms (the form that explains most alone is not
+        # always the one that explains most of what the first left)
         for cand in candidates(self.scenario, self.exclude):
-            if EFFECTS[cand.name].effect_class == first_row["effect"] or best_forms.get(
-                    EFFECTS[cand.name].effect_class) != cand.name or \
+            if EFFECTS[cand.name].effect_class == first_row["effect"] or \
                     cand.name == "torque_lag" and self.data.torque_cmd_nm.std() < 1e-9:
                 continue
             if sensor_first and not isinstance(cand, PlantCandidate):
@@ -393,7 +426,7 @@ class Diagnosis:
             return None
         rows.sort(key=lambda r: -r["score_gain"])
         second = rows[0]
-        runner = rows[1] if len(rows) > 1 else None
+        runner = next((r for r in rows[1:] if r["effect"] != second["effect"]), None)   # another class's best
         # the first was fitted alone and absorbed part of the second: refit each on top of the other
         # (one round of coordinate descent), keeping the refit only if it scores better
         by_name = {c.name: c for c in candidates(self.scenario, self.exclude)}
@@ -435,7 +468,7 @@ class Diagnosis:
         bounded = [k for k, v in second["at_bound"].items() if v]
         bounded = bounded if len(bounded) == len(second["at_bound"]) else []      # pinned, as in ``judge``
         accepted = (second["score_gain"] - first_row["score_gain"] >= MIN_MARGIN and removed >= FORWARD_MIN_REMAINDER
-                    and (runner is None or self.beats(second, runner)) and not bounded
+                    and (runner is None or self.beats_on_top(second, runner, first_row)) and not bounded
                     and second["held_out_shrink"] >= MIN_SHRINK)
         out = {"first": first_row["effect"], "first_form": first_row["form"], "second": second["effect"],
                "second_form": second["form"],
@@ -686,7 +719,9 @@ class Diagnosis:
         moves = {}
         for key in ("peak_mu", "peak_creep_kmh"):
             if real.get(key) is not None and nom.get(key) is not None:
-                moves[f"real_vs_nominal_{key}_percent"] = (real[key] - nom[key]) / abs(nom[key]) * 100
+                # a replay may identify a degenerate curve (peak 0): no relative move then
+                moves[f"real_vs_nominal_{key}_percent"] = ((real[key] - nom[key]) / abs(nom[key]) * 100
+                                                           if nom[key] != 0 else None)
             aug = out.get("augmented_replay", {})
             if real.get(key) is not None and aug.get(key) is not None:
                 moves[f"real_vs_augmented_{key}_percent"] = (real[key] - aug[key]) / abs(aug[key]) * 100
