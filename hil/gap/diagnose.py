@@ -63,6 +63,7 @@ FORWARD_MAX_SHARE = 0.9    # ... and below this (a form that differs from its ca
                            #     a second effect fitted into that remainder would be a false name) unless ...
 FORWARD_MIN_LEFT = 2.5     # ... it leaves at least this many noise units (above what a form's misfit leaves)
 FORWARD_MIN_REMAINDER = 0.5  # accepts a second one removing at least this fraction of what the first left
+FORWARD_JOINT = 3          # on top of a sensor form, the best this many plant seconds are fitted together with it
 MIN_SCORE_GAIN = 25.0      # held-out NLL + BIC penalty improvement over the nominal model
 QUANTUM_OVER_SCENARIO = 1.5  # a lattice of speeds this many times the scenario's own quantum is a quantiser to name
 MIN_GAP = 0.5              # combined gap (noise units) below which there is no gap to explain
@@ -409,6 +410,9 @@ class Diagnosis:
         rows, fits2 = [], {}
         # a second effect of another class, in each of its forms (the form that explains most alone is not
         # always the one that explains most of what the first left)
+        by_name = {c.name: c for c in candidates(self.scenario, self.exclude)}
+        first_cand = by_name.get(first.name)
+        joint = set()         # seconds already fitted together with the first
         for cand in candidates(self.scenario, self.exclude):
             if EFFECTS[cand.name].effect_class == first_row["effect"] or \
                     cand.name == "torque_lag" and self.data.torque_cmd_nm.std() < 1e-9:
@@ -420,18 +424,55 @@ class Diagnosis:
                 f2 = cand.fit(ctx2, pseudo)
             except Exception:  # noqa: BLE001 - a candidate that cannot be fitted is skipped here
                 continue
+            row = self._entry(ctx, f2, base)
+            if isinstance(first_cand, PlantCandidate) and isinstance(cand, SensorDelayCandidate):
+                # a plant effect fitted alone absorbs part of a sensor delay (a lag looks like a delay), so
+                # the delay on top finds little of it: fit the pair together for every sensor form
+                try:
+                    _log(self.progress, f"forward selection: {first.name} and {cand.name} fitted together")
+                    jf = fit_pair(ctx, first_cand, cand, first.params, f2.extra[cand.ARGUMENT[cand.form]],
+                                  f2.extra["x0"])
+                    jrow = self._entry(ctx, jf, base)
+                    if jrow["score_gain"] > row["score_gain"]:
+                        row = dict(jrow, first_params=jf.extra["plant_params"])
+                        joint.add(cand.name)
+                except Exception:  # noqa: BLE001 - keep the greedy fit
+                    pass
             fits2[cand.name] = f2
-            rows.append(self._entry(ctx, f2, base))
+            rows.append(row)
         if not rows:
             return None
         rows.sort(key=lambda r: -r["score_gain"])
+        if isinstance(first_cand, SensorDelayCandidate):
+            # and a sensor form fitted alone absorbs part of a lag: the best FORWARD_JOINT plant seconds are
+            # fitted together with it
+            for i, row in enumerate(rows[:FORWARD_JOINT]):
+                cand = by_name[row["candidate"]]
+                if not isinstance(cand, PlantCandidate):
+                    continue
+                try:
+                    _log(self.progress, f"forward selection: {cand.name} and {first.name} fitted together")
+                    f2 = fits2[cand.name]
+                    jf = fit_pair(ctx, cand, first_cand, f2.params, first.extra[first_cand.ARGUMENT[first_cand.form]],
+                                  f2.extra["x0"])
+                    jp = Fit(cand.name, jf.extra["plant_params"], jf.k, jf.pred, jf.sigma, jf.train_cost,
+                             extra={**jf.extra, "at_bound": {k: v for k, v in jf.extra["at_bound"].items()
+                                                             if k in cand.fit_params}})
+                    jrow = self._entry(ctx, jp, base)
+                    if jrow["score_gain"] > row["score_gain"]:
+                        rows[i] = dict(jrow, first_params=jf.params)
+                        joint.add(cand.name)
+                except Exception:  # noqa: BLE001 - keep the greedy fit
+                    pass
+            rows.sort(key=lambda r: -r["score_gain"])
         second = rows[0]
         runner = next((r for r in rows[1:] if r["effect"] != second["effect"]), None)   # another class's best
         # the first was fitted alone and absorbed part of the second: refit each on top of the other
         # (one round of coordinate descent), keeping the refit only if it scores better
-        by_name = {c.name: c for c in candidates(self.scenario, self.exclude)}
         f1_now, f2_now = first, fits2[second["candidate"]]      # the pair as it stands
         try:
+            if second["candidate"] in joint:
+                raise StopIteration    # fitted together already
             f2 = f2_now
             _log(self.progress, f"forward selection: refitting {first.name} on top of {f2.name}, then back")
             f1b = by_name[first.name].fit(ctx.on_top_of(f2), self._pseudo(f2, nom_fit))
@@ -445,6 +486,8 @@ class Diagnosis:
             pass
         # a plant effect and a sensor form: fit both together, from where the pair stands
         try:
+            if second["candidate"] in joint:
+                raise StopIteration
             c1, c2 = by_name[first.name], by_name[second["candidate"]]
             plant_c, sensor_c, plant_f, sensor_f = (c1, c2, f1_now, f2_now) if isinstance(c1, PlantCandidate) \
                 else (c2, c1, f2_now, f1_now)
