@@ -406,6 +406,24 @@ def test_two_effects_at_once_found_by_forward_selection(tmp_path, scenario):
     assert out["where"]["summary"].startswith("first significant in the")
 
 
+def test_a_quantiser_is_named_beside_the_effect_that_explains_the_mean(tmp_path, scenario):
+    """A load transfer and a quantised motor encoder: the quantiser changes the noise, not the mean, so it
+    is named beside the load transfer (judged on the lattice the readings sit on), with its quantum."""
+    from hil.effects import with_reality
+    g = np.random.default_rng(fresh_seed())
+    z, q = float(g.uniform(1.2, 2.5)), float(g.uniform(0.05, 0.15))
+    real = with_reality(scenario, {"load_transfer": {"bogie_height_m": z},
+                                   "sensor_quantisation": {"motor_quantum_rad_s": q}})
+    s = run(real, "nlls", int(g.integers(1, 1 << 30)), bus="inprocess", out_dir=tmp_path, progress=False, log=print)
+    out, _ = diagnose(read_real_log(s["mcap"]), scenario, identify=False)
+    which = out["which"]
+    print(f"z {z:.3f} m, quantum {q:.4f} rad/s ->", which["verdict"])
+    assert which["named_set"] == ["load_transfer", "sensor_quantisation"], which["verdict"]
+    assert which["named"] == "load_transfer"
+    fitted = next(r for r in which["ranking"] if r["effect"] == "sensor_quantisation")["params"]
+    assert fitted["motor_quantum_rad_s"] == pytest.approx(q, rel=0.02)
+
+
 def test_sparse_description_of_known_residuals():
     """hil/gap/sparse.py on residuals made here: a gain on the motor speed is described by the motor
     speed with its coefficient; a creep-proportional term by the creep; noise and a 60 Hz sine (no
