@@ -470,43 +470,40 @@ class Diagnosis:
         # the first was fitted alone and absorbed part of the second: refit each on top of the other
         # (one round of coordinate descent), keeping the refit only if it scores better
         f1_now, f2_now = first, fits2[second["candidate"]]      # the pair as it stands
-        try:
-            if second["candidate"] in joint:
-                raise StopIteration    # fitted together already
-            f2 = f2_now
-            _log(self.progress, f"forward selection: refitting {first.name} on top of {f2.name}, then back")
-            f1b = by_name[first.name].fit(ctx.on_top_of(f2), self._pseudo(f2, nom_fit))
-            f2b = by_name[f2.name].fit(ctx.on_top_of(f1b), self._pseudo(f1b, nom_fit))
-            row = self._entry(ctx, f2b, base)
-            if row["score_gain"] > second["score_gain"]:
-                second = row
-                second["first_params"] = f1b.params
-                f1_now, f2_now = f1b, f2b
-        except Exception:  # noqa: BLE001 - keep the greedy pair
-            pass
-        # a plant effect and a sensor form: fit both together, from where the pair stands
-        try:
-            if second["candidate"] in joint:
-                raise StopIteration
-            c1, c2 = by_name[first.name], by_name[second["candidate"]]
-            plant_c, sensor_c, plant_f, sensor_f = (c1, c2, f1_now, f2_now) if isinstance(c1, PlantCandidate) \
-                else (c2, c1, f2_now, f1_now)
-            if isinstance(plant_c, PlantCandidate) and isinstance(sensor_c, SensorDelayCandidate):
-                _log(self.progress, f"forward selection: {plant_c.name} and {sensor_c.name} fitted together")
-                jf = fit_pair(ctx, plant_c, sensor_c, plant_f.params,
-                              sensor_f.extra[SensorDelayCandidate.ARGUMENT[sensor_c.form]], f2_now.extra["x0"])
-                if c2.name == sensor_c.name:          # the second is the sensor form: the row as it is
-                    row, first_params = self._entry(ctx, jf, base), jf.extra["plant_params"]
-                else:                                 # the second is the plant effect: name the row after it
-                    jp = Fit(plant_c.name, jf.extra["plant_params"], jf.k, jf.pred, jf.sigma, jf.train_cost,
-                             extra={**jf.extra, "at_bound": {k: v for k, v in jf.extra["at_bound"].items()
-                                                             if k in plant_c.fit_params}})
-                    row, first_params = self._entry(ctx, jp, base), jf.params
+        if second["candidate"] not in joint:     # (a second fitted together with the first is done)
+            try:
+                f2 = f2_now
+                _log(self.progress, f"forward selection: refitting {first.name} on top of {f2.name}, then back")
+                f1b = by_name[first.name].fit(ctx.on_top_of(f2), self._pseudo(f2, nom_fit))
+                f2b = by_name[f2.name].fit(ctx.on_top_of(f1b), self._pseudo(f1b, nom_fit))
+                row = self._entry(ctx, f2b, base)
                 if row["score_gain"] > second["score_gain"]:
                     second = row
-                    second["first_params"] = first_params
-        except Exception:  # noqa: BLE001 - keep the pair as it is
-            pass
+                    second["first_params"] = f1b.params
+                    f1_now, f2_now = f1b, f2b
+            except Exception:  # noqa: BLE001 - keep the greedy pair
+                pass
+            # a plant effect and a sensor form: fit both together, from where the pair stands
+            try:
+                c1, c2 = by_name[first.name], by_name[second["candidate"]]
+                plant_c, sensor_c, plant_f, sensor_f = (c1, c2, f1_now, f2_now) if isinstance(c1, PlantCandidate) \
+                    else (c2, c1, f2_now, f1_now)
+                if isinstance(plant_c, PlantCandidate) and isinstance(sensor_c, SensorDelayCandidate):
+                    _log(self.progress, f"forward selection: {plant_c.name} and {sensor_c.name} fitted together")
+                    jf = fit_pair(ctx, plant_c, sensor_c, plant_f.params,
+                                  sensor_f.extra[SensorDelayCandidate.ARGUMENT[sensor_c.form]], f2_now.extra["x0"])
+                    if c2.name == sensor_c.name:          # the second is the sensor form: the row as it is
+                        row, first_params = self._entry(ctx, jf, base), jf.extra["plant_params"]
+                    else:                                 # the second is the plant effect: name the row after it
+                        jp = Fit(plant_c.name, jf.extra["plant_params"], jf.k, jf.pred, jf.sigma, jf.train_cost,
+                                 extra={**jf.extra, "at_bound": {k: v for k, v in jf.extra["at_bound"].items()
+                                                                 if k in plant_c.fit_params}})
+                        row, first_params = self._entry(ctx, jp, base), jf.params
+                    if row["score_gain"] > second["score_gain"]:
+                        second = row
+                        second["first_params"] = first_params
+            except Exception:  # noqa: BLE001 - keep the pair as it is
+                pass
         removed = 1 - second["held_out_gap"] / first_row["held_out_gap"] if first_row["held_out_gap"] > 0 else 0.0
         bounded = [k for k, v in second["at_bound"].items() if v]
         bounded = bounded if len(bounded) == len(second["at_bound"]) else []      # pinned, as in ``judge``
@@ -767,7 +764,8 @@ class Diagnosis:
                                                            if nom[key] != 0 else None)
             aug = out.get("augmented_replay", {})
             if real.get(key) is not None and aug.get(key) is not None:
-                moves[f"real_vs_augmented_{key}_percent"] = (real[key] - aug[key]) / abs(aug[key]) * 100
+                moves[f"real_vs_augmented_{key}_percent"] = ((real[key] - aug[key]) / abs(aug[key]) * 100
+                                                             if aug[key] != 0 else None)
         rng = nom.get("peak_mu_range")
         if real.get("peak_mu") is not None and rng:
             moves["real_peak_mu_outside_nominal_replay_range"] = not (rng[0] <= real["peak_mu"] <= rng[1])
