@@ -220,7 +220,10 @@ def run_case(scenario, kind: str, effects: dict, run_seed: int, out_dir: Path, i
         true_v = truth_value(effect, truth)
         rec["true_value"] = true_v
         if which["named"] == effect:
-            fitted = which["ranking"][0]["params"][LIBRARY[effect][0]]
+            # the library form's own fit (a quantiser is judged apart: ``which.quantiser``)
+            row = which["quantiser"] if effect == "sensor_quantisation" and which.get("quantiser") else \
+                next(r for r in which["ranking"] if r["candidate"] == effect)
+            fitted = row["params"][LIBRARY[effect][0]]
             rec["fitted_value"] = fitted
             rec["param_err_percent"] = abs(fitted - true_v) / abs(true_v) * 100
     return rec

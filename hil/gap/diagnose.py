@@ -25,8 +25,9 @@
      pinned (every parameter at a bound): named (confidence "confident");
    - it removes >= ``MIN_SHRINK`` without that margin: "none named with confidence: most likely X"
      ("tentative"); otherwise "none of the candidates" ("none").
-   A quantiser changes the noise, not the mean, so it is judged apart (``quantiser``): speeds on a
-   lattice coarser than the scenario's own are named beside whatever explains the mean.
+   A quantiser changes the noise, not the mean, so it is judged apart and first (``quantiser``): speeds
+   on a lattice coarser than the scenario's own name it beside whatever explains the mean, and its
+   noise (q^2 / 12) joins every model's noise floor.
    No noise-floor test: an effect written with other equations than its candidate leaves a
    remainder above the noise and is still the right answer when it beats every alternative.
 4. HOW FAR: held-out RMSE per signal before/after; "gap RMSE" = sqrt(max(RMSE^2 - noise floor^2, 0)),
@@ -174,6 +175,7 @@ class Diagnosis:
         """``exclude``: effect names (forms) not to offer as candidates (the blind bench holds the
         truth's own form out)."""
         self.exclude = tuple(exclude)
+        self.quantiser_fit = None
         self.data = data
         self.scenario = scenario
         self.block = block
@@ -215,8 +217,26 @@ class Diagnosis:
         m_line, t_line = self.normal_running_replay(ctx)
         where = self.where(ctx, ctx.predict(m_line, t_line), m_line, t_line, creep_meas)
 
+        # a quantiser first: it changes the noise, not the mean, so when the speeds sit on a lattice it is
+        # named apart, and its noise joins every model's floor (else it is a gap the mean models must explain)
+        cands = candidates(sc, self.exclude)
+        lattice = self.quantiser(ctx, nom_fit, cands)
+        if lattice:
+            self.exclude = self.exclude + ("sensor_quantisation",)          # forward selection's list too
+            cands = [c for c in cands if c.name != "sensor_quantisation"]
+            q = lattice["params"]
+            base0 = self.score(ctx, nom_fit)
+            sigma["motor"] = math.sqrt(s_m ** 2 + q["motor_quantum_rad_s"] ** 2 / 12)   # ctx.sigma_nom is sigma
+            sigma["train"] = math.sqrt(s_t ** 2 + q["train_quantum_ms"] ** 2 / 12)
+            sigma["mu_hat"] = obs.noise_gain() * sigma["motor"]
+            nom_fit = fit_nominal(ctx)
+            motor0, train0 = nom_fit.extra["plant_motor"], nom_fit.extra["plant_train"]
+            nominal = dict(nom_fit.pred, plant_motor=motor0, plant_train=train0)
+            gap0, gap1 = base0["gap"], self.score(ctx, nom_fit)["gap"]
+            lattice["share"] = 1 - gap1 / gap0 if gap0 > 0 else 0.0
+            lattice["noise_floor"] = dict(sigma)
         fits = []
-        for cand in candidates(sc, self.exclude):
+        for cand in cands:
             _log(self.progress, f"fitting candidate {cand.name}")
             try:
                 fit = cand.fit(ctx, nom_fit)
@@ -247,13 +267,17 @@ class Diagnosis:
             if forward is not None and forward["accepted"]:
                 named, named_set, verdict, confidence = self.rejudge(named, named_set, verdict, confidence, best,
                                                                      forward, ranking)
-        lattice = self.quantiser(fits)
-        if lattice and "sensor_quantisation" not in named_set:
-            # a quantiser changes the noise, not the mean: it is named beside whatever explains the mean
+        if lattice:
+            # named beside whatever explains the mean
             named_set = sorted(named_set + ["sensor_quantisation"])
+            said = ("the speed sensors are quantised: " + ", ".join(f"{k}={v:.4g}" for k, v in lattice["params"].items()
+                                                                     if v > 0)
+                    + f" ({lattice['note']}); their noise is {lattice['share'] * 100:.0f} % of the held-out gap")
             if named == NONE:
                 named, confidence = "sensor_quantisation", "confident"
-            verdict = f"{verdict}; and {lattice}"
+                verdict = f"{said}; beyond it, {verdict}"
+            else:
+                verdict = f"{verdict}; and {said}"
         shrink_table = {s: {"rmse_before": base["per_signal"][s]["rmse"], "rmse_after": best["per_signal"][s]["rmse"],
                             "gap_before": base["per_signal"][s]["gap"], "gap_after": best["per_signal"][s]["gap"],
                             "noise_floor": sigma[s], "unit": UNITS[s]} for s in SIGNALS}
@@ -270,6 +294,7 @@ class Diagnosis:
             "which": {"named": named, "named_set": named_set, "verdict": verdict, "gap_present": gap_present,
                       "confidence": confidence, "nominal_held_out_gap": base["gap"], "ranking": ranking,
                       "nuisances": nuisances, "forward": forward, "unobservable": unobservable,
+                      "quantiser": lattice,
                       "description": description,
                       "rule": {"min_shrink": MIN_SHRINK, "min_score_gain": MIN_SCORE_GAIN,
                                "margin_score": MIN_MARGIN, "margin_gap_ratio": MARGIN_GAP_RATIO,
@@ -277,9 +302,12 @@ class Diagnosis:
             "shrink": {"effect": best["effect"], "named": named, "held_out_gap_shrink_percent":
                        best["held_out_shrink"] * 100, "per_signal": shrink_table},
         }
+        if named == "sensor_quantisation":      # the quantiser alone: its share of the gap is the shrink
+            out["shrink"].update(effect="sensor_quantisation", held_out_gap_shrink_percent=lattice["share"] * 100)
         if self.identify:
             _log(self.progress, "identification on the real run and on the model replays")
-            out["identification"] = self.identification(ctx, nom_fit, best_fit if named != NONE else None,
+            augmented = self.quantiser_fit if named == "sensor_quantisation" else best_fit if named != NONE else None
+            out["identification"] = self.identification(ctx, nom_fit, augmented,
                                                         creep_meas)
         self.arrays = {"t": d.t_s, "meas": ctx.meas, "nominal": nominal, "best": best_fit.pred, "best_name":
                        best_fit.name, "creep": creep_meas, "window": window, "sigma": sigma,
@@ -288,20 +316,24 @@ class Diagnosis:
         self.base, self.rail, self.ranking = base, rail, ranking
         return clean(out)
 
-    def quantiser(self, fits) -> str:
-        """What the quantisation candidate found, when the measured speeds sit on a lattice (coherence
-        > 0.9, so never on continuous readings) at least ``QUANTUM_OVER_SCENARIO`` times the scenario's
-        own quantum: a sentence, else ""."""
-        fit = next((f for f in fits if f.name == "sensor_quantisation"), None)
-        if fit is None:
-            return ""
+    def quantiser(self, ctx: Context, nom_fit: Fit, cands) -> dict | None:
+        """The quantisation candidate's fit when the measured speeds sit on a lattice (coherence > 0.9, so
+        never on continuous readings) at least ``QUANTUM_OVER_SCENARIO`` times the scenario's own quantum:
+        {"params", "note"}; else None (and None when the candidate is not in ``cands``)."""
+        cand = next((c for c in cands if c.name == "sensor_quantisation"), None)
+        if cand is None:
+            return None
+        _log(self.progress, "fitting candidate sensor_quantisation (judged apart: it changes the noise)")
+        try:
+            fit = cand.fit(ctx, nom_fit)
+        except Exception:  # noqa: BLE001 - no lattice found then; the candidate is fitted again with the rest
+            return None
         sens = self.scenario.sensors
         own = {"motor_quantum_rad_s": sens.motor_speed_quantum_rad_s, "train_quantum_ms": sens.train_speed_quantum_ms}
-        found = {k: q for k, q in fit.params.items() if q > 0 and q >= QUANTUM_OVER_SCENARIO * own.get(k, 0.0)}
-        if not found:
-            return ""
-        return ("the speed sensors are quantised: " + ", ".join(f"{k}={q:.4g}" for k, q in found.items())
-                + f" ({fit.note})")
+        if not any(q > 0 and q >= QUANTUM_OVER_SCENARIO * own.get(k, 0.0) for k, q in fit.params.items()):
+            return None
+        self.quantiser_fit = fit       # the augmented replay of a quantiser-only answer
+        return {"params": dict(fit.params), "note": fit.note}
 
     def normal_running_replay(self, ctx: Context):
         """The nominal model fitted on the pre-fault samples only: the reference of the WHERE statistics."""
