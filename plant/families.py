@@ -66,7 +66,10 @@ After the curve, the draw's stream gives one more number z uniform in [0, 1): th
 time T* = T_lo (T_hi / T_lo)^z, log-uniform in [T_lo, T_hi] with (T_lo, T_hi) = ``TDET_S`` = (20, 150) ms,
 unless the curve cannot slip that fast from any admissible mu_required (possible only for v_p above
 NFCC-0's peak creep and high mu_p; about 5 % of curves on ffcc_a's base, up to ~56 ms): then T_lo is
-the fastest it can (at mu_required = NFCC-0's peak), always below T_hi on ffcc_a's base.
+the fastest it can (at mu_required = NFCC-0's peak), always below T_hi on ffcc_a's base.  Likewise T_hi
+is the slowest it can when that is below 150 ms: a curve whose peak creep is low reaches it within a
+bounded time even from mu_required just above its peak (``MIN_EXCESS_LOG10``), e.g. 141 ms for a
+Polach curve peaking at 0.45 km/h.
 T_det runs from the fault until the creep first reaches the fault curve's peak creep (plant.stages).
 mu_required then solves T_det(mu_required) = T* on (mu_p, N_base(min(v_p, v_Nbase))): above the fault
 peak so the wheelset slips, and below NFCC-0 at the fault's peak creep (on NFCC-0's stable side, so the
@@ -469,6 +472,10 @@ def predict_t_det(base: Base, curve, mu_required, peak_creep_kmh: float,
     return out
 
 
+#: the smallest excess of mu_required over the fault's peak searched, log10 of its fraction of the admissible range
+MIN_EXCESS_LOG10 = -7.0
+
+
 def _mu_required_range(base: Base, peak_mu: float, peak_creep_kmh: float) -> tuple[float, float]:
     """(lo, hi): mu_required above the fault peak, below NFCC-0 at min(peak creep, NFCC-0's peak creep)."""
     v_np, mu_np = base.normal_curve.peak()
@@ -482,7 +489,7 @@ def solve_mu_required(base: Base, curve, peak_mu: float, peak_creep_kmh: float, 
     log-spaced in mu_required - peak_mu, narrowing the bracket, then log-log interpolation."""
     lo, hi = _mu_required_range(base, peak_mu, peak_creep_kmh)
     span = hi - lo
-    z_lo, z_hi = -7.0, 0.0            # log10 of (mu_required - peak_mu) / span
+    z_lo, z_hi = MIN_EXCESS_LOG10, 0.0     # log10 of (mu_required - peak_mu) / span
     for _ in range(rounds):
         zs = np.linspace(z_lo, z_hi, points)
         ts = predict_t_det(base, curve, lo + span * 10 ** zs, peak_creep_kmh)
@@ -496,6 +503,7 @@ def solve_mu_required(base: Base, curve, peak_mu: float, peak_creep_kmh: float, 
         z = 0.5 * (z_lo + z_hi)
     else:
         z = z_lo + (z_hi - z_lo) * (math.log(target_s) - math.log(t_lo)) / (math.log(t_hi) - math.log(t_lo))
+    z = min(max(z, MIN_EXCESS_LOG10), 0.0)      # never at the peak itself (the wheelset must slip)
     return float(lo + span * 10 ** z)
 
 
@@ -547,11 +555,13 @@ def draw(family: str, seed: int, index: int, base: Base | None = None) -> Draw:
         raise ValueError(f"{where}: the base's NFCC-0 reaches only {hi:.4f} below the fault's peak creep "
                          f"{vp:.3f} km/h, not above its peak mu {mp:.4f}")
     fastest = float(predict_t_det(base, curve, hi, vp)[0])
+    slowest = float(predict_t_det(base, curve, lo + (hi - lo) * 10 ** MIN_EXCESS_LOG10, vp)[0])
     t_lo = max(TDET_S[0], fastest * 1.001)
-    if not t_lo < TDET_S[1]:
-        raise ValueError(f"{where}: no mu_required gives T_det below {TDET_S[1] * 1e3:.0f} ms (fastest "
-                         f"{fastest * 1e3:.1f} ms)")
-    target = t_lo * (TDET_S[1] / t_lo) ** z
+    t_hi = min(TDET_S[1], slowest * 0.999)
+    if not t_lo < t_hi:
+        raise ValueError(f"{where}: no mu_required gives T_det in [{TDET_S[0] * 1e3:.0f}, {TDET_S[1] * 1e3:.0f}] ms "
+                         f"(fastest {fastest * 1e3:.1f} ms, slowest {slowest * 1e3:.1f} ms)")
+    target = t_lo * (t_hi / t_lo) ** z
     mu_required = solve_mu_required(base, curve, mp, vp, target)
     v_f = float(train_speed_before_fault(base.vehicle, mu_required, base.initial_train_speed_ms, base.fault_time_s))
     if isinstance(curve, PolachCurve):
