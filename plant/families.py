@@ -68,8 +68,7 @@ unless the curve cannot slip that fast from any admissible mu_required (possible
 NFCC-0's peak creep and high mu_p; about 5 % of curves on ffcc_a's base, up to ~56 ms): then T_lo is
 the fastest it can (at mu_required = NFCC-0's peak), always below T_hi on ffcc_a's base.  Likewise T_hi
 is the slowest it can when that is below 150 ms: a curve whose peak creep is low reaches it within a
-bounded time even from mu_required just above its peak (``MIN_EXCESS_LOG10``), e.g. 141 ms for a
-Polach curve peaking at 0.45 km/h.
+bounded time even from mu_required just above its peak (``MIN_EXCESS_LOG10``).
 T_det runs from the fault until the creep first reaches the fault curve's peak creep (plant.stages).
 mu_required then solves T_det(mu_required) = T* on (mu_p, N_base(min(v_p, v_Nbase))): above the fault
 peak so the wheelset slips, and below NFCC-0 at the fault's peak creep (on NFCC-0's stable side, so the

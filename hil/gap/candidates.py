@@ -335,6 +335,14 @@ def fit_pair(ctx: Context, plant: PlantCandidate, sensor: SensorDelayCandidate, 
                       "at_bound": at_bound, "param_ci": {}})
 
 
+def plant_side(pair: Fit, plant: PlantCandidate) -> Fit:
+    """A ``fit_pair`` result named after its plant effect (its parameters and at-bound flags), for a ranking
+    row where the plant effect is the one being judged."""
+    return Fit(plant.name, pair.extra["plant_params"], pair.k, pair.pred, pair.sigma, pair.train_cost,
+               extra={**pair.extra, "at_bound": {k: v for k, v in pair.extra["at_bound"].items()
+                                                 if k in plant.fit_params}})
+
+
 def match_frames(tcu_creep, sensor_creep, max_back: int = 40) -> tuple[np.ndarray, float]:
     """For each TCU period k, the sensor frame j(k) <= k whose creep the TCU used (the newest exact
     copy in the last ``max_back`` frames), and the fraction of periods with an exact copy."""

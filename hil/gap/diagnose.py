@@ -50,7 +50,7 @@ from plant import SensorModel
 from ..trace import clean
 from ..effects import EFFECTS
 from .candidates import (RAIL, SIGNALS, UNITS, Context, Fit, PlantCandidate, SensorDelayCandidate, candidates,
-                         fit_nominal, fit_pair)
+                         fit_nominal, fit_pair, plant_side)
 from .model import ObserverReplica, Simulator, initial_line
 from .sparse import describe_residual
 
@@ -194,7 +194,8 @@ class Diagnosis:
         sens = sc.sensors
         s_m = math.sqrt(sens.motor_speed_noise_rad_s ** 2 + sens.motor_speed_quantum_rad_s ** 2 / 12) or 1e-4
         s_t = math.sqrt(sens.train_speed_noise_ms ** 2 + sens.train_speed_quantum_ms ** 2 / 12) or 1e-5
-        sigma = {"motor": s_m, "train": s_t, "mu_hat": obs.noise_gain() * s_m}
+        floors = lambda m, t: {"motor": m, "train": t, "mu_hat": obs.noise_gain() * m}  # noqa: E731
+        sigma = floors(s_m, s_t)
         x0, x0_slope = initial_line(d.t_s, d.motor_speed_rad_s, d.train_speed_ms)
         creep_meas = obs.creep_kmh(d.motor_speed_rad_s, d.train_speed_ms)
         # analysis window: until the measured creep first exceeds max_creep_kmh (free spinning after)
@@ -226,9 +227,8 @@ class Diagnosis:
             cands = [c for c in cands if c.name != "sensor_quantisation"]
             q = lattice["params"]
             base0 = self.score(ctx, nom_fit)
-            sigma["motor"] = math.sqrt(s_m ** 2 + q["motor_quantum_rad_s"] ** 2 / 12)   # ctx.sigma_nom is sigma
-            sigma["train"] = math.sqrt(s_t ** 2 + q["train_quantum_ms"] ** 2 / 12)
-            sigma["mu_hat"] = obs.noise_gain() * sigma["motor"]
+            sigma.update(floors(math.sqrt(s_m ** 2 + q["motor_quantum_rad_s"] ** 2 / 12),     # in place:
+                                math.sqrt(s_t ** 2 + q["train_quantum_ms"] ** 2 / 12)))   # ctx.sigma_nom is sigma
             nom_fit = fit_nominal(ctx)
             motor0, train0 = nom_fit.extra["plant_motor"], nom_fit.extra["plant_train"]
             nominal = dict(nom_fit.pred, plant_motor=motor0, plant_train=train0)
@@ -445,7 +445,7 @@ class Diagnosis:
         by_name = {c.name: c for c in candidates(self.scenario, self.exclude)}
         first_cand = by_name.get(first.name)
         joint = set()         # seconds already fitted together with the first
-        for cand in candidates(self.scenario, self.exclude):
+        for cand in by_name.values():
             if EFFECTS[cand.name].effect_class == first_row["effect"] or \
                     cand.name == "torque_lag" and self.data.torque_cmd_nm.std() < 1e-9:
                 continue
@@ -487,10 +487,7 @@ class Diagnosis:
                     f2 = fits2[cand.name]
                     jf = fit_pair(ctx, cand, first_cand, f2.params, first.extra[first_cand.ARGUMENT[first_cand.form]],
                                   f2.extra["x0"])
-                    jp = Fit(cand.name, jf.extra["plant_params"], jf.k, jf.pred, jf.sigma, jf.train_cost,
-                             extra={**jf.extra, "at_bound": {k: v for k, v in jf.extra["at_bound"].items()
-                                                             if k in cand.fit_params}})
-                    jrow = self._entry(ctx, jp, base)
+                    jrow = self._entry(ctx, plant_side(jf, cand), base)
                     if jrow["score_gain"] > row["score_gain"]:
                         rows[i] = dict(jrow, first_params=jf.params)
                         joint.add(cand.name)
@@ -527,10 +524,7 @@ class Diagnosis:
                     if c2.name == sensor_c.name:          # the second is the sensor form: the row as it is
                         row, first_params = self._entry(ctx, jf, base), jf.extra["plant_params"]
                     else:                                 # the second is the plant effect: name the row after it
-                        jp = Fit(plant_c.name, jf.extra["plant_params"], jf.k, jf.pred, jf.sigma, jf.train_cost,
-                                 extra={**jf.extra, "at_bound": {k: v for k, v in jf.extra["at_bound"].items()
-                                                                 if k in plant_c.fit_params}})
-                        row, first_params = self._entry(ctx, jp, base), jf.params
+                        row, first_params = self._entry(ctx, plant_side(jf, plant_c), base), jf.params
                     if row["score_gain"] > second["score_gain"]:
                         second = row
                         second["first_params"] = first_params
