@@ -256,12 +256,15 @@ class PlantNode:
             if self.rec:
                 write_identification(self.rec, e, self.strategy)
 
-    def poll(self, until: float | None) -> None:
+    def poll(self, until: float | None, log_work: bool = True) -> None:
         """Receive one frame, or wait at most until ``until`` (perf_counter) or the next heartbeat.
 
         While nothing has arrived it gives the log its due (``Recorder.work``: a batch of rows shipped
         to the writer process, or queued rows written in line in slices of at most ``FLUSH_SLICE_S``),
-        so the log costs the loop nothing between a deadline and the sensor frame.
+        so the log costs the loop nothing between a deadline and the sensor frame; not with
+        ``log_work`` False (real time's wait for the command: a batch's pickling and pipe write would
+        come on top of the round trip whenever the command arrives during it; the rest of the period
+        has room for it).
         With nothing to do for the log, lockstep polls the bus for up to ``[bus] lockstep_spin_s``
         before it sleeps in it: the TCU's answer then finds this process awake (a sleeper's wake-up
         costs tens of us a frame, and lockstep runs as fast as the bus allows)."""
@@ -271,7 +274,7 @@ class PlantNode:
         if until is not None:
             timeout = min(timeout, until - now)
         msg = None
-        if self.rec is not None and self.rec.work_due:
+        if log_work and self.rec is not None and self.rec.work_due:
             msg = self.bus.recv(timeout=0.0)
             if msg is None:
                 self.rec.work(now + max(min(FLUSH_SLICE_S, timeout), 0.0))
@@ -347,7 +350,7 @@ class PlantNode:
         while k not in self.commands:
             if deadline is not None and time.perf_counter() >= deadline:
                 return None
-            self.poll(deadline)
+            self.poll(deadline, log_work=deadline is None)
             if give_up is not None and k not in self.commands and time.monotonic() > give_up:
                 if resent:
                     cause = self._no_progress_cause(k, rejected_before)

@@ -58,9 +58,12 @@ class TcuNode:
         self.plant_state: int | None = None
         self.finished = False
 
-    def handle(self, msg: can.Message, classified=None) -> list[can.Message]:
+    def handle(self, msg: can.Message, classified=None, send=None) -> list[can.Message]:
         """The replies to ``msg``; ``classified``: its ``codec.classify`` result when already taken (a
-        frame is classified once: with authentication a second look would see a replay)."""
+        frame is classified once: with authentication a second look would see a replay).  ``send``:
+        called with the TorqueCommand frame as soon as it is known, before the identifier's drill and
+        strategy run (the plant waits for the command, nothing waits for the rest); the list returned
+        then holds the other replies.  Without it the command is the list's first frame."""
         frame, reason = classified or self.codec.classify(msg)
         if frame is None:
             self.rejected[reason] += 1
@@ -83,10 +86,14 @@ class TcuNode:
             self._jump = None
             self.last_step = reading.step
             self.sensor_frames += 1
-            out = self.identifier.on_sensor(reading)
-            self._last_command = out.command
-            self.events += len(out.events)
             c = self.codec
+            command = self.identifier.command(reading)
+            self._last_command = command
+            command_frame = c.command(command)
+            if send is not None:     # the command out before the drill and the strategy run
+                send(command_frame)
+            out = self.identifier.work(command)
+            self.events += len(out.events)
             # the command first: the plant waits for it; samples, results and status follow
             results = []
             for e in out.events:
@@ -94,7 +101,7 @@ class TcuNode:
                 interval = c.interval(e)
                 if interval is not None:
                     results.append(interval)
-            return [c.command(out.command)] + self._new_samples(reading.step) + results \
+            return ([] if send is not None else [command_frame]) + self._new_samples(reading.step) + results \
                 + [c.status(out.status, out.observer)]
         if frame.name == "PlantHeartbeat":
             self.plant_state = frame.value.state
@@ -194,7 +201,7 @@ def serve(bus: can.BusABC, node: TcuNode, *, silence_s: float, heartbeat_period_
             for msg, classified in (newest_sensor_only(bus, msg, node) if realtime else ((msg, None),)):
                 if msg.arbitration_id in PLANT_IDS and not msg.is_extended_id:
                     before = sum(node.rejected.values())
-                    replies = node.handle(msg, classified)
+                    replies = node.handle(msg, classified, sender.send)
                     if sum(node.rejected.values()) == before:     # a valid plant frame: the plant lives
                         last_plant = now
                         state[0] = STATE_RUNNING

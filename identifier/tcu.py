@@ -89,7 +89,8 @@ class SlipDetector:
 
 
 class TractionIdentifier:
-    """``on_sensor(reading) -> TcuOutput``; holds the observer, the detector and one strategy."""
+    """``on_sensor(reading) -> TcuOutput`` (or its two halves, ``command(reading)`` then ``work(command)``);
+    holds the observer, the detector and one strategy."""
 
     def __init__(self, settings: IdentifierSettings, strategy: str = "nlls", seed: int = 0):
         self.settings = settings
@@ -109,6 +110,7 @@ class TractionIdentifier:
         # the readings between the slip's first step and its detection (consecutive - 1 of them)
         self._recent: deque[Sample] = deque(maxlen=self.detector.consecutive + 1)
         self.rejected_readings = 0
+        self._pending = None          # what ``command`` leaves for ``work``
         self._last_torque = settings.torque_demand_nm
         # a small copy of the strategy identifying a synthetic slip while there is no real one, so the
         # strategy's code is warm when the fault comes (identifier/drill.py); not for strategies
@@ -133,10 +135,19 @@ class TractionIdentifier:
                                           self.seed)
 
     def on_sensor(self, reading: SensorReading) -> TcuOutput:
+        """The whole answer to one reading: ``command`` then ``work``."""
+        return self.work(self.command(reading))
+
+    def command(self, reading: SensorReading) -> TorqueCommand:
+        """The torque command answering ``reading``: observer -> creep speed -> slip detector ->
+        command (no fitting: cheap).  The rest of the reading's work (the drill, the
+        strategy) waits for ``work``, so a TCU can send the command first: the plant waits for it,
+        and nothing else does (a real TCU's control task answers before its background work)."""
         if not (math.isfinite(reading.motor_speed_rad_s) and math.isfinite(reading.train_speed_ms)):
             # a reading that cannot be trusted: the planned command, nothing fed downstream
             self.rejected_readings += 1
-            return TcuOutput(TorqueCommand(reading.step, self.command_nm(reading.step)), self._status(reading.step))
+            self._pending = None
+            return TorqueCommand(reading.step, self.command_nm(reading.step))
         v = self.settings.vehicle
         t_s = reading.step * self.settings.period_s
         innovation = reading.motor_speed_rad_s - self.observer.speed_rad_s   # y(k) - omega^(k), before the update
@@ -150,6 +161,17 @@ class TractionIdentifier:
         slipping = self.detector.update(reading.step, creep)
         torque = self.command_nm(reading.step)           # what is applied from this reading to the next
         self._last_torque = torque
+        self._pending = (reading, observer, innovation, paired_creep, slipping, detected_before, torque)
+        return TorqueCommand(reading.step, torque)
+
+    def work(self, command: TorqueCommand) -> TcuOutput:
+        """The rest of the answer to the reading ``command`` answered: the drill while monitoring,
+        the strategy's sample once slipping; the output carries ``command`` and the events."""
+        pending, self._pending = self._pending, None
+        if pending is None:
+            return TcuOutput(command, self._status(command.step))
+        reading, observer, innovation, paired_creep, slipping, detected_before, torque = pending
+        t_s = observer.t_s
         events = []
         if self.drill is not None and (self.detector.detected_step is None or (
                 not self._observer_aware and reading.step - self.detector.detected_step < self._settle_steps - 1)):
@@ -157,8 +179,8 @@ class TractionIdentifier:
         if self._wants_readings:
             self.strategy.on_reading(reading.step, reading.motor_speed_rad_s, reading.train_speed_ms)
         if self._observer_aware:
-            sample = Sample(reading.step, t_s, creep, mu_hat, innovation, reading.motor_speed_rad_s,
-                            reading.train_speed_ms, torque)
+            sample = Sample(reading.step, t_s, observer.creep_speed_kmh, observer.mu_hat, innovation,
+                            reading.motor_speed_rad_s, reading.train_speed_ms, torque)
             if slipping:
                 if not detected_before:     # just detected: the buffered readings since the slip's start first
                     for s in self._recent:
@@ -169,8 +191,8 @@ class TractionIdentifier:
                 self._recent.append(sample)
         elif slipping:
             if reading.step - self.detector.detected_step >= self._settle_steps:
-                events = self.strategy.add_sample(Sample(reading.step, t_s, paired_creep, mu_hat))
-        return TcuOutput(TorqueCommand(reading.step, torque), self._status(reading.step), observer, events)
+                events = self.strategy.add_sample(Sample(reading.step, t_s, paired_creep, observer.mu_hat))
+        return TcuOutput(command, self._status(reading.step), observer, events)
 
     def _status(self, step: int) -> TcuStatus:
         return TcuStatus(step, self.stage(), self.strategy.corrections)

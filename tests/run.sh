@@ -63,7 +63,7 @@ elif [ "${CI:-}" = "true" ]; then
 fi
 
 echo "== pytest (host, all but the vcan and real-time tests)" >&2
-.venv/bin/python -m pytest -m "not vcan and not realtime" "$@" || status=$?
+.venv/bin/python -m pytest -m "not vcan and not realtime" --durations=15 "$@" || status=$?
 
 if [ -n "$vcan_pid" ]; then
   waited=0

@@ -320,3 +320,28 @@ def test_compiled_layouts_give_cantools_bytes_and_values_for_every_frame(codec):
     msg = codec.result(IdentificationEvent(3, 0.003, "correction", 1, (0.3, 1.2), 1e39, 5))
     frame, verdict = codec.classify(msg)
     assert verdict == "ok" and frame.value.j_ef == math.inf and msg.arbitration_id == RESULT_ID
+
+
+def test_the_command_leaves_before_the_strategy_works(ffcc_a):
+    """``handle(..., send=)`` hands the TorqueCommand out before the drill and the strategy see the
+    reading (the plant waits for the command only): the same frames as without ``send``, command first,
+    and when it is sent the strategy has not yet taken that reading's sample."""
+    from plant import SensorModel, WheelsetPlant
+    plain, early = TcuNode(ffcc_a, "proposed", 1), TcuNode(ffcc_a, "proposed", 1)
+    plant = WheelsetPlant(ffcc_a.plant_config())
+    sensors = SensorModel(ffcc_a.sensors, 5)
+    took_later = 0
+    for k in range(ffcc_a.steps):
+        s = plant.state
+        reading = SensorReading(k, *sensors.measure(s.motor_speed_rad_s, s.train_speed_ms))
+        whole = plain.handle(plain.codec.sensor(reading))
+        before = early.identifier.strategy.samples
+        sent = []
+        rest = early.handle(early.codec.sensor(reading),
+                            send=lambda m: sent.append((m, early.identifier.strategy.samples)))
+        assert len(sent) == 1 and sent[0][1] == before, f"step {k}"
+        assert [(m.arbitration_id, bytes(m.data)) for m in [sent[0][0]] + rest] == \
+            [(m.arbitration_id, bytes(m.data)) for m in whole], f"step {k}"
+        took_later += early.identifier.strategy.samples > before
+        plant.step(early.codec.classify(sent[0][0])[0].value.torque_nm)
+    assert took_later > 10          # the slip did feed the strategy, each sample after its command

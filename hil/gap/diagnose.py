@@ -64,7 +64,7 @@ FORWARD_MAX_SHARE = 0.9    # ... and below this (a form that differs from its ca
                            #     a second effect fitted into that remainder would be a false name) unless ...
 FORWARD_MIN_LEFT = 2.5     # ... it leaves at least this many noise units (above what a form's misfit leaves)
 FORWARD_MIN_REMAINDER = 0.5  # accepts a second one removing at least this fraction of what the first left
-FORWARD_JOINT = 3          # on top of a sensor form, the best this many plant seconds are fitted together with it
+FORWARD_JOINT = 3          # pairs fitted together: the best this many forms of a plant first, or plant seconds
 MIN_SCORE_GAIN = 25.0      # held-out NLL + BIC penalty improvement over the nominal model
 QUANTUM_OVER_SCENARIO = 1.5  # a lattice of speeds this many times the scenario's own quantum is a quantiser to name
 MIN_GAP = 0.5              # combined gap (noise units) below which there is no gap to explain
@@ -368,13 +368,16 @@ class Diagnosis:
     @staticmethod
     def beats_on_top(a: dict, b: dict, first: dict) -> bool:
         """Second effect ``a`` beats second effect ``b`` on top of ``first``: a better held-out score by
-        MIN_MARGIN, and it removes at least 1 / MARGIN_GAP_RATIO times as much of the gap ``first`` left
-        (the margin judged on what is left to explain: ``beats``' ratio of whole gaps is out of reach of a
-        right second effect when its form differs from the truth's and leaves a remainder of its own)."""
+        MIN_MARGIN, and either it leaves at most MARGIN_GAP_RATIO of what ``b`` leaves (``beats``' rule)
+        or it removes at least 1 / MARGIN_GAP_RATIO times as much of the gap ``first`` left (the margin
+        judged on what is left to explain: the first rule is out of reach of a right second effect when
+        its form differs from the truth's and leaves a remainder of its own; the second alone is out of
+        reach of a right second that removes everything when ``b`` removes more than half)."""
         if b["score_gain"] + MIN_MARGIN > a["score_gain"]:
             return False
         left = first["held_out_gap"]
-        return MARGIN_GAP_RATIO * (left - a["held_out_gap"]) >= left - b["held_out_gap"]
+        return (a["held_out_gap"] <= MARGIN_GAP_RATIO * b["held_out_gap"]
+                or MARGIN_GAP_RATIO * (left - a["held_out_gap"]) >= left - b["held_out_gap"])
 
     def judge(self, base, ranking, rail, gap_present):
         """(named, named_set, verdict, nuisances, confidence) -- see the module docstring, step 3."""
@@ -445,6 +448,8 @@ class Diagnosis:
         by_name = {c.name: c for c in candidates(self.scenario, self.exclude)}
         first_cand = by_name.get(first.name)
         joint = set()         # seconds already fitted together with the first
+        first_forms = [r for r in ranking if r["effect"] == first_row["effect"]
+                       and isinstance(by_name.get(r["candidate"]), PlantCandidate)][:FORWARD_JOINT]
         for cand in by_name.values():
             if EFFECTS[cand.name].effect_class == first_row["effect"] or \
                     cand.name == "torque_lag" and self.data.torque_cmd_nm.std() < 1e-9:
@@ -459,17 +464,20 @@ class Diagnosis:
             row = self._entry(ctx, f2, base)
             if isinstance(first_cand, PlantCandidate) and isinstance(cand, SensorDelayCandidate):
                 # a plant effect fitted alone absorbs part of a sensor delay (a lag looks like a delay), so
-                # the delay on top finds little of it: fit the pair together for every sensor form
-                try:
-                    _log(self.progress, f"forward selection: {first.name} and {cand.name} fitted together")
-                    jf = fit_pair(ctx, first_cand, cand, first.params, f2.extra[cand.ARGUMENT[cand.form]],
-                                  f2.extra["x0"])
-                    jrow = self._entry(ctx, jf, base)
-                    if jrow["score_gain"] > row["score_gain"]:
-                        row = dict(jrow, first_params=jf.extra["plant_params"])
-                        joint.add(cand.name)
-                except Exception:  # noqa: BLE001 - keep the greedy fit
-                    pass
+                # the delay on top finds little of it: fit the pair together for every sensor form, with
+                # the first class's best FORWARD_JOINT forms (the form best alone need not be best in a pair)
+                for r1 in first_forms:
+                    try:
+                        c1 = by_name[r1["candidate"]]
+                        _log(self.progress, f"forward selection: {c1.name} and {cand.name} fitted together")
+                        jf = fit_pair(ctx, c1, cand, r1["params"], f2.extra[cand.ARGUMENT[cand.form]],
+                                      f2.extra["x0"])
+                        jrow = self._entry(ctx, jf, base)
+                        if jrow["score_gain"] > row["score_gain"]:
+                            row = dict(jrow, first_params=jf.extra["plant_params"], first_form=r1["form"])
+                            joint.add(cand.name)
+                    except Exception:  # noqa: BLE001 - keep the greedy fit
+                        pass
             fits2[cand.name] = f2
             rows.append(row)
         if not rows:
@@ -536,7 +544,8 @@ class Diagnosis:
         accepted = (second["score_gain"] - first_row["score_gain"] >= MIN_MARGIN and removed >= FORWARD_MIN_REMAINDER
                     and (runner is None or self.beats_on_top(second, runner, first_row)) and not bounded
                     and second["held_out_shrink"] >= MIN_SHRINK)
-        out = {"first": first_row["effect"], "first_form": first_row["form"], "second": second["effect"],
+        out = {"first": first_row["effect"], "first_form": second.get("first_form", first_row["form"]),
+               "second": second["effect"],
                "second_form": second["form"],
                "second_params": second["params"], "first_params": second.get("first_params", first.params),
                "pair_held_out_shrink": second["held_out_shrink"],
@@ -577,7 +586,8 @@ class Diagnosis:
         second when the pair beats the rail curve with the same second effect (that comparison is the
         test of the first against the rail, now that the second no longer hides in its remainder)."""
         first, second = fw["first"], fw["second"]
-        pair = (f"{second} ({fw['second_form']}) on top of {first} removes {fw['second_removes_of_remainder'] * 100:.0f} % "
+        pair = (f"{second} ({fw['second_form']}) on top of {first} ({fw['first_form']}) removes "
+                f"{fw['second_removes_of_remainder'] * 100:.0f} % "
                 f"of what {first} left (together {fw['pair_held_out_shrink'] * 100:.0f} % of the gap), fitted "
                 + ", ".join(f"{k}={v:.4g}" for k, v in fw["second_params"].items()))
         if fw["pair_vs_rail"] == "rail":
@@ -592,8 +602,8 @@ class Diagnosis:
         if confidence == "tentative" and not (only_the_rail and "rail_pair" in fw):
             return second, [second], (f"{second} found; {pair}; {first} is only the most likely first effect "
                                       f"({verdict})"), "confident"
-        return first, sorted([first, second]), (f"{first} and {second} explain the gap: {first} removes "
-                                                f"{best['share'] * 100:.0f} %; {pair}"), "confident"
+        return first, sorted([first, second]), (f"{first} and {second} explain the gap: {first} ({best['form']}) "
+                                                f"removes {best['share'] * 100:.0f} % alone; {pair}"), "confident"
 
     @staticmethod
     def _what(effect: str) -> str:
