@@ -11,7 +11,7 @@ import sys
 import threading
 
 from . import commands
-from .errors import EXIT_INTERRUPTED, HilError
+from .errors import EXIT_INTERRUPTED, HilError, caused_by_interrupt
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -23,16 +23,6 @@ def build_parser() -> argparse.ArgumentParser:
         module = importlib.import_module(f"{commands.__name__}.{info.name}")
         module.register(sub)
     return parser
-
-
-def _caused_by_interrupt(error: BaseException) -> bool:
-    seen = set()
-    while error is not None and id(error) not in seen:
-        if isinstance(error, KeyboardInterrupt):
-            return True
-        seen.add(id(error))
-        error = error.__cause__ or error.__context__
-    return False
 
 
 class _Interrupts:
@@ -61,7 +51,7 @@ def main(argv=None) -> int:
     except Exception as e:
         # a Ctrl-C inside an extension module's initialisation (e.g. scipy's HiGHS) comes out as
         # another error, "ImportError: initialization failed", caused by the KeyboardInterrupt
-        if not _caused_by_interrupt(e):
+        if not caused_by_interrupt(e):
             raise
         print("hil: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED

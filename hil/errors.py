@@ -78,3 +78,17 @@ class DeadlinesMissed(HilError, RuntimeError):
     """A real-time run completed (logs written) but missed more deadlines than the scenario's
     ``[bus] max_missed_fraction`` allows; the message gives how many of how many."""
     exit_code = EXIT_DEADLINES
+
+
+def caused_by_interrupt(error: BaseException) -> bool:
+    """``error`` is, or was caused by, a ``KeyboardInterrupt`` (its ``__cause__``/``__context__``
+    chain): an extension module that catches the interrupt raised in it re-raises it as another
+    error (scipy's HiGHS initialisation: "ImportError: initialization failed").  The commands end
+    such an error as interrupted, not with a traceback."""
+    seen = set()
+    while error is not None and id(error) not in seen:
+        if isinstance(error, KeyboardInterrupt):
+            return True
+        seen.add(id(error))
+        error = error.__cause__ or error.__context__
+    return False

@@ -27,7 +27,8 @@ import can
 
 from identifier import STRATEGIES, TractionIdentifier
 
-from .errors import EXIT_INTERRUPTED, EXIT_OK, BusError, ConfigError, HilError, PeerSilent, PlantFault
+from .errors import (EXIT_INTERRUPTED, EXIT_OK, BusError, ConfigError, HilError, PeerSilent, PlantFault,
+                     caused_by_interrupt)
 from .frames import (PLANT_IDS, SENSOR_ID, STATE_FAULT, STATE_FINISHED, STATE_NAMES, STATE_RUNNING, STATE_STARTING,
                      FrameCodec, RejectCounter, SampleReport)
 from .link import GuardedBus, Sender, heartbeat_period_s, poll_until, silence_limit_s
@@ -332,7 +333,11 @@ def _write_report(report: dict, path, to_stdout: bool) -> None:
         print(text, flush=True)
 
 
+_terminated = []
+
+
 def _terminate(signum, frame):
+    _terminated.append(signum)
     raise KeyboardInterrupt
 
 
@@ -346,6 +351,13 @@ def main(argv=None) -> int:
         return e.exit_code
     except KeyboardInterrupt:
         print("hil tcu: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except Exception as e:
+        # the plant ends this process with SIGTERM; an extension module running then may turn the
+        # interrupt into another error: still an interrupt, not a traceback on the run's stderr
+        if not (_terminated or caused_by_interrupt(e)):
+            raise
+        print(f"hil tcu: interrupted ({type(e).__name__} on the way out: {e})", file=sys.stderr)
         return EXIT_INTERRUPTED
     finally:
         signal.signal(signal.SIGTERM, signal.SIG_DFL)   # a SIGTERM while exiting just ends the process

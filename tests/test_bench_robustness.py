@@ -83,3 +83,20 @@ def test_the_generators_repeat_for_a_seed():
     for kind in DAMAGES:
         x, y = damage_log(data, chunks, a, kind), damage_log(data, chunks, b, kind)
         assert x == y and x[0].startswith(kind) and x[1] != data
+
+
+def test_a_failure_quotes_the_traceback_with_the_line_that_says_where():
+    """A traceback on a run's stderr is quoted in the failure from the line that names where it was
+    raised (here a thread's), so a failure in CI can be traced without rerunning it."""
+    import subprocess
+    import sys
+
+    from hil.benchmarks.robustness import _traceback
+
+    code = "import threading\ndef f(): raise OSError(28, 'No space left on device')\n" \
+           "t = threading.Thread(target=f, name='writer'); t.start(); t.join()\nprint('last line')"
+    err = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60).stderr
+    quoted = _traceback("before\n" + err)
+    assert quoted.startswith("Exception in thread writer"), quoted
+    assert "Traceback (most recent call last)" in quoted and "No space left on device" in quoted
+    assert _traceback("hil run: error: a plain one-line error\n") == ""

@@ -4,6 +4,7 @@ import json
 import os
 import signal
 import subprocess
+import sys
 import time
 
 import pytest
@@ -125,6 +126,30 @@ def test_ctrl_c_during_start_up_is_one_line_not_a_traceback(tmp_path, delay_s):
     _, err = p.communicate(timeout=120)
     assert p.returncode == 130, err
     assert "Traceback" not in err and err.strip().splitlines()[-1].endswith("interrupted")
+
+
+@pytest.mark.parametrize("delay_s", [0.2, 0.5, 0.8, 1.2, 2.0])
+def test_sigterm_of_the_tcu_process_is_one_line_not_a_traceback(tmp_path, delay_s):
+    """The plant ends its TCU process with SIGTERM (a failed run, e.g. a full disk); whenever it lands,
+    while Python starts (the default action: killed by the signal), while the TCU imports numpy, scipy
+    and numba, or while it waits on the bus, the TCU prints no traceback into the run's stderr."""
+    from hil.localbus import create_channel, remove_channel
+
+    channel = create_channel()
+    try:
+        p = subprocess.Popen([sys.executable, "-m", "hil.tcu_node", str(SCENARIOS / "ffcc_a.toml"), "--bus",
+                              f"localbus:{channel}", "--wait", "60"], cwd=tmp_path, stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, text=True, env=subprocess_env())
+        time.sleep(delay_s)
+        p.send_signal(signal.SIGTERM)
+        _, err = p.communicate(timeout=120)
+    finally:
+        remove_channel(channel)
+    print(f"exit {p.returncode}: {err.strip()[-300:]}")
+    assert p.returncode in (130, -signal.SIGTERM), err
+    assert "Traceback" not in err
+    if p.returncode == 130:
+        assert err.strip().splitlines()[-1].startswith("hil tcu: interrupted")
 
 
 def test_an_interrupt_something_swallowed_still_stops_the_run():

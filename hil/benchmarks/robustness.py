@@ -335,6 +335,21 @@ def _last_line(text: str) -> str:
     return lines[-1] if lines else ""
 
 
+def _traceback(text: str, n: int = 1500) -> str:
+    """The first traceback on a stderr (from an "Exception ignored in" / "Exception in thread" line
+    before it, where there is one), cut to ``n`` characters; "" when there is none.  A failure quotes
+    it: the last line alone does not say which process or thread printed it."""
+    text = text or ""
+    at = text.find("Traceback")
+    if at < 0:
+        return ""
+    start = text.rfind("\n", 0, at) + 1
+    before = text.rfind("\n", 0, max(start - 1, 0)) + 1
+    if text[before:start].startswith(("Exception ignored", "Exception in thread")):
+        start = before
+    return text[start:start + n]
+
+
 def _short(text: str, n: int = 300) -> str:
     text = " ".join(str(text).split())
     return text if len(text) <= n else text[:n - 3] + "..."
@@ -770,7 +785,8 @@ def run_mutant(data: bytes, sets, sandbox_parent: Path, timeout_s: float) -> dic
         out, err = proc.communicate()
     outside = sorted(p for p in _tree(box) - before if not (p == "out" or p.startswith("out" + os.sep)))
     shutil.rmtree(box, ignore_errors=True)
-    return {"exit": proc.returncode, "hung": hung, "traceback": "Traceback" in err, "outside": outside,
+    return {"exit": proc.returncode, "hung": hung, "traceback": "Traceback" in err, "traceback_text": _traceback(err),
+            "outside": outside,
             "stderr_last": _last_line(err), "stderr_lines": len(err.strip().splitlines()),
             "wall_s": time.monotonic() - t0}
 
@@ -826,7 +842,7 @@ def part_scenarios(seed: int, count: int, runs: int, log, max_run_steps: int = 3
                 part.fail(i, what, f"hil run did not end within {RUN_TIMEOUT_S:g} s")
             elif r["traceback"]:
                 run_tracebacks += 1
-                part.fail(i, what, f"hil run printed a traceback: {r['stderr_last']}")
+                part.fail(i, what, f"hil run printed a traceback: {r['stderr_last']}; {r['traceback_text']}")
             elif r["exit"] not in (0, 2):
                 part.fail(i, what, f"hil run exit {r['exit']}: {r['stderr_last']}")
             elif r["exit"] == 2 and not r["stderr_last"].startswith("hil run: error: "):
@@ -1117,6 +1133,7 @@ def kill_run(tmp: Path, victim: str, seed: int, min_bytes: int) -> dict:
             return res
         res["exit"] = proc.returncode
         res["traceback"] = "Traceback" in err
+        res["traceback_text"] = _traceback(err)
         res["last_line"] = _last_line(err)
         t0 = time.monotonic()
         while alive(tcu) and time.monotonic() - t0 < 10:
@@ -1149,7 +1166,7 @@ def part_kills(seed: int, count: int, log) -> dict:
                 part.fail(i, what, r["error"])
                 continue
             if r["traceback"]:
-                part.fail(i, what, f"traceback: {r['last_line']}")
+                part.fail(i, what, f"traceback: {r['last_line']}; {r['traceback_text']}")
             if r["tcu_left_running"]:
                 part.fail(i, what, "the TCU process outlived its run")
             if not r["messages"] or not r["states"]:
@@ -1243,8 +1260,10 @@ def _judge_disk_run(part, i, kind, bus, limit, run_seed, out, r, read_log) -> di
     logs = sorted(out.glob("*.mcap")) if out.exists() else []
     rec = {"kind": kind, "bus": bus, "limit": limit, "seed": run_seed, "exit": r.returncode, "last_line": last[:200],
            "log_bytes": logs[0].stat().st_size if logs else None, "tcu_left": bool(_tcus_of(run_seed))}
-    if r.returncode != 2 or "Traceback" in r.stderr or not last.startswith("hil run: error: "):
+    if r.returncode != 2 or not last.startswith("hil run: error: "):
         part.fail(i, what, f"exit {r.returncode}: {last}")
+    if "Traceback" in r.stderr:
+        part.fail(i, what, f"a traceback on stderr: {_traceback(r.stderr)}")
     if rec["tcu_left"]:
         part.fail(i, what, "the TCU process outlived its run")
     if limit == 0:
