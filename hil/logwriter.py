@@ -20,8 +20,14 @@ Crash safety. Rows in the pipe outlive the parent: when the parent dies without 
 the child reads to the end of the pipe, calls ``on_orphan(file, last_t_s)`` (the recorder's: an
 error event and a ``fault`` record saying so) and finishes the file; what is lost is what the parent
 had not yet shipped (the recorder bounds it). The child ignores SIGINT and SIGTERM (a Ctrl-C reaches
-the whole process group; the parent decides) and runs at normal priority on any CPU, whatever the
-loop's real-time priority and affinity.
+the whole process group; the parent decides).
+
+Scheduling.  The child runs on any CPU at normal priority, whatever the loop's real-time priority and
+affinity, under ``SCHED_BATCH``: the scheduler then never lets its wake-up preempt the process that
+woke it.  Under ``SCHED_OTHER`` a batch written into the pipe wakes the child, which may take the
+writer's CPU at once, and the loop's ``os.write`` returns only when the child has encoded the batch
+and sleeps again (``hil bench bus`` measures the lockstep speed this buys).  Not ``SCHED_IDLE``: on
+a busy machine the child would starve and a lockstep loop, which waits for room in the pipe, with it.
 """
 from __future__ import annotations
 
@@ -187,8 +193,8 @@ def _child(file, rows_fd: int, status_fd: int, on_orphan) -> int:
         if fd > 2 and fd not in keep:
             with contextlib.suppress(OSError):
                 os.close(fd)
-    with contextlib.suppress(OSError, AttributeError):
-        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    with contextlib.suppress(OSError, AttributeError):     # SCHED_BATCH: module docstring, "Scheduling"
+        os.sched_setscheduler(0, os.SCHED_BATCH, os.sched_param(0))
     with contextlib.suppress(OSError, AttributeError):
         os.sched_setaffinity(0, range(os.cpu_count() or 1))
 

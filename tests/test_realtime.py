@@ -81,6 +81,34 @@ def test_recording_queue_overflow_counts_exactly_the_dropped_rows(tmp_path):
     assert [r.text for r in rows] == [f"row {i}" for i in range(limit)]
 
 
+def test_the_writer_process_is_a_batch_task_whatever_the_loops_priority(tmp_path):
+    """The writer child runs SCHED_BATCH (its wake-up never preempts the loop that shipped it rows),
+    also when the loop runs SCHED_FIFO, and still writes every row."""
+    old = (os.sched_getscheduler(0), os.sched_getparam(0))
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(5))
+        fifo = True
+    except PermissionError:
+        fifo = False
+    try:
+        rec = Recorder(tmp_path / "b.mcap")
+        rec.defer(queue_limit=1000, block_when_full=True, writer="process")
+        n = random.randrange(200, 3000)
+        print(f"rows {n}, loop under SCHED_FIFO: {fifo}")
+        for i in range(n):
+            rec.event(i * 1e-3, "info", f"row {i}")
+            rec.work()
+        deadline = time.monotonic() + 10     # the child sets its policy first thing, once it runs
+        while os.sched_getscheduler(rec.writer_pid) != os.SCHED_BATCH and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert os.sched_getscheduler(rec.writer_pid) == os.SCHED_BATCH, f"loop under SCHED_FIFO: {fifo}"
+        rec.close({"done": True})
+    finally:
+        os.sched_setscheduler(0, *old)
+    rows = read_log(tmp_path / "b.mcap", {"/run/events"}).topic("/run/events")
+    assert [r.text for r in rows] == [f"row {i}" for i in range(n)]
+
+
 def test_a_stalled_writer_process_fills_the_pipe_then_the_queue_and_the_rest_is_counted(tmp_path):
     """The writer process stopped (SIGSTOP): the pipe and then the queue fill, never blocking the
     loop; every row after that is dropped and counted, and the rows kept are the first ones, whole."""
