@@ -176,6 +176,9 @@ def test_bench_gap_json_keys(tmp_path):
                 assert isinstance(rec["oracle"]["separable"], bool) and rec["oracle"]["shrink_percent"] > 0
         else:
             assert rec["excluded"] == []
+        if rec["kind"] == "outside":
+            assert isinstance(rec["description_right"], bool) and isinstance(rec["gap_present"], bool)
+            assert rec["described_line_hz"] is None or "periodic" in rec["described_variables"]
 
 
 def test_torque_lag_found_when_the_command_varies(tmp_path, scenario):
@@ -447,8 +450,8 @@ def test_a_quantiser_is_named_beside_the_effect_that_explains_the_mean(tmp_path,
 
 def test_sparse_description_of_known_residuals():
     """hil/gap/sparse.py on residuals made here: a gain on the motor speed is described by the motor
-    speed with its coefficient; a creep-proportional term by the creep; noise and a 60 Hz sine (no
-    library term follows them) are not described."""
+    speed with its coefficient; a creep-proportional term by the creep; noise is not described; a sine
+    at a frequency drawn here is described as periodic at that frequency, with its amplitude."""
     from hil.gap.sparse import describe_residual
     seed = fresh_seed()
     g = np.random.default_rng(seed)
@@ -468,9 +471,18 @@ def test_sparse_description_of_known_residuals():
     c = float(g.uniform(0.05, 0.2))
     d = describe_residual(motor + c * creep + noise, motor, train, creep, torque, dt, tr, ho)
     assert d["described"] and d["variables"] == ["creep_speed"], d["sentence"]
-    for resid in (noise, 0.05 * np.sin(2 * np.pi * 60.0 * t + g.uniform(0, 6)) + noise):
-        d = describe_residual(motor + resid, motor, train, creep, torque, dt, tr, ho)
-        assert not d["described"] and "no sparse description" in d["sentence"], d["sentence"]
+    d = describe_residual(motor + noise, motor, train, creep, torque, dt, tr, ho)
+    assert not d["described"] and "no sparse description" in d["sentence"], d["sentence"]
+    assert d["line_hz"] is None                   # white noise: no spectral line
+    f_hz, a = float(g.uniform(20.0, 150.0)), float(g.uniform(0.01, 0.05))
+    d = describe_residual(motor + a * np.sin(2 * np.pi * f_hz * t + g.uniform(0, 6)) + noise, motor, train, creep,
+                          torque, dt, tr, ho)
+    print(f"sine {a:.3f} rad/s at {f_hz:.2f} Hz -> {d['sentence']}")
+    assert d["described"] and "periodic" in d["variables"], d["sentence"]
+    assert d["line_hz"] == pytest.approx(f_hz, rel=0.005)
+    assert d["terms"][0]["frequency_hz"] == d["line_hz"]
+    assert d["terms"][0]["coef"] == pytest.approx(a * (torque.mean() if "torque" in d["variables"] else 1.0),
+                                                  rel=0.25)
 
 
 def test_a_tachometer_gain_is_none_of_the_candidates_but_described_by_the_motor_speed(tmp_path, scenario):

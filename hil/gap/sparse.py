@@ -9,7 +9,13 @@ Two views of the motor-speed residual r(k) = y_meas(k) - y_nominal(k) over the a
                                                                      model lacks, e.g. a torque it does not apply)
 
 with the library theta = {1, motor speed, train speed, creep speed, creep rate, torque command}, all
-measured.  (Products such as motor speed x torque fitted a tachometer gain as well as motor speed
+measured, and, when the residual carries a spectral line, a periodic term at its frequency f*
+(sin and cos of 2 pi f* t together, one term; and the same times the torque command, which only a
+command that varies in the window can tell apart from it).  The line is the periodogram's highest
+peak from ``LINE_MIN_HZ`` up, standing ``LINE_FACTOR`` times above the median of its neighbourhood:
+for white noise each bin's periodogram is exponential, so a bin passes with probability
+2^-LINE_FACTOR (1e-6), a few in 10^4 over a thousand bins, while a red spectrum (what a missing slow
+term leaves) raises the neighbourhood with the peak.  (Products such as motor speed x torque fitted a tachometer gain as well as motor speed
 alone did, and then named two variables where one is the answer: ``TERMS`` leaves them out.)  The sparse fit is a best subset of
 at most ``MAX_TERMS`` terms, chosen on the training blocks and judged on the held-out blocks (the
 diagnosis' own split): a term is added only when it raises the held-out R^2 by ``MIN_GAIN``.  This is
@@ -30,22 +36,67 @@ MAX_TERMS = 2
 MIN_GAIN = 0.05
 #: the held-out R^2 below which there is no description
 MIN_R2 = 0.3
+#: the spectral line a periodic term needs: from this frequency up (below it a window of a second
+#: holds too few cycles to tell a line from a slow drift) ...
+LINE_MIN_HZ = 2.0
+#: ... standing this many times above the median periodogram of the bins around it (module docstring)
+LINE_FACTOR = 20.0
+#: ... over this many bins either side
+LINE_NEIGHBOURS = 25
 #: what each term depends on (the variables a description names)
 VARIABLES = {"1": (), "motor_speed": ("motor_speed",), "train_speed": ("train_speed",),
              "creep_speed": ("creep_speed",), "creep_rate": ("creep_speed",), "torque": ("torque",),
-             "motor_speed*torque": ("motor_speed", "torque"), "creep_speed*torque": ("creep_speed", "torque")}
-TERMS = ("1", "motor_speed", "train_speed", "creep_speed", "creep_rate", "torque")
+             "motor_speed*torque": ("motor_speed", "torque"), "creep_speed*torque": ("creep_speed", "torque"),
+             "periodic": ("periodic",), "torque*periodic": ("torque", "periodic")}
+TERMS = ("1", "motor_speed", "train_speed", "creep_speed", "creep_rate", "torque", "periodic", "torque*periodic")
 UNITS = {"1": "", "motor_speed": "rad/s", "train_speed": "m/s", "creep_speed": "km/h", "creep_rate": "km/h/s",
-         "torque": "N·m", "motor_speed*torque": "rad/s·N·m", "creep_speed*torque": "km/h·N·m"}
+         "torque": "N·m", "motor_speed*torque": "rad/s·N·m", "creep_speed*torque": "km/h·N·m", "periodic": "",
+         "torque*periodic": "N·m"}
 
 
-def library(motor_rad_s, train_ms, creep_kmh, torque_nm, period_s) -> dict[str, np.ndarray]:
-    """The library's terms along the measured run."""
+def library(motor_rad_s, train_ms, creep_kmh, torque_nm, period_s, line_hz: float | None = None) \
+        -> dict[str, np.ndarray]:
+    """The library's terms along the measured run; a periodic term is two columns (sin, cos of
+    2 pi line_hz t), there only when ``line_hz`` is given."""
     creep_rate = np.gradient(creep_kmh, period_s)
     out = {"1": np.ones_like(motor_rad_s), "motor_speed": motor_rad_s, "train_speed": train_ms,
            "creep_speed": creep_kmh, "creep_rate": creep_rate, "torque": torque_nm,
            "motor_speed*torque": motor_rad_s * torque_nm, "creep_speed*torque": creep_kmh * torque_nm}
+    if line_hz is not None:
+        phase = 2 * np.pi * line_hz * period_s * np.arange(motor_rad_s.size)
+        wave = np.column_stack([np.sin(phase), np.cos(phase)])
+        out["periodic"] = wave
+        out["torque*periodic"] = wave * torque_nm[:, None]
     return {k: v for k, v in out.items() if k in TERMS}
+
+
+def spectral_line(r, mask, period_s) -> float | None:
+    """The frequency (Hz) of the residual's spectral line over the span of ``mask`` (module
+    docstring), refined between periodogram bins by the best least-squares sinusoid; None without one."""
+    idx = np.flatnonzero(mask & np.isfinite(r))
+    if idx.size < 64:
+        return None
+    x = r[idx[0]:idx[-1] + 1]
+    x = np.where(np.isfinite(x), x, np.nanmean(x))
+    x = x - x.mean()
+    power = np.abs(np.fft.rfft(x * np.hanning(x.size))) ** 2
+    freq = np.fft.rfftfreq(x.size, period_s)
+    lo = int(np.searchsorted(freq, LINE_MIN_HZ))
+    if lo >= power.size - 2:
+        return None
+    k = lo + int(np.argmax(power[lo:-1]))
+    around = np.r_[power[max(k - LINE_NEIGHBOURS, 1):max(k - 2, 1)], power[k + 3:k + LINE_NEIGHBOURS + 1]]
+    if around.size < 10 or power[k] < LINE_FACTOR * np.median(around):
+        return None
+    t = period_s * np.arange(x.size)
+    df = freq[1] - freq[0]
+
+    def fitted_power(f):
+        w = np.column_stack([np.sin(2 * np.pi * f * t), np.cos(2 * np.pi * f * t)])
+        coef, *_ = np.linalg.lstsq(w, x, rcond=None)
+        return float(np.sum((w @ coef) ** 2))
+    grid = freq[k] + df * np.linspace(-1.0, 1.0, 41)
+    return float(max(grid, key=fitted_power))
 
 
 def _r2(y, yhat) -> float:
@@ -55,9 +106,10 @@ def _r2(y, yhat) -> float:
 
 def best_subset(target, terms: dict, train, held) -> dict:
     """The subset of at most MAX_TERMS terms (the constant always in) with the best held-out R^2,
-    grown one term at a time only while each adds MIN_GAIN."""
+    grown one term at a time only while each adds MIN_GAIN.  A term of two columns (periodic) gets
+    two coefficients (sin, cos): its ``coef`` is their amplitude, its ``phase_rad`` their angle."""
     names = [n for n in terms if n != "1"]
-    X = {n: terms[n] for n in terms}
+    X = {n: terms[n].reshape(terms[n].shape[0], -1) for n in terms}
     best = {"terms": [], "coef": {}, "held_out_r2": 0.0}
     for k in range(1, MAX_TERMS + 1):
         cand = None
@@ -69,8 +121,14 @@ def best_subset(target, terms: dict, train, held) -> dict:
             coef = coef / scale
             r2 = _r2(target[held], A[held] @ coef)
             if cand is None or r2 > cand["held_out_r2"]:
-                cand = {"terms": list(subset), "coef": {c: float(v) for c, v in zip(cols, coef)},
-                        "held_out_r2": float(r2)}
+                at, by_term, phase = 0, {}, {}
+                for c in cols:
+                    w = X[c].shape[1]
+                    by_term[c] = float(coef[at]) if w == 1 else float(np.hypot(coef[at], coef[at + 1]))
+                    if w == 2:
+                        phase[c] = float(np.arctan2(coef[at + 1], coef[at]))    # a sin(x) + b cos(x) = A sin(x + phase)
+                    at += w
+                cand = {"terms": list(subset), "coef": by_term, "phase_rad": phase, "held_out_r2": float(r2)}
         if cand is None or cand["held_out_r2"] < best["held_out_r2"] + MIN_GAIN:
             break
         best = cand
@@ -82,11 +140,12 @@ def describe_residual(meas_motor, nominal_motor, train_ms, creep_kmh, torque_nm,
     """The sparse description of the motor-speed residual (module docstring): ``described`` (bool),
     ``view`` (level | rate), ``terms`` (each with its coefficient and unit), ``variables`` (what they
     depend on), ``held_out_r2``, and a sentence."""
-    terms = library(meas_motor, train_ms, creep_kmh, torque_nm, period_s)
+    r = meas_motor - nominal_motor
+    line_hz = spectral_line(r, train_mask | held_mask, period_s)
+    terms = library(meas_motor, train_ms, creep_kmh, torque_nm, period_s, line_hz)
     ok = np.isfinite(meas_motor) & np.isfinite(nominal_motor)
     for v in terms.values():
-        ok &= np.isfinite(v)
-    r = meas_motor - nominal_motor
+        ok &= np.isfinite(v).reshape(v.shape[0], -1).all(axis=1)
     rate = np.full_like(r, np.nan)
     rate[:-1] = np.diff(r) / period_s
     views = {}
@@ -103,15 +162,29 @@ def describe_residual(meas_motor, nominal_motor, train_ms, creep_kmh, torque_nm,
     variables = sorted({v for t in fit["terms"] for v in VARIABLES[t]}) if described else []
     what = "motor-speed residual" if view == "level" else "rate of the motor-speed residual (rad/s²)"
     if described:
-        parts = " + ".join(f"{fit['coef'][t]:.4g} × {t.replace('*', ' × ')}" for t in fit["terms"])
+        parts = " + ".join(_term_text(t, fit, line_hz) for t in fit["terms"])
+        depends = [v.replace("_", " ") for v in variables if v != "periodic"]
+        said = ([f"depends on {', '.join(depends)}"] if depends else []) + \
+            ([f"is periodic at {line_hz:.1f} Hz"] if "periodic" in variables else [])
         sentence = (f"the {what} ≈ {parts} (+ {fit['coef']['1']:.3g}); held-out R² {fit['held_out_r2']:.2f}: "
-                    f"the missing term depends on {', '.join(v.replace('_', ' ') for v in variables)}")
+                    f"the missing term {' and '.join(said)}")
         if view == "level" and fit["terms"] == ["motor_speed"]:
             sentence += f" (reads as a motor-speed sensor gain of {1 + fit['coef']['motor_speed']:.4f})"
     else:
         sentence = (f"no sparse description: no term of the library explains the residual (best held-out R² "
                     f"{fit['held_out_r2']:.2f}, below {MIN_R2})")
     return {"described": described, "view": view,
-            "terms": [{"term": t, "coef": fit["coef"][t], "unit": UNITS[t]} for t in fit["terms"]],
+            "terms": [{"term": t, "coef": fit["coef"][t], "unit": UNITS[t],
+                       **({"phase_rad": fit["phase_rad"][t], "frequency_hz": line_hz} if t in fit["phase_rad"] else {})}
+                      for t in fit["terms"]],
+            "line_hz": line_hz,
             "intercept": fit["coef"].get("1"), "variables": variables, "held_out_r2": fit["held_out_r2"],
             "held_out_r2_by_view": {k: v["held_out_r2"] for k, v in views.items()}, "sentence": sentence}
+
+
+def _term_text(term: str, fit: dict, line_hz: float | None) -> str:
+    coef = fit["coef"][term]
+    if term in fit["phase_rad"]:
+        wave = f"sin(2π·{line_hz:.2f} Hz·t {fit['phase_rad'][term]:+.2f} rad)"
+        return f"{coef:.4g} × {'torque × ' if term.startswith('torque') else ''}{wave}"
+    return f"{coef:.4g} × {term.replace('*', ' × ')}"
