@@ -47,8 +47,10 @@ class BusSettings:
     max_missed_fraction: float = 0.01     # realtime: a run missing more deadlines than this fraction of its
                                           # steps ends with exit 5 (after the logs are written)
     rt_priority: int = 0                  # realtime: SCHED_FIFO priority for plant, hub and TCU (0: off)
-    cpu_affinity_plant: tuple = ()        # realtime: CPUs the plant process runs on (empty: no setting)
-    cpu_affinity_tcu: tuple = ()          # realtime: CPUs the TCU process runs on (empty: no setting)
+    cpu_affinity_plant: tuple = ()        # CPUs the plant process runs on (empty: no setting)
+    cpu_affinity_tcu: tuple = ()          # CPUs the TCU process runs on (empty: no setting)
+    lockstep_pin: bool = True             # lockstep, neither affinity set: plant and TCU process on two
+                                          # different CPUs (hil.exchange.node_cpus)
     auth: str = "auto"                    # frame authentication (hil/secoc.py): "on", "off", or "auto": on
                                           # for the embedded buses (local, localbus, inprocess), off otherwise
     auth_key_file: str = ""               # the key (32 hex digits); "": a new key per run, made by the run
@@ -418,6 +420,11 @@ def _bus(path, data) -> BusSettings:
         if key == "auth_key_file":
             if not isinstance(value, str):
                 raise _fail(path, "[bus] auth_key_file", f"must be a path (a string), got {value!r}")
+            values[key] = value
+            continue
+        if key == "lockstep_pin":
+            if not isinstance(value, bool):
+                raise _fail(path, "[bus] lockstep_pin", f"must be true or false, got {value!r}")
             values[key] = value
             continue
         if key.startswith("cpu_affinity_"):

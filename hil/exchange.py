@@ -76,6 +76,25 @@ def log_writer(mode: str, transport: str, cpus: int | None = None) -> str:
 TRANSPORTS = ("inprocess", "process", "external")
 
 
+def node_cpus(settings, mode: str, transport: str) -> tuple[tuple, tuple]:
+    """(plant CPUs, TCU CPUs) of a run: ``[bus] cpu_affinity_plant`` / ``cpu_affinity_tcu`` as set;
+    in lockstep with a TCU process of this run, neither set and ``[bus] lockstep_pin`` on, the first
+    two CPUs this process may use, one each.  Why: two lockstep nodes poll the bus in turns
+    (``lockstep_spin_s``), and the kernel wakes a node on the CPU of the node that woke it; where
+    both land on one CPU while a third process holds the other, one spins on the CPU the other needs
+    (``hil bench bus`` measures lockstep speed with and without)."""
+    plant, tcu = tuple(settings.cpu_affinity_plant), tuple(settings.cpu_affinity_tcu)
+    if plant or tcu or mode != "lockstep" or transport != "process" or not settings.lockstep_pin:
+        return plant, tcu
+    try:
+        allowed = sorted(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return plant, tcu
+    if len(allowed) < 2:
+        return plant, tcu
+    return (allowed[0],), (allowed[1],)
+
+
 @contextlib.contextmanager
 def collector_paused(active: bool = True):
     """No garbage collection inside (when ``active``), as the real-time loops run: a full collection
@@ -372,8 +391,12 @@ def run(scenario, strategy: str = "nlls", seed: int | None = None, *, bus: str =
                    "frame_auth": scenario.bus.auth, **(node.counters() if node else {}),
                    **(timing.summary(node.late_commands) if timing else {}), **extra}))
 
-    if mode == "realtime":
-        set_cpu_affinity(settings.cpu_affinity_plant, "plant", log)
+    plant_cpus, tcu_cpus = node_cpus(settings, mode, tcu.transport)
+    if tcu_cpus != settings.cpu_affinity_tcu:
+        set_args.append(f"bus.cpu_affinity_tcu={list(tcu_cpus)}")
+    old_cpus = os.sched_getaffinity(0) if plant_cpus and hasattr(os, "sched_getaffinity") else None
+    if not set_cpu_affinity(plant_cpus, "plant", log):
+        old_cpus = None
     old_sched = _set_rt_priority(settings.rt_priority, log) if mode == "realtime" and settings.rt_priority > 0 \
         else None
     with interrupts_between_writes():   # SIGTERM ends a run like Ctrl-C, never mid-write
@@ -458,4 +481,7 @@ def run(scenario, strategy: str = "nlls", seed: int | None = None, *, bus: str =
                 key_dir.cleanup()
                 if old_sched is not None:
                     os.sched_setscheduler(0, *old_sched)
+                if old_cpus is not None:        # a bench runs one run after another in this process
+                    with contextlib.suppress(OSError):
+                        os.sched_setaffinity(0, old_cpus)
     return summary

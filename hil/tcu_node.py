@@ -276,8 +276,7 @@ def run_tcu(args) -> int:
                        "interface:channel)")
     node = TcuNode(scenario, args.strategy, seed)
     handle = open_bus(bus)
-    if args.mode == "realtime":
-        set_cpu_affinity(settings.cpu_affinity_tcu, "TCU", lambda m: print(m, file=sys.stderr, flush=True))
+    set_cpu_affinity(settings.cpu_affinity_tcu, "TCU", lambda m: print(m, file=sys.stderr, flush=True))
     if args.mode == "realtime":     # a full collection over scipy's and casadi's objects stalls both threads
         gc.freeze()
         gc.disable()

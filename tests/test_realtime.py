@@ -203,6 +203,43 @@ def test_pinned_realtime_run_runs_each_process_on_its_cpu(tmp_path):
     assert seen == ({plant_cpu}, {tcu_cpu})
 
 
+@pytest.mark.parametrize("pin", [True, False])
+def test_lockstep_pins_plant_and_tcu_process_apart_by_default(tmp_path, pin):
+    """Lockstep with a TCU process and no affinity set: the plant and the TCU each on one CPU, not the
+    same (``[bus] lockstep_pin``, on by default); off, both keep every CPU this process may use."""
+    cpus = os.sched_getaffinity(0)
+    if len(cpus) < 2:
+        pytest.skip("one CPU: nothing to pin apart")
+    args = [*hil_command(), "run", "scenarios/ffcc_a.toml", "--bus", "local", "--no-rrd", "--out", str(tmp_path),
+            "--set", "run.duration_s=4", "--set", "run.fault_time_s=3.5", "--set", f"bus.lockstep_pin={str(pin).lower()}"]
+    proc = subprocess.Popen(args, cwd=ROOT, env=subprocess_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    try:
+        tcu = _tcu_child(proc.pid)
+        seen = None
+        end = time.monotonic() + 30
+        while time.monotonic() < end and proc.poll() is None:
+            try:
+                seen = (os.sched_getaffinity(proc.pid), os.sched_getaffinity(tcu))
+            except ProcessLookupError:
+                break
+            if not pin or (len(seen[0]) == 1 and len(seen[1]) == 1 and seen[0] != seen[1]):
+                break           # (the TCU starts with the plant's CPU, inherited, and then takes its own)
+            time.sleep(0.01)
+        out, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, err
+    print(f"CPUs allowed {sorted(cpus)}; plant, TCU: {seen}")
+    if pin:
+        assert len(seen[0]) == 1 and len(seen[1]) == 1 and seen[0] != seen[1] and seen[0] | seen[1] <= cpus
+    else:
+        assert seen == (cpus, cpus)
+    assert os.sched_getaffinity(0) == cpus
+
+
 # -- the missed-deadline limit ([bus] max_missed_fraction, exit 5) ---------------------------------------------
 MISS_ARGS = ["run", "scenarios/ffcc_a.toml", "--mode", "realtime", "--bus", "local", "--set", "run.duration_s=0.4",
              "--set", "run.fault_time_s=0.2", "--set", "bus.silence_periods=500", "--json"]
