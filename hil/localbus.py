@@ -22,6 +22,7 @@ Why not datagrams: unconnected ``AF_UNIX`` datagram sockets drop or block once t
 """
 from __future__ import annotations
 
+import contextlib
 import errno
 import os
 import select
@@ -104,20 +105,28 @@ class LocalBus(can.BusABC):
         self.name = f"{os.getpid()}-{time.monotonic_ns()}"
         self._path = os.path.join(channel, self.name + SOCKET_SUFFIX)
         self._listener = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
-        self._listener.bind(self._path)
-        self._listener.listen(64)
-        self._listener.setblocking(False)
         self._peers: dict[int, tuple[socket.socket, str | None, bool]] = {}   # fd -> (sock, peer name, we dialled)
-        self._poll = select.poll()
-        self._poll.register(self._listener.fileno(), select.POLLIN)
-        self._own_queue: list[can.Message] = []
-        self.dropped: Counter = Counter()        # frames a full peer missed, by peer name
-        self._closing: set[int] = set()          # peers that closed: not written to, still read to their end
-        self.peers_lost = 0
-        for name in sorted(os.listdir(channel)):
-            if name.endswith(SOCKET_SUFFIX) and name != self.name + SOCKET_SUFFIX:
-                self._dial(os.path.join(channel, name))
-        super().__init__(channel=channel, **kwargs)
+        try:        # a failure (or a signal) half-way leaves no socket open and no socket file behind
+            self._listener.bind(self._path)
+            self._listener.listen(64)
+            self._listener.setblocking(False)
+            self._poll = select.poll()
+            self._poll.register(self._listener.fileno(), select.POLLIN)
+            self._own_queue: list[can.Message] = []
+            self.dropped: Counter = Counter()        # frames a full peer missed, by peer name
+            self._closing: set[int] = set()          # peers that closed: not written to, still read to their end
+            self.peers_lost = 0
+            for name in sorted(os.listdir(channel)):
+                if name.endswith(SOCKET_SUFFIX) and name != self.name + SOCKET_SUFFIX:
+                    self._dial(os.path.join(channel, name))
+            super().__init__(channel=channel, **kwargs)
+        except BaseException:
+            for sock, _, _ in self._peers.values():
+                sock.close()
+            self._listener.close()
+            with contextlib.suppress(OSError):
+                os.unlink(self._path)
+            raise
 
     # -- the mesh ------------------------------------------------------------------------------
     def _add(self, sock: socket.socket, peer: str | None, dialled: bool) -> None:

@@ -275,15 +275,15 @@ def run_tcu(args) -> int:
                        "the plant's bus (socketcan:<ch>, remote:ws://HOST:PORT/ of a running hub, or a python-can "
                        "interface:channel)")
     node = TcuNode(scenario, args.strategy, seed)
-    handle = open_bus(bus)
-    set_cpu_affinity(settings.cpu_affinity_tcu, "TCU", lambda m: print(m, file=sys.stderr, flush=True))
-    if args.mode == "realtime":     # a full collection over scipy's and casadi's objects stalls both threads
-        gc.freeze()
-        gc.disable()
     period = scenario.run.exchange_period_s
     code = EXIT_OK
     error = None
-    try:
+    handle = open_bus(bus)
+    try:        # from here the bus is closed whatever ends the process (a SIGTERM from the plant included)
+        set_cpu_affinity(settings.cpu_affinity_tcu, "TCU", lambda m: print(m, file=sys.stderr, flush=True))
+        if args.mode == "realtime":     # a full collection over scipy's and casadi's objects stalls both threads
+            gc.freeze()
+            gc.disable()
         serve(GuardedBus(handle.bus, handle.name), node, silence_s=silence_limit_s(settings, args.mode, period),
               heartbeat_period_s=heartbeat_period_s(settings, args.mode),
               startup_timeout_s=settings.startup_timeout_s if args.wait is None else args.wait,
