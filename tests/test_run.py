@@ -147,9 +147,9 @@ def test_sigterm_of_the_tcu_process_is_one_line_not_a_traceback(tmp_path, delay_
         remove_channel(channel)
     print(f"exit {p.returncode}: {err.strip()[-300:]}")
     assert p.returncode in (130, -signal.SIGTERM), err
-    assert "Traceback" not in err
+    assert "Traceback" not in err, err
     if p.returncode == 130:
-        assert err.strip().splitlines()[-1].startswith("hil tcu: interrupted")
+        assert err.strip().splitlines()[-1].startswith("hil tcu: interrupted"), err
 
 
 def test_an_interrupt_something_swallowed_still_stops_the_run():
