@@ -17,12 +17,13 @@ for white noise each bin's periodogram is exponential, so a bin passes with prob
 2^-LINE_FACTOR (1e-6), a few in 10^4 over a thousand bins, while a red spectrum (what a missing slow
 term leaves) raises the neighbourhood with the peak.  (Products such as motor speed x torque fitted a
 tachometer gain as well as motor speed alone did, and then named two variables where one is the
-answer: ``TERMS`` leaves them out.)  The sparse fit is a best subset of at most ``MAX_TERMS`` terms, chosen on the training blocks and judged on the held-out blocks (the
-diagnosis' own split): a term is added only when it raises the held-out R^2 by ``MIN_GAIN``.  This is
-SINDy's idea (Brunton, Proctor and Kutz, PNAS 2016) with an exhaustive subset in place of sequential
-thresholding, which a library of ten terms affords.  The view with the higher held-out R^2 is
-reported; below ``MIN_R2`` the answer is "no sparse description": the missing term is not in the
-library (a 60 Hz torque ripple is not), which is said rather than a term being forced.
+answer: ``TERMS`` leaves them out.)  The sparse fit is a best subset of at most ``MAX_TERMS`` terms,
+chosen on the training blocks and judged on the held-out blocks (the diagnosis' own split): a term is
+added only when it raises the held-out R^2 by ``MIN_GAIN``.  This is SINDy's idea (Brunton, Proctor
+and Kutz, PNAS 2016) with an exhaustive subset in place of sequential thresholding, which a library of
+ten terms affords.  The view with the higher held-out R^2 is reported; below ``MIN_R2`` the answer is
+"no sparse description": the missing term is not in the library (or too weak against the noise), which
+is said rather than a term being forced.
 """
 from __future__ import annotations
 
