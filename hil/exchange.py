@@ -82,7 +82,7 @@ def node_cpus(settings, mode: str, transport: str) -> tuple[tuple, tuple]:
     two CPUs this process may use, one each.  Why: two lockstep nodes poll the bus in turns
     (``lockstep_spin_s``), and the kernel wakes a node on the CPU of the node that woke it; where
     both land on one CPU while a third process holds the other, one spins on the CPU the other needs
-    (``hil bench bus`` measures lockstep speed with and without)."""
+    (the README gives the measurement, taken with this setting on and off)."""
     plant, tcu = tuple(settings.cpu_affinity_plant), tuple(settings.cpu_affinity_tcu)
     if plant or tcu or mode != "lockstep" or transport != "process" or not settings.lockstep_pin:
         return plant, tcu
