@@ -26,7 +26,7 @@ Scheduling.  The child runs on any CPU at normal priority, whatever the loop's r
 affinity, under ``SCHED_BATCH``: the scheduler then never lets its wake-up preempt the process that
 woke it.  Under ``SCHED_OTHER`` a batch written into the pipe wakes the child, which may take the
 writer's CPU at once, and the loop's ``os.write`` returns only when the child has encoded the batch
-and sleeps again (``hil bench bus`` measures the lockstep speed this buys).  Not ``SCHED_IDLE``: on
+and sleeps again.  Not ``SCHED_IDLE``: on
 a busy machine the child would starve and a lockstep loop, which waits for room in the pipe, with it.
 """
 from __future__ import annotations

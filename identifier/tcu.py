@@ -161,7 +161,7 @@ class TractionIdentifier:
         slipping = self.detector.update(reading.step, creep)
         torque = self.command_nm(reading.step)           # what is applied from this reading to the next
         self._last_torque = torque
-        self._pending = (reading, observer, innovation, paired_creep, slipping, detected_before, torque)
+        self._pending = (reading, observer, innovation, paired_creep, slipping, detected_before)
         return TorqueCommand(reading.step, torque)
 
     def work(self, command: TorqueCommand) -> TcuOutput:
@@ -170,7 +170,7 @@ class TractionIdentifier:
         pending, self._pending = self._pending, None
         if pending is None:
             return TcuOutput(command, self._status(command.step))
-        reading, observer, innovation, paired_creep, slipping, detected_before, torque = pending
+        reading, observer, innovation, paired_creep, slipping, detected_before = pending
         t_s = observer.t_s
         events = []
         if self.drill is not None and (self.detector.detected_step is None or (
@@ -180,7 +180,7 @@ class TractionIdentifier:
             self.strategy.on_reading(reading.step, reading.motor_speed_rad_s, reading.train_speed_ms)
         if self._observer_aware:
             sample = Sample(reading.step, t_s, observer.creep_speed_kmh, observer.mu_hat, innovation,
-                            reading.motor_speed_rad_s, reading.train_speed_ms, torque)
+                            reading.motor_speed_rad_s, reading.train_speed_ms, command.torque_nm)
             if slipping:
                 if not detected_before:     # just detected: the buffered readings since the slip's start first
                     for s in self._recent:

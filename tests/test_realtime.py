@@ -179,9 +179,20 @@ def test_cpu_affinity_settings_are_lists_of_cpu_numbers():
 def test_pinned_realtime_run_runs_each_process_on_its_cpu(tmp_path):
     cpus = sorted(os.sched_getaffinity(0))
     plant_cpu, tcu_cpu = cpus[0], cpus[-1]
-    proc = subprocess.Popen([*hil_command(), *RT_ARGS, "--out", str(tmp_path), "--set",
-                             f"bus.cpu_affinity_plant=[{plant_cpu}]", "--set", f"bus.cpu_affinity_tcu=[{tcu_cpu}]"],
-                            cwd=ROOT, env=subprocess_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    code, err, seen = _affinities_during([*RT_ARGS, "--out", str(tmp_path), "--set",
+                                          f"bus.cpu_affinity_plant=[{plant_cpu}]", "--set",
+                                          f"bus.cpu_affinity_tcu=[{tcu_cpu}]"],
+                                         lambda seen: seen == ({plant_cpu}, {tcu_cpu}))
+    assert code == 0, err
+    assert "cannot pin" not in err
+    assert seen == ({plant_cpu}, {tcu_cpu})
+
+
+def _affinities_during(args, settled) -> tuple[int, str, tuple | None]:
+    """``hil ARGS`` run while the CPU sets of its process and of its TCU child are read every 10 ms
+    until ``settled(seen)`` (or 30 s, or the run ends); (exit code, stderr, the last (plant, TCU) read)."""
+    proc = subprocess.Popen([*hil_command(), *args], cwd=ROOT, env=subprocess_env(), stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
     try:
         tcu = _tcu_child(proc.pid)
         end, seen = time.monotonic() + 30, None
@@ -190,17 +201,15 @@ def test_pinned_realtime_run_runs_each_process_on_its_cpu(tmp_path):
                 seen = (os.sched_getaffinity(proc.pid), os.sched_getaffinity(tcu))
             except ProcessLookupError:
                 break
-            if seen == ({plant_cpu}, {tcu_cpu}):
+            if settled(seen):
                 break
             time.sleep(0.01)
-        out, err = proc.communicate(timeout=120)
+        _, err = proc.communicate(timeout=120)
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
-    assert proc.returncode == 0, err
-    assert "cannot pin" not in err
-    assert seen == ({plant_cpu}, {tcu_cpu})
+    return proc.returncode, err, seen
 
 
 @pytest.mark.parametrize("pin", [True, False])
@@ -210,28 +219,12 @@ def test_lockstep_pins_plant_and_tcu_process_apart_by_default(tmp_path, pin):
     cpus = os.sched_getaffinity(0)
     if len(cpus) < 2:
         pytest.skip("one CPU: nothing to pin apart")
-    args = [*hil_command(), "run", "scenarios/ffcc_a.toml", "--bus", "local", "--no-rrd", "--out", str(tmp_path),
-            "--set", "run.duration_s=4", "--set", "run.fault_time_s=3.5", "--set", f"bus.lockstep_pin={str(pin).lower()}"]
-    proc = subprocess.Popen(args, cwd=ROOT, env=subprocess_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True)
-    try:
-        tcu = _tcu_child(proc.pid)
-        seen = None
-        end = time.monotonic() + 30
-        while time.monotonic() < end and proc.poll() is None:
-            try:
-                seen = (os.sched_getaffinity(proc.pid), os.sched_getaffinity(tcu))
-            except ProcessLookupError:
-                break
-            if not pin or (len(seen[0]) == 1 and len(seen[1]) == 1 and seen[0] != seen[1]):
-                break           # (the TCU starts with the plant's CPU, inherited, and then takes its own)
-            time.sleep(0.01)
-        out, err = proc.communicate(timeout=120)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-    assert proc.returncode == 0, err
+    args = ["run", "scenarios/ffcc_a.toml", "--bus", "local", "--no-rrd", "--out", str(tmp_path), "--set",
+            "run.duration_s=4", "--set", "run.fault_time_s=3.5", "--set", f"bus.lockstep_pin={str(pin).lower()}"]
+    # (the TCU starts with the plant's CPU, inherited, and then takes its own)
+    code, err, seen = _affinities_during(args, lambda seen: not pin or (len(seen[0]) == 1 and len(seen[1]) == 1
+                                                                       and seen[0] != seen[1]))
+    assert code == 0, err
     print(f"CPUs allowed {sorted(cpus)}; plant, TCU: {seen}")
     if pin:
         assert len(seen[0]) == 1 and len(seen[1]) == 1 and seen[0] != seen[1] and seen[0] | seen[1] <= cpus
