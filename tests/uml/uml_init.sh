@@ -10,7 +10,7 @@ LOG=$DIR/init.log
   mount -t sysfs sysfs /sys
   [ -d /dev/shm ] && mount -t tmpfs -o size=256m tmpfs /dev/shm   # multiprocessing needs a writable /dev/shm
   ip link set lo up
-  M=/usr/lib/uml/modules/$(uname -r)/kernel
+  M=${HIL_UML_MODULES:-/usr/lib/uml/modules/$(uname -r)}/kernel
   for mod in drivers/net/can/dev/can-dev.ko net/can/can.ko net/can/can-raw.ko drivers/net/can/vcan.ko; do
     insmod "$M/$mod" || echo "insmod $M/$mod failed"
   done
