@@ -1,0 +1,125 @@
+"""The machine's real-time floor: the deadlines an *empty* loop misses on this machine, now.
+
+Why: the real-time issue's target (<= 10 missed deadlines per 10 000 periods of 1 ms) is a property of
+the loop *and* of the machine. On a shared virtual machine the vCPU itself can be taken away for
+milliseconds (the hypervisor's preemption shows as no steal time in a guest that does not account it),
+and no code in the loop can meet a deadline the CPU is not there for. This probe measures that floor
+in the same minutes as the real runs, so a miss rate can be judged against it.
+
+What: two processes (as a real-time run has a plant and a TCU), each at SCHED_FIFO ``priority`` (when
+granted; normal priority otherwise, reported), pace periods of ``period_s`` exactly as the plant node
+does (sleep until ``WAKE_MARGIN_S`` before the period, then poll with ``POLL_SLICE_S`` sleeps, the last
+``SPIN_S`` without sleeping) and do nothing else. Period k of the pair is *missed* when either process
+wakes for it later than ``deadline_fraction * period_s`` after its start ``t_k = t0 + k * period_s``
+(the same bound by which the plant needs the TCU's command): that is, the time the command would have
+had to be computed and carried was not there at all. Both processes share ``t0`` on CLOCK_MONOTONIC
+(``time.perf_counter`` on Linux), so their late periods are merged by index.
+
+``python -m hil.benchmarks.rtfloor SECONDS [--priority P]`` prints the result as JSON.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+
+from ..errors import HilError
+from ..plant_node import POLL_SLICE_S, SPIN_S, WAKE_MARGIN_S
+
+#: two processes: the plant's and the TCU's
+NODES = 2
+
+
+def pace(t0: float, period_s: float, steps: int) -> list[float]:
+    """Wake for each of ``steps`` periods as the plant node paces itself; the lateness of each wake (s)."""
+    late = []
+    for k in range(steps):
+        t_k = t0 + k * period_s
+        now = time.perf_counter()
+        if t_k - now > WAKE_MARGIN_S:
+            time.sleep(t_k - now - WAKE_MARGIN_S)
+        while True:
+            now = time.perf_counter()
+            if now >= t_k:
+                break
+            if t_k - now > SPIN_S:
+                time.sleep(min(t_k - now - SPIN_S, POLL_SLICE_S))
+        late.append(now - t_k)
+    return late
+
+
+def _child(period_s: float, steps: int, priority: int, deadline_s: float) -> None:
+    """One pacing process: says "ready" once imported and scheduled, reads t0, paces, prints JSON."""
+    granted = False
+    if priority > 0:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+            granted = True
+        except (AttributeError, PermissionError, OSError):
+            pass
+    print("ready", flush=True)
+    t0 = float(sys.stdin.readline())
+    late = pace(t0, period_s, steps)
+    missed = [k for k, x in enumerate(late) if x > deadline_s]
+    late_us = sorted(x * 1e6 for x in late)
+    print(json.dumps({"missed": missed, "sched_fifo_granted": granted if priority > 0 else None,
+                      "late_p99_us": late_us[int(0.99 * (len(late_us) - 1))], "late_max_us": late_us[-1]}))
+
+
+def measure(seconds: float, priority: int = 0, period_s: float = 1e-3, deadline_fraction: float = 0.9) -> dict:
+    """Run the two empty loops for ``seconds`` and merge them: missed periods (either node late past the
+    deadline), per 10 000 periods, the stalls behind them, the load average, SCHED_FIFO granted or not."""
+    steps = max(1, int(round(seconds / period_s)))
+    cmd = [sys.executable, "-m", "hil.benchmarks.rtfloor", "--child", repr(period_s), str(steps),
+           str(priority), repr(deadline_fraction * period_s)]
+    children = [subprocess.Popen(cmd, stdout=subprocess.PIPE, stdin=subprocess.PIPE, text=True)
+                for _ in range(NODES)]
+    for child in children:                           # both imported and scheduled before t0 is chosen
+        if child.stdout.readline().strip() != "ready":
+            child.kill()
+    t0 = time.perf_counter() + 0.05
+    for child in children:
+        child.stdin.write(f"{t0!r}\n")
+        child.stdin.close()
+    outs = []
+    for child in children:
+        out = child.stdout.read()
+        child.wait()
+        if child.returncode != 0:
+            raise HilError(f"real-time floor probe: a pacing process exited {child.returncode}")
+        outs.append(json.loads(out))
+    missed = sorted(set().union(*(o["missed"] for o in outs)))
+    stalls = []                                      # runs of consecutive missed periods: one stall each
+    for k in missed:
+        if stalls and stalls[-1][1] == k - 1:
+            stalls[-1][1] = k
+        else:
+            stalls.append([k, k])
+    grants = [o["sched_fifo_granted"] for o in outs]
+    return {"seconds": seconds, "steps": steps, "missed": len(missed),
+            "missed_per_10k": len(missed) * 1e4 / steps, "stalls": len(stalls),
+            "longest_stall_periods": max((b - a + 1 for a, b in stalls), default=0),
+            "late_p99_us": max(o["late_p99_us"] for o in outs), "late_max_us": max(o["late_max_us"] for o in outs),
+            "sched_fifo_granted": None if priority <= 0 else all(grants), "loadavg_1min": os.getloadavg()[0]}
+
+
+def main(argv=None) -> int:
+    if argv is None:
+        argv = sys.argv[1:]
+    if argv and argv[0] == "--child":
+        period_s, steps, priority, deadline_s = argv[1:5]
+        _child(float(period_s), int(steps), int(priority), float(deadline_s))
+        return 0
+    p = argparse.ArgumentParser(prog="python -m hil.benchmarks.rtfloor", description=__doc__.split("\n\n")[0])
+    p.add_argument("seconds", type=float)
+    p.add_argument("--priority", type=int, default=0, help="SCHED_FIFO priority (0: normal scheduling)")
+    a = p.parse_args(argv)
+    print(json.dumps(measure(a.seconds, a.priority)))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
