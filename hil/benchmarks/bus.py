@@ -157,7 +157,7 @@ def cmd_realtime(args, sets) -> int:
 
     from ..config import parse_set
     from ..link import resolve
-    from .rtfloor import measure as measure_floor
+    from .rtfloor import kernel_preemption, measure as measure_floor
 
     args.strategy = args.strategy or "proposed"
     seconds = args.realtime_seconds or 5.0
@@ -165,6 +165,7 @@ def cmd_realtime(args, sets) -> int:
     buses = [b.strip() for b in args.realtime_buses.split(",") if b.strip()]
     result = {"scenario": args.scenario, "seconds": seconds, "lockstep_seconds": args.lockstep_seconds,
               "default_bus": resolve("auto"), "cpus": os.cpu_count(), "sets": sets,
+              "kernel_preemption": kernel_preemption(),
               "date_utc": time.strftime("%Y-%m-%d %H:%M", time.gmtime()), "buses": {}}
     settings = load_scenario(args.scenario, parse_set(sets)).bus
     result["floor"] = [] if not args.no_floor else None
@@ -223,7 +224,8 @@ def _fmt(x, fmt="7.0f") -> str:
 
 def realtime_text(args, result) -> str:
     lines = [f"{args.scenario}: {args.realtime_runs} real-time run(s) of {result['seconds']:g} s per bus; auto is "
-             f"{result['default_bus']} here ({result['cpus']} CPUs)"]
+             f"{result['default_bus']} here ({result['cpus']} CPUs; kernel preemption "
+             f"{result.get('kernel_preemption', 'unknown')})"]
     for bus, b in result["buses"].items():
         speeds = ", ".join(f"{x:.2f}" for x in b["lockstep_speeds"])
         lines.append(f"  {bus}: lockstep {_fmt(b['lockstep_speed'], '.2f')} sim s/wall s median ({speeds}; 1 ms, "
@@ -252,7 +254,8 @@ def realtime_markdown(args, result) -> str:
            f"{result['seconds']:g} --realtime-buses {args.realtime_buses} --lockstep-seconds {args.lockstep_seconds:g}"
            + "".join(f" --set {x}" for x in result["sets"]) + (f" --doc {args.doc}" if args.doc else ""))
     out = ["# Real time and lockstep speed", "",
-           f"Written by `{cmd}` on {result['date_utc']} UTC ({result['cpus']} CPUs; `auto` is "
+           f"Written by `{cmd}` on {result['date_utc']} UTC ({result['cpus']} CPUs; kernel preemption "
+           f"{result.get('kernel_preemption', 'unknown')}; `auto` is "
            f"`{result['default_bus']}` here). Each real-time run is a `hil run --mode realtime --json` process "
            f"(FFCC-a, strategy `{args.strategy}`, 1 ms period); lockstep runs ({result['lockstep_seconds']:g} "
            "simulated s, `proposed`) are taken in turns across the buses. The machine is shared: the load "

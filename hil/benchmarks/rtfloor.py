@@ -69,6 +69,41 @@ def _child(period_s: float, steps: int, priority: int, deadline_s: float) -> Non
                       "late_p99_us": late_us[int(0.99 * (len(late_us) - 1))], "late_max_us": late_us[-1]}))
 
 
+def kernel_preemption() -> str:
+    """The kernel's preemption model, as far as this process can read it: the current mode of a
+    ``PREEMPT_DYNAMIC`` kernel from debugfs (``/sys/kernel/debug/sched/preempt``, the one in brackets),
+    else ``preempt=`` on the kernel command line, else the build's default from ``/proc/config.gz``.
+    Why it matters: under ``none`` (and ``voluntary``) a SCHED_FIFO task that wakes while the kernel
+    runs on its CPU waits until that kernel path reaches a preemption point, milliseconds at times."""
+    import gzip
+    import re
+
+    try:
+        text = open("/sys/kernel/debug/sched/preempt").read()
+        m = re.search(r"\((\w+)\)", text)
+        if m:
+            return f"{m.group(1)} (dynamic)"
+    except OSError:
+        pass
+    try:
+        m = re.search(r"(?:^|\s)preempt=(\w+)", open("/proc/cmdline").read())
+        if m:
+            return f"{m.group(1)} (kernel command line)"
+    except OSError:
+        pass
+    try:
+        config = gzip.open("/proc/config.gz", "rt").read()
+    except OSError:
+        return "unknown"
+    for option, name in (("CONFIG_PREEMPT_RT", "rt"), ("CONFIG_PREEMPT_NONE", "none"),
+                         ("CONFIG_PREEMPT_VOLUNTARY", "voluntary"), ("CONFIG_PREEMPT_LAZY", "lazy"),
+                         ("CONFIG_PREEMPT", "full")):
+        if re.search(rf"^{option}=y", config, re.M):
+            dynamic = re.search(r"^CONFIG_PREEMPT_DYNAMIC=y", config, re.M)
+            return f"{name} (build default{'; dynamic, current mode unread: debugfs not mounted' if dynamic else ''})"
+    return "unknown"
+
+
 def measure(seconds: float, priority: int = 0, period_s: float = 1e-3, deadline_fraction: float = 0.9) -> dict:
     """Run the two empty loops for ``seconds`` and merge them: missed periods (either node late past the
     deadline), per 10 000 periods, the stalls behind them, the load average, SCHED_FIFO granted or not."""
@@ -103,7 +138,8 @@ def measure(seconds: float, priority: int = 0, period_s: float = 1e-3, deadline_
             "missed_per_10k": len(missed) * 1e4 / steps, "stalls": len(stalls),
             "longest_stall_periods": max((b - a + 1 for a, b in stalls), default=0),
             "late_p99_us": max(o["late_p99_us"] for o in outs), "late_max_us": max(o["late_max_us"] for o in outs),
-            "sched_fifo_granted": None if priority <= 0 else all(grants), "loadavg_1min": os.getloadavg()[0]}
+            "sched_fifo_granted": None if priority <= 0 else all(grants), "loadavg_1min": os.getloadavg()[0],
+            "kernel_preemption": kernel_preemption()}
 
 
 def main(argv=None) -> int:
