@@ -1,10 +1,10 @@
-"""The machine's real-time floor (``hil.benchmarks.rtfloor``): an empty loop paced as the plant node."""
+"""An idle loop paced as the plant node (``hil.benchmarks.idle_loop``)."""
 import random
 import sys
 import threading
 import time
 
-from hil.benchmarks.rtfloor import measure, pace
+from hil.benchmarks.idle_loop import measure, pace
 
 
 def test_a_stall_of_the_pacing_loop_shows_as_late_wakes():

@@ -1,21 +1,21 @@
-"""The machine's real-time floor: the deadlines an *empty* loop misses on this machine, now.
+"""An idle paced loop: the deadlines a loop that does no work misses on this machine, now.
 
 Why: the real-time issue's target (<= 10 missed deadlines per 10 000 periods of 1 ms) is a property of
-the loop *and* of the machine. On a shared virtual machine the vCPU itself can be taken away for
-milliseconds (the hypervisor's preemption shows as no steal time in a guest that does not account it),
-and no code in the loop can meet a deadline the CPU is not there for. This probe measures that floor
-in the same minutes as the real runs, so a miss rate can be judged against it.
+the loop *and* of the machine. On a shared virtual machine the vCPU can be away for milliseconds, and
+the kernel here is built ``PREEMPT_NONE``. This probe shows what the machine does to a paced loop in
+the same minutes as the real runs. It is context, **not a lower bound**: an idle loop leaves its vCPU
+idle most of each period, and an idle vCPU can be woken later than a busy one (measured: rounds where
+the idle loop missed more deadlines than the real run beside it; ``docs/realtime.md``).
 
 What: two processes (as a real-time run has a plant and a TCU), each at SCHED_FIFO ``priority`` (when
 granted; normal priority otherwise, reported), pace periods of ``period_s`` exactly as the plant node
 does (sleep until ``WAKE_MARGIN_S`` before the period, then poll with ``POLL_SLICE_S`` sleeps, the last
 ``SPIN_S`` without sleeping) and do nothing else. Period k of the pair is *missed* when either process
 wakes for it later than ``deadline_fraction * period_s`` after its start ``t_k = t0 + k * period_s``
-(the same bound by which the plant needs the TCU's command): that is, the time the command would have
-had to be computed and carried was not there at all. Both processes share ``t0`` on CLOCK_MONOTONIC
+(the bound by which the plant needs the TCU's command). Both processes share ``t0`` on CLOCK_MONOTONIC
 (``time.perf_counter`` on Linux), so their late periods are merged by index.
 
-``python -m hil.benchmarks.rtfloor SECONDS [--priority P]`` prints the result as JSON.
+``python -m hil.benchmarks.idle_loop SECONDS [--priority P]`` prints the result as JSON.
 """
 from __future__ import annotations
 
@@ -108,7 +108,7 @@ def measure(seconds: float, priority: int = 0, period_s: float = 1e-3, deadline_
     """Run the two empty loops for ``seconds`` and merge them: missed periods (either node late past the
     deadline), per 10 000 periods, the stalls behind them, the load average, SCHED_FIFO granted or not."""
     steps = max(1, int(round(seconds / period_s)))
-    cmd = [sys.executable, "-m", "hil.benchmarks.rtfloor", "--child", repr(period_s), str(steps),
+    cmd = [sys.executable, "-m", "hil.benchmarks.idle_loop", "--child", repr(period_s), str(steps),
            str(priority), repr(deadline_fraction * period_s)]
     children = [subprocess.Popen(cmd, stdout=subprocess.PIPE, stdin=subprocess.PIPE, text=True)
                 for _ in range(NODES)]
@@ -124,7 +124,7 @@ def measure(seconds: float, priority: int = 0, period_s: float = 1e-3, deadline_
         out = child.stdout.read()
         child.wait()
         if child.returncode != 0:
-            raise HilError(f"real-time floor probe: a pacing process exited {child.returncode}")
+            raise HilError(f"idle loop: a pacing process exited {child.returncode}")
         outs.append(json.loads(out))
     missed = sorted(set().union(*(o["missed"] for o in outs)))
     stalls = []                                      # runs of consecutive missed periods: one stall each
@@ -149,7 +149,7 @@ def main(argv=None) -> int:
         period_s, steps, priority, deadline_s = argv[1:5]
         _child(float(period_s), int(steps), int(priority), float(deadline_s))
         return 0
-    p = argparse.ArgumentParser(prog="python -m hil.benchmarks.rtfloor", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m hil.benchmarks.idle_loop", description=__doc__.split("\n\n")[0])
     p.add_argument("seconds", type=float)
     p.add_argument("--priority", type=int, default=0, help="SCHED_FIFO priority (0: normal scheduling)")
     a = p.parse_args(argv)
