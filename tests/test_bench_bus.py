@@ -15,7 +15,7 @@ def test_realtime_bench_lists_exit_codes_medians_and_whether_sched_fifo_was_gran
     print(f"seed {seed}")
     r = subprocess.run([*hil_command(), "bench", "bus", "--realtime-runs", "1", "--realtime-seconds", "1",
                         "--lockstep-seconds", "1", "--seed", str(seed), "--set", "bus.rt_priority=10", "--json",
-                        "--doc", str(tmp_path)],
+                        "--doc", str(tmp_path), "--doc-name", "rt-check"],
                        cwd=ROOT, env=subprocess_env(), capture_output=True, text=True, timeout=170)
     assert r.returncode == 0, r.stderr
     out = json.loads(r.stdout)
@@ -41,7 +41,8 @@ def test_realtime_bench_lists_exit_codes_medians_and_whether_sched_fifo_was_gran
     # the idle loop of the same round
     (idle,) = out["idle_loop"]
     assert idle["steps"] == 1000 and 0 <= idle["missed"] <= 1000 and isinstance(idle["sched_fifo_granted"], bool)
-    doc = (tmp_path / "realtime.md").read_text()
+    doc = (tmp_path / "rt-check.md").read_text()
     assert "## An idle loop in the same minutes" in doc
-    assert json.loads((tmp_path / "realtime.json").read_text())["targets"] == out["targets"]
+    assert not (tmp_path / "realtime.md").exists()          # --doc-name names the files
+    assert json.loads((tmp_path / "rt-check.json").read_text())["targets"] == out["targets"]
     assert "| target | measured |" in doc and f"{speed:.2f}x" in doc

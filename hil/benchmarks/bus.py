@@ -42,6 +42,8 @@ def register(sub) -> None:
                    "the runs, no work, for --realtime-seconds before each round of runs)")
     p.add_argument("--doc", metavar="DIR", default=None,
                    help="with --realtime-runs: also write DIR/realtime.md and DIR/realtime.json (e.g. docs)")
+    p.add_argument("--doc-name", default="realtime",
+                   help="with --doc: the files' name without extension (default realtime: DIR/realtime.md, .json)")
     p.add_argument("--set", action="append", metavar="TABLE.KEY=VALUE", help="scenario override (all runs)")
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_bus)
@@ -198,9 +200,10 @@ def cmd_realtime(args, sets) -> int:
         from pathlib import Path
         d = Path(args.doc)
         d.mkdir(parents=True, exist_ok=True)
-        (d / "realtime.json").write_text(json.dumps(result, indent=1))
-        (d / "realtime.md").write_text(realtime_markdown(args, result))
-        print(f"bench bus: wrote {d / 'realtime.md'} and {d / 'realtime.json'}", file=sys.stderr)
+        md, js = d / f"{args.doc_name}.md", d / f"{args.doc_name}.json"
+        js.write_text(json.dumps(result, indent=1))
+        md.write_text(realtime_markdown(args, result))
+        print(f"bench bus: wrote {md} and {js}", file=sys.stderr)
     if args.json:
         print(json.dumps(result))
         return 0
@@ -219,7 +222,7 @@ def realtime_text(args, result) -> str:
     for bus, b in result["buses"].items():
         speeds = ", ".join(f"{x:.2f}" for x in b["lockstep_speeds"])
         lines.append(f"  {bus}: lockstep {_fmt(b['lockstep_speed'], '.2f')} sim s/wall s median ({speeds}; 1 ms, "
-                     "proposed)")
+                     "proposed)" if speeds else f"  {bus}: no lockstep runs")
         for r in b["runs"]:
             fifo = {None: "not asked", True: "granted", False: "REFUSED"}[r["sched_fifo_granted"]]
             lines.append(f"    exit {r['exit_code']}  missed/10k {_fmt(r['missed_per_10k'], '6.1f')}  jitter p50/p99/max "
@@ -241,8 +244,11 @@ def realtime_text(args, result) -> str:
 
 def realtime_markdown(args, result) -> str:
     cmd = (f"hil bench bus {args.scenario} --realtime-runs {args.realtime_runs} --realtime-seconds "
-           f"{result['seconds']:g} --realtime-buses {args.realtime_buses} --lockstep-seconds {args.lockstep_seconds:g}"
-           + "".join(f" --set {x}" for x in result["sets"]) + (f" --doc {args.doc}" if args.doc else ""))
+           f"{result['seconds']:g} --realtime-buses {args.realtime_buses}"
+           + (f" --lockstep-runs {args.lockstep_runs}" if getattr(args, "lockstep_runs", None) is not None else "")
+           + f" --lockstep-seconds {args.lockstep_seconds:g}"
+           + "".join(f" --set {x}" for x in result["sets"]) + (f" --doc {args.doc}" if args.doc else "")
+           + (f" --doc-name {args.doc_name}" if getattr(args, "doc_name", "realtime") != "realtime" else ""))
     out = ["# Real time and lockstep speed", "",
            f"Written by `{cmd}` on {result['date_utc']} UTC ({result['cpus']} CPUs; kernel preemption "
            f"{result.get('kernel_preemption', 'unknown')}; `auto` is "
@@ -265,10 +271,11 @@ def realtime_markdown(args, result) -> str:
             out.append(f"| {i} | {f['missed_per_10k']:.1f} | {f['stalls']} | {f['longest_stall_periods']} | "
                        f"{f['late_p99_us']:.0f} / {f['late_max_us']:.0f} | {f['loadavg_1min']:.2f} | {fifo} |")
     for bus, b in result["buses"].items():
-        out += ["", f"## {bus}", "",
-                "Lockstep: " + ", ".join(f"{x:.2f}x (load {ld:.2f})" for x, ld in zip(b["lockstep_speeds"],
-                                                                                   b["lockstep_loads"]))
-                + f"; median {_fmt(b['lockstep_speed'], '.2f')}x.", ""]
+        out += ["", f"## {bus}", ""]
+        if b["lockstep_speeds"]:
+            out += ["Lockstep: " + ", ".join(f"{x:.2f}x (load {ld:.2f})" for x, ld in zip(b["lockstep_speeds"],
+                                                                                       b["lockstep_loads"]))
+                    + f"; median {_fmt(b['lockstep_speed'], '.2f')}x.", ""]
         if b["runs"]:
             out += ["| run | exit | missed / 10k | jitter p50 / p99 / max (us) | round trip p50 / p99 (us) | "
                     "stale skipped | load | SCHED_FIFO |", "|---|---|---|---|---|---|---|---|"]
