@@ -71,7 +71,7 @@ def _child(period_s: float, steps: int, priority: int, deadline_s: float) -> Non
 
 def kernel_preemption() -> str:
     """The kernel's preemption model, as far as this process can read it: the current mode of a
-    ``PREEMPT_DYNAMIC`` kernel from debugfs (``/sys/kernel/debug/sched/preempt``, the one in brackets),
+    ``PREEMPT_DYNAMIC`` kernel from debugfs (``/sys/kernel/debug/sched/preempt``, the one in parentheses),
     else ``preempt=`` on the kernel command line, else the build's default from ``/proc/config.gz``.
     Why it matters: under ``none`` (and ``voluntary``) a SCHED_FIFO task that wakes while the kernel
     runs on its CPU waits until that kernel path reaches a preemption point, milliseconds at times."""
@@ -100,7 +100,7 @@ def kernel_preemption() -> str:
                          ("CONFIG_PREEMPT", "full")):
         if re.search(rf"^{option}=y", config, re.M):
             dynamic = re.search(r"^CONFIG_PREEMPT_DYNAMIC=y", config, re.M)
-            return f"{name} (build default{'; dynamic, current mode unread: debugfs not mounted' if dynamic else ''})"
+            return f"{name} (build default{'; dynamic: the current mode is in debugfs, unreadable here' if dynamic else ''})"
     return "unknown"
 
 
@@ -112,20 +112,28 @@ def measure(seconds: float, priority: int = 0, period_s: float = 1e-3, deadline_
            str(priority), repr(deadline_fraction * period_s)]
     children = [subprocess.Popen(cmd, stdout=subprocess.PIPE, stdin=subprocess.PIPE, text=True)
                 for _ in range(NODES)]
-    for child in children:                           # both imported and scheduled before t0 is chosen
-        if child.stdout.readline().strip() != "ready":
-            child.kill()
-    t0 = time.perf_counter() + 0.05
-    for child in children:
-        child.stdin.write(f"{t0!r}\n")
-        child.stdin.close()
-    outs = []
-    for child in children:
-        out = child.stdout.read()
-        child.wait()
-        if child.returncode != 0:
-            raise HilError(f"idle loop: a pacing process exited {child.returncode}")
-        outs.append(json.loads(out))
+    try:
+        for child in children:                       # both imported and scheduled before t0 is chosen
+            if child.stdout.readline().strip() != "ready":
+                raise HilError(f"idle loop: a pacing process did not start (exit {child.wait()})")
+        t0 = time.perf_counter() + 0.05
+        for child in children:
+            child.stdin.write(f"{t0!r}\n")
+            child.stdin.close()
+        outs = []
+        for child in children:
+            out = child.stdout.read()
+            if child.wait() != 0:
+                raise HilError(f"idle loop: a pacing process exited {child.returncode}")
+            try:
+                outs.append(json.loads(out))
+            except ValueError:
+                raise HilError(f"idle loop: a pacing process printed no result ({out[:80]!r})") from None
+    finally:
+        for child in children:
+            if child.poll() is None:
+                child.kill()
+                child.wait()
     missed = sorted(set().union(*(o["missed"] for o in outs)))
     stalls = []                                      # runs of consecutive missed periods: one stall each
     for k in missed:
@@ -153,7 +161,11 @@ def main(argv=None) -> int:
     p.add_argument("seconds", type=float)
     p.add_argument("--priority", type=int, default=0, help="SCHED_FIFO priority (0: normal scheduling)")
     a = p.parse_args(argv)
-    print(json.dumps(measure(a.seconds, a.priority)))
+    try:
+        print(json.dumps(measure(a.seconds, a.priority)))
+    except HilError as e:
+        print(f"idle_loop: {e}", file=sys.stderr)
+        return 1
     return 0
 
 
