@@ -41,7 +41,8 @@ def register(sub) -> None:
                    help="with --realtime-runs: skip the idle loop (two processes paced as the plant, SCHED_FIFO as "
                    "the runs, no work, for --realtime-seconds before each round of runs)")
     p.add_argument("--doc", metavar="DIR", default=None,
-                   help="with --realtime-runs: also write DIR/realtime.md and DIR/realtime.json (e.g. docs)")
+                   help="with --realtime-runs: also write DIR/realtime.md and DIR/realtime.json (e.g. docs; --doc-name "
+                   "names them)")
     p.add_argument("--doc-name", default="realtime",
                    help="with --doc: the files' name without extension (default realtime: DIR/realtime.md, .json)")
     p.add_argument("--set", action="append", metavar="TABLE.KEY=VALUE", help="scenario override (all runs)")
@@ -211,6 +212,10 @@ def cmd_realtime(args, sets) -> int:
     return 0
 
 
+#: how a run's ``sched_fifo_granted`` reads in the reports
+FIFO_WORD = {None: "not asked", True: "granted", False: "REFUSED"}
+
+
 def _fmt(x, fmt="7.0f") -> str:
     return "-" if x is None else format(x, fmt)
 
@@ -224,7 +229,7 @@ def realtime_text(args, result) -> str:
         lines.append(f"  {bus}: lockstep {_fmt(b['lockstep_speed'], '.2f')} sim s/wall s median ({speeds}; 1 ms, "
                      "proposed)" if speeds else f"  {bus}: no lockstep runs")
         for r in b["runs"]:
-            fifo = {None: "not asked", True: "granted", False: "REFUSED"}[r["sched_fifo_granted"]]
+            fifo = FIFO_WORD[r["sched_fifo_granted"]]
             lines.append(f"    exit {r['exit_code']}  missed/10k {_fmt(r['missed_per_10k'], '6.1f')}  jitter p50/p99/max "
                          f"{_fmt(r['jitter_p50_us'])}/{_fmt(r['jitter_p99_us'])}/{_fmt(r['jitter_max_us'])} us  round "
                          f"trip p50/p99 {_fmt(r['round_trip_p50_us'])}/{_fmt(r['round_trip_p99_us'])} us  skipped "
@@ -234,7 +239,7 @@ def realtime_text(args, result) -> str:
         lines.append(f"  idle loop, round {i}: missed/10k {f['missed_per_10k']:6.1f} ({f['stalls']} stalls, longest "
                      f"{f['longest_stall_periods']} periods; late p99/max {f['late_p99_us']:.0f}/{f['late_max_us']:.0f} us)"
                      f"  load {f['loadavg_1min']:.2f}  SCHED_FIFO "
-                     f"{ {None: 'not asked', True: 'granted', False: 'REFUSED'}[f['sched_fifo_granted']]}")
+                     f"{FIFO_WORD[f['sched_fifo_granted']]}")
     lines.append("targets:")
     for t in result["targets"]:
         lines.append(f"  {'MET' if t['met'] else 'not measured' if t['met'] is None else 'NOT MET'}: {t['target']}: "
@@ -255,7 +260,9 @@ def realtime_markdown(args, result) -> str:
            f"`{result['default_bus']}` here). Each real-time run is a `hil run --mode realtime --json` process "
            f"(FFCC-a, strategy `{args.strategy}`, 1 ms period); lockstep runs ({result['lockstep_seconds']:g} "
            "simulated s, `proposed`) are taken in turns across the buses. The machine is shared: the load "
-           "average is beside each run. Runs go in rounds: an idle loop, then one run per bus.", "", "## Targets", "", "| target | measured | |", "|---|---|---|"]
+           "average is beside each run. Runs go in rounds: "
+           + ("an idle loop, then " if result.get("idle_loop") else "") + "one run per bus.", "",
+           "## Targets", "", "| target | measured | |", "|---|---|---|"]
     for t in result["targets"]:
         out.append(f"| {t['target']} | {t['measured']} | {'met' if t['met'] else 'not measured' if t['met'] is None else '**not met**'} |")
     if result.get("idle_loop"):
@@ -267,7 +274,7 @@ def realtime_markdown(args, result) -> str:
                 "| round | missed / 10k | stalls | longest (periods) | late p99 / max (us) | load | SCHED_FIFO |",
                 "|---|---|---|---|---|---|---|"]
         for i, f in enumerate(result["idle_loop"], 1):
-            fifo = {None: "not asked", True: "granted", False: "REFUSED"}[f["sched_fifo_granted"]]
+            fifo = FIFO_WORD[f["sched_fifo_granted"]]
             out.append(f"| {i} | {f['missed_per_10k']:.1f} | {f['stalls']} | {f['longest_stall_periods']} | "
                        f"{f['late_p99_us']:.0f} / {f['late_max_us']:.0f} | {f['loadavg_1min']:.2f} | {fifo} |")
     for bus, b in result["buses"].items():
@@ -280,7 +287,7 @@ def realtime_markdown(args, result) -> str:
             out += ["| run | exit | missed / 10k | jitter p50 / p99 / max (us) | round trip p50 / p99 (us) | "
                     "stale skipped | load | SCHED_FIFO |", "|---|---|---|---|---|---|---|---|"]
             for i, r in enumerate(b["runs"], 1):
-                fifo = {None: "not asked", True: "granted", False: "REFUSED"}[r["sched_fifo_granted"]]
+                fifo = FIFO_WORD[r["sched_fifo_granted"]]
                 out.append(f"| {i} | {r['exit_code']} | {_fmt(r['missed_per_10k'], '.1f')} | {_fmt(r['jitter_p50_us'], '.0f')} / "
                            f"{_fmt(r['jitter_p99_us'], '.0f')} / {_fmt(r['jitter_max_us'], '.0f')} | "
                            f"{_fmt(r['round_trip_p50_us'], '.0f')} / {_fmt(r['round_trip_p99_us'], '.0f')} | "

@@ -146,8 +146,7 @@ def measure(seconds: float, priority: int = 0, period_s: float = 1e-3, deadline_
             "missed_per_10k": len(missed) * 1e4 / steps, "stalls": len(stalls),
             "longest_stall_periods": max((b - a + 1 for a, b in stalls), default=0),
             "late_p99_us": max(o["late_p99_us"] for o in outs), "late_max_us": max(o["late_max_us"] for o in outs),
-            "sched_fifo_granted": None if priority <= 0 else all(grants), "loadavg_1min": os.getloadavg()[0],
-            "kernel_preemption": kernel_preemption()}
+            "sched_fifo_granted": None if priority <= 0 else all(grants), "loadavg_1min": os.getloadavg()[0]}
 
 
 def main(argv=None) -> int:
@@ -162,7 +161,7 @@ def main(argv=None) -> int:
     p.add_argument("--priority", type=int, default=0, help="SCHED_FIFO priority (0: normal scheduling)")
     a = p.parse_args(argv)
     try:
-        print(json.dumps(measure(a.seconds, a.priority)))
+        print(json.dumps({**measure(a.seconds, a.priority), "kernel_preemption": kernel_preemption()}))
     except HilError as e:
         print(f"idle_loop: {e}", file=sys.stderr)
         return 1

