@@ -85,6 +85,11 @@ def test_a_forged_sensor_frame_from_a_third_node_ends_the_run_naming_it(tmp_path
             frame, _ = codec.classify(msg)
             if frame is not None and frame.value.step >= 300:
                 r = frame.value
+                # the spy may lag the run by more than 50 steps (its backlog queues while it decodes): the
+                # newest reading queued is the plant's step now, else the forged one lands in the past
+                while (later := spy.recv(0)) is not None:
+                    if later.arbitration_id == SENSOR_ID and (f := codec.classify(later)[0]) is not None:
+                        r = f.value
                 forged = r.step + 50
                 spy.send(codec.sensor(SensorReading(forged, r.motor_speed_rad_s, r.train_speed_ms)))
                 break
