@@ -260,6 +260,32 @@ def test_a_realtime_run_over_its_missed_deadline_limit_exits_5_after_writing_its
     assert os.path.getsize(s["mcap"][:-len(".mcap")] + ".rrd") > 0    # the Rerun recording too
 
 
+
+def test_misses_mostly_after_the_fault_are_placed_there_with_the_strategy_named(tmp_path):
+    # every step misses (a 1 us deadline) and the fault is at 0.1 s of 0.4: 300 of the 400 misses come after it
+    r = subprocess.run([*hil_command(), *MISS_ARGS, "--out", str(tmp_path), "--no-rrd", "--set", "run.fault_time_s=0.1",
+                        "--set", "bus.deadline_fraction=0.001", "--set", "bus.max_missed_fraction=0"],
+                       cwd=ROOT, env=subprocess_env(), capture_output=True, text=True, timeout=180)
+    assert r.returncode == 5, r.stderr
+    s = json.loads(r.stdout)
+    timing = read_log(s["mcap"]).topic("/loop/timing")
+    after = sum(t.missed_deadline for t in timing if t.step >= 100)
+    assert after > s["missed_deadlines"] / 2 and s["missed_deadlines_after_fault"] == after
+    last = r.stderr.strip().splitlines()[-1]
+    assert f"; {after} of them after the fault at 0.1 s, while the TCU's strategy nlls identifies" in last, last
+    assert last.endswith("; logs written")
+
+
+def test_misses_not_mostly_after_the_fault_are_not_blamed_on_the_strategy():
+    from hil.errors import DeadlinesMissed
+    from hil.exchange import check_deadlines
+    summary = {"deadlines_exceeded": True, "missed_deadlines": 40, "steps": 1000, "max_missed_fraction": 0.01,
+               "missed_deadlines_after_fault": 20, "t_fault_s": 0.5, "strategy": "nlls"}
+    with pytest.raises(DeadlinesMissed) as e:
+        check_deadlines(summary)
+    assert str(e.value) == ("40 of 1000 deadlines missed (4.00 %), more than [bus] max_missed_fraction = 0.01 allows; "
+                            "logs written")
+
 def test_a_realtime_run_within_a_generous_missed_deadline_limit_exits_0(tmp_path):
     r = subprocess.run([*hil_command(), *MISS_ARGS, "--out", str(tmp_path), "--no-rrd",
                         "--set", "bus.deadline_fraction=0.001", "--set", "bus.max_missed_fraction=1"],

@@ -15,8 +15,9 @@ def register(sub) -> None:
     p = sub.add_parser("run", help="run a scenario on the HIL loop and record it to MCAP")
     p.add_argument("scenario", help="scenario TOML file, e.g. scenarios/ffcc_a.toml")
     p.add_argument("--bus", default="auto", help="bus between plant and TCU: auto (socketcan:vcan0 when the kernel "
-                   "has it, else hub), hub (python-can-remote on 127.0.0.1), socketcan:<ch>, inprocess (no second "
-                   "process, same frames), or any python-can interface:channel (default: auto)")
+                   "has it, else local), local (the embedded relay-free bus), hub (python-can-remote on 127.0.0.1), "
+                   "socketcan:<ch>, inprocess (no second process, same frames), or any python-can interface:channel "
+                   "(default: auto)")
     p.add_argument("--tcu", choices=("process", "external"), default="process",
                    help="process: start the identifier as a second process (default); external: a TCU already on "
                    "the bus answers (hil tcu elsewhere, or a real TCU)")
