@@ -10,13 +10,15 @@ from plant import families
 
 from .conftest import SCENARIOS
 
+DRAWS = 12
+
 
 def test_the_oracle_covers_the_truth_and_is_not_later_than_bayes():
     seed = secrets.randbits(31)
     print("seed", seed)
     base = (SCENARIOS / "ffcc_a.toml").read_text()
     covered, runs, not_later = 0, 0, 0
-    for i in range(5):
+    for i in range(DRAWS):
         sc = parse_scenario(families.draw_scenario_text(base, "exp", seed, i), f"draw {i}")
         data = generate(sc, i + 1)
         o = run_oracle(data, "exp", [seed, i], 2000)
@@ -30,7 +32,12 @@ def test_the_oracle_covers_the_truth_and_is_not_later_than_bayes():
         t_bayes = summary.get("t_identified_s")
         not_later += t_bayes is None or o["oracle_t_confirmed_s"] <= t_bayes + 1e-9
         assert o["oracle_ess"] >= 30
-    print("oracle confirmed", runs, "of 5; both 90 % intervals covered", covered, "; not later than bayes", not_later)
-    assert runs >= 3
-    assert covered >= runs - 2          # each covers with probability ~0.81 (two 90 % intervals)
+    print("oracle confirmed", runs, f"of {DRAWS}; both 90 % intervals covered", covered, "; not later than bayes",
+          not_later)
+    assert runs >= DRAWS - 4
+    # both intervals cover together with probability >= 0.81 (two 90 % intervals; nearer 0.88, as they are
+    # correlated): 8 or more misses in 12 happen to a calibrated oracle less than once in 2 000 runs, while an
+    # oracle that keeps to its prior misses most curves drawn away from it.  (5 draws allowing 2 misses failed
+    # a calibrated oracle about once in 70 runs: CI on fc1b0df, seed 984674436, 3 misses, each at an edge)
+    assert covered >= runs - 7
     assert not_later >= runs - 1        # a broader prior cannot know more, up to the oracle's own sampling
