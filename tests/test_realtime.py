@@ -260,7 +260,6 @@ def test_a_realtime_run_over_its_missed_deadline_limit_exits_5_after_writing_its
     assert os.path.getsize(s["mcap"][:-len(".mcap")] + ".rrd") > 0    # the Rerun recording too
 
 
-
 def test_misses_mostly_after_the_fault_are_placed_there_with_the_strategy_named(tmp_path):
     # every step misses (a 1 us deadline) and the fault is at 0.1 s of 0.4: 300 of the 400 misses come after it
     r = subprocess.run([*hil_command(), *MISS_ARGS, "--out", str(tmp_path), "--no-rrd", "--set", "run.fault_time_s=0.1",
@@ -285,6 +284,7 @@ def test_misses_not_mostly_after_the_fault_are_not_blamed_on_the_strategy():
         check_deadlines(summary)
     assert str(e.value) == ("40 of 1000 deadlines missed (4.00 %), more than [bus] max_missed_fraction = 0.01 allows; "
                             "logs written")
+
 
 def test_a_realtime_run_within_a_generous_missed_deadline_limit_exits_0(tmp_path):
     r = subprocess.run([*hil_command(), *MISS_ARGS, "--out", str(tmp_path), "--no-rrd",
