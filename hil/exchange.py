@@ -128,8 +128,11 @@ class Timing:
         self.period_us: list[float] = []
         self.round_trip_us: list[float] = []
         self.lateness_us: list[float] = []
-        self.missed = 0
         self.missed_steps: list[int] = []
+
+    @property
+    def missed(self) -> int:
+        return len(self.missed_steps)
 
     def summary(self, late_commands: int) -> dict:
         out = {"round_trip_p50_us": _percentile(self.round_trip_us, 50),
@@ -192,7 +195,6 @@ def exchange(node: PlantNode, steps: int, mode: str, bar: Progress | None = None
             command = node.await_command(k, deadline)
             missed = command is None
             if missed:
-                timing.missed += 1
                 timing.missed_steps.append(k)
                 timing.round_trip_us.append(math.nan)
                 command = TorqueCommand(k, node.rig.plant.state.torque_nm)    # hold the torque being applied

@@ -37,7 +37,6 @@ def test_the_oracle_covers_the_truth_and_is_not_later_than_bayes():
     assert runs >= DRAWS - 4
     # both intervals cover together with probability >= 0.81 (two 90 % intervals; nearer 0.88, as they are
     # correlated): 8 or more misses in 12 happen to a calibrated oracle less than once in 2 000 runs, while an
-    # oracle that keeps to its prior misses most curves drawn away from it.  (5 draws allowing 2 misses failed
-    # a calibrated oracle about once in 70 runs: CI on fc1b0df, seed 984674436, 3 misses, each at an edge)
+    # oracle that keeps to its prior misses most curves drawn away from it
     assert covered >= runs - 7
     assert not_later >= runs - 1        # a broader prior cannot know more, up to the oracle's own sampling
