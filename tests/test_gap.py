@@ -478,11 +478,18 @@ def test_sparse_description_of_known_residuals():
     d = describe_residual(motor + a * np.sin(2 * np.pi * f_hz * t + g.uniform(0, 6)) + noise, motor, train, creep,
                           torque, dt, tr, ho)
     print(f"sine {a:.3f} rad/s at {f_hz:.2f} Hz -> {d['sentence']}")
-    assert d["described"] and "periodic" in d["variables"], d["sentence"]
+    assert d["described"] and d["variables"] == ["periodic"], d["sentence"]    # a plain sine: not the torque
     assert d["line_hz"] == pytest.approx(f_hz, rel=0.005)
     assert d["terms"][0]["frequency_hz"] == d["line_hz"]
-    assert d["terms"][0]["coef"] == pytest.approx(a * (torque.mean() if "torque" in d["variables"] else 1.0),
-                                                  rel=0.25)
+    assert d["terms"][0]["coef"] == pytest.approx(a, rel=0.25)
+    ramp = 1000.0 + 2000.0 * t / t[-1]               # a ripple that scales with a command ramping 1:3
+    frac = a / ramp.mean()
+    d = describe_residual(motor + frac * ramp * np.sin(2 * np.pi * f_hz * t) + noise, motor, train, creep, ramp, dt,
+                          tr, ho)
+    print(f"ripple {frac:.3g} x torque at {f_hz:.2f} Hz -> {d['sentence']}")
+    assert d["described"] and d["variables"] == ["periodic", "torque"], d["sentence"]
+    assert d["terms"][0]["term"] == "torque*periodic"
+    assert d["terms"][0]["coef"] == pytest.approx(frac, rel=0.25)      # the term is coef x torque x sin
 
 
 def test_a_tachometer_gain_is_none_of_the_candidates_but_described_by_the_motor_speed(tmp_path, scenario):

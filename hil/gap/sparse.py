@@ -13,9 +13,11 @@ measured, and, when the residual carries a spectral line, a periodic term at its
 (sin and cos of 2 pi f* t together, one term; and the same times the torque command, which only a
 command that varies in the window can tell apart from it).  The line is the periodogram's highest
 peak from ``LINE_MIN_HZ`` up, standing ``LINE_FACTOR`` times above the median of its neighbourhood:
-for white noise each bin's periodogram is exponential, so a bin passes with probability
-2^-LINE_FACTOR (1e-6), a few in 10^4 over a thousand bins, while a red spectrum (what a missing slow
-term leaves) raises the neighbourhood with the peak.  (Products such as motor speed x torque fitted a
+for white noise each bin's periodogram is exponential, so one bin stands LINE_FACTOR times above the
+true median with probability 2^-LINE_FACTOR; but the highest of a thousand bins is tested, against
+the median of some fifty neighbours that the Hann window correlates, and that median is itself noisy
+(it falls to half its mean now and then), so the factor sits well above what one bin's tail asks;
+and a red spectrum (what a missing slow term leaves) raises the neighbourhood with the peak.  (Products such as motor speed x torque fitted a
 tachometer gain as well as motor speed alone did, and then named two variables where one is the
 answer: ``TERMS`` leaves them out.)  The sparse fit is a best subset of at most ``MAX_TERMS`` terms,
 chosen on the training blocks and judged on the held-out blocks (the diagnosis' own split): a term is
@@ -35,13 +37,17 @@ import numpy as np
 MAX_TERMS = 2
 #: the held-out R^2 an added term must add
 MIN_GAIN = 0.05
+#: the held-out R^2 a product term (two variables in one term) must add over the one-variable terms of
+#: a subset of its size: a plain sine, and the same sine times a command that steps by a few per cent,
+#: fit alike within the noise, and only the first is the simpler answer
+PRODUCT_MARGIN = 0.01
 #: the held-out R^2 below which there is no description
 MIN_R2 = 0.3
 #: the spectral line a periodic term needs: from this frequency up (below it a window of a second
 #: holds too few cycles to tell a line from a slow drift) ...
 LINE_MIN_HZ = 2.0
 #: ... standing this many times above the median periodogram of the bins around it (module docstring)
-LINE_FACTOR = 20.0
+LINE_FACTOR = 40.0
 #: ... over this many bins either side
 LINE_NEIGHBOURS = 25
 #: what each term depends on (the variables a description names)
@@ -107,8 +113,10 @@ def _r2(y, yhat) -> float:
 
 def best_subset(target, terms: dict, train, held) -> dict:
     """The subset of at most MAX_TERMS terms (the constant always in) with the best held-out R^2,
-    grown one term at a time only while each adds MIN_GAIN.  A term of two columns (periodic) gets
-    two coefficients (sin, cos): its ``coef`` is their amplitude, its ``phase_rad`` their angle."""
+    grown one term at a time only while each adds MIN_GAIN.  Among subsets of one size, a product term
+    (``torque*periodic``: two variables in one term) must beat the others by PRODUCT_MARGIN, so a plain
+    sine is not said to depend on the torque when the two fit alike within the noise.  A term of two columns (periodic) gets two coefficients (sin, cos): its
+    ``coef`` is their amplitude, its ``phase_rad`` their angle."""
     names = [n for n in terms if n != "1"]
     X = {n: terms[n].reshape(terms[n].shape[0], -1) for n in terms}
     best = {"terms": [], "coef": {}, "held_out_r2": 0.0}
@@ -121,7 +129,8 @@ def best_subset(target, terms: dict, train, held) -> dict:
             coef, *_ = np.linalg.lstsq(A[train] / scale, target[train], rcond=None)
             coef = coef / scale
             r2 = _r2(target[held], A[held] @ coef)
-            if cand is None or r2 > cand["held_out_r2"]:
+            score = r2 - PRODUCT_MARGIN * sum(len(VARIABLES[t]) - 1 for t in subset)
+            if cand is None or score > cand["score"]:
                 at, by_term, phase = 0, {}, {}
                 for c in cols:
                     w = X[c].shape[1]
@@ -129,7 +138,8 @@ def best_subset(target, terms: dict, train, held) -> dict:
                     if w == 2:
                         phase[c] = float(np.arctan2(coef[at + 1], coef[at]))    # a sin(x) + b cos(x) = A sin(x + phase)
                     at += w
-                cand = {"terms": list(subset), "coef": by_term, "phase_rad": phase, "held_out_r2": float(r2)}
+                cand = {"terms": list(subset), "coef": by_term, "phase_rad": phase, "held_out_r2": float(r2),
+                        "score": score}
         if cand is None or cand["held_out_r2"] < best["held_out_r2"] + MIN_GAIN:
             break
         best = cand
