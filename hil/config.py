@@ -47,6 +47,8 @@ class BusSettings:
     max_missed_fraction: float = 0.01     # realtime: a run missing more deadlines than this fraction of its
                                           # steps ends with exit 5 (after the logs are written)
     rt_priority: int = 0                  # realtime: SCHED_FIFO priority for plant, hub and TCU (0: off)
+    cpu_latency_us: int = 0               # realtime: CPU latency request held for the run (hil/cpu_latency.py;
+                                          # 0: idle CPUs poll instead of halting; -1: do not ask)
     cpu_affinity_plant: tuple = ()        # CPUs the plant process runs on (empty: no setting)
     cpu_affinity_tcu: tuple = ()          # CPUs the TCU process runs on (empty: no setting)
     lockstep_pin: bool = True             # lockstep, neither affinity set: plant and TCU process on two
@@ -138,6 +140,7 @@ BUS_RANGES = {
     "silence_periods": (1, 1_000_000), "lockstep_silence_s": (1e-3, 86_400.0),
     "lockstep_progress_s": (1e-3, 86_400.0), "startup_timeout_s": (1e-3, 86_400.0), "lockstep_spin_s": (0.0, 1.0),
     "deadline_fraction": (1e-3, 0.999), "rt_priority": (0, 99), "max_missed_fraction": (0.0, 1.0),
+    "cpu_latency_us": (-1, 2_000_000_000),
 }
 #: the PlantSensor signals' ranges in hil/hil.dbc (motor speed rad/s, train speed m/s); a scenario whose
 #: speeds at the start, with six standard deviations of sensor noise, leave them is refused at load
@@ -432,6 +435,13 @@ def _bus(path, data) -> BusSettings:
                                                   for c in value):
                 raise _fail(path, f"[bus] {key}", f"must be a list of CPU numbers (0..4095), got {value!r}")
             values[key] = tuple(value)
+            continue
+        if key == "cpu_latency_us":
+            if isinstance(value, bool) or not isinstance(value, int):
+                raise _fail(path, "[bus] cpu_latency_us", f"must be an integer (microseconds; -1: do not ask), "
+                            f"got {value!r}")
+            _in_range(path, "[bus] cpu_latency_us", value, BUS_RANGES[key])
+            values[key] = value
             continue
         floor_ok = key in ("rt_priority", "max_missed_fraction", "lockstep_spin_s")
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \

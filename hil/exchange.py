@@ -49,6 +49,7 @@ import numpy as np
 from identifier.messages import TorqueCommand
 
 from .effects import TRUTH_KEY
+from .cpu_latency import CpuLatencyRequest
 from .errors import BusError, ConfigError, DeadlinesMissed, LogWriteError, PeerSilent, PlantError
 from .frames import DBC_PATH, STATE_FAULT, STATE_FINISHED, FrameCodec, bus_load, format_bus_load
 from .link import MODES, GuardedBus, die_with_parent, open_bus, resolve
@@ -401,7 +402,8 @@ def run(scenario, strategy: str = "nlls", seed: int | None = None, *, bus: str =
                    "reality": scenario.extra.get("reality") or None, "wall_s": wall,
                    "sim_s": node.t_s if node else 0.0, "sim_s_per_wall_s": node.t_s / wall if node and wall else None,
                    "bus_load_percent": load["load_percent"],
-                   "frame_auth": scenario.bus.auth, **(node.counters() if node else {}),
+                   "frame_auth": scenario.bus.auth, "cpu_latency_us": latency.held_us,
+                   **(node.counters() if node else {}),
                    **(timing.summary(node.late_commands) if timing else {}), **extra}))
 
     plant_cpus, tcu_cpus = node_cpus(settings, mode, tcu.transport)
@@ -412,6 +414,7 @@ def run(scenario, strategy: str = "nlls", seed: int | None = None, *, bus: str =
         old_cpus = None
     old_sched = _set_rt_priority(settings.rt_priority, log) if mode == "realtime" and settings.rt_priority > 0 \
         else None
+    latency = CpuLatencyRequest(settings.cpu_latency_us if mode == "realtime" else -1, log)
     with interrupts_between_writes():   # SIGTERM ends a run like Ctrl-C, never mid-write
         try:
             tcu.open(scenario, strategy, seed, bus, mode, set_args)
@@ -493,6 +496,7 @@ def run(scenario, strategy: str = "nlls", seed: int | None = None, *, bus: str =
             finally:                                     # a log that cannot be closed still stops the TCU
                 tcu.close()
                 key_dir.cleanup()
+                latency.close()
                 if old_sched is not None:
                     os.sched_setscheduler(0, *old_sched)
                 if old_cpus is not None:        # a bench runs one run after another in this process

@@ -305,3 +305,56 @@ def test_the_missed_deadline_limit_does_not_touch_lockstep_and_is_range_checked(
     for bad in ("1.5", "-0.1", "true"):
         with pytest.raises(ConfigError, match="max_missed_fraction"):
             load_scenario(ROOT / "scenarios/ffcc_a.toml", parse_set([f"bus.max_missed_fraction={bad}"]))
+
+
+def _latency_device_or_skip():
+    """The PM QoS device's bound now; CI runs as root on Linux, so there it must be readable."""
+    from hil.cpu_latency import current_latency_us
+    now = current_latency_us()
+    if now is None:
+        assert os.environ.get("CI") != "true", "/dev/cpu_dma_latency unreadable under CI (root expected)"
+        pytest.skip("/dev/cpu_dma_latency is not readable here (needs root)")
+    return now
+
+
+def test_a_realtime_run_holds_the_cpu_latency_request_and_ends_it(tmp_path):
+    """While a real-time run goes, the kernel's CPU latency bound is 0 (idle CPUs poll); after it, the
+    bound is what it was before; lockstep and bus.cpu_latency_us = -1 ask for nothing."""
+    from hil.cpu_latency import current_latency_us
+    before = _latency_device_or_skip()
+    assert before > 0, f"another process holds a 0 us request already ({before}): cannot see this run's"
+    args = list(RT_ARGS)
+    args[args.index("run.duration_s=1.0")] = "run.duration_s=3.0"
+    proc = subprocess.Popen([*hil_command(), *args, "--seed", "1", "--out", str(tmp_path)], cwd=ROOT,
+                            env=subprocess_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    seen = set()
+    try:
+        while proc.poll() is None:
+            seen.add(current_latency_us())
+            time.sleep(0.05)
+        out, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, err
+    assert 0 in seen, f"the bound during the run: {seen}"
+    assert "CPU latency request 0 us held" in err
+    assert json.loads(out)["cpu_latency_us"] == 0
+    assert current_latency_us() == before
+    short = ["--set", "run.duration_s=0.5", "--set", "run.fault_time_s=0.3"]
+    off, err = run_json(FFCC_A, "local", tmp_path / "off", "--mode", "realtime", "--set", "bus.cpu_latency_us=-1",
+                        "--set", "bus.max_missed_fraction=1", *short)
+    assert off["cpu_latency_us"] is None and "CPU latency" not in err
+    lockstep, err = run_json(FFCC_A, "local", tmp_path / "ls", *short)
+    assert lockstep["cpu_latency_us"] is None and "CPU latency" not in err
+
+
+def test_a_refused_cpu_latency_request_is_said_and_the_run_goes_on(tmp_path):
+    from hil.cpu_latency import CpuLatencyRequest
+    said = []
+    r = CpuLatencyRequest(0, said.append, device=str(tmp_path / "no-such-device"))
+    assert r.held_us is None and len(said) == 1 and "no-such-device" in said[0] and "-1" in said[0]
+    r.close()
+    with pytest.raises(ConfigError, match="cpu_latency_us"):
+        load_scenario(ROOT / FFCC_A[0], parse_set(["bus.cpu_latency_us=-2"]))

@@ -93,7 +93,7 @@ def _rt_run(scenario_path, bus, seconds, sets, seed, strategy, out_dir) -> dict:
             "jitter_p50_us": s.get("jitter_p50_us"), "jitter_p99_us": s.get("jitter_p99_us"),
             "jitter_max_us": s.get("jitter_max_us"), "round_trip_p50_us": s.get("round_trip_p50_us"),
             "round_trip_p99_us": s.get("round_trip_p99_us"), "tcu_stale_skipped": s.get("tcu_stale_skipped"),
-            "loadavg_1min": os.getloadavg()[0], "sched_fifo_granted": fifo,
+            "loadavg_1min": os.getloadavg()[0], "sched_fifo_granted": fifo, "cpu_latency_us": s.get("cpu_latency_us"),
             "error": r.stderr.strip().splitlines()[-1] if r.returncode and r.stderr.strip() else None}
 
 
@@ -169,7 +169,8 @@ def cmd_realtime(args, sets) -> int:
         for i in range(args.realtime_runs):           # rounds: the idle loop, then each bus once, in the same minutes
             if not args.no_idle_loop:
                 print(f"bench bus: idle loop {i + 1}/{args.realtime_runs} ({seconds:g} s)", file=sys.stderr, flush=True)
-                f = measure_idle_loop(seconds, settings.rt_priority, deadline_fraction=settings.deadline_fraction)
+                f = measure_idle_loop(seconds, settings.rt_priority, deadline_fraction=settings.deadline_fraction,
+                                      cpu_latency_us=settings.cpu_latency_us)
                 result["idle_loop"].append(f)
                 print(f"bench bus:   idle loop missed/10k {f['missed_per_10k']:.1f} ({f['stalls']} stalls, longest "
                       f"{f['longest_stall_periods']} periods), load {f['loadavg_1min']:.2f}", file=sys.stderr, flush=True)
@@ -216,6 +217,12 @@ def cmd_realtime(args, sets) -> int:
 FIFO_WORD = {None: "not asked", True: "granted", False: "REFUSED"}
 
 
+def _idle_word(latency_us) -> str:
+    """How a run's ``cpu_latency_us`` (the CPU latency request held, ``hil.cpu_latency``) reads in the reports."""
+    return "may halt (no latency request held)" if latency_us is None else \
+        "poll (latency request 0 us)" if latency_us == 0 else f"shallow (latency request {latency_us} us)"
+
+
 def _fmt(x, fmt="7.0f") -> str:
     return "-" if x is None else format(x, fmt)
 
@@ -233,13 +240,14 @@ def realtime_text(args, result) -> str:
             lines.append(f"    exit {r['exit_code']}  missed/10k {_fmt(r['missed_per_10k'], '6.1f')}  jitter p50/p99/max "
                          f"{_fmt(r['jitter_p50_us'])}/{_fmt(r['jitter_p99_us'])}/{_fmt(r['jitter_max_us'])} us  round "
                          f"trip p50/p99 {_fmt(r['round_trip_p50_us'])}/{_fmt(r['round_trip_p99_us'])} us  skipped "
-                         f"{r['tcu_stale_skipped']}  load {r['loadavg_1min']:.2f}  SCHED_FIFO {fifo}"
+                         f"{r['tcu_stale_skipped']}  load {r['loadavg_1min']:.2f}  SCHED_FIFO {fifo}  idle CPUs "
+                         f"{_idle_word(r.get('cpu_latency_us'))}"
                          + (f"  ({r['error']})" if r["error"] else ""))
     for i, f in enumerate(result.get("idle_loop") or [], 1):
         lines.append(f"  idle loop, round {i}: missed/10k {f['missed_per_10k']:6.1f} ({f['stalls']} stalls, longest "
                      f"{f['longest_stall_periods']} periods; late p99/max {f['late_p99_us']:.0f}/{f['late_max_us']:.0f} us)"
                      f"  load {f['loadavg_1min']:.2f}  SCHED_FIFO "
-                     f"{FIFO_WORD[f['sched_fifo_granted']]}")
+                     f"{FIFO_WORD[f['sched_fifo_granted']]}  idle CPUs {_idle_word(f.get('cpu_latency_us'))}")
     lines.append("targets:")
     for t in result["targets"]:
         lines.append(f"  {'MET' if t['met'] else 'not measured' if t['met'] is None else 'NOT MET'}: {t['target']}: "
@@ -267,16 +275,18 @@ def realtime_markdown(args, result) -> str:
         out.append(f"| {t['target']} | {t['measured']} | {'met' if t['met'] else 'not measured' if t['met'] is None else '**not met**'} |")
     if result.get("idle_loop"):
         out += ["", "## An idle loop in the same minutes", "",
-                "Before each round of runs, two processes paced exactly as the plant node (same priority, no work) "
+                "Before each round of runs, two processes paced exactly as the plant node (same priority and CPU "
+                "latency request, no work) "
                 "ran as long as a run (`python -m hil.benchmarks.idle_loop`): a period is missed when either woke "
                 "for it later than the deadline. It shows what the machine did to a paced loop in those minutes; "
                 "it is not a lower bound (an idle vCPU may be woken later than a busy one).", "",
-                "| round | missed / 10k | stalls | longest (periods) | late p99 / max (us) | load | SCHED_FIFO |",
-                "|---|---|---|---|---|---|---|"]
+                "| round | missed / 10k | stalls | longest (periods) | late p99 / max (us) | load | SCHED_FIFO | "
+                "idle CPUs |", "|---|---|---|---|---|---|---|---|"]
         for i, f in enumerate(result["idle_loop"], 1):
             fifo = FIFO_WORD[f["sched_fifo_granted"]]
             out.append(f"| {i} | {f['missed_per_10k']:.1f} | {f['stalls']} | {f['longest_stall_periods']} | "
-                       f"{f['late_p99_us']:.0f} / {f['late_max_us']:.0f} | {f['loadavg_1min']:.2f} | {fifo} |")
+                       f"{f['late_p99_us']:.0f} / {f['late_max_us']:.0f} | {f['loadavg_1min']:.2f} | {fifo} | "
+                       f"{_idle_word(f.get('cpu_latency_us'))} |")
     for bus, b in result["buses"].items():
         out += ["", f"## {bus}", ""]
         if b["lockstep_speeds"]:
@@ -285,13 +295,14 @@ def realtime_markdown(args, result) -> str:
                     + f"; median {_fmt(b['lockstep_speed'], '.2f')}x.", ""]
         if b["runs"]:
             out += ["| run | exit | missed / 10k | jitter p50 / p99 / max (us) | round trip p50 / p99 (us) | "
-                    "stale skipped | load | SCHED_FIFO |", "|---|---|---|---|---|---|---|---|"]
+                    "stale skipped | load | SCHED_FIFO | idle CPUs |", "|---|---|---|---|---|---|---|---|---|"]
             for i, r in enumerate(b["runs"], 1):
                 fifo = FIFO_WORD[r["sched_fifo_granted"]]
                 out.append(f"| {i} | {r['exit_code']} | {_fmt(r['missed_per_10k'], '.1f')} | {_fmt(r['jitter_p50_us'], '.0f')} / "
                            f"{_fmt(r['jitter_p99_us'], '.0f')} / {_fmt(r['jitter_max_us'], '.0f')} | "
                            f"{_fmt(r['round_trip_p50_us'], '.0f')} / {_fmt(r['round_trip_p99_us'], '.0f')} | "
-                           f"{r['tcu_stale_skipped']} | {r['loadavg_1min']:.2f} | {fifo} |")
+                           f"{r['tcu_stale_skipped']} | {r['loadavg_1min']:.2f} | {fifo} | "
+                           f"{_idle_word(r.get('cpu_latency_us'))} |")
     return "\n".join(out) + "\n"
 
 

@@ -10,7 +10,8 @@ the idle loop missed more deadlines than the real run beside it; ``docs/realtime
 What: two processes (as a real-time run has a plant and a TCU), each at SCHED_FIFO ``priority`` (when
 granted; normal priority otherwise, reported), pace periods of ``period_s`` exactly as the plant node
 does (sleep until ``WAKE_MARGIN_S`` before the period, then poll with ``POLL_SLICE_S`` sleeps, the last
-``SPIN_S`` without sleeping) and do nothing else. Period k of the pair is *missed* when either process
+``SPIN_S`` without sleeping), under the run's CPU latency request when asked (``hil.cpu_latency``),
+and do nothing else. Period k of the pair is *missed* when either process
 wakes for it later than ``deadline_fraction * period_s`` after its start ``t_k = t0 + k * period_s``
 (the bound by which the plant needs the TCU's command). Both processes share ``t0`` on CLOCK_MONOTONIC
 (``time.perf_counter`` on Linux), so their late periods are merged by index.
@@ -26,6 +27,7 @@ import subprocess
 import sys
 import time
 
+from ..cpu_latency import CpuLatencyRequest
 from ..errors import HilError
 from ..plant_node import POLL_SLICE_S, SPIN_S, WAKE_MARGIN_S
 
@@ -104,9 +106,20 @@ def kernel_preemption() -> str:
     return "unknown"
 
 
-def measure(seconds: float, priority: int = 0, period_s: float = 1e-3, deadline_fraction: float = 0.9) -> dict:
+def measure(seconds: float, priority: int = 0, period_s: float = 1e-3, deadline_fraction: float = 0.9,
+            cpu_latency_us: int = -1) -> dict:
     """Run the two empty loops for ``seconds`` and merge them: missed periods (either node late past the
-    deadline), per 10 000 periods, the stalls behind them, the load average, SCHED_FIFO granted or not."""
+    deadline), per 10 000 periods, the stalls behind them, the load average, SCHED_FIFO granted or not;
+    with ``cpu_latency_us`` >= 0 under the CPU latency request a real-time run holds (``hil.cpu_latency``),
+    ``cpu_latency_us`` in the result saying whether it was held."""
+    latency = CpuLatencyRequest(cpu_latency_us, lambda text: None)
+    try:
+        return {**_measure(seconds, priority, period_s, deadline_fraction), "cpu_latency_us": latency.held_us}
+    finally:
+        latency.close()
+
+
+def _measure(seconds: float, priority: int, period_s: float, deadline_fraction: float) -> dict:
     steps = max(1, int(round(seconds / period_s)))
     cmd = [sys.executable, "-m", "hil.benchmarks.idle_loop", "--child", repr(period_s), str(steps),
            str(priority), repr(deadline_fraction * period_s)]
@@ -159,9 +172,12 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m hil.benchmarks.idle_loop", description=__doc__.split("\n\n")[0])
     p.add_argument("seconds", type=float)
     p.add_argument("--priority", type=int, default=0, help="SCHED_FIFO priority (0: normal scheduling)")
+    p.add_argument("--cpu-latency-us", type=int, default=-1,
+                   help="hold this CPU latency request meanwhile (hil/cpu_latency.py; -1: none)")
     a = p.parse_args(argv)
     try:
-        print(json.dumps({**measure(a.seconds, a.priority), "kernel_preemption": kernel_preemption()}))
+        print(json.dumps({**measure(a.seconds, a.priority, cpu_latency_us=a.cpu_latency_us),
+                          "kernel_preemption": kernel_preemption()}))
     except HilError as e:
         print(f"idle_loop: {e}", file=sys.stderr)
         return 1
