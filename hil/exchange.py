@@ -123,9 +123,10 @@ def _percentile(xs, q):
 class Timing:
     """Per-period wall-clock figures of the loop, recorded and summarised."""
 
-    def __init__(self, period_s: float, mode: str):
+    def __init__(self, period_s: float, mode: str, deadline_fraction: float = 0.9):
         self.period_s = period_s
         self.mode = mode
+        self.deadline_us = deadline_fraction * period_s * 1e6
         self.period_us: list[float] = []
         self.round_trip_us: list[float] = []
         self.lateness_us: list[float] = []
@@ -141,7 +142,11 @@ class Timing:
         if self.mode == "realtime":
             nominal = self.period_s * 1e6
             jitter = [abs(p - nominal) for p in self.period_us if math.isfinite(p)]
+            # a period the plant itself began after its deadline: its process did not run (a stall of the
+            # process or its CPU), so no bus or TCU could have met that deadline
+            started_late = sum(1 for k in self.missed_steps if self.lateness_us[k] >= self.deadline_us)
             out.update({"steps": len(self.period_us), "missed_deadlines": self.missed,
+                        "missed_deadlines_plant_started_late": started_late,
                         "jitter_p50_us": _percentile(jitter, 50), "jitter_p99_us": _percentile(jitter, 99),
                         "jitter_max_us": max(jitter) if jitter else None,
                         "lateness_p99_us": _percentile(self.lateness_us, 99), "late_commands": late_commands})
@@ -178,8 +183,8 @@ def exchange(node: PlantNode, steps: int, mode: str, bar: Progress | None = None
     """The loop: ``steps`` exchange periods of sense -> send -> await the command -> apply."""
     period = node.period_s
     realtime = mode == "realtime"
-    timing = Timing(period, mode)
     deadline_fraction = node.settings.deadline_fraction
+    timing = Timing(period, mode, deadline_fraction)
     with collector_paused(realtime):
         t0 = time.perf_counter() + 0.005
         prev = None

@@ -358,3 +358,42 @@ def test_a_refused_cpu_latency_request_is_said_and_the_run_goes_on(tmp_path):
     r.close()
     with pytest.raises(ConfigError, match="cpu_latency_us"):
         load_scenario(ROOT / FFCC_A[0], parse_set(["bus.cpu_latency_us=-2"]))
+
+
+def test_misses_of_a_stalled_plant_are_told_from_those_of_a_stalled_tcu(tmp_path):
+    """SIGSTOP the plant (the ``hil run`` process) for 20 ms at times: the periods it began past their
+    deadline are counted as such (``missed_deadlines_plant_started_late``, checked against the log's
+    ``/loop/timing``: missed, begun later than 0.9 ms); a TCU stalled the same way leaves the plant
+    on time, and its misses are not counted there."""
+    counts = {}
+    for who in ("plant", "tcu"):
+        args = [*RT_ARGS, "--strategy", "proposed", "--seed", "1", "--out", str(tmp_path / who), "--no-rrd"]
+        args[args.index("run.duration_s=1.0")] = "run.duration_s=4.0"
+        args[args.index("run.fault_time_s=0.5")] = "run.fault_time_s=3.5"
+        proc = subprocess.Popen([*hil_command(), *args], cwd=ROOT, env=subprocess_env(), stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True)
+        try:
+            tcu = _tcu_child(proc.pid)
+            pid = proc.pid if who == "plant" else tcu
+            for _ in range(8):                   # every 0.4 s while it runs: most land in the loop's 4 s
+                time.sleep(0.4)
+                try:
+                    os.kill(pid, signal.SIGSTOP)
+                    time.sleep(0.02)
+                    os.kill(pid, signal.SIGCONT)
+                except ProcessLookupError:
+                    break
+            out, err = proc.communicate(timeout=120)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+        assert proc.returncode == 0, err
+        s = json.loads(out)
+        timing = read_log(s["mcap"]).topic("/loop/timing")
+        late = sum(1 for t in timing if t.missed_deadline and t.lateness_us >= 900.0)
+        print(who, "stalled: missed", s["missed_deadlines"], "plant began late", late)
+        assert s["missed_deadlines_plant_started_late"] == late
+        counts[who] = (s["missed_deadlines"], late)
+    assert counts["plant"][1] >= 30, counts       # 20 ms stalls of the plant in its loop: ~19 late periods each
+    assert counts["tcu"][0] >= 30 and counts["tcu"][1] <= counts["tcu"][0] // 3, counts
