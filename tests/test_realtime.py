@@ -1,5 +1,6 @@
 """Real time that holds: a stalled TCU process, the recording queue's overflow count, the local bus
 against the in-process bus in lockstep, and the per-process CPU affinity setting."""
+import contextlib
 import json
 import os
 import random
@@ -33,28 +34,40 @@ def _tcu_child(pid, timeout=30.0):
     raise AssertionError("no hil.tcu_node child of the run appeared")
 
 
-def test_a_tcu_stalled_20ms_at_times_does_not_end_a_realtime_run(tmp_path):
-    seed = random.randrange(1, 10_000)
-    print(f"seed {seed}")
-    proc = subprocess.Popen([*hil_command(), *RT_ARGS, "--seed", str(seed), "--out", str(tmp_path)], cwd=ROOT,
-                            env=subprocess_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+@contextlib.contextmanager
+def _hil_process(args):
+    """``hil ARGS`` running beside the test (stdout and stderr piped); killed if still running at the end."""
+    proc = subprocess.Popen([*hil_command(), *args], cwd=ROOT, env=subprocess_env(), stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
     try:
-        tcu = _tcu_child(proc.pid)
-        stalls = 0
-        while proc.poll() is None and stalls < 5:
-            time.sleep(0.15)
-            try:
-                os.kill(tcu, signal.SIGSTOP)
-                time.sleep(0.02)
-                os.kill(tcu, signal.SIGCONT)
-                stalls += 1
-            except ProcessLookupError:
-                break
-        out, err = proc.communicate(timeout=120)
+        yield proc
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+def _stall_20ms(pid: int, proc, times: int, every_s: float) -> int:
+    """SIGSTOP ``pid`` for 20 ms, ``every_s`` apart, up to ``times`` times while ``proc`` runs; the stalls made."""
+    stalls = 0
+    while proc.poll() is None and stalls < times:
+        time.sleep(every_s)
+        try:
+            os.kill(pid, signal.SIGSTOP)
+            time.sleep(0.02)
+            os.kill(pid, signal.SIGCONT)
+            stalls += 1
+        except ProcessLookupError:
+            break
+    return stalls
+
+
+def test_a_tcu_stalled_20ms_at_times_does_not_end_a_realtime_run(tmp_path):
+    seed = random.randrange(1, 10_000)
+    print(f"seed {seed}")
+    with _hil_process([*RT_ARGS, "--seed", str(seed), "--out", str(tmp_path)]) as proc:
+        stalls = _stall_20ms(_tcu_child(proc.pid), proc, 5, 0.15)
+        out, err = proc.communicate(timeout=120)
     assert stalls >= 1, "the run ended before any stall"
     assert proc.returncode == 0, err
     s = json.loads(out)
@@ -325,18 +338,12 @@ def test_a_realtime_run_holds_the_cpu_latency_request_and_ends_it(tmp_path):
     assert before > 0, f"another process holds a 0 us request already ({before}): cannot see this run's"
     args = list(RT_ARGS)
     args[args.index("run.duration_s=1.0")] = "run.duration_s=3.0"
-    proc = subprocess.Popen([*hil_command(), *args, "--seed", "1", "--out", str(tmp_path)], cwd=ROOT,
-                            env=subprocess_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     seen = set()
-    try:
+    with _hil_process([*args, "--seed", "1", "--out", str(tmp_path)]) as proc:
         while proc.poll() is None:
             seen.add(current_latency_us())
             time.sleep(0.05)
         out, err = proc.communicate(timeout=120)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
     assert proc.returncode == 0, err
     assert 0 in seen, f"the bound during the run: {seen}"
     assert "CPU latency request 0 us held" in err
@@ -370,24 +377,10 @@ def test_misses_of_a_stalled_plant_are_told_from_those_of_a_stalled_tcu(tmp_path
         args = [*RT_ARGS, "--strategy", "proposed", "--seed", "1", "--out", str(tmp_path / who), "--no-rrd"]
         args[args.index("run.duration_s=1.0")] = "run.duration_s=4.0"
         args[args.index("run.fault_time_s=0.5")] = "run.fault_time_s=3.5"
-        proc = subprocess.Popen([*hil_command(), *args], cwd=ROOT, env=subprocess_env(), stdout=subprocess.PIPE,
-                                stderr=subprocess.PIPE, text=True)
-        try:
+        with _hil_process(args) as proc:
             tcu = _tcu_child(proc.pid)
-            pid = proc.pid if who == "plant" else tcu
-            for _ in range(8):                   # every 0.4 s while it runs: most land in the loop's 4 s
-                time.sleep(0.4)
-                try:
-                    os.kill(pid, signal.SIGSTOP)
-                    time.sleep(0.02)
-                    os.kill(pid, signal.SIGCONT)
-                except ProcessLookupError:
-                    break
+            _stall_20ms(proc.pid if who == "plant" else tcu, proc, 8, 0.4)   # most land in the loop's 4 s
             out, err = proc.communicate(timeout=120)
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-                proc.wait()
         assert proc.returncode == 0, err
         s = json.loads(out)
         timing = read_log(s["mcap"]).topic("/loop/timing")
