@@ -48,8 +48,8 @@ import numpy as np
 
 from identifier.messages import TorqueCommand
 
-from .effects import TRUTH_KEY
 from .cpu_latency import CpuLatencyRequest
+from .effects import TRUTH_KEY
 from .errors import BusError, ConfigError, DeadlinesMissed, LogWriteError, PeerSilent, PlantError
 from .frames import DBC_PATH, STATE_FAULT, STATE_FINISHED, FrameCodec, bus_load, format_bus_load
 from .link import MODES, GuardedBus, die_with_parent, open_bus, resolve
