@@ -17,9 +17,9 @@ for white noise each bin's periodogram is exponential, so one bin stands LINE_FA
 true median with probability 2^-LINE_FACTOR; but the highest of a thousand bins is tested, against
 the median of some fifty neighbours that the Hann window correlates, and that median is itself noisy
 (it falls to half its mean now and then), so the factor sits well above what one bin's tail asks;
-and a red spectrum (what a missing slow term leaves) raises the neighbourhood with the peak.  (Products such as motor speed x torque fitted a
-tachometer gain as well as motor speed alone did, and then named two variables where one is the
-answer: ``TERMS`` leaves them out.)  The sparse fit is a best subset of at most ``MAX_TERMS`` terms,
+and a red spectrum (what a missing slow term leaves) raises the neighbourhood with the peak.
+(Products such as motor speed x torque fitted a tachometer gain as well as motor speed alone did, and
+then named two variables where one is the answer: ``TERMS`` leaves them out.)  The sparse fit is a best subset of at most ``MAX_TERMS`` terms,
 chosen on the training blocks and judged on the held-out blocks (the diagnosis' own split): a term is
 added only when it raises the held-out R^2 by ``MIN_GAIN``.  This is SINDy's idea (Brunton, Proctor
 and Kutz, PNAS 2016) with an exhaustive subset in place of sequential thresholding, which a library of
@@ -115,8 +115,9 @@ def best_subset(target, terms: dict, train, held) -> dict:
     """The subset of at most MAX_TERMS terms (the constant always in) with the best held-out R^2,
     grown one term at a time only while each adds MIN_GAIN.  Among subsets of one size, a product term
     (``torque*periodic``: two variables in one term) must beat the others by PRODUCT_MARGIN, so a plain
-    sine is not said to depend on the torque when the two fit alike within the noise.  A term of two columns (periodic) gets two coefficients (sin, cos): its
-    ``coef`` is their amplitude, its ``phase_rad`` their angle."""
+    sine is not said to depend on the torque when the two fit alike within the noise.  A term of two
+    columns (periodic) gets two coefficients (sin, cos): its ``coef`` is their amplitude, its
+    ``phase_rad`` their angle."""
     names = [n for n in terms if n != "1"]
     X = {n: terms[n].reshape(terms[n].shape[0], -1) for n in terms}
     best = {"terms": [], "coef": {}, "held_out_r2": 0.0}
