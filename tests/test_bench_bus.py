@@ -41,8 +41,15 @@ def test_realtime_bench_lists_exit_codes_medians_and_whether_sched_fifo_was_gran
     # the idle loop of the same round
     (idle,) = out["idle_loop"]
     assert idle["steps"] == 1000 and 0 <= idle["missed"] <= 1000 and isinstance(idle["sched_fifo_granted"], bool)
+    # the vCPU probe of the same round, and the missed-deadline target reports its floor
+    (probe,) = out["vcpu_away"]
+    assert probe["periods"] == 1000 and 0 <= probe["periods_away"] <= 1000 and len(probe["cpus"]) >= 1
+    if fifo:
+        (missed,) = [t for name, t in targets.items() if "missed per 10 000" in name]
+        assert f"{probe['periods_away_per_10k']:.1f}" in missed["measured"] and "vCPU probe" in missed["measured"]
     doc = (tmp_path / "rt-check.md").read_text()
     assert "## An idle loop in the same minutes" in doc
+    assert "## The machine's floor: CPUs taken away (vCPU probe)" in doc
     assert not (tmp_path / "realtime.md").exists()          # --doc-name names the files
     assert json.loads((tmp_path / "rt-check.json").read_text())["targets"] == out["targets"]
     assert "| target | measured |" in doc and f"{speed:.2f}x" in doc

@@ -40,6 +40,9 @@ def register(sub) -> None:
     p.add_argument("--no-idle-loop", action="store_true",
                    help="with --realtime-runs: skip the idle loop (two processes paced as the plant, SCHED_FIFO as "
                    "the runs, no work, for --realtime-seconds before each round of runs)")
+    p.add_argument("--no-vcpu-probe", action="store_true",
+                   help="with --realtime-runs: skip the vCPU probe (one spinning process per CPU for --realtime-seconds "
+                   "before each round: how often the machine takes a CPU away for most of a period)")
     p.add_argument("--doc", metavar="DIR", default=None,
                    help="with --realtime-runs: also write DIR/realtime.md and DIR/realtime.json (e.g. docs; --doc-name "
                    "names them)")
@@ -130,7 +133,7 @@ def verdicts(result: dict) -> list[tuple[str, str, bool | None]]:
         if fifo:
             ok = all(r["missed_per_10k"] is not None and r["missed_per_10k"] <= TARGET_MISSED_PER_10K for r in fifo)
             out.append((f"local, SCHED_FIFO: <= {TARGET_MISSED_PER_10K:g} missed per 10 000 in every run",
-                        f"{rng('missed_per_10k', fifo)} over {len(fifo)} runs", ok))
+                        f"{rng('missed_per_10k', fifo)} over {len(fifo)} runs" + _floor_words(result), ok))
             ok = all(r["jitter_p99_us"] is not None and r["jitter_p99_us"] <= TARGET_JITTER_P99_US for r in fifo)
             out.append((f"local, SCHED_FIFO: jitter p99 <= {TARGET_JITTER_P99_US:g} us in every run",
                         f"{rng('jitter_p99_us', fifo)} us", ok))
@@ -154,6 +157,7 @@ def cmd_realtime(args, sets) -> int:
     from ..config import parse_set
     from ..link import resolve
     from .idle_loop import kernel_preemption, measure as measure_idle_loop
+    from .vcpu_away import measure as measure_vcpu_away
 
     args.strategy = args.strategy or "proposed"
     seconds = args.realtime_seconds or 5.0
@@ -165,10 +169,19 @@ def cmd_realtime(args, sets) -> int:
               "date_utc": time.strftime("%Y-%m-%d %H:%M", time.gmtime()), "buses": {}}
     settings = load_scenario(args.scenario, parse_set(sets)).bus
     result["idle_loop"] = [] if not args.no_idle_loop else None
+    result["vcpu_away"] = [] if not args.no_vcpu_probe else None
     for bus in buses:
         result["buses"][bus] = {"runs": [], "lockstep_speeds": [], "lockstep_loads": []}
     with tempfile.TemporaryDirectory() as tmp:
-        for i in range(args.realtime_runs):           # rounds: the idle loop, then each bus once, in the same minutes
+        for i in range(args.realtime_runs):   # rounds: the vCPU probe, the idle loop, each bus once, in the same minutes
+            if not args.no_vcpu_probe:
+                print(f"bench bus: vCPU probe {i + 1}/{args.realtime_runs} ({seconds:g} s, both CPUs busy)",
+                      file=sys.stderr, flush=True)
+                v = measure_vcpu_away(seconds, deadline_fraction=settings.deadline_fraction)
+                result["vcpu_away"].append(v)
+                print(f"bench bus:   periods with a CPU away/10k {v['periods_away_per_10k']:.1f} (longest away "
+                      f"{max(c['longest_away_us'] for c in v['cpus']) / 1e3:.1f} ms, steal "
+                      f"{_steal_word(v)}), load {v['loadavg_1min']:.2f}", file=sys.stderr, flush=True)
             if not args.no_idle_loop:
                 print(f"bench bus: idle loop {i + 1}/{args.realtime_runs} ({seconds:g} s)", file=sys.stderr, flush=True)
                 f = measure_idle_loop(seconds, settings.rt_priority, deadline_fraction=settings.deadline_fraction,
@@ -219,6 +232,25 @@ def cmd_realtime(args, sets) -> int:
 FIFO_WORD = {None: "not asked", True: "granted", False: "REFUSED"}
 
 
+def _steal_word(probe: dict) -> str:
+    """The ``steal`` the kernel counted on the probe's CPUs, in ms (``-`` where it counts none)."""
+    steal = [c["steal_ms"] for c in probe["cpus"] if c["steal_ms"] is not None]
+    return f"{sum(steal):.0f} ms" if steal else "-"
+
+
+def _floor_words(result: dict) -> str:
+    """The vCPU probe's figure beside the missed-deadline target: the periods no program could have met,
+    per 10 000, over the rounds; and the rounds in which that alone was over the target."""
+    probes = result.get("vcpu_away") or []
+    if not probes:
+        return ""
+    rates = [v["periods_away_per_10k"] for v in probes]
+    over = [i for i, x in enumerate(rates, 1) if x > TARGET_MISSED_PER_10K]
+    return (f"; the machine took a CPU away for >= {100 * probes[0]['deadline_fraction']:.0f} % of a period in "
+            f"{min(rates):.1f}-{max(rates):.1f} per 10 000 periods in the same rounds (vCPU probe)"
+            + (f", over the target in round(s) {', '.join(map(str, over))}" if over else ""))
+
+
 def _idle_word(latency_us) -> str:
     """How a run's ``cpu_latency_us`` (the CPU latency request held, ``hil.cpu_latency``) reads in the reports."""
     return "may halt (no latency request held)" if latency_us is None else \
@@ -246,6 +278,11 @@ def realtime_text(args, result) -> str:
                          f"{r['tcu_stale_skipped']}  load {r['loadavg_1min']:.2f}  SCHED_FIFO {fifo}  idle CPUs "
                          f"{_idle_word(r.get('cpu_latency_us'))}"
                          + (f"  ({r['error']})" if r["error"] else ""))
+    for i, v in enumerate(result.get("vcpu_away") or [], 1):
+        lines.append(f"  vCPU probe, round {i}: periods with a CPU away/10k {v['periods_away_per_10k']:6.1f}; away "
+                     + ", ".join(f"cpu{c['cpu']} {c['away_gaps']} gaps {c['away_ms']:.1f} ms (longest "
+                                 f"{c['longest_away_us'] / 1e3:.1f} ms)" for c in v["cpus"])
+                     + f"; steal {_steal_word(v)}  load {v['loadavg_1min']:.2f}")
     for i, f in enumerate(result.get("idle_loop") or [], 1):
         lines.append(f"  idle loop, round {i}: missed/10k {f['missed_per_10k']:6.1f} ({f['stalls']} stalls, longest "
                      f"{f['longest_stall_periods']} periods; late p99/max {f['late_p99_us']:.0f}/{f['late_max_us']:.0f} us)"
@@ -272,10 +309,26 @@ def realtime_markdown(args, result) -> str:
            f"(FFCC-a, strategy `{args.strategy}`, 1 ms period); lockstep runs ({result['lockstep_seconds']:g} "
            "simulated s, `proposed`) are taken in turns across the buses. The machine is shared: the load "
            "average is beside each run. Runs go in rounds: "
-           + ("an idle loop, then " if result.get("idle_loop") else "") + "one run per bus.", "",
+           + ("the vCPU probe, " if result.get("vcpu_away") else "")
+           + ("an idle loop, " if result.get("idle_loop") else "") + "then one run per bus.", "",
            "## Targets", "", "| target | measured | |", "|---|---|---|"]
     for t in result["targets"]:
         out.append(f"| {t['target']} | {t['measured']} | {'met' if t['met'] else 'not measured' if t['met'] is None else '**not met**'} |")
+    if result.get("vcpu_away"):
+        out += ["", "## The machine's floor: CPUs taken away (vCPU probe)", "",
+                "Before each round, one process per CPU, pinned, read the clock in a tight loop as long as a run "
+                "(`python -m hil.benchmarks.vcpu_away`). A gap of over "
+                f"{result['vcpu_away'][0]['gap_us']:.0f} us between two reads during which the process was not "
+                "switched out by this system's scheduler (its context switches did not grow) is time *away*: the "
+                "hypervisor held the vCPU, or interrupt handlers ran. A period in which a CPU was away for at "
+                f"least {100 * result['vcpu_away'][0]['deadline_fraction']:.0f} % is one no process on that CPU "
+                "could meet. `steal` is what the kernel counted as taken by the hypervisor meanwhile.", "",
+                "| round | periods away / 10k | away: gaps, total, longest (per CPU) | steal | load |",
+                "|---|---|---|---|---|"]
+        for i, v in enumerate(result["vcpu_away"], 1):
+            cpus = "; ".join(f"cpu{c['cpu']} {c['away_gaps']}, {c['away_ms']:.1f} ms, {c['longest_away_us'] / 1e3:.1f} ms"
+                             for c in v["cpus"])
+            out.append(f"| {i} | {v['periods_away_per_10k']:.1f} | {cpus} | {_steal_word(v)} | {v['loadavg_1min']:.2f} |")
     if result.get("idle_loop"):
         out += ["", "## An idle loop in the same minutes", "",
                 "Before each round of runs, two processes paced exactly as the plant node (same priority and CPU "
