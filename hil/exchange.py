@@ -131,6 +131,7 @@ class Timing:
         self.round_trip_us: list[float] = []
         self.lateness_us: list[float] = []
         self.missed_steps: list[int] = []
+        self.t0_s: float | None = None          # realtime: period 0's start on time.perf_counter
 
     @property
     def missed(self) -> int:
@@ -146,6 +147,9 @@ class Timing:
             # process or its CPU), so no bus or TCU could have met that deadline
             started_late = sum(1 for k in self.missed_steps if self.lateness_us[k] >= self.deadline_us)
             out.update({"steps": len(self.period_us), "missed_deadlines": self.missed,
+                        # period k began at t0 + k * period on CLOCK_MONOTONIC (perf_counter on Linux), a
+                        # clock other processes share: a probe beside the run can place its events in periods
+                        "t0_monotonic_s": self.t0_s,
                         "missed_deadlines_plant_started_late": started_late,
                         "jitter_p50_us": _percentile(jitter, 50), "jitter_p99_us": _percentile(jitter, 99),
                         "jitter_max_us": max(jitter) if jitter else None,
@@ -186,7 +190,7 @@ def exchange(node: PlantNode, steps: int, mode: str, bar: Progress | None = None
     deadline_fraction = node.settings.deadline_fraction
     timing = Timing(period, mode, deadline_fraction)
     with collector_paused(realtime):
-        t0 = time.perf_counter() + 0.005
+        t0 = timing.t0_s = time.perf_counter() + 0.005
         prev = None
         for k in range(steps):
             if realtime:

@@ -42,7 +42,8 @@ def register(sub) -> None:
                    "the runs, no work, for --realtime-seconds before each round of runs)")
     p.add_argument("--no-vcpu-probe", action="store_true",
                    help="with --realtime-runs: skip the vCPU probe (one spinning process per CPU for --realtime-seconds "
-                   "before each round: how often the machine takes a CPU away for most of a period)")
+                   "before each round: how often the machine takes a CPU away for most of a period; and SCHED_IDLE "
+                   "spinners beside each run: which missed periods coincide with a CPU away)")
     p.add_argument("--doc", metavar="DIR", default=None,
                    help="with --realtime-runs: also write DIR/realtime.md and DIR/realtime.json (e.g. docs; --doc-name "
                    "names them)")
@@ -70,24 +71,46 @@ def stream_digest(mcap_path) -> dict:
     return out
 
 
-def _rt_run(scenario_path, bus, seconds, sets, seed, strategy, out_dir) -> dict:
+#: a missed period "coincides with a CPU away" (vCPU probe beside the run) when one CPU was away for at
+#: least this share of a period around it (``hil.benchmarks.vcpu_away.misses_with_cpu_away``)
+AWAY_SHARE = 0.5
+
+
+def _rt_run(scenario_path, bus, seconds, sets, seed, strategy, out_dir, probe_beside: bool = False) -> dict:
     """One real-time ``hil run --json`` process: its figures, exit code, load average and whether
-    SCHED_FIFO was asked for and granted (None: not asked)."""
+    SCHED_FIFO was asked for and granted (None: not asked); with ``probe_beside`` the vCPU probe runs
+    beside it and the missed periods that coincide with a CPU away are counted."""
+    import contextlib
     import os
     import subprocess
 
+    from .vcpu_away import Beside, misses_with_cpu_away
+
     cmd = [sys.executable, "-m", "hil.cli", "run", str(scenario_path), "--mode", "realtime", "--bus", bus,
-           "--strategy", strategy, "--seed", str(seed), "--out", out_dir, "--json",
+           "--strategy", strategy, "--seed", str(seed), "--out", out_dir, "--json", "--no-rrd",
            "--set", f"run.duration_s={seconds}", "--set", f"run.fault_time_s={max(seconds - 0.5, seconds / 2)}"]
     for item in sets:
         cmd += ["--set", item]
-    r = subprocess.run(cmd, capture_output=True, text=True, stdin=subprocess.DEVNULL)
+    beside = Beside() if probe_beside else None
+    with beside or contextlib.nullcontext():
+        r = subprocess.run(cmd, capture_output=True, text=True, stdin=subprocess.DEVNULL)
     try:
         s = json.loads(r.stdout) if r.stdout.strip() else {}
     except ValueError:
         s = {}
     steps = s.get("steps")
     missed = s.get("missed_deadlines")
+    away = None
+    if beside is not None and s.get("t0_monotonic_s") is not None and s.get("mcap") and steps:
+        from ..logread import read_log
+        period_s = s["sim_s"] / steps
+        from ..config import parse_set
+        deadline_fraction = load_scenario(scenario_path, parse_set(sets)).bus.deadline_fraction
+        missed_steps = [m.step for m in read_log(s["mcap"], {"/loop/timing"}).topic("/loop/timing")
+                        if m.missed_deadline]
+        hit = misses_with_cpu_away(missed_steps, s["t0_monotonic_s"], period_s, deadline_fraction,
+                                   beside.away, AWAY_SHARE * period_s)
+        away = {"missed_with_cpu_away_per_10k": len(hit) * 1e4 / steps, "cpus": beside.figures}
     fifo = None
     if "SCHED_FIFO" in r.stderr:
         fifo = "cannot set SCHED_FIFO" not in r.stderr
@@ -99,6 +122,7 @@ def _rt_run(scenario_path, bus, seconds, sets, seed, strategy, out_dir) -> dict:
             "jitter_max_us": s.get("jitter_max_us"), "round_trip_p50_us": s.get("round_trip_p50_us"),
             "round_trip_p99_us": s.get("round_trip_p99_us"), "tcu_stale_skipped": s.get("tcu_stale_skipped"),
             "loadavg_1min": os.getloadavg()[0], "sched_fifo_granted": fifo, "cpu_latency_us": s.get("cpu_latency_us"),
+            "vcpu_probe": away,
             "error": r.stderr.strip().splitlines()[-1] if r.returncode and r.stderr.strip() else None}
 
 
@@ -192,10 +216,14 @@ def cmd_realtime(args, sets) -> int:
             for bus in buses:
                 print(f"bench bus: {bus} real-time run {i + 1}/{args.realtime_runs} ({seconds:g} s, {args.strategy})",
                       file=sys.stderr, flush=True)
-                r = _rt_run(args.scenario, bus, seconds, sets, args.seed, args.strategy, f"{tmp}/{bus}-{i}")
+                r = _rt_run(args.scenario, bus, seconds, sets, args.seed, args.strategy, f"{tmp}/{bus}-{i}",
+                            probe_beside=not args.no_vcpu_probe)
                 result["buses"][bus]["runs"].append(r)
-                print(f"bench bus:   exit {r['exit_code']}, missed/10k {r['missed_per_10k']}, jitter p99 "
-                      f"{r['jitter_p99_us']} us, load {r['loadavg_1min']:.2f}", file=sys.stderr, flush=True)
+                away = r["vcpu_probe"]
+                print(f"bench bus:   exit {r['exit_code']}, missed/10k {_fmt(r['missed_per_10k'], '.1f')}"
+                      + (f" ({away['missed_with_cpu_away_per_10k']:.1f} with a CPU away)" if away else "")
+                      + f", jitter p99 {_fmt(r['jitter_p99_us'], '.0f')} us, round trip p50 "
+                      f"{_fmt(r['round_trip_p50_us'], '.0f')} us, load {r['loadavg_1min']:.2f}", file=sys.stderr, flush=True)
         for b in result["buses"].values():
             runs = b["runs"]
             b.update({"exit_codes": [r["exit_code"] for r in runs],
@@ -246,9 +274,16 @@ def _floor_words(result: dict) -> str:
         return ""
     rates = [v["periods_away_per_10k"] for v in probes]
     over = [i for i, x in enumerate(rates, 1) if x > TARGET_MISSED_PER_10K]
-    return (f"; the machine took a CPU away for >= {100 * probes[0]['deadline_fraction']:.0f} % of a period in "
-            f"{min(rates):.1f}-{max(rates):.1f} per 10 000 periods in the same rounds (vCPU probe)"
-            + (f", over the target in round(s) {', '.join(map(str, over))}" if over else ""))
+    out = (f"; the machine took a CPU away for >= {100 * probes[0]['deadline_fraction']:.0f} % of a period in "
+           f"{min(rates):.1f}-{max(rates):.1f} per 10 000 periods in the same rounds (vCPU probe)"
+           + (f", over the target in round(s) {', '.join(map(str, over))}" if over else ""))
+    bus = result["buses"].get("local") or result["buses"].get(result["default_bus"])
+    rest = [r["missed_per_10k"] - r["vcpu_probe"]["missed_with_cpu_away_per_10k"] for r in (bus or {}).get("runs", [])
+            if r.get("vcpu_probe") and r["missed_per_10k"] is not None]
+    if rest:
+        out += (f"; missed with no CPU away beside the run (>= {100 * AWAY_SHARE:.0f} % of a period): "
+                f"{min(rest):.1f}-{max(rest):.1f}")
+    return out
 
 
 def _idle_word(latency_us) -> str:
@@ -277,6 +312,9 @@ def realtime_text(args, result) -> str:
                          f"trip p50/p99 {_fmt(r['round_trip_p50_us'])}/{_fmt(r['round_trip_p99_us'])} us  skipped "
                          f"{r['tcu_stale_skipped']}  load {r['loadavg_1min']:.2f}  SCHED_FIFO {fifo}  idle CPUs "
                          f"{_idle_word(r.get('cpu_latency_us'))}"
+                         + (f"  with a CPU away {r['vcpu_probe']['missed_with_cpu_away_per_10k']:.1f}/10k (away "
+                            + ", ".join(f"cpu{c['cpu']} {c['away_ms']:.0f} ms" for c in r["vcpu_probe"]["cpus"]) + ")"
+                            if r.get("vcpu_probe") else "")
                          + (f"  ({r['error']})" if r["error"] else ""))
     for i, v in enumerate(result.get("vcpu_away") or [], 1):
         lines.append(f"  vCPU probe, round {i}: periods with a CPU away/10k {v['periods_away_per_10k']:6.1f}; away "
@@ -351,13 +389,21 @@ def realtime_markdown(args, result) -> str:
                     + f"; median {_fmt(b['lockstep_speed'], '.2f')}x.", ""]
         if b["runs"]:
             out += ["Missed / 10k: all, and (in brackets) those in periods the plant itself began past the "
-                    "deadline (its process or CPU stalled: no bus or TCU could have met them).", "",
-                    "| run | exit | missed / 10k | jitter p50 / p99 / max (us) | round trip p50 / p99 (us) | "
-                    "stale skipped | load | SCHED_FIFO | idle CPUs |", "|---|---|---|---|---|---|---|---|---|"]
+                    "deadline (its process or CPU stalled: no bus or TCU could have met them). *With a CPU away*: "
+                    "the missed periods in which the vCPU probe beside the run (SCHED_IDLE spinners) saw one CPU "
+                    f"away for >= {100 * AWAY_SHARE:.0f} % of a period between half a period before the period "
+                    "and its deadline; the spinners only see absences in the time the run leaves idle, so this "
+                    "undercounts; *away* is each CPU's total.", "",
+                    "| run | exit | missed / 10k | with a CPU away / 10k (away per CPU) | jitter p50 / p99 / max (us) | "
+                    "round trip p50 / p99 (us) | stale skipped | load | SCHED_FIFO | idle CPUs |",
+                    "|---|---|---|---|---|---|---|---|---|---|"]
             for i, r in enumerate(b["runs"], 1):
                 fifo = FIFO_WORD[r["sched_fifo_granted"]]
+                v = r.get("vcpu_probe")
+                away = (f"{v['missed_with_cpu_away_per_10k']:.1f} ("
+                        + ", ".join(f"cpu{c['cpu']} {c['away_ms']:.0f} ms" for c in v["cpus"]) + ")") if v else "-"
                 out.append(f"| {i} | {r['exit_code']} | {_fmt(r['missed_per_10k'], '.1f')} "
-                           f"({_fmt(r.get('missed_plant_late_per_10k'), '.1f')}) | {_fmt(r['jitter_p50_us'], '.0f')} / "
+                           f"({_fmt(r.get('missed_plant_late_per_10k'), '.1f')}) | {away} | {_fmt(r['jitter_p50_us'], '.0f')} / "
                            f"{_fmt(r['jitter_p99_us'], '.0f')} / {_fmt(r['jitter_max_us'], '.0f')} | "
                            f"{_fmt(r['round_trip_p50_us'], '.0f')} / {_fmt(r['round_trip_p99_us'], '.0f')} | "
                            f"{r['tcu_stale_skipped']} | {r['loadavg_1min']:.2f} | {fifo} | "

@@ -27,14 +27,22 @@ period away is a missed deadline when the loop's process sits on that CPU; with 
 two CPUs it nearly always does. The probe cannot run beside a real-time run (it takes both CPUs),
 so it measures the machine's minute, not the run's.
 
+Beside a run (``Beside``): the same spinners at ``SCHED_IDLE`` run for as long as a real-time run,
+taking only the time its processes leave idle; they see the absences that fall in that time (most of
+it: the loop's processes sleep most of each period), and ``misses_with_cpu_away`` finds the run's
+missed periods that coincide with one. This costs the run: its processes now preempt a spinner instead
+of waking an idle CPU (``hil bench bus`` prints the round trip, to be compared with a run without).
+
 ``python -m hil.benchmarks.vcpu_away SECONDS`` prints the result as JSON.
 """
 from __future__ import annotations
 
 import argparse
+import bisect
 import json
 import os
 import resource
+import signal
 import subprocess
 import sys
 import time
@@ -47,24 +55,31 @@ GAP_S = 100e-6
 LONGEST_KEPT = 10
 
 
-def spin(t0: float, seconds: float, gap_s: float = GAP_S) -> tuple[list, int]:
-    """Read the clock from ``t0`` for ``seconds``; the gaps ``(start - t0, length, guest)`` and the turns."""
+def spin(t0: float, seconds: float, gap_s: float = GAP_S, stop: list | None = None) -> tuple[list, int]:
+    """Read the clock from ``t0`` for ``seconds`` (or until ``stop`` is not empty); the gaps
+    ``(start - t0, length, guest)`` and the turns.
+
+    Turn i reads the clock (c_i), then the context switches (u_i). A switch inside the gap
+    (c_{i-1}, c_i) may land before or after u_{i-1}, but always after u_{i-2} and before u_i: the gap
+    is the guest's when u_i != u_{i-2} (a switch just outside the gap may count it as the guest's too:
+    this errs towards "guest", never towards "away")."""
     clock, usage, me = time.perf_counter, resource.getrusage, resource.RUSAGE_SELF
+    stop = [] if stop is None else stop
     while clock() < t0:
         pass
     end = t0 + seconds
-    last = clock()
     r = usage(me)
-    switches = r.ru_nvcsw + r.ru_nivcsw
+    before = switches = r.ru_nvcsw + r.ru_nivcsw          # u_{i-2}, u_{i-1}
+    last = clock()
     gaps, turns = [], 0
-    while last < end:
+    while last < end and not stop:
         now = clock()
         r = usage(me)
         s = r.ru_nvcsw + r.ru_nivcsw
         turns += 1
         if now - last > gap_s:
-            gaps.append((last - t0, now - last, s != switches))
-        last, switches = now, s
+            gaps.append((last - t0, now - last, s != before))
+        last, before, switches = now, switches, s
     return gaps, turns
 
 
@@ -74,6 +89,85 @@ def _child(cpu: int, seconds: float) -> None:
     t0 = float(sys.stdin.readline())
     gaps, turns = spin(t0, seconds)
     print(json.dumps({"cpu": cpu, "gaps": gaps, "turns": turns}))
+
+
+def _child_beside(cpu: int) -> None:
+    """A spinner beside a run: SCHED_IDLE, pinned, from "ready" until SIGTERM; prints its start and gaps."""
+    os.sched_setaffinity(0, {cpu})
+    os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+    stop: list = []
+    signal.signal(signal.SIGTERM, lambda signum, frame: stop.append(signum))
+    t0 = time.perf_counter()
+    print("ready", flush=True)
+    gaps, turns = spin(t0, float("inf"), stop=stop)
+    print(json.dumps({"cpu": cpu, "t0": t0, "gaps": gaps, "turns": turns}))
+
+
+class Beside:
+    """``with Beside(): ...``: one SCHED_IDLE spinner per CPU while the block runs (module docstring).
+
+    After the block: ``away`` (CPU -> ``[(start, length)]``, start on ``time.perf_counter``) and
+    ``figures`` (per CPU the away gaps, total and longest)."""
+
+    def __init__(self, cpus: list[int] | None = None):
+        self.cpus = sorted(os.sched_getaffinity(0)) if cpus is None else cpus
+        self.children: list = []
+        self.away: dict[int, list] = {}
+        self.figures: list[dict] = []
+
+    def __enter__(self):
+        cmd = [sys.executable, "-m", "hil.benchmarks.vcpu_away", "--beside"]
+        self.children = [subprocess.Popen(cmd + [str(c)], stdout=subprocess.PIPE, stdin=subprocess.DEVNULL, text=True)
+                         for c in self.cpus]
+        for child in self.children:
+            if child.stdout.readline().strip() != "ready":
+                self._kill()
+                raise HilError(f"vCPU probe: a spinner beside the run did not start (exit {child.wait()})")
+        return self
+
+    def __exit__(self, *exc):
+        outs = []
+        try:
+            for child in self.children:
+                child.send_signal(signal.SIGTERM)
+            for child in self.children:
+                out = child.stdout.read()
+                if child.wait() != 0:
+                    raise HilError(f"vCPU probe: a spinner beside the run exited {child.returncode}")
+                outs.append(json.loads(out))
+        finally:
+            self._kill()
+        for o in outs:
+            mine = [(o["t0"] + a, d) for a, d, guest in o["gaps"] if not guest]
+            self.away[o["cpu"]] = mine
+            self.figures.append({"cpu": o["cpu"], "away_gaps": len(mine), "away_ms": 1e3 * sum(d for a, d in mine),
+                                 "longest_away_us": 1e6 * max((d for a, d in mine), default=0.0)})
+        return False
+
+    def _kill(self) -> None:
+        for child in self.children:
+            if child.poll() is None:
+                child.kill()
+                child.wait()
+
+
+def misses_with_cpu_away(missed_steps, t0: float, period_s: float, deadline_fraction: float,
+                         away: dict[int, list], min_away_s: float) -> list[int]:
+    """The missed periods k during which one CPU was away for at least ``min_away_s`` in total between
+    half a period before the period's start ``t0 + k * period_s`` and its deadline (an absence just
+    before the start delays the plant's sensor frame; one after it, the TCU's answer)."""
+    cpus = [(sorted(gaps), max((d for g, d in gaps), default=0.0)) for gaps in away.values()]
+    starts = [[g for g, d in gaps] for gaps, longest in cpus]
+    out = []
+    for k in missed_steps:
+        a = t0 + (k - 0.5) * period_s
+        b = t0 + (k + deadline_fraction) * period_s
+        for (gaps, longest), st in zip(cpus, starts):
+            near = gaps[bisect.bisect_left(st, a - longest):bisect.bisect_right(st, b)]
+            if sum(max(0.0, min(b, g + d) - max(a, g)) for g, d in near) >= min_away_s:
+                out.append(k)
+                break
+    return out
 
 
 def _steal_ticks() -> dict[str, int]:
@@ -160,6 +254,9 @@ def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv and argv[0] == "--child":
         _child(int(argv[1]), float(argv[2]))
+        return 0
+    if argv and argv[0] == "--beside":
+        _child_beside(int(argv[1]))
         return 0
     p = argparse.ArgumentParser(prog="python -m hil.benchmarks.vcpu_away", description=__doc__.split("\n\n")[0])
     p.add_argument("seconds", type=float)
