@@ -84,6 +84,8 @@ def _rt_run(scenario_path, bus, seconds, sets, seed, strategy, out_dir, probe_be
     import os
     import subprocess
 
+    from ..config import parse_set
+    from ..logread import read_log
     from .vcpu_away import Beside, misses_with_cpu_away
 
     cmd = [sys.executable, "-m", "hil.cli", "run", str(scenario_path), "--mode", "realtime", "--bus", bus,
@@ -102,9 +104,7 @@ def _rt_run(scenario_path, bus, seconds, sets, seed, strategy, out_dir, probe_be
     missed = s.get("missed_deadlines")
     away = None
     if beside is not None and s.get("t0_monotonic_s") is not None and s.get("mcap") and steps:
-        from ..logread import read_log
         period_s = s["sim_s"] / steps
-        from ..config import parse_set
         deadline_fraction = load_scenario(scenario_path, parse_set(sets)).bus.deadline_fraction
         missed_steps = [m.step for m in read_log(s["mcap"], {"/loop/timing"}).topic("/loop/timing")
                         if m.missed_deadline]

@@ -1,9 +1,8 @@
 """The time the machine takes each CPU away from this system: a floor for real-time deadlines.
 
 Why: on a virtual machine the hypervisor can stop a vCPU (to run another guest, or its own work on
-the guest's behalf) without the guest's scheduler knowing; ``steal`` in ``/proc/stat`` is meant to
-count that time, but on this project's Firecracker machines it stays at 0 while a vCPU is gone for
-milliseconds. A real-time period in which the CPU that the plant or the TCU runs on is gone for
+the guest's behalf) without the guest's scheduler knowing (``steal`` in ``/proc/stat`` is meant to
+count that time; it is printed beside the probe's own figures, which do not depend on it). A real-time period in which the CPU that the plant or the TCU runs on is gone for
 most of the period is missed by any program; this probe measures how often that happens, in the
 same minutes as the real-time runs (``hil bench bus``).
 
