@@ -42,6 +42,12 @@ def test_realtime_bench_lists_exit_codes_medians_and_whether_sched_fifo_was_gran
     (idle,) = out["idle_loop"]
     assert idle["steps"] == 1000 and 0 <= idle["missed"] <= 1000 and isinstance(idle["sched_fifo_granted"], bool)
     # the vCPU probe of the same round, and the missed-deadline target reports its floor
+    for bus, b in out["buses"].items():        # the spinners beside each run, placed by the run's t0_monotonic_s
+        run = b["runs"][0]
+        if run["exit_code"] == 0:
+            v = run["vcpu_probe"]
+            assert 0 <= v["missed_with_cpu_away_per_10k"] <= run["missed_per_10k"], (bus, v)
+            assert len(v["cpus"]) >= 1 and all(c["away_ms"] >= 0 for c in v["cpus"])
     (probe,) = out["vcpu_away"]
     assert probe["periods"] == 1000 and 0 <= probe["periods_away"] <= 1000 and len(probe["cpus"]) >= 1
     if fifo:
