@@ -23,13 +23,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
 import sys
 import time
 
 from ..cpu_latency import CpuLatencyRequest
 from ..errors import HilError
 from ..plant_node import POLL_SLICE_S, SPIN_S, WAKE_MARGIN_S
+from .together import run_together
 
 #: two processes: the plant's and the TCU's
 NODES = 2
@@ -123,30 +123,7 @@ def _measure(seconds: float, priority: int, period_s: float, deadline_fraction: 
     steps = max(1, int(round(seconds / period_s)))
     cmd = [sys.executable, "-m", "hil.benchmarks.idle_loop", "--child", repr(period_s), str(steps),
            str(priority), repr(deadline_fraction * period_s)]
-    children = [subprocess.Popen(cmd, stdout=subprocess.PIPE, stdin=subprocess.PIPE, text=True)
-                for _ in range(NODES)]
-    try:
-        for child in children:                       # both imported and scheduled before t0 is chosen
-            if child.stdout.readline().strip() != "ready":
-                raise HilError(f"idle loop: a pacing process did not start (exit {child.wait()})")
-        t0 = time.perf_counter() + 0.05
-        for child in children:
-            child.stdin.write(f"{t0!r}\n")
-            child.stdin.close()
-        outs = []
-        for child in children:
-            out = child.stdout.read()
-            if child.wait() != 0:
-                raise HilError(f"idle loop: a pacing process exited {child.returncode}")
-            try:
-                outs.append(json.loads(out))
-            except ValueError:
-                raise HilError(f"idle loop: a pacing process printed no result ({out[:80]!r})") from None
-    finally:
-        for child in children:
-            if child.poll() is None:
-                child.kill()
-                child.wait()
+    outs = run_together([cmd] * NODES, "idle loop: a pacing process")      # both ready before t0 is chosen
     missed = sorted(set().union(*(o["missed"] for o in outs)))
     stalls = []                                      # runs of consecutive missed periods: one stall each
     for k in missed:

@@ -47,6 +47,7 @@ import sys
 import time
 
 from ..errors import HilError
+from .together import run_together
 
 #: two clock reads further apart than this are a gap (one turn of the loop takes ~0.5 us)
 GAP_S = 100e-6
@@ -200,32 +201,9 @@ def measure(seconds: float, period_s: float = 1e-3, deadline_fraction: float = 0
     of the module docstring."""
     cpus = sorted(os.sched_getaffinity(0)) if cpus is None else cpus
     cmd = [sys.executable, "-m", "hil.benchmarks.vcpu_away", "--child"]
-    children = [subprocess.Popen(cmd + [str(c), repr(seconds)], stdout=subprocess.PIPE, stdin=subprocess.PIPE,
-                                 text=True) for c in cpus]
-    try:
-        for child in children:
-            if child.stdout.readline().strip() != "ready":
-                raise HilError(f"vCPU probe: a spinning process did not start (exit {child.wait()})")
-        steal0 = _steal_ticks()
-        t0 = time.perf_counter() + 0.05
-        for child in children:
-            child.stdin.write(f"{t0!r}\n")
-            child.stdin.close()
-        outs = []
-        for child in children:
-            out = child.stdout.read()
-            if child.wait() != 0:
-                raise HilError(f"vCPU probe: a spinning process exited {child.returncode}")
-            try:
-                outs.append(json.loads(out))
-            except ValueError:
-                raise HilError(f"vCPU probe: a spinning process printed no result ({out[:80]!r})") from None
-        steal1 = _steal_ticks()
-    finally:
-        for child in children:
-            if child.poll() is None:
-                child.kill()
-                child.wait()
+    steal0 = _steal_ticks()
+    outs = run_together([cmd + [str(c), repr(seconds)] for c in cpus], "vCPU probe: a spinning process")
+    steal1 = _steal_ticks()
     tick_ms = 1e3 / os.sysconf("SC_CLK_TCK")
     per_cpu, away = [], {}
     for o in outs:
