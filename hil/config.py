@@ -436,18 +436,11 @@ def _bus(path, data) -> BusSettings:
                 raise _fail(path, f"[bus] {key}", f"must be a list of CPU numbers (0..4095), got {value!r}")
             values[key] = tuple(value)
             continue
-        if key == "cpu_latency_us":
-            if isinstance(value, bool) or not isinstance(value, int):
-                raise _fail(path, "[bus] cpu_latency_us", f"must be an integer (microseconds; -1: do not ask), "
-                            f"got {value!r}")
-            _in_range(path, "[bus] cpu_latency_us", value, BUS_RANGES[key])
-            values[key] = value
-            continue
-        floor_ok = key in ("rt_priority", "max_missed_fraction", "lockstep_spin_s")
+        lo = BUS_RANGES[key][0]       # the sign a number must have follows from its range's floor
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
-                or not (value >= 0 if floor_ok else value > 0):
-            raise _fail(path, f"[bus] {key}", f"must be a {'non-negative' if floor_ok else 'positive'} number, "
-                        f"got {value!r}")
+                or not (lo < 0 or (value >= 0 if lo == 0 else value > 0)):
+            kind = "" if lo < 0 else "non-negative " if lo == 0 else "positive "
+            raise _fail(path, f"[bus] {key}", f"must be a {kind}number, got {value!r}")
         if fields[key].type == "int" and not isinstance(value, int):
             raise _fail(path, f"[bus] {key}", f"must be an integer, got {value!r}")
         _in_range(path, f"[bus] {key}", value, BUS_RANGES[key])

@@ -76,15 +76,16 @@ def stream_digest(mcap_path) -> dict:
 AWAY_SHARE = 0.5
 
 
-def _rt_run(scenario_path, bus, seconds, sets, seed, strategy, out_dir, probe_beside: bool = False) -> dict:
+def _rt_run(scenario_path, bus, seconds, sets, seed, strategy, out_dir, probe_beside: bool = False,
+            deadline_fraction: float = 0.9) -> dict:
     """One real-time ``hil run --json`` process: its figures, exit code, load average and whether
     SCHED_FIFO was asked for and granted (None: not asked); with ``probe_beside`` the vCPU probe runs
-    beside it and the missed periods that coincide with a CPU away are counted."""
+    beside it and the missed periods that coincide with a CPU away are counted (``deadline_fraction``:
+    the scenario's, with ``sets``)."""
     import contextlib
     import os
     import subprocess
 
-    from ..config import parse_set
     from ..logread import read_log
     from .vcpu_away import Beside, misses_with_cpu_away
 
@@ -105,7 +106,6 @@ def _rt_run(scenario_path, bus, seconds, sets, seed, strategy, out_dir, probe_be
     away = None
     if beside is not None and s.get("t0_monotonic_s") is not None and s.get("mcap") and steps:
         period_s = s["sim_s"] / steps
-        deadline_fraction = load_scenario(scenario_path, parse_set(sets)).bus.deadline_fraction
         missed_steps = [m.step for m in read_log(s["mcap"], {"/loop/timing"}).topic("/loop/timing")
                         if m.missed_deadline]
         hit = misses_with_cpu_away(missed_steps, s["t0_monotonic_s"], period_s, deadline_fraction,
@@ -217,7 +217,7 @@ def cmd_realtime(args, sets) -> int:
                 print(f"bench bus: {bus} real-time run {i + 1}/{args.realtime_runs} ({seconds:g} s, {args.strategy})",
                       file=sys.stderr, flush=True)
                 r = _rt_run(args.scenario, bus, seconds, sets, args.seed, args.strategy, f"{tmp}/{bus}-{i}",
-                            probe_beside=not args.no_vcpu_probe)
+                            probe_beside=not args.no_vcpu_probe, deadline_fraction=settings.deadline_fraction)
                 result["buses"][bus]["runs"].append(r)
                 away = r["vcpu_probe"]
                 print(f"bench bus:   exit {r['exit_code']}, missed/10k {_fmt(r['missed_per_10k'], '.1f')}"

@@ -49,7 +49,7 @@ import time
 from ..errors import HilError
 from .together import run_together
 
-#: two clock reads further apart than this are a gap (one turn of the loop takes ~0.5 us)
+#: two clock reads further apart than this are a gap (far longer than a turn of the loop)
 GAP_S = 100e-6
 #: the longest away gaps kept per CPU, with their start
 LONGEST_KEPT = 10
