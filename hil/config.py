@@ -49,6 +49,10 @@ class BusSettings:
     rt_priority: int = 0                  # realtime: SCHED_FIFO priority for plant, hub and TCU (0: off)
     cpu_latency_us: int = 0               # realtime: CPU latency request held for the run (hil/cpu_latency.py;
                                           # 0: idle CPUs poll instead of halting; -1: do not ask)
+    idle_spin: str = "auto"               # realtime: a SCHED_IDLE spinner per CPU for the run (hil/idle_spin.py):
+                                          # "on", "off", or "auto": on when the CPU latency request cannot keep
+                                          # idle CPUs polling (not held, or no cpuidle driver to carry it out)
+    idle_spin_rest_ms: float = 5.0        # each spinner sleeps this long every 100 ms (a host's CPU quota)
     cpu_affinity_plant: tuple = ()        # CPUs the plant process runs on (empty: no setting)
     cpu_affinity_tcu: tuple = ()          # CPUs the TCU process runs on (empty: no setting)
     lockstep_pin: bool = True             # lockstep, neither affinity set: plant and TCU process on two
@@ -140,7 +144,7 @@ BUS_RANGES = {
     "silence_periods": (1, 1_000_000), "lockstep_silence_s": (1e-3, 86_400.0),
     "lockstep_progress_s": (1e-3, 86_400.0), "startup_timeout_s": (1e-3, 86_400.0), "lockstep_spin_s": (0.0, 1.0),
     "deadline_fraction": (1e-3, 0.999), "rt_priority": (0, 99), "max_missed_fraction": (0.0, 1.0),
-    "cpu_latency_us": (-1, 2_000_000_000),
+    "cpu_latency_us": (-1, 2_000_000_000), "idle_spin_rest_ms": (0.0, 100.0),
 }
 #: the PlantSensor signals' ranges in hil/hil.dbc (motor speed rad/s, train speed m/s); a scenario whose
 #: speeds at the start, with six standard deviations of sensor noise, leave them is refused at load
@@ -404,6 +408,7 @@ def parse_scenario(text: str, path: str = "<scenario>", overrides: dict | None =
 
 
 AUTH_MODES = ("auto", "on", "off")
+IDLE_SPIN_MODES = ("auto", "on", "off")
 
 
 def _bus(path, data) -> BusSettings:
@@ -418,6 +423,11 @@ def _bus(path, data) -> BusSettings:
         if key == "auth":
             if value not in AUTH_MODES:
                 raise _fail(path, "[bus] auth", f"must be one of {', '.join(AUTH_MODES)}, got {value!r}")
+            values[key] = value
+            continue
+        if key == "idle_spin":
+            if value not in IDLE_SPIN_MODES:
+                raise _fail(path, "[bus] idle_spin", f"must be one of {', '.join(IDLE_SPIN_MODES)}, got {value!r}")
             values[key] = value
             continue
         if key == "auth_key_file":

@@ -13,6 +13,10 @@ polling is left (the kernel's ``POLL`` state), the behaviour of ``idle=poll``. T
 while the file is open, and ends when it is closed, also when the process dies. ``cyclictest``
 (rt-tests) holds 0 this way by default, and ``rtla timerlat --dma-latency`` for the same reason.
 
+It works through the cpuidle driver. Where the kernel runs none (``cpuidle_driver``: the sysfs file
+reads ``none``), idle is the architecture's default, a halt, and the request changes nothing; a
+real-time run then keeps its idle CPUs busy with idle spinners instead (``hil.idle_spin``).
+
 The cost is said rather than hidden: while held, idle CPUs spin (power, and on a shared host CPU
 time of the host). Opening the device needs root (it is ``0600 root``); a refusal is reported and
 the run goes on without it.
@@ -24,15 +28,32 @@ import struct
 
 #: the PM QoS CPU latency device
 DEVICE = "/dev/cpu_dma_latency"
+#: where the kernel names the cpuidle driver that carries out CPU latency requests
+CPUIDLE_DRIVER = "/sys/devices/system/cpu/cpuidle/current_driver"
+
+
+def cpuidle_driver(path: str = CPUIDLE_DRIVER) -> str | None:
+    """The cpuidle driver in use (``haltpoll``, ``intel_idle``, ...), or None when there is none (the
+    file reads ``none``, or is missing): then idle is the architecture's default (a halt), and a CPU
+    latency request changes nothing."""
+    try:
+        with open(path) as f:
+            name = f.read().strip()
+    except OSError:
+        return None
+    return None if name in ("", "none") else name
 
 
 class CpuLatencyRequest:
     """Hold ``latency_us`` on ``device`` until ``close``; ``held_us`` is the bound held, or None
-    (not asked: ``latency_us`` < 0; or refused, which ``log`` is told in one line)."""
+    (not asked: ``latency_us`` < 0; or refused, which ``log`` is told in one line).  ``driver`` is the
+    cpuidle driver that carries a request out (``cpuidle_driver``); where there is none the request
+    is held all the same, and ``log`` is told that it changes nothing here."""
 
-    def __init__(self, latency_us: int, log, device: str = DEVICE):
+    def __init__(self, latency_us: int, log, device: str = DEVICE, driver_path: str = CPUIDLE_DRIVER):
         self.held_us: int | None = None
         self._fd: int | None = None
+        self.driver = cpuidle_driver(driver_path)
         if latency_us < 0:
             return
         try:
@@ -48,6 +69,10 @@ class CpuLatencyRequest:
             log(f"realtime: {device} refused {latency_us} us ({e.strerror or e}): idle CPUs may halt and wake late")
             return
         self._fd, self.held_us = fd, latency_us
+        if self.driver is None:
+            log(f"realtime: CPU latency request {latency_us} us held on {device}, but this kernel runs no cpuidle "
+                "driver: idle CPUs halt whatever is asked")
+            return
         log(f"realtime: CPU latency request {latency_us} us held on {device} for the run "
             f"({'idle CPUs poll instead of halting' if latency_us == 0 else 'shallow idle states only'})")
 

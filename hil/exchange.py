@@ -49,8 +49,9 @@ import numpy as np
 from identifier.messages import TorqueCommand
 
 from .cpu_latency import CpuLatencyRequest
+from .idle_spin import SPIN, IdleSpinners, idle_mode
 from .effects import TRUTH_KEY
-from .errors import BusError, ConfigError, DeadlinesMissed, LogWriteError, PeerSilent, PlantError
+from .errors import BusError, ConfigError, DeadlinesMissed, HilError, LogWriteError, PeerSilent, PlantError
 from .frames import DBC_PATH, STATE_FAULT, STATE_FINISHED, FrameCodec, bus_load, format_bus_load
 from .link import MODES, GuardedBus, die_with_parent, open_bus, resolve
 from .plant_node import PlantNode, PlantRig
@@ -327,6 +328,18 @@ def _set_rt_priority(priority: int, log):
         return None
 
 
+def _idle_spinners(settings, log) -> IdleSpinners | None:
+    """The run's idle spinners, started (``hil.idle_spin``); None, said in one line, when they cannot be."""
+    try:
+        spinners = IdleSpinners(rest_s=settings.idle_spin_rest_ms * 1e-3).start()
+    except (HilError, OSError) as e:
+        log(f"realtime: warning: no idle spinners ({e}); idle CPUs may halt and wake late")
+        return None
+    log(f"realtime: a SCHED_IDLE spinner on each of CPUs {','.join(map(str, spinners.cpus))} for the run, resting "
+        f"{settings.idle_spin_rest_ms:g} ms every 100 ms: idle CPUs spin instead of halting")
+    return spinners
+
+
 def _recorded(summary: dict | None) -> dict | None:
     """The summary as the log keeps it: a real run's effects stay under the truth key alone
     (``hil.effects.TRUTH_KEY``), which ``hil gap`` never reads."""
@@ -411,10 +424,15 @@ def run(scenario, strategy: str = "nlls", seed: int | None = None, *, bus: str =
                    "reality": scenario.extra.get("reality") or None, "wall_s": wall,
                    "sim_s": node.t_s if node else 0.0, "sim_s_per_wall_s": node.t_s / wall if node and wall else None,
                    "bus_load_percent": load["load_percent"],
-                   "frame_auth": scenario.bus.auth, "cpu_latency_us": latency.held_us,
+                   "frame_auth": scenario.bus.auth, "cpu_latency_us": latency.held_us, "idle_cpus": idle,
                    **(node.counters() if node else {}),
                    **(timing.summary(node.late_commands) if timing else {}), **extra}))
 
+    latency = CpuLatencyRequest(settings.cpu_latency_us if mode == "realtime" else -1, log)
+    idle = idle_mode(settings.idle_spin, latency.held_us, latency.driver) if mode == "realtime" else None
+    spinners = _idle_spinners(settings, log) if idle == SPIN else None    # before pinning: on every CPU
+    if idle == SPIN and spinners is None:
+        idle = idle_mode("off", latency.held_us, latency.driver)
     plant_cpus, tcu_cpus = node_cpus(settings, mode, tcu.transport)
     if tcu_cpus != settings.cpu_affinity_tcu:
         set_args.append(f"bus.cpu_affinity_tcu={list(tcu_cpus)}")
@@ -423,7 +441,6 @@ def run(scenario, strategy: str = "nlls", seed: int | None = None, *, bus: str =
         old_cpus = None
     old_sched = _set_rt_priority(settings.rt_priority, log) if mode == "realtime" and settings.rt_priority > 0 \
         else None
-    latency = CpuLatencyRequest(settings.cpu_latency_us if mode == "realtime" else -1, log)
     with interrupts_between_writes():   # SIGTERM ends a run like Ctrl-C, never mid-write
         try:
             tcu.open(scenario, strategy, seed, bus, mode, set_args)
@@ -459,7 +476,14 @@ def run(scenario, strategy: str = "nlls", seed: int | None = None, *, bus: str =
                 bar.close()
             wall = time.perf_counter() - wall0
             node.finish(STATE_FINISHED)
-            summary = summarise(tcu.finish(node))
+            away = {}
+            if spinners is not None:
+                try:
+                    spinners.stop()
+                    away = spinners.summary(timing.missed_steps, timing.t0_s, period, settings.deadline_fraction)
+                except HilError as e:       # the run stands; only its CPU absences are unknown
+                    log(f"realtime: warning: {e}; the time CPUs were away is unknown")
+            summary = summarise({**tcu.finish(node), **away})
             if mode == "realtime":
                 summary.update(deadline_verdict(timing, settings.max_missed_fraction,
                                                 round(scenario.run.fault_time_s / scenario.run.exchange_period_s)))
@@ -505,6 +529,8 @@ def run(scenario, strategy: str = "nlls", seed: int | None = None, *, bus: str =
             finally:                                     # a log that cannot be closed still stops the TCU
                 tcu.close()
                 key_dir.cleanup()
+                if spinners is not None:
+                    spinners.kill()
                 latency.close()
                 if old_sched is not None:
                     os.sched_setscheduler(0, *old_sched)

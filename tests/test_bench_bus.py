@@ -48,8 +48,13 @@ def test_realtime_bench_lists_exit_codes_medians_and_whether_sched_fifo_was_gran
             v = run["vcpu_probe"]
             assert 0 <= v["missed_with_cpu_away_per_10k"] <= run["missed_per_10k"], (bus, v)
             assert len(v["cpus"]) >= 1 and all(c["away_ms"] >= 0 for c in v["cpus"])
+            assert run["idle_cpus"] == "spin" and run["idle_spin_rest_ms"] == 5.0   # the probe turns them on
     (probe,) = out["vcpu_away"]
     assert probe["periods"] == 1000 and 0 <= probe["periods_away"] <= 1000 and len(probe["cpus"]) >= 1
+    assert probe["rest_ms"] == 5.0                               # resting as the runs' spinners do
+    for c in probe["cpus"]:
+        assert 0 <= c["long_away_gaps"] <= c["away_gaps"]
+        assert (c["long_away_cycle_share"] is None) == (c["long_away_gaps"] == 0)
     if fifo:
         (missed,) = [t for name, t in targets.items() if "missed per 10 000" in name]
         assert f"{probe['periods_away_per_10k']:.1f}" in missed["measured"] and "vCPU probe" in missed["measured"]

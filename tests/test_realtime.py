@@ -16,7 +16,7 @@ from hil.logread import read_log
 from hil.record import Recorder
 
 from .conftest import ROOT, hil_command, subprocess_env
-from .test_bus import FFCC_A, children_of, cmdline, data_streams, identification, run_json
+from .test_bus import FFCC_A, alive, children_of, cmdline, data_streams, identification, run_json
 
 pytestmark = pytest.mark.realtime
 
@@ -390,3 +390,42 @@ def test_misses_of_a_stalled_plant_are_told_from_those_of_a_stalled_tcu(tmp_path
         counts[who] = (s["missed_deadlines"], late)
     assert counts["plant"][1] >= 30, counts       # 20 ms stalls of the plant in its loop: ~19 late periods each
     assert counts["tcu"][0] >= 30 and counts["tcu"][1] <= counts["tcu"][0] // 3, counts
+
+
+def _spinners_of(pid: int) -> list[int]:
+    """The idle spinners (``hil.idle_spin``) that process ``pid`` started, by their command lines."""
+    out = []
+    for name in os.listdir("/proc"):
+        if name.isdigit():
+            words = cmdline(int(name)).split()
+            if "hil.idle_spin" in words and words[-1] == str(pid):
+                out.append(int(name))
+    return out
+
+
+def test_a_realtime_run_with_idle_spinners_reports_the_time_away_and_leaves_none(tmp_path):
+    """With ``bus.idle_spin = "on"`` a real-time run has one SCHED_IDLE spinner per CPU while it runs,
+    none after it, and its summary gives each CPU's time away and the misses that coincide with one;
+    with "off" it has none and says how its idle CPUs waited instead."""
+    cpus = sorted(os.sched_getaffinity(0))
+    seen = set()
+    with _hil_process([*RT_ARGS, "--seed", "1", "--out", str(tmp_path / "on"), "--set", "bus.idle_spin=on"]) as proc:
+        while proc.poll() is None:
+            seen.update(_spinners_of(proc.pid))
+            time.sleep(0.05)
+        out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 0, err
+    s = json.loads(out)
+    print({k: s.get(k) for k in ("idle_cpus", "cpu_away", "missed_deadlines", "missed_deadlines_cpu_away")})
+    assert len(seen) == len(cpus), f"spinners seen during the run: {seen}"
+    assert not _spinners_of(proc.pid) and not any(alive(p) for p in seen)
+    assert s["idle_cpus"] == "spin" and s["idle_spin_rest_ms"] == 5.0 and "SCHED_IDLE spinner" in err
+    assert [c["cpu"] for c in s["cpu_away"]] == cpus
+    for c in s["cpu_away"]:
+        assert c["away_gaps"] >= 0 and 0 <= c["longest_away_us"] <= 1e3 * c["away_ms"] + 1e-6
+    assert 0 <= s["missed_deadlines_cpu_away"] <= s["missed_deadlines"]
+    off, err = run_json(FFCC_A, "local", tmp_path / "off", "--mode", "realtime", "--set", "bus.idle_spin=off",
+                        "--set", "bus.max_missed_fraction=1", "--set", "run.duration_s=0.5",
+                        "--set", "run.fault_time_s=0.3")
+    assert off["idle_cpus"] in ("poll", "shallow", "halt") and "cpu_away" not in off
+    assert "SCHED_IDLE spinner" not in err

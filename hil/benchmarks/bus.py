@@ -8,6 +8,7 @@ import sys
 import tempfile
 
 from ..config import load_scenario
+from ..idle_spin import AWAY_SHARE
 from .judge import _median
 
 IDENT_KEYS = ("identified", "t_identified_s", "corrections", "params", "samples", "mse", "r2", "observer_lag_ms")
@@ -71,32 +72,20 @@ def stream_digest(mcap_path) -> dict:
     return out
 
 
-#: a missed period "coincides with a CPU away" (vCPU probe beside the run) when one CPU was away for at
-#: least this share of a period around it (``hil.benchmarks.vcpu_away.misses_with_cpu_away``)
-AWAY_SHARE = 0.5
-
-
-def _rt_run(scenario_path, bus, seconds, sets, seed, strategy, out_dir, probe_beside: bool = False,
-            deadline_fraction: float = 0.9) -> dict:
+def _rt_run(scenario_path, bus, seconds, sets, seed, strategy, out_dir, probe_beside: bool = False) -> dict:
     """One real-time ``hil run --json`` process: its figures, exit code, load average and whether
-    SCHED_FIFO was asked for and granted (None: not asked); with ``probe_beside`` the vCPU probe runs
-    beside it and the missed periods that coincide with a CPU away are counted (``deadline_fraction``:
-    the scenario's, with ``sets``)."""
-    import contextlib
+    SCHED_FIFO was asked for and granted (None: not asked).  The run's idle spinners
+    (``hil.idle_spin``), where it has them, say which missed periods coincide with a CPU away
+    (``vcpu_probe``); ``probe_beside`` turns them on whatever ``[bus] idle_spin`` says."""
     import os
     import subprocess
-
-    from ..logread import read_log
-    from .vcpu_away import Beside, misses_with_cpu_away
 
     cmd = [sys.executable, "-m", "hil.cli", "run", str(scenario_path), "--mode", "realtime", "--bus", bus,
            "--strategy", strategy, "--seed", str(seed), "--out", out_dir, "--json", "--no-rrd",
            "--set", f"run.duration_s={seconds}", "--set", f"run.fault_time_s={max(seconds - 0.5, seconds / 2)}"]
-    for item in sets:
+    for item in sets + (["bus.idle_spin=\"on\""] if probe_beside else []):
         cmd += ["--set", item]
-    beside = Beside() if probe_beside else None
-    with beside or contextlib.nullcontext():
-        r = subprocess.run(cmd, capture_output=True, text=True, stdin=subprocess.DEVNULL)
+    r = subprocess.run(cmd, capture_output=True, text=True, stdin=subprocess.DEVNULL)
     try:
         s = json.loads(r.stdout) if r.stdout.strip() else {}
     except ValueError:
@@ -104,13 +93,8 @@ def _rt_run(scenario_path, bus, seconds, sets, seed, strategy, out_dir, probe_be
     steps = s.get("steps")
     missed = s.get("missed_deadlines")
     away = None
-    if beside is not None and s.get("t0_monotonic_s") is not None and s.get("mcap") and steps:
-        period_s = s["sim_s"] / steps
-        missed_steps = [m.step for m in read_log(s["mcap"], {"/loop/timing"}).topic("/loop/timing")
-                        if m.missed_deadline]
-        hit = misses_with_cpu_away(missed_steps, s["t0_monotonic_s"], period_s, deadline_fraction,
-                                   beside.away, AWAY_SHARE * period_s)
-        away = {"missed_with_cpu_away_per_10k": len(hit) * 1e4 / steps, "cpus": beside.figures}
+    if s.get("missed_deadlines_cpu_away") is not None and steps:
+        away = {"missed_with_cpu_away_per_10k": s["missed_deadlines_cpu_away"] * 1e4 / steps, "cpus": s["cpu_away"]}
     fifo = None
     if "SCHED_FIFO" in r.stderr:
         fifo = "cannot set SCHED_FIFO" not in r.stderr
@@ -122,7 +106,7 @@ def _rt_run(scenario_path, bus, seconds, sets, seed, strategy, out_dir, probe_be
             "jitter_max_us": s.get("jitter_max_us"), "round_trip_p50_us": s.get("round_trip_p50_us"),
             "round_trip_p99_us": s.get("round_trip_p99_us"), "tcu_stale_skipped": s.get("tcu_stale_skipped"),
             "loadavg_1min": os.getloadavg()[0], "sched_fifo_granted": fifo, "cpu_latency_us": s.get("cpu_latency_us"),
-            "vcpu_probe": away,
+            "idle_cpus": s.get("idle_cpus"), "idle_spin_rest_ms": s.get("idle_spin_rest_ms"), "vcpu_probe": away,
             "error": r.stderr.strip().splitlines()[-1] if r.returncode and r.stderr.strip() else None}
 
 
@@ -201,15 +185,17 @@ def cmd_realtime(args, sets) -> int:
             if not args.no_vcpu_probe:
                 print(f"bench bus: vCPU probe {i + 1}/{args.realtime_runs} ({seconds:g} s, both CPUs busy)",
                       file=sys.stderr, flush=True)
-                v = measure_vcpu_away(seconds, deadline_fraction=settings.deadline_fraction)
+                v = measure_vcpu_away(seconds, deadline_fraction=settings.deadline_fraction,
+                                      rest_s=settings.idle_spin_rest_ms * 1e-3)
                 result["vcpu_away"].append(v)
                 print(f"bench bus:   periods with a CPU away/10k {v['periods_away_per_10k']:.1f} (longest away "
                       f"{max(c['longest_away_us'] for c in v['cpus']) / 1e3:.1f} ms, steal "
-                      f"{_steal_word(v)}), load {v['loadavg_1min']:.2f}", file=sys.stderr, flush=True)
+                      f"{_steal_word(v)}; {_cycle_word(v)}), load {v['loadavg_1min']:.2f}", file=sys.stderr, flush=True)
             if not args.no_idle_loop:
                 print(f"bench bus: idle loop {i + 1}/{args.realtime_runs} ({seconds:g} s)", file=sys.stderr, flush=True)
                 f = measure_idle_loop(seconds, settings.rt_priority, deadline_fraction=settings.deadline_fraction,
-                                      cpu_latency_us=settings.cpu_latency_us)
+                                      cpu_latency_us=settings.cpu_latency_us, idle_spin=settings.idle_spin,
+                                      idle_spin_rest_ms=settings.idle_spin_rest_ms)
                 result["idle_loop"].append(f)
                 print(f"bench bus:   idle loop missed/10k {f['missed_per_10k']:.1f} ({f['stalls']} stalls, longest "
                       f"{f['longest_stall_periods']} periods), load {f['loadavg_1min']:.2f}", file=sys.stderr, flush=True)
@@ -217,7 +203,7 @@ def cmd_realtime(args, sets) -> int:
                 print(f"bench bus: {bus} real-time run {i + 1}/{args.realtime_runs} ({seconds:g} s, {args.strategy})",
                       file=sys.stderr, flush=True)
                 r = _rt_run(args.scenario, bus, seconds, sets, args.seed, args.strategy, f"{tmp}/{bus}-{i}",
-                            probe_beside=not args.no_vcpu_probe, deadline_fraction=settings.deadline_fraction)
+                            probe_beside=not args.no_vcpu_probe)
                 result["buses"][bus]["runs"].append(r)
                 away = r["vcpu_probe"]
                 print(f"bench bus:   exit {r['exit_code']}, missed/10k {_fmt(r['missed_per_10k'], '.1f')}"
@@ -281,15 +267,27 @@ def _floor_words(result: dict) -> str:
     rest = [r["missed_per_10k"] - r["vcpu_probe"]["missed_with_cpu_away_per_10k"] for r in (bus or {}).get("runs", [])
             if r.get("vcpu_probe") and r["missed_per_10k"] is not None]
     if rest:
-        out += (f"; missed with no CPU away beside the run (>= {100 * AWAY_SHARE:.0f} % of a period): "
+        out += (f"; missed with no CPU away seen by the run's idle spinners (>= {100 * AWAY_SHARE:.0f} % of a period): "
                 f"{min(rest):.1f}-{max(rest):.1f}")
     return out
 
 
-def _idle_word(latency_us) -> str:
-    """How a run's ``cpu_latency_us`` (the CPU latency request held, ``hil.cpu_latency``) reads in the reports."""
-    return "may halt (no latency request held)" if latency_us is None else \
-        "poll (latency request 0 us)" if latency_us == 0 else f"shallow (latency request {latency_us} us)"
+def _cycle_word(v: dict) -> str:
+    """The vCPU probe's long absences (``hil.benchmarks.vcpu_away.cycle_share``) in words."""
+    return "long absences (>= 0.3 ms) ending at one point of a 100 ms cycle: " + ", ".join(
+        f"cpu{c['cpu']} {c.get('long_away_gaps', 0)}"
+        + (f" ({100 * c['long_away_cycle_share']:.0f} %)" if c.get("long_away_cycle_share") is not None else "")
+        for c in v["cpus"])
+
+
+def _idle_word(r: dict) -> str:
+    """How a run's (or idle loop's) idle CPUs waited (``idle_cpus``, ``hil.idle_spin.idle_mode``) in the reports."""
+    mode, latency_us = r.get("idle_cpus"), r.get("cpu_latency_us")
+    if mode == "spin":
+        return f"spin (SCHED_IDLE spinners, resting {_fmt(r.get('idle_spin_rest_ms'), 'g')} ms per 100 ms)"
+    if mode is None and latency_us is not None or mode in ("poll", "shallow"):     # older JSON: no idle_cpus
+        return "poll (latency request 0 us)" if latency_us == 0 else f"shallow (latency request {latency_us} us)"
+    return "may halt (no latency request carried out, no spinners)"
 
 
 def _fmt(x, fmt="7.0f") -> str:
@@ -311,7 +309,7 @@ def realtime_text(args, result) -> str:
                          f"{_fmt(r['jitter_p50_us'])}/{_fmt(r['jitter_p99_us'])}/{_fmt(r['jitter_max_us'])} us  round "
                          f"trip p50/p99 {_fmt(r['round_trip_p50_us'])}/{_fmt(r['round_trip_p99_us'])} us  skipped "
                          f"{r['tcu_stale_skipped']}  load {r['loadavg_1min']:.2f}  SCHED_FIFO {fifo}  idle CPUs "
-                         f"{_idle_word(r.get('cpu_latency_us'))}"
+                         f"{_idle_word(r)}"
                          + (f"  with a CPU away {r['vcpu_probe']['missed_with_cpu_away_per_10k']:.1f}/10k (away "
                             + ", ".join(f"cpu{c['cpu']} {c['away_ms']:.0f} ms" for c in r["vcpu_probe"]["cpus"]) + ")"
                             if r.get("vcpu_probe") else "")
@@ -320,12 +318,12 @@ def realtime_text(args, result) -> str:
         lines.append(f"  vCPU probe, round {i}: periods with a CPU away/10k {v['periods_away_per_10k']:6.1f}; away "
                      + ", ".join(f"cpu{c['cpu']} {c['away_gaps']} gaps {c['away_ms']:.1f} ms (longest "
                                  f"{c['longest_away_us'] / 1e3:.1f} ms)" for c in v["cpus"])
-                     + f"; steal {_steal_word(v)}  load {v['loadavg_1min']:.2f}")
+                     + f"; {_cycle_word(v)}; steal {_steal_word(v)}  load {v['loadavg_1min']:.2f}")
     for i, f in enumerate(result.get("idle_loop") or [], 1):
         lines.append(f"  idle loop, round {i}: missed/10k {f['missed_per_10k']:6.1f} ({f['stalls']} stalls, longest "
                      f"{f['longest_stall_periods']} periods; late p99/max {f['late_p99_us']:.0f}/{f['late_max_us']:.0f} us)"
                      f"  load {f['loadavg_1min']:.2f}  SCHED_FIFO "
-                     f"{FIFO_WORD[f['sched_fifo_granted']]}  idle CPUs {_idle_word(f.get('cpu_latency_us'))}")
+                     f"{FIFO_WORD[f['sched_fifo_granted']]}  idle CPUs {_idle_word(f)}")
     lines.append("targets:")
     for t in result["targets"]:
         lines.append(f"  {'MET' if t['met'] else 'not measured' if t['met'] is None else 'NOT MET'}: {t['target']}: "
@@ -355,18 +353,24 @@ def realtime_markdown(args, result) -> str:
     if result.get("vcpu_away"):
         out += ["", "## The machine's floor: CPUs taken away (vCPU probe)", "",
                 "Before each round, one process per CPU, pinned, read the clock in a tight loop as long as a run "
-                "(`python -m hil.benchmarks.vcpu_away`). A gap of over "
+                f"(`python -m hil.benchmarks.vcpu_away`), resting {result['vcpu_away'][0].get('rest_ms', 0):g} ms "
+                "every 100 ms as the runs' idle spinners do (a rest is not observed). A gap of over "
                 f"{result['vcpu_away'][0]['gap_us']:.0f} us between two reads during which the process was not "
                 "switched out by this system's scheduler (its context switches did not grow) is time *away*: the "
                 "hypervisor held the vCPU, or interrupt handlers ran. A period in which a CPU was away for at "
                 f"least {100 * result['vcpu_away'][0]['deadline_fraction']:.0f} % is one no process on that CPU "
                 "could meet. `steal` is what the kernel counted as taken by the hypervisor meanwhile.", "",
-                "| round | periods away / 10k | away: gaps, total, longest (per CPU) | steal | load |",
-                "|---|---|---|---|---|"]
+                "*Long, at one point*: the absences of at least 0.3 ms, and the largest share of them that end "
+                "within 1 ms of one point of a 100 ms cycle (near 100 %: a host's CPU quota ran out and the "
+                "vCPUs waited for its next period; at random about 2 %).", "",
+                "| round | periods away / 10k | away: gaps, total, longest (per CPU) | long, at one point | steal | "
+                "load |", "|---|---|---|---|---|---|"]
         for i, v in enumerate(result["vcpu_away"], 1):
             cpus = "; ".join(f"cpu{c['cpu']} {c['away_gaps']}, {c['away_ms']:.1f} ms, {c['longest_away_us'] / 1e3:.1f} ms"
                              for c in v["cpus"])
-            out.append(f"| {i} | {v['periods_away_per_10k']:.1f} | {cpus} | {_steal_word(v)} | {v['loadavg_1min']:.2f} |")
+            cycle = _cycle_word(v).split(": ", 1)[1]
+            out.append(f"| {i} | {v['periods_away_per_10k']:.1f} | {cpus} | {cycle} | {_steal_word(v)} | "
+                       f"{v['loadavg_1min']:.2f} |")
     if result.get("idle_loop"):
         out += ["", "## An idle loop in the same minutes", "",
                 "Before each round of runs, two processes paced exactly as the plant node (same priority and CPU "
@@ -380,7 +384,7 @@ def realtime_markdown(args, result) -> str:
             fifo = FIFO_WORD[f["sched_fifo_granted"]]
             out.append(f"| {i} | {f['missed_per_10k']:.1f} | {f['stalls']} | {f['longest_stall_periods']} | "
                        f"{f['late_p99_us']:.0f} / {f['late_max_us']:.0f} | {f['loadavg_1min']:.2f} | {fifo} | "
-                       f"{_idle_word(f.get('cpu_latency_us'))} |")
+                       f"{_idle_word(f)} |")
     for bus, b in result["buses"].items():
         out += ["", f"## {bus}", ""]
         if b["lockstep_speeds"]:
@@ -390,10 +394,11 @@ def realtime_markdown(args, result) -> str:
         if b["runs"]:
             out += ["Missed / 10k: all, and (in brackets) those in periods the plant itself began past the "
                     "deadline (its process or CPU stalled: no bus or TCU could have met them). *With a CPU away*: "
-                    "the missed periods in which the vCPU probe beside the run (SCHED_IDLE spinners) saw one CPU "
+                    "the missed periods in which the run's own idle spinners (`hil/idle_spin.py`, SCHED_IDLE; on "
+                    "with the vCPU probe) saw one CPU "
                     f"away for >= {100 * AWAY_SHARE:.0f} % of a period between half a period before the period "
-                    "and its deadline; the spinners only see absences in the time the run leaves idle, so this "
-                    "undercounts; *away* is each CPU's total.", "",
+                    "and its deadline; the spinners only see absences in the time the run leaves idle, and none "
+                    "in their rests, so this undercounts; *away* is each CPU's total.", "",
                     "| run | exit | missed / 10k | with a CPU away / 10k (away per CPU) | jitter p50 / p99 / max (us) | "
                     "round trip p50 / p99 (us) | stale skipped | load | SCHED_FIFO | idle CPUs |",
                     "|---|---|---|---|---|---|---|---|---|---|"]
@@ -407,7 +412,7 @@ def realtime_markdown(args, result) -> str:
                            f"{_fmt(r['jitter_p99_us'], '.0f')} / {_fmt(r['jitter_max_us'], '.0f')} | "
                            f"{_fmt(r['round_trip_p50_us'], '.0f')} / {_fmt(r['round_trip_p99_us'], '.0f')} | "
                            f"{r['tcu_stale_skipped']} | {r['loadavg_1min']:.2f} | {fifo} | "
-                           f"{_idle_word(r.get('cpu_latency_us'))} |")
+                           f"{_idle_word(r)} |")
     return "\n".join(out) + "\n"
 
 

@@ -10,7 +10,8 @@ the idle loop missed more deadlines than the real run beside it; ``docs/realtime
 What: two processes (as a real-time run has a plant and a TCU), each at SCHED_FIFO ``priority`` (when
 granted; normal priority otherwise, reported), pace periods of ``period_s`` exactly as the plant node
 does (sleep until ``WAKE_MARGIN_S`` before the period, then poll with ``POLL_SLICE_S`` sleeps, the last
-``SPIN_S`` without sleeping), under the run's CPU latency request when asked (``hil.cpu_latency``),
+``SPIN_S`` without sleeping), under the run's CPU latency request when asked (``hil.cpu_latency``)
+and beside its idle spinners when it would have them (``hil.idle_spin``),
 and do nothing else. Period k of the pair is *missed* when either process
 wakes for it later than ``deadline_fraction * period_s`` after its start ``t_k = t0 + k * period_s``
 (the bound by which the plant needs the TCU's command). Both processes share ``t0`` on CLOCK_MONOTONIC
@@ -21,6 +22,7 @@ wakes for it later than ``deadline_fraction * period_s`` after its start ``t_k =
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import sys
@@ -28,6 +30,7 @@ import time
 
 from ..cpu_latency import CpuLatencyRequest
 from ..errors import HilError
+from ..idle_spin import SPIN, IdleSpinners, idle_mode
 from ..plant_node import POLL_SLICE_S, SPIN_S, WAKE_MARGIN_S
 from .together import run_together
 
@@ -107,14 +110,20 @@ def kernel_preemption() -> str:
 
 
 def measure(seconds: float, priority: int = 0, period_s: float = 1e-3, deadline_fraction: float = 0.9,
-            cpu_latency_us: int = -1) -> dict:
+            cpu_latency_us: int = -1, idle_spin: str = "off", idle_spin_rest_ms: float = 5.0) -> dict:
     """Run the two empty loops for ``seconds`` and merge them: missed periods (either node late past the
     deadline), per 10 000 periods, the stalls behind them, the load average, SCHED_FIFO granted or not;
     with ``cpu_latency_us`` >= 0 under the CPU latency request a real-time run holds (``hil.cpu_latency``),
-    ``cpu_latency_us`` in the result saying whether it was held."""
+    and with the idle spinners it would have by ``idle_spin`` (``hil.idle_spin``): ``cpu_latency_us``
+    and ``idle_cpus`` in the result say what was held."""
     latency = CpuLatencyRequest(cpu_latency_us, lambda text: None)
+    idle = idle_mode(idle_spin, latency.held_us, latency.driver)
     try:
-        return {**_measure(seconds, priority, period_s, deadline_fraction), "cpu_latency_us": latency.held_us}
+        spinners = IdleSpinners(rest_s=idle_spin_rest_ms * 1e-3) if idle == SPIN else None
+        with spinners or contextlib.nullcontext():
+            out = _measure(seconds, priority, period_s, deadline_fraction)
+        return {**out, "cpu_latency_us": latency.held_us, "idle_cpus": idle,
+                "idle_spin_rest_ms": idle_spin_rest_ms if spinners else None}
     finally:
         latency.close()
 
@@ -151,9 +160,13 @@ def main(argv=None) -> int:
     p.add_argument("--priority", type=int, default=0, help="SCHED_FIFO priority (0: normal scheduling)")
     p.add_argument("--cpu-latency-us", type=int, default=-1,
                    help="hold this CPU latency request meanwhile (hil/cpu_latency.py; -1: none)")
+    p.add_argument("--idle-spin", choices=("auto", "on", "off"), default="off",
+                   help="idle spinners meanwhile, as [bus] idle_spin (hil/idle_spin.py; default off)")
+    p.add_argument("--idle-spin-rest-ms", type=float, default=5.0)
     a = p.parse_args(argv)
     try:
-        print(json.dumps({**measure(a.seconds, a.priority, cpu_latency_us=a.cpu_latency_us),
+        print(json.dumps({**measure(a.seconds, a.priority, cpu_latency_us=a.cpu_latency_us, idle_spin=a.idle_spin,
+                                    idle_spin_rest_ms=a.idle_spin_rest_ms),
                           "kernel_preemption": kernel_preemption()}))
     except HilError as e:
         print(f"idle_loop: {e}", file=sys.stderr)

@@ -8,14 +8,14 @@ same minutes as the real-time runs (``hil bench bus``).
 
 How: one process per CPU, pinned to it (``sched_setaffinity``) at normal priority (a SCHED_FIFO
 spinner would be stopped by the kernel's real-time throttling, 50 ms a second), reads the
-monotonic clock in a tight loop for ``seconds``. Two consecutive reads more than ``GAP_S`` apart are
-a *gap*. Each turn also reads the process's context switches (``getrusage``): a gap across which
-the count grew is this system's own scheduler running something else (*guest*); one across which
-it did not is time the CPU ran nothing of this system's processes, not even its scheduler: the
-hypervisor held the vCPU, or interrupt handlers did (*away*).
+monotonic clock in a tight loop for ``seconds`` (``hil.idle_spin.spin``: a gap between two reads
+with no context switch of the spinner is time *away*, the hypervisor holding the vCPU or interrupt
+handlers running; one with a switch is this system's own scheduler, *guest*).
 
-Figures: per CPU the away gaps (count, total, longest, and the 10 longest with their start), the
-guest gaps (count, total, longest), and the change of ``steal``; merged over the periods
+Figures: per CPU the away gaps (count, total, longest, and the 10 longest with their start), how
+many were of at least ``LONG_AWAY_S`` and the largest share of those that end at one point of a
+100 ms cycle (``cycle_share``: near 1 when a host's CPU quota stops the vCPU until its next period),
+the guest gaps (count, total, longest), and the change of ``steal``; merged over the periods
 ``[t0 + k * period_s, t0 + (k + 1) * period_s)`` shared by both processes: ``periods_away``, the
 periods in which some CPU was away for at least ``deadline_fraction`` of the period (the deadline's
 share: what is left is shorter than a round trip), per 10 000 periods.
@@ -26,148 +26,37 @@ period away is a missed deadline when the loop's process sits on that CPU; with 
 two CPUs it nearly always does. The probe cannot run beside a real-time run (it takes both CPUs),
 so it measures the machine's minute, not the run's.
 
-Beside a run (``Beside``): the same spinners at ``SCHED_IDLE`` run for as long as a real-time run,
-taking only the time its processes leave idle; they see the absences that fall in that time (most of
-it: the loop's processes sleep most of each period), and ``misses_with_cpu_away`` finds the run's
-missed periods that coincide with one. This costs the run: its processes now preempt a spinner instead
-of waking an idle CPU (``hil bench bus`` prints the round trip, to be compared with a run without).
+Beside a run the same measure comes from the run's own idle spinners (``hil.idle_spin``: the same
+loop at ``SCHED_IDLE``, in the time the run leaves idle), which also find the run's missed periods
+that coincide with a CPU away. With ``rest_s`` each spinner rests as the run's idle spinners do
+(``hil.idle_spin``: on a host that caps the VM's CPU time near its vCPU count, spinners that never
+rest exhaust the cap and measure the stalls they cause themselves); a rest is not observed.
 
 ``python -m hil.benchmarks.vcpu_away SECONDS`` prints the result as JSON.
 """
 from __future__ import annotations
 
 import argparse
-import bisect
 import json
 import os
-import resource
-import signal
-import subprocess
 import sys
-import time
 
 from ..errors import HilError
+from ..idle_spin import CYCLE_S, GAP_S, spin
 from .together import run_together
 
-#: two clock reads further apart than this are a gap (far longer than a turn of the loop)
-GAP_S = 100e-6
+#: an away gap this long counts in ``cycle_share``
+LONG_AWAY_S = 300e-6
 #: the longest away gaps kept per CPU, with their start
 LONGEST_KEPT = 10
 
 
-def spin(t0: float, seconds: float, gap_s: float = GAP_S, stop: list | None = None) -> tuple[list, int]:
-    """Read the clock from ``t0`` for ``seconds`` (or until ``stop`` is not empty); the gaps
-    ``(start - t0, length, guest)`` and the turns.
-
-    Turn i reads the clock (c_i), then the context switches (u_i). A switch inside the gap
-    (c_{i-1}, c_i) may land before or after u_{i-1}, but always after u_{i-2} and before u_i: the gap
-    is the guest's when u_i != u_{i-2} (a switch just outside the gap may count it as the guest's too:
-    this errs towards "guest", never towards "away")."""
-    clock, usage, me = time.perf_counter, resource.getrusage, resource.RUSAGE_SELF
-    stop = [] if stop is None else stop
-    while clock() < t0:
-        pass
-    end = t0 + seconds
-    r = usage(me)
-    before = switches = r.ru_nvcsw + r.ru_nivcsw          # u_{i-2}, u_{i-1}
-    last = clock()
-    gaps, turns = [], 0
-    while last < end and not stop:
-        now = clock()
-        r = usage(me)
-        s = r.ru_nvcsw + r.ru_nivcsw
-        turns += 1
-        if now - last > gap_s:
-            gaps.append((last - t0, now - last, s != before))
-        last, before, switches = now, switches, s
-    return gaps, turns
-
-
-def _child(cpu: int, seconds: float) -> None:
+def _child(cpu: int, seconds: float, rest_s: float, first_rest_s: float) -> None:
     os.sched_setaffinity(0, {cpu})
     print("ready", flush=True)
     t0 = float(sys.stdin.readline())
-    gaps, turns = spin(t0, seconds)
+    gaps, turns = spin(t0, seconds, rest_s=rest_s, first_rest_s=first_rest_s)
     print(json.dumps({"cpu": cpu, "gaps": gaps, "turns": turns}))
-
-
-def _child_beside(cpu: int) -> None:
-    """A spinner beside a run: SCHED_IDLE, pinned, from "ready" until SIGTERM; prints its start and gaps."""
-    os.sched_setaffinity(0, {cpu})
-    os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
-    stop: list = []
-    signal.signal(signal.SIGTERM, lambda signum, frame: stop.append(signum))
-    t0 = time.perf_counter()
-    print("ready", flush=True)
-    gaps, turns = spin(t0, float("inf"), stop=stop)
-    print(json.dumps({"cpu": cpu, "t0": t0, "gaps": gaps, "turns": turns}))
-
-
-class Beside:
-    """``with Beside(): ...``: one SCHED_IDLE spinner per CPU while the block runs (module docstring).
-
-    After the block: ``away`` (CPU -> ``[(start, length)]``, start on ``time.perf_counter``) and
-    ``figures`` (per CPU the away gaps, total and longest)."""
-
-    def __init__(self, cpus: list[int] | None = None):
-        self.cpus = sorted(os.sched_getaffinity(0)) if cpus is None else cpus
-        self.children: list = []
-        self.away: dict[int, list] = {}
-        self.figures: list[dict] = []
-
-    def __enter__(self):
-        cmd = [sys.executable, "-m", "hil.benchmarks.vcpu_away", "--beside"]
-        self.children = [subprocess.Popen(cmd + [str(c)], stdout=subprocess.PIPE, stdin=subprocess.DEVNULL, text=True)
-                         for c in self.cpus]
-        for child in self.children:
-            if child.stdout.readline().strip() != "ready":
-                self._kill()
-                raise HilError(f"vCPU probe: a spinner beside the run did not start (exit {child.wait()})")
-        return self
-
-    def __exit__(self, *exc):
-        outs = []
-        try:
-            for child in self.children:
-                child.send_signal(signal.SIGTERM)
-            for child in self.children:
-                out = child.stdout.read()
-                if child.wait() != 0:
-                    raise HilError(f"vCPU probe: a spinner beside the run exited {child.returncode}")
-                outs.append(json.loads(out))
-        finally:
-            self._kill()
-        for o in outs:
-            mine = [(o["t0"] + a, d) for a, d, guest in o["gaps"] if not guest]
-            self.away[o["cpu"]] = mine
-            self.figures.append({"cpu": o["cpu"], "away_gaps": len(mine), "away_ms": 1e3 * sum(d for a, d in mine),
-                                 "longest_away_us": 1e6 * max((d for a, d in mine), default=0.0)})
-        return False
-
-    def _kill(self) -> None:
-        for child in self.children:
-            if child.poll() is None:
-                child.kill()
-                child.wait()
-
-
-def misses_with_cpu_away(missed_steps, t0: float, period_s: float, deadline_fraction: float,
-                         away: dict[int, list], min_away_s: float) -> list[int]:
-    """The missed periods k during which one CPU was away for at least ``min_away_s`` in total between
-    half a period before the period's start ``t0 + k * period_s`` and its deadline (an absence just
-    before the start delays the plant's sensor frame; one after it, the TCU's answer)."""
-    cpus = [(sorted(gaps), max((d for g, d in gaps), default=0.0)) for gaps in away.values()]
-    starts = [[g for g, d in gaps] for gaps, longest in cpus]
-    out = []
-    for k in missed_steps:
-        a = t0 + (k - 0.5) * period_s
-        b = t0 + (k + deadline_fraction) * period_s
-        for (gaps, longest), st in zip(cpus, starts):
-            near = gaps[bisect.bisect_left(st, a - longest):bisect.bisect_right(st, b)]
-            if sum(max(0.0, min(b, g + d) - max(a, g)) for g, d in near) >= min_away_s:
-                out.append(k)
-                break
-    return out
 
 
 def _steal_ticks() -> dict[str, int]:
@@ -195,14 +84,28 @@ def periods_away(away: dict[int, list], period_s: float, fraction: float) -> lis
     return sorted(hit)
 
 
+def cycle_share(gaps, cycle_s: float = CYCLE_S, within_s: float = 1e-3, min_s: float = LONG_AWAY_S) -> float | None:
+    """The largest share of the away gaps ``(start, length)`` of at least ``min_s`` whose ends fall
+    within ``within_s`` of one point of a ``cycle_s`` cycle (None: no such gaps).  Near 1: they end
+    together at the same point of every cycle, as when a host's CPU quota runs out and the next
+    period of it begins; a machine that takes CPUs away at random gives about ``2 * within_s / cycle_s``."""
+    ends = [(a + d) % cycle_s for a, d in gaps if d >= min_s]
+    if not ends:
+        return None
+    near = max(sum(1 for f in ends if min(abs(e - f), cycle_s - abs(e - f)) <= within_s) for e in ends)
+    return near / len(ends)
+
+
 def measure(seconds: float, period_s: float = 1e-3, deadline_fraction: float = 0.9,
-            cpus: list[int] | None = None) -> dict:
-    """Spin on each of ``cpus`` (default: every CPU this process may use) for ``seconds``; the figures
-    of the module docstring."""
+            cpus: list[int] | None = None, rest_s: float = 0.0) -> dict:
+    """Spin on each of ``cpus`` (default: every CPU this process may use) for ``seconds``, resting
+    ``rest_s`` per ``hil.idle_spin.CYCLE_S`` (staggered, as the idle spinners); the figures of the
+    module docstring."""
     cpus = sorted(os.sched_getaffinity(0)) if cpus is None else cpus
     cmd = [sys.executable, "-m", "hil.benchmarks.vcpu_away", "--child"]
     steal0 = _steal_ticks()
-    outs = run_together([cmd + [str(c), repr(seconds)] for c in cpus], "vCPU probe: a spinning process")
+    outs = run_together([cmd + [str(c), repr(seconds), repr(rest_s), repr(CYCLE_S * i / len(cpus))]
+                         for i, c in enumerate(cpus)], "vCPU probe: a spinning process")
     steal1 = _steal_ticks()
     tick_ms = 1e3 / os.sysconf("SC_CLK_TCK")
     per_cpu, away = [], {}
@@ -214,6 +117,8 @@ def measure(seconds: float, period_s: float = 1e-3, deadline_fraction: float = 0
         per_cpu.append({"cpu": o["cpu"], "turns_per_s": o["turns"] / seconds,
                         "away_gaps": len(mine), "away_ms": 1e3 * sum(d for a, d in mine),
                         "longest_away_us": 1e6 * max((d for a, d in mine), default=0.0),
+                        "long_away_gaps": sum(1 for a, d in mine if d >= LONG_AWAY_S),
+                        "long_away_cycle_share": cycle_share(mine),
                         "longest_away": [{"at_s": a, "us": 1e6 * d}
                                          for a, d in sorted(mine, key=lambda g: -g[1])[:LONGEST_KEPT]],
                         "guest_gaps": len(theirs), "guest_ms": 1e3 * sum(theirs),
@@ -223,6 +128,7 @@ def measure(seconds: float, period_s: float = 1e-3, deadline_fraction: float = 0
     periods = max(1, int(round(seconds / period_s)))
     hit = periods_away(away, period_s, deadline_fraction)
     return {"seconds": seconds, "period_s": period_s, "deadline_fraction": deadline_fraction, "gap_us": GAP_S * 1e6,
+            "rest_ms": 1e3 * rest_s,
             "periods": periods, "periods_away": len(hit), "periods_away_per_10k": len(hit) * 1e4 / periods,
             "cpus": per_cpu, "loadavg_1min": os.getloadavg()[0]}
 
@@ -230,18 +136,17 @@ def measure(seconds: float, period_s: float = 1e-3, deadline_fraction: float = 0
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv and argv[0] == "--child":
-        _child(int(argv[1]), float(argv[2]))
-        return 0
-    if argv and argv[0] == "--beside":
-        _child_beside(int(argv[1]))
+        _child(int(argv[1]), float(argv[2]), float(argv[3]), float(argv[4]))
         return 0
     p = argparse.ArgumentParser(prog="python -m hil.benchmarks.vcpu_away", description=__doc__.split("\n\n")[0])
     p.add_argument("seconds", type=float)
     p.add_argument("--period-s", type=float, default=1e-3)
     p.add_argument("--deadline-fraction", type=float, default=0.9)
+    p.add_argument("--rest-ms", type=float, default=0.0,
+                   help="each spinner rests this long every 100 ms, as the idle spinners (default 0: never)")
     a = p.parse_args(argv)
     try:
-        print(json.dumps(measure(a.seconds, a.period_s, a.deadline_fraction)))
+        print(json.dumps(measure(a.seconds, a.period_s, a.deadline_fraction, rest_s=a.rest_ms * 1e-3)))
     except HilError as e:
         print(f"vcpu_away: {e}", file=sys.stderr)
         return 1

@@ -134,10 +134,10 @@ def print_summary(s: dict, file=sys.stdout, heading: str | None = None) -> None:
     if s.get("mode") in ("lockstep", "realtime"):
         line = f"  {s['mode']} over {s['bus']}: round trip p50 {_fmt(s.get('round_trip_p50_us'), '.0f')} us"
         if s["mode"] == "realtime":
-            late = s.get("missed_deadlines_plant_started_late")
-            line += (f", missed deadlines {s.get('missed_deadlines')}"
-                     + (f" ({late} in periods the plant itself began past the deadline: a stall of its process or "
-                        f"CPU)" if late else "")
+            late, away = s.get("missed_deadlines_plant_started_late"), s.get("missed_deadlines_cpu_away")
+            why = ([f"{late} in periods the plant itself began past the deadline: a stall of its process or CPU"]
+                   if late else []) + ([f"{away} with a CPU taken away by the machine"] if away else [])
+            line += (f", missed deadlines {s.get('missed_deadlines')}" + (f" ({'; '.join(why)})" if why else "")
                      + f", jitter p99 {_fmt(s.get('jitter_p99_us'), '.0f')} us")
         bad, bad_tcu = sum((s.get("rejected_frames") or {}).values()), sum((s.get("tcu_rejected_frames") or {}).values())
         if bad or bad_tcu:
