@@ -160,27 +160,40 @@ def serve(bus: can.BusABC, node: TcuNode, *, silence_s: float, heartbeat_period_
     """Answer frames until the plant says it finished; raises PeerSilent when the plant goes quiet
     for longer than ``silence_s`` (or never shows up within ``startup_timeout_s``).  ``spin_s``
     (lockstep): poll the bus this long after each frame before sleeping in it, so the next sensor
-    frame finds the node awake (``[bus] lockstep_spin_s``)."""
+    frame finds the node awake (``[bus] lockstep_spin_s``).
+
+    Heartbeats, every ``heartbeat_period_s``: this loop sends them between frames, after its answers.
+    A thread is the backstop for work that holds the loop longer (a strategy's fit): it wakes every
+    ``max(heartbeat_period_s, silence_s / 4)`` and sends one when none went out for a period, so the
+    plant never takes a busy TCU for a silent one.  Why not the thread alone: a thread that needs the
+    interpreter every 2 ms takes it from the loop in the middle of an answer (at the send of the
+    command, where the loop lets it go), and the command waits for the heartbeat's encoding, its MAC
+    and its send."""
     sender = Sender(bus)
     codec = node.codec
     state = [STATE_STARTING]
     stop = threading.Event()
+    sending = threading.Lock()          # one heartbeat at a time: each takes the next freshness value
+    sent = {"counter": 0, "at": -math.inf}
 
-    def heartbeat():
-        counter = 0
-        next_t = time.monotonic()
-        while not stop.is_set():
-            try:
-                sender.send(codec.tcu_heartbeat(counter, state[0], node.last_step))
-            except Exception:  # noqa: BLE001 - a dead bus shows up in the main loop
-                pass
-            counter += 1
-            next_t += heartbeat_period_s
-            stop.wait(max(0.0, next_t - time.monotonic()))
+    def send_heartbeat() -> None:
+        with sending:
+            sender.send(codec.tcu_heartbeat(sent["counter"], state[0], node.last_step))
+            sent["counter"] += 1
+            sent["at"] = time.monotonic()
 
-    thread = threading.Thread(target=heartbeat, name="tcu-heartbeat", daemon=True)
+    def backstop():
+        while not stop.wait(backstop_s):
+            if time.monotonic() - sent["at"] >= heartbeat_period_s:
+                try:
+                    send_heartbeat()
+                except Exception:  # noqa: BLE001 - a dead bus shows up in the main loop
+                    pass
+
+    backstop_s = max(heartbeat_period_s, silence_s / 4)
+    thread = threading.Thread(target=backstop, name="tcu-heartbeat", daemon=True)
     old_interval = sys.getswitchinterval()
-    sys.setswitchinterval(min(old_interval, heartbeat_period_s / 4))   # heartbeats keep coming while fitting
+    sys.setswitchinterval(min(old_interval, backstop_s / 4))   # heartbeats keep coming while fitting
     thread.start()
     t0 = time.monotonic()
     last_plant = None
@@ -189,7 +202,11 @@ def serve(bus: can.BusABC, node: TcuNode, *, silence_s: float, heartbeat_period_
         while not node.finished:
             msg = poll_until(bus, time.perf_counter() + spin_s) if spinning else None
             if msg is None:
-                msg = bus.recv(timeout=min(0.05, silence_s / 4))
+                due = sent["at"] + heartbeat_period_s - time.monotonic()
+                if due <= 0.0:
+                    send_heartbeat()
+                    due = heartbeat_period_s
+                msg = bus.recv(timeout=min(0.05, silence_s / 4, due))
             now = time.monotonic()
             if msg is None:
                 if last_plant is None:
@@ -219,7 +236,7 @@ def serve(bus: can.BusABC, node: TcuNode, *, silence_s: float, heartbeat_period_
         thread.join(1.0)
         sys.setswitchinterval(old_interval)
         try:   # one last heartbeat that says how the TCU ended
-            sender.send(codec.tcu_heartbeat(0, state[0], node.last_step))
+            send_heartbeat()
         except Exception:  # noqa: BLE001
             pass
 
