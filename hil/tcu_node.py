@@ -163,9 +163,9 @@ def serve(bus: can.BusABC, node: TcuNode, *, silence_s: float, heartbeat_period_
     frame finds the node awake (``[bus] lockstep_spin_s``).
 
     Heartbeats, every ``heartbeat_period_s``: this loop sends them between frames, after its answers.
-    A thread is the backstop for work that holds the loop longer (a strategy's fit): it wakes every
-    ``max(heartbeat_period_s, silence_s / 4)`` and sends one when none went out for a period, so the
-    plant never takes a busy TCU for a silent one.  Why not the thread alone: a thread that needs the
+    A thread is the backstop for work that holds the loop longer (a strategy's fit): it wakes
+    ``max(heartbeat_period_s, silence_s / 4)`` after the last heartbeat and sends one when none went
+    out for a period, so the plant never takes a busy TCU for a silent one.  Why not the thread alone: a thread that needs the
     interpreter every 2 ms takes it from the loop in the middle of an answer (at the send of the
     command, where the loop lets it go), and the command waits for the heartbeat's encoding, its MAC
     and its send."""
@@ -182,8 +182,8 @@ def serve(bus: can.BusABC, node: TcuNode, *, silence_s: float, heartbeat_period_
             sent["counter"] += 1
             sent["at"] = time.monotonic()
 
-    def backstop():
-        while not stop.wait(backstop_s):
+    def backstop():      # wakes a backstop interval after the last heartbeat, whoever sent it
+        while not stop.wait(max(sent["at"] + backstop_s - time.monotonic(), heartbeat_period_s)):
             if time.monotonic() - sent["at"] >= heartbeat_period_s:
                 try:
                     send_heartbeat()
