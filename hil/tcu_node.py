@@ -165,10 +165,10 @@ def serve(bus: can.BusABC, node: TcuNode, *, silence_s: float, heartbeat_period_
     Heartbeats, every ``heartbeat_period_s``: this loop sends them between frames, after its answers.
     A thread is the backstop for work that holds the loop longer (a strategy's fit): it wakes
     ``max(heartbeat_period_s, silence_s / 4)`` after the last heartbeat and sends one when none went
-    out for a period, so the plant never takes a busy TCU for a silent one.  Why not the thread alone: a thread that needs the
-    interpreter every 2 ms takes it from the loop in the middle of an answer (at the send of the
-    command, where the loop lets it go), and the command waits for the heartbeat's encoding, its MAC
-    and its send."""
+    out for a period, so the plant never takes a busy TCU for a silent one.  Why not the thread
+    alone: a thread that needs the interpreter every 2 ms takes it from the loop in the middle of an
+    answer (at the send of the command, where the loop lets it go), and the command waits for the
+    heartbeat's encoding, its MAC and its send."""
     sender = Sender(bus)
     codec = node.codec
     state = [STATE_STARTING]

@@ -190,7 +190,8 @@ def cmd_realtime(args, sets) -> int:
                 result["vcpu_away"].append(v)
                 print(f"bench bus:   periods with a CPU away/10k {v['periods_away_per_10k']:.1f} (longest away "
                       f"{max(c['longest_away_us'] for c in v['cpus']) / 1e3:.1f} ms, steal "
-                      f"{_steal_word(v)}; {_cycle_word(v)}), load {v['loadavg_1min']:.2f}", file=sys.stderr, flush=True)
+                      f"{_steal_word(v)}; {_cycle_word(v)}), load {v['loadavg_1min']:.2f}", file=sys.stderr,
+                      flush=True)
             if not args.no_idle_loop:
                 print(f"bench bus: idle loop {i + 1}/{args.realtime_runs} ({seconds:g} s)", file=sys.stderr, flush=True)
                 f = measure_idle_loop(seconds, settings.rt_priority, deadline_fraction=settings.deadline_fraction,
@@ -267,8 +268,8 @@ def _floor_words(result: dict) -> str:
     rest = [r["missed_per_10k"] - r["vcpu_probe"]["missed_with_cpu_away_per_10k"] for r in (bus or {}).get("runs", [])
             if r.get("vcpu_probe") and r["missed_per_10k"] is not None]
     if rest:
-        out += (f"; missed with no CPU away seen by the run's idle spinners (>= {100 * AWAY_SHARE:.0f} % of a period): "
-                f"{min(rest):.1f}-{max(rest):.1f}")
+        out += (f"; missed with no CPU away seen by the run's idle spinners (>= {100 * AWAY_SHARE:.0f} % of a "
+                f"period): {min(rest):.1f}-{max(rest):.1f}")
     return out
 
 
@@ -285,7 +286,7 @@ def _idle_word(r: dict) -> str:
     mode, latency_us = r.get("idle_cpus"), r.get("cpu_latency_us")
     if mode == "spin":
         return f"spin (SCHED_IDLE spinners, resting {_fmt(r.get('idle_spin_rest_ms'), 'g')} ms per 100 ms)"
-    if mode is None and latency_us is not None or mode in ("poll", "shallow"):     # older JSON: no idle_cpus
+    if mode in ("poll", "shallow") or (mode is None and latency_us is not None):     # None: older JSON
         return "poll (latency request 0 us)" if latency_us == 0 else f"shallow (latency request {latency_us} us)"
     return "may halt (no latency request carried out, no spinners)"
 
