@@ -50,8 +50,8 @@ class BusSettings:
     cpu_latency_us: int = 0               # realtime: CPU latency request held for the run (hil/cpu_latency.py;
                                           # 0: idle CPUs poll instead of halting; -1: do not ask)
     idle_spin: str = "auto"               # realtime: a SCHED_IDLE spinner per CPU for the run (hil/idle_spin.py):
-                                          # "on", "off", or "auto": on when the CPU latency request cannot keep
-                                          # idle CPUs polling (not held, or no cpuidle driver to carry it out)
+                                          # "on", "off", or "auto": on in SCHED_FIFO runs when the CPU latency
+                                          # request cannot keep idle CPUs polling (not held, or no cpuidle driver)
     idle_spin_rest_ms: float = 5.0        # each spinner sleeps this long every 100 ms (a host's CPU quota)
     cpu_affinity_plant: tuple = ()        # CPUs the plant process runs on (empty: no setting)
     cpu_affinity_tcu: tuple = ()          # CPUs the TCU process runs on (empty: no setting)

@@ -328,10 +328,11 @@ def _set_rt_priority(priority: int, log):
         return None
 
 
-def _idle_spinners(settings, log) -> IdleSpinners | None:
-    """The run's idle spinners, started (``hil.idle_spin``); None, said in one line, when they cannot be."""
+def _idle_spinners(settings, cpus, log) -> IdleSpinners | None:
+    """The run's idle spinners on ``cpus``, started (``hil.idle_spin``); None, said in one line, when
+    they cannot be."""
     try:
-        spinners = IdleSpinners(rest_s=settings.idle_spin_rest_ms * 1e-3).start()
+        spinners = IdleSpinners(cpus, rest_s=settings.idle_spin_rest_ms * 1e-3).start()
     except (HilError, OSError) as e:
         log(f"realtime: warning: no idle spinners ({e}); idle CPUs may halt and wake late")
         return None
@@ -429,10 +430,7 @@ def run(scenario, strategy: str = "nlls", seed: int | None = None, *, bus: str =
                    **(timing.summary(node.late_commands) if timing else {}), **extra}))
 
     latency = CpuLatencyRequest(settings.cpu_latency_us if mode == "realtime" else -1, log)
-    idle = idle_mode(settings.idle_spin, latency.held_us, latency.driver) if mode == "realtime" else None
-    spinners = _idle_spinners(settings, log) if idle == SPIN else None    # before pinning: on every CPU
-    if idle == SPIN and spinners is None:
-        idle = idle_mode("off", latency.held_us, latency.driver)
+    every_cpu = sorted(os.sched_getaffinity(0))       # the idle spinners' CPUs, read before this process is pinned
     plant_cpus, tcu_cpus = node_cpus(settings, mode, tcu.transport)
     if tcu_cpus != settings.cpu_affinity_tcu:
         set_args.append(f"bus.cpu_affinity_tcu={list(tcu_cpus)}")
@@ -441,6 +439,11 @@ def run(scenario, strategy: str = "nlls", seed: int | None = None, *, bus: str =
         old_cpus = None
     old_sched = _set_rt_priority(settings.rt_priority, log) if mode == "realtime" and settings.rt_priority > 0 \
         else None
+    idle = idle_mode(settings.idle_spin, latency.held_us, latency.driver, fifo=old_sched is not None) \
+        if mode == "realtime" else None
+    spinners = _idle_spinners(settings, every_cpu, log) if idle == SPIN else None
+    if idle == SPIN and spinners is None:
+        idle = idle_mode("off", latency.held_us, latency.driver, fifo=old_sched is not None)
     with interrupts_between_writes():   # SIGTERM ends a run like Ctrl-C, never mid-write
         try:
             tcu.open(scenario, strategy, seed, bus, mode, set_args)

@@ -54,13 +54,19 @@ AWAY_SHARE = 0.5
 POLL, SHALLOW, SPIN, HALT = "poll", "shallow", "spin", "halt"
 
 
-def idle_mode(setting: str, latency_held_us: int | None, driver: str | None) -> str:
+def idle_mode(setting: str, latency_held_us: int | None, driver: str | None, fifo: bool) -> str:
     """How the idle CPUs of a real-time run wait, from ``[bus] idle_spin`` (``setting``), the CPU
-    latency request held (``hil.cpu_latency``; None: none) and the cpuidle driver (None: none):
-    SPIN with ``"on"``, or with ``"auto"`` where no request is carried out (none held, or no driver to
-    carry it out); else POLL (0 us held under a driver), SHALLOW (a larger bound) or HALT."""
+    latency request held (``hil.cpu_latency``; None: none), the cpuidle driver (None: none) and
+    whether the run's processes run SCHED_FIFO (``fifo``): SPIN with ``"on"``, or with ``"auto"``
+    where no request is carried out (none held, or no driver to carry it out) and the run is
+    SCHED_FIFO; else POLL (0 us held under a driver), SHALLOW (a larger bound) or HALT.
+
+    Why only under SCHED_FIFO: a real-time task preempts a spinner at once, wherever it is; at normal
+    priority a waking task preempts a ``SCHED_IDLE`` one at once only within their own group, and the
+    TCU process runs in a session (an autogroup) of its own, so it can wait for the end of a
+    spinner's slice."""
     polls = latency_held_us is not None and driver is not None
-    if setting == "on" or (setting == "auto" and not polls):
+    if setting == "on" or (setting == "auto" and not polls and fifo):
         return SPIN
     if not polls:
         return HALT

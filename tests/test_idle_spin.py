@@ -17,18 +17,20 @@ from hil.idle_spin import HALT, POLL, SHALLOW, SPIN, IdleSpinners, idle_mode, mi
 from .conftest import ROOT, subprocess_env
 
 
-@pytest.mark.parametrize("setting, held_us, driver, mode", [
-    ("on", 0, "haltpoll", SPIN),          # asked for: whatever the request does
-    ("auto", 0, "haltpoll", POLL),        # the request makes idle CPUs poll: no spinners
-    ("auto", 20, "intel_idle", SHALLOW),  # a bound the user chose, carried out: left as asked
-    ("auto", 0, None, SPIN),              # held, but no cpuidle driver carries it out (a plain halt)
-    ("auto", None, "haltpoll", SPIN),     # refused or not asked
-    ("off", None, None, HALT),
-    ("off", 0, None, HALT),
-    ("off", 0, "haltpoll", POLL),
+@pytest.mark.parametrize("setting, held_us, driver, fifo, mode", [
+    ("on", 0, "haltpoll", False, SPIN),         # asked for: whatever the request does, whatever the priority
+    ("auto", 0, "haltpoll", True, POLL),        # the request makes idle CPUs poll: no spinners
+    ("auto", 20, "intel_idle", True, SHALLOW),  # a bound the user chose, carried out: left as asked
+    ("auto", 0, None, True, SPIN),              # held, but no cpuidle driver carries it out (a plain halt)
+    ("auto", None, "haltpoll", True, SPIN),     # refused or not asked
+    ("auto", 0, None, False, HALT),             # normal priority: a spinner would keep the TCU waiting
+    ("off", None, None, True, HALT),
+    ("off", 0, None, True, HALT),
+    ("off", 0, "haltpoll", True, POLL),
 ])
-def test_idle_mode_spins_where_no_latency_request_is_carried_out(setting, held_us, driver, mode):
-    assert idle_mode(setting, held_us, driver) == mode
+def test_idle_mode_spins_where_no_latency_request_is_carried_out_under_sched_fifo(setting, held_us, driver, fifo,
+                                                                                   mode):
+    assert idle_mode(setting, held_us, driver, fifo) == mode
 
 
 def test_the_cpuidle_driver_is_read_from_the_kernel_and_none_means_none(tmp_path):

@@ -76,14 +76,15 @@ def _rt_run(scenario_path, bus, seconds, sets, seed, strategy, out_dir, probe_be
     """One real-time ``hil run --json`` process: its figures, exit code, load average and whether
     SCHED_FIFO was asked for and granted (None: not asked).  The run's idle spinners
     (``hil.idle_spin``), where it has them, say which missed periods coincide with a CPU away
-    (``vcpu_probe``); ``probe_beside`` turns them on whatever ``[bus] idle_spin`` says."""
+    (``vcpu_probe``); ``probe_beside`` turns them on whatever ``[bus] idle_spin`` says (the bench asks
+    for it with the vCPU probe in SCHED_FIFO runs only: ``hil.idle_spin.idle_mode`` says why)."""
     import os
     import subprocess
 
     cmd = [sys.executable, "-m", "hil.cli", "run", str(scenario_path), "--mode", "realtime", "--bus", bus,
            "--strategy", strategy, "--seed", str(seed), "--out", out_dir, "--json", "--no-rrd",
            "--set", f"run.duration_s={seconds}", "--set", f"run.fault_time_s={max(seconds - 0.5, seconds / 2)}"]
-    for item in sets + (["bus.idle_spin=\"on\""] if probe_beside else []):
+    for item in sets + (["bus.idle_spin=\"on\""] if probe_beside else []):    # probe_beside: SCHED_FIFO runs only
         cmd += ["--set", item]
     r = subprocess.run(cmd, capture_output=True, text=True, stdin=subprocess.DEVNULL)
     try:
@@ -204,7 +205,7 @@ def cmd_realtime(args, sets) -> int:
                 print(f"bench bus: {bus} real-time run {i + 1}/{args.realtime_runs} ({seconds:g} s, {args.strategy})",
                       file=sys.stderr, flush=True)
                 r = _rt_run(args.scenario, bus, seconds, sets, args.seed, args.strategy, f"{tmp}/{bus}-{i}",
-                            probe_beside=not args.no_vcpu_probe)
+                            probe_beside=not args.no_vcpu_probe and settings.rt_priority > 0)
                 result["buses"][bus]["runs"].append(r)
                 away = r["vcpu_probe"]
                 print(f"bench bus:   exit {r['exit_code']}, missed/10k {_fmt(r['missed_per_10k'], '.1f')}"

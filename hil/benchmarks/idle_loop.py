@@ -117,7 +117,7 @@ def measure(seconds: float, priority: int = 0, period_s: float = 1e-3, deadline_
     and with the idle spinners it would have by ``idle_spin`` (``hil.idle_spin``): ``cpu_latency_us``
     and ``idle_cpus`` in the result say what was held."""
     latency = CpuLatencyRequest(cpu_latency_us, lambda text: None)
-    idle = idle_mode(idle_spin, latency.held_us, latency.driver)
+    idle = idle_mode(idle_spin, latency.held_us, latency.driver, fifo=priority > 0)
     try:
         spinners = IdleSpinners(rest_s=idle_spin_rest_ms * 1e-3) if idle == SPIN else None
         with spinners or contextlib.nullcontext():
