@@ -246,7 +246,7 @@ class Tcu:
 
     def open(self, scenario, strategy, seed, bus: str, mode: str, set_args) -> None:
         if self.transport == "inprocess":
-            self.node = TcuNode(scenario, strategy, seed)
+            self.node = TcuNode(scenario, strategy, seed, realtime=mode == "realtime")
             self.handle = open_bus("inprocess", inprocess_node=self.node)
             return
         self.handle = open_bus(bus)

@@ -14,6 +14,7 @@ answered; the node's own counters (rejected frames and readings, resyncs) go to 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import gc
 import json
 import math
@@ -40,10 +41,18 @@ MAX_STEP_GAP = 100
 
 
 class TcuNode:
-    """Frames in, frames out: PlantSensor -> identifier -> TorqueCommand, TcuResult*, TcuStatus."""
+    """Frames in, frames out: PlantSensor -> identifier -> TorqueCommand, TcuResult*, TcuStatus.
 
-    def __init__(self, scenario, strategy: str, seed: int, codec: FrameCodec | None = None):
-        self.settings = scenario.identifier_settings()
+    ``realtime``: the node answers against deadlines, so its identifier runs the drill that keeps the
+    strategy's code warm before a slip (``[identifier] drill_particles``); otherwise (lockstep, replay)
+    nothing waits on a cold first sample and the drill would only cost time: it is off.  The drill
+    changes no result (``identifier/drill.py``), so both give the same frames."""
+
+    def __init__(self, scenario, strategy: str, seed: int, codec: FrameCodec | None = None, realtime: bool = False):
+        settings = scenario.identifier_settings()
+        if not realtime:     # the drill keeps code warm for deadlines (identifier/drill.py): none to keep here
+            settings = dataclasses.replace(settings, drill_particles=0)
+        self.settings = settings
         self.codec = codec or FrameCodec(scenario.run.exchange_period_s, auth=node_key(scenario.bus))
         self.identifier = TractionIdentifier(self.settings, strategy, seed)
         self.rejected = RejectCounter()
@@ -291,7 +300,7 @@ def run_tcu(args) -> int:
         raise BusError(f"bus {args.bus}{' (no vcan0 here: hub)' if args.bus == 'auto' else ''}: the TCU alone needs "
                        "the plant's bus (socketcan:<ch>, remote:ws://HOST:PORT/ of a running hub, or a python-can "
                        "interface:channel)")
-    node = TcuNode(scenario, args.strategy, seed)
+    node = TcuNode(scenario, args.strategy, seed, realtime=args.mode == "realtime")
     period = scenario.run.exchange_period_s
     code = EXIT_OK
     error = None

@@ -188,3 +188,22 @@ def test_a_bad_drill_size_is_refused_by_name(ffcc_a_path, value, message):
             f"identifier.drill_particles={value}", timeout=120)
     assert p.returncode == 2
     assert p.stderr.strip().splitlines()[-1].endswith(message) and "Traceback" not in p.stderr
+
+
+def test_a_tcu_node_drills_in_real_time_only_and_answers_the_same_frames(ffcc_a_run):
+    """The drill serves deadlines: a lockstep (or replay) node runs none, a real-time one does, and
+    both send the same frames for the same readings (through the fault and the identification)."""
+    from hil.frames import FrameCodec
+    from hil.tcu_node import TcuNode
+
+    sc, readings = ffcc_a_run
+    lockstep, realtime = TcuNode(sc, "proposed", 3), TcuNode(sc, "proposed", 3, realtime=True)
+    assert lockstep.identifier.drill is None and realtime.identifier.drill is not None
+    plant = FrameCodec(sc.run.exchange_period_s)
+    replies = {"lockstep": [], "realtime": []}
+    for r in readings:
+        frame = plant.sensor(r)
+        for name, node in (("lockstep", lockstep), ("realtime", realtime)):
+            replies[name] += [(m.arbitration_id, bytes(m.data)) for m in node.handle(frame)]
+    assert realtime.identifier.drill.cycles >= 1          # it did drill before the slip
+    assert lockstep.events >= 1 and replies["lockstep"] == replies["realtime"]
