@@ -38,6 +38,9 @@ POLL_SLICE_S = 50e-6
 #: ... and the last SPIN_S are polled without sleeping (a sleeper wakes tens of us late: the period's
 #: start would jitter by that; at most this much of each period is spent polling)
 SPIN_S = 150e-6
+#: how often the TCU child process is asked whether it still runs (a waitpid per poll cost ~5 % of a
+#: lockstep period; its end is noticed within this, well inside any silence limit)
+WATCH_PERIOD_S = 2e-3
 
 
 class PlantRig:
@@ -99,6 +102,7 @@ class PlantNode:
         self.settings = scenario.bus
         self.strategy = strategy
         self.watch = watch
+        self._next_watch = 0.0       # time.monotonic() of the next look at the TCU child
         self.watch_silence = watch_silence
         self.silence_s = silence_limit_s(self.settings, mode, self.period_s)
         self.progress_s = self.settings.lockstep_progress_s if mode == "lockstep" else None
@@ -311,8 +315,10 @@ class PlantNode:
 
     # -- liveness ------------------------------------------------------------------------------
     def check_alive(self) -> None:
-        if self.watch is not None and self.watch.poll() is not None:
-            raise PeerSilent(f"TCU process exited with code {self.watch.returncode} at step {self.awaited}")
+        if self.watch is not None and (now := time.monotonic()) >= self._next_watch:
+            self._next_watch = now + WATCH_PERIOD_S
+            if self.watch.poll() is not None:
+                raise PeerSilent(f"TCU process exited with code {self.watch.returncode} at step {self.awaited}")
         if self.tcu_state == STATE_FAULT:
             raise PeerSilent(f"TCU reported a fault at step {self.awaited}")
         if not self.watch_silence or self.last_tcu_rx is None:
