@@ -1,5 +1,5 @@
 """The log's writer process: rows go from the run's loop through a pipe to a forked process that
-encodes and writes them, so protobuf and MCAP (several microseconds a row, nine rows a period) stay
+encodes and writes them, so protobuf and MCAP (microseconds a row, nine rows a period) stay
 off the loop.
 
 Contract.  ``WriterProcess(file)`` forks; the child takes ``file`` (a ``hil.record.McapFile`` with
