@@ -56,7 +56,7 @@ from .frames import DBC_PATH, STATE_FAULT, STATE_FINISHED, FrameCodec, bus_load,
 from .link import MODES, GuardedBus, die_with_parent, open_bus, resolve
 from .plant_node import PlantNode, PlantRig
 from .progress import Progress
-from .secoc import EMBEDDED_BUSES, node_key, write_key
+from .secoc import AUTO_AUTH_BUSES, node_key, write_key
 from .record import interrupts_between_writes, log_path, prepare_out_dir, start_recording, write_timing
 from .tcu_node import TcuNode, set_cpu_affinity
 from .trace import Trace, clean
@@ -359,8 +359,8 @@ def _log_path(scenario, strategy, seed, out_dir, plant_label, log) -> Path:
 
 def authenticate(scenario, bus: str, transport: str, key_dir, log) -> tuple[object, list[str]]:
     """The scenario with its ``[bus] auth`` resolved for this run (``hil/secoc.py``), and the ``--set``
-    items that give the TCU process the same: ``auto`` is on for the embedded buses and off for the
-    others; on, without a key file, a new key is written in ``key_dir`` (readable by this user only).
+    items that give the TCU process the same: ``auto`` is on for the buses only this user's processes
+    can reach (``AUTO_AUTH_BUSES``) and off for the others, ``inprocess`` among them (no other node); on, without a key file, a new key is written in ``key_dir`` (readable by this user only).
     An external TCU cannot be handed a key: ``auto`` is off there (with a warning), ``on`` needs the
     key file both sides read."""
     settings = scenario.bus
@@ -371,7 +371,7 @@ def authenticate(scenario, bus: str, transport: str, key_dir, log) -> tuple[obje
                 "to authenticate)")
             mode = "off"
         else:
-            mode = "on" if resolve(bus).split(":")[0] in EMBEDDED_BUSES or settings.auth_key_file else "off"
+            mode = "on" if resolve(bus).split(":")[0] in AUTO_AUTH_BUSES or settings.auth_key_file else "off"
     key_file = settings.auth_key_file
     if mode == "on" and not key_file:
         if transport == "external":

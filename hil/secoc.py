@@ -123,8 +123,10 @@ class Authenticator:
         return "forged"
 
 
-#: the buses only this user's processes can reach: authentication is on there unless ``auth = "off"``
-EMBEDDED_BUSES = ("local", "localbus", "inprocess")
+#: the buses only this user's processes can reach: ``auth = "auto"`` is on there.  Not ``inprocess``:
+#: no other node can put a frame on it, so a MAC would guard against nobody (``auto`` is off there;
+#: ``on`` still authenticates its frames)
+AUTO_AUTH_BUSES = ("local", "localbus")
 
 
 def node_key(bus_settings) -> bytes | None:

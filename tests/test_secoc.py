@@ -161,3 +161,28 @@ def test_a_third_node_without_the_key_changes_nothing_and_is_counted(tmp_path):
     assert not s["suspicious"]
     for key in ("identified", "t_identified_s", "corrections", "params", "samples", "r2", "peak_mu_err_percent"):
         assert s[key] == ref[key], key
+
+
+def test_in_process_frames_are_not_authenticated_unless_asked(tmp_path):
+    """``auth = "auto"`` is off in process (no other node can put a frame there): zero trailers in the
+    log; ``on`` still authenticates them (MAC trailers), and the run identifies the same."""
+    from mcap.reader import make_reader
+
+    from hil.schemas import TOPICS, TYPES
+
+    def trailers(summary):
+        cls = TYPES[TOPICS["/can/frames"]]
+        with open(summary["mcap"], "rb") as f:
+            rows = [cls.FromString(m.data) for _, _, m in make_reader(f).iter_messages(topics=["/can/frames"])]
+        return {bytes(r.data[-8:]) for r in rows if r.arbitration_id in (SENSOR_ID, COMMAND_ID)}
+
+    runs = {}
+    for mode in ("auto", "on"):
+        r = subprocess.run(hil_command() + ["run", str(ROOT / "scenarios" / "ffcc_a.toml"), "--bus", "inprocess",
+                                            "--no-rrd", "--out", str(tmp_path / mode), "--set", f"bus.auth=\"{mode}\"",
+                                            "--json"], capture_output=True, text=True, env=subprocess_env(), timeout=300)
+        assert r.returncode == 0, r.stderr
+        runs[mode] = json.loads(r.stdout)
+    assert runs["auto"]["frame_auth"] == "off" and trailers(runs["auto"]) == {bytes(8)}
+    assert runs["on"]["frame_auth"] == "on" and len(trailers(runs["on"])) > 1000
+    assert runs["auto"]["params"] == runs["on"]["params"] and runs["auto"]["identified"]
