@@ -36,6 +36,7 @@
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import sys
 
@@ -846,7 +847,8 @@ class Diagnosis:
         tcu_m, tcu_v = shift(meas[:, 0], cd), shift(meas[:, 1], cd)
         if "can_frames" in extra:
             tcu_m, tcu_v = meas[extra["can_frames"], 0], meas[extra["can_frames"], 1]
-        ident = TractionIdentifier(sc.identifier_settings(), strategy, seed)
+        # offline: no deadline for the drill to keep code warm for, and it changes no result
+        ident = TractionIdentifier(dataclasses.replace(sc.identifier_settings(), drill_particles=0), strategy, seed)
         events = []
         for k in range(d.n):
             out = ident.on_sensor(SensorReading(int(d.step[k]), float(tcu_m[k]), float(tcu_v[k])))
