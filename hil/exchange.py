@@ -360,7 +360,8 @@ def _log_path(scenario, strategy, seed, out_dir, plant_label, log) -> Path:
 def authenticate(scenario, bus: str, transport: str, key_dir, log) -> tuple[object, list[str]]:
     """The scenario with its ``[bus] auth`` resolved for this run (``hil/secoc.py``), and the ``--set``
     items that give the TCU process the same: ``auto`` is on for the buses only this user's processes
-    can reach (``AUTO_AUTH_BUSES``) and off for the others, ``inprocess`` among them (no other node); on, without a key file, a new key is written in ``key_dir`` (readable by this user only).
+    can reach (``AUTO_AUTH_BUSES``) and off for the others, ``inprocess`` among them (no other node);
+    on, without a key file, a new key is written in ``key_dir`` (readable by this user only).
     An external TCU cannot be handed a key: ``auto`` is off there (with a warning), ``on`` needs the
     key file both sides read."""
     settings = scenario.bus

@@ -12,9 +12,10 @@ Layout (the MCAP specification, https://mcap.dev/spec; the choices are ``mcap.Wr
 with LZ4): magic, Header; schemas and channels go into the first chunk, before its first message;
 a chunk closes once its uncompressed records pass ``chunk_size`` bytes, followed by one
 MessageIndex per channel it holds (in the order of their first message in it); a Metadata record
-is written at once, ahead of the chunk still open (which holds earlier messages); at ``finish``: the last chunk, DataEnd (no data
-CRC), the summary (schemas, channels, Statistics, ChunkIndexes, MetadataIndexes, each group with
-its SummaryOffset), Footer (with the summary's CRC-32) and the closing magic.
+is written at once, ahead of the chunk still open (which holds earlier messages); at ``finish``:
+the last chunk, DataEnd (no data CRC), the summary (schemas, channels, Statistics, ChunkIndexes,
+MetadataIndexes, each group with its SummaryOffset), Footer (with the summary's CRC-32) and the
+closing magic.
 
 A Message record is ``opcode 0x05 | length u64 | channel_id u16 | sequence u32 | log_time u64 |
 publish_time u64 | data``, little-endian; a MessageIndex is ``0x04 | length | channel_id u16 |

@@ -178,9 +178,9 @@ def test_in_process_frames_are_not_authenticated_unless_asked(tmp_path):
 
     runs = {}
     for mode in ("auto", "on"):
-        r = subprocess.run(hil_command() + ["run", str(ROOT / "scenarios" / "ffcc_a.toml"), "--bus", "inprocess",
-                                            "--no-rrd", "--out", str(tmp_path / mode), "--set", f"bus.auth=\"{mode}\"",
-                                            "--json"], capture_output=True, text=True, env=subprocess_env(), timeout=300)
+        args = ["run", str(ROOT / "scenarios" / "ffcc_a.toml"), "--bus", "inprocess", "--no-rrd",
+                "--out", str(tmp_path / mode), "--set", f"bus.auth=\"{mode}\"", "--json"]
+        r = subprocess.run(hil_command() + args, capture_output=True, text=True, env=subprocess_env(), timeout=300)
         assert r.returncode == 0, r.stderr
         runs[mode] = json.loads(r.stdout)
     assert runs["auto"]["frame_auth"] == "off" and trailers(runs["auto"]) == {bytes(8)}
