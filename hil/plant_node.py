@@ -38,8 +38,8 @@ POLL_SLICE_S = 50e-6
 #: ... and the last SPIN_S are polled without sleeping (a sleeper wakes tens of us late: the period's
 #: start would jitter by that; at most this much of each period is spent polling)
 SPIN_S = 150e-6
-#: how often the TCU child process is asked whether it still runs (a waitpid per poll cost ~5 % of a
-#: lockstep period; its end is noticed within this, well inside any silence limit)
+#: how often the TCU child process is asked whether it still runs (a waitpid at every poll is a
+#: syscall on the loop's path; its end is noticed within this, well inside any silence limit)
 WATCH_PERIOD_S = 2e-3
 
 

@@ -141,8 +141,8 @@ class _DirectFile:
 
 class McapFile:
     """The log file itself: one protobuf message per row, LZ4 chunks of ``chunk_size`` bytes written
-    straight to the file descriptor ``fd`` (by ``hil.mcapwrite``: mcap's writer's file, a quarter of
-    its time per row).
+    straight to the file descriptor ``fd`` (by ``hil.mcapwrite``: mcap's writer's file, with a leaner
+    path per row).
 
     The header's profile is ``PROFILE`` and every topic's schema and channel are registered before
     the first message, in ``TOPICS`` order (ids 1, 2, ...), so a reader can rebuild them from
