@@ -29,7 +29,7 @@ class _Interrupts:
     """The SIGINT handler of a whole command: raises ``KeyboardInterrupt`` and remembers that it
     did.  A library may swallow the interrupt while it imports (an optional import that catches the
     ImportError the interrupt became); the command still ends as interrupted: ``main`` looks after
-    the imports and at the end, and ``hil.record.interrupts_between_writes`` before a run starts."""
+    the imports and at the end, and ``hil.log.record.interrupts_between_writes`` before a run starts."""
 
     interrupted = False
 

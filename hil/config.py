@@ -47,9 +47,9 @@ class BusSettings:
     max_missed_fraction: float = 0.01     # realtime: a run missing more deadlines than this fraction of its
                                           # steps ends with exit 5 (after the logs are written)
     rt_priority: int = 0                  # realtime: SCHED_FIFO priority for plant, hub and TCU (0: off)
-    cpu_latency_us: int = 0               # realtime: CPU latency request held for the run (hil/cpu_latency.py;
+    cpu_latency_us: int = 0               # realtime: CPU latency request held for the run (hil/rt/cpu_latency.py;
                                           # 0: idle CPUs poll instead of halting; -1: do not ask)
-    idle_spin: str = "auto"               # realtime: a SCHED_IDLE spinner per CPU for the run (hil/idle_spin.py):
+    idle_spin: str = "auto"               # realtime: a SCHED_IDLE spinner per CPU for the run (hil/rt/idle_spin.py):
                                           # "on", "off", or "auto": on in SCHED_FIFO runs when the CPU latency
                                           # request cannot keep idle CPUs polling (not held, or no cpuidle driver)
     idle_spin_rest_ms: float = 5.0        # each spinner sleeps this long every 100 ms (a host's CPU quota)
@@ -57,7 +57,7 @@ class BusSettings:
     cpu_affinity_tcu: tuple = ()          # CPUs the TCU process runs on (empty: no setting)
     lockstep_pin: bool = True             # lockstep, neither affinity set: plant and TCU process on two
                                           # different CPUs (hil.exchange.node_cpus)
-    auth: str = "auto"                    # frame authentication (hil/secoc.py): "on", "off", or "auto": on
+    auth: str = "auto"                    # frame authentication (hil/bus/secoc.py): "on", "off", or "auto": on
                                           # for the embedded buses (local, localbus, inprocess), off otherwise
     auth_key_file: str = ""               # the key (32 hex digits); "": a new key per run, made by the run
 

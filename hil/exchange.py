@@ -10,7 +10,7 @@ Per exchange period k the plant node senses, sends ``PlantSensor(k)`` and waits 
 The TCU on the other end is reached through one of three transports, chosen by ``run``:
 
 - ``inprocess`` (``bus="inprocess"``): a ``TcuNode`` answers in this thread, through the same DBC
-  encode/decode (``hil.link.InprocessTcuBus``): no second process, the same frames;
+  encode/decode (``hil.bus.link.InprocessTcuBus``): no second process, the same frames;
 - ``process`` (default): ``python -m hil.tcu_node`` as a child process on the bus;
 - ``external``: a TCU already on the bus (``hil tcu`` elsewhere, a real TCU) answers.
 
@@ -46,18 +46,19 @@ from pathlib import Path
 
 import numpy as np
 
+from identifier import DEFAULT_STRATEGY
 from identifier.messages import TorqueCommand
 
-from .cpu_latency import CpuLatencyRequest
-from .idle_spin import SPIN, IdleSpinners, idle_mode
+from .rt.cpu_latency import CpuLatencyRequest
+from .rt.idle_spin import SPIN, IdleSpinners, idle_mode
 from .effects import TRUTH_KEY
 from .errors import BusError, ConfigError, DeadlinesMissed, HilError, LogWriteError, PeerSilent, PlantError
-from .frames import DBC_PATH, STATE_FAULT, STATE_FINISHED, FrameCodec, bus_load, format_bus_load
-from .link import MODES, GuardedBus, die_with_parent, open_bus, resolve
+from .bus.frames import DBC_PATH, STATE_FAULT, STATE_FINISHED, FrameCodec, bus_load, format_bus_load
+from .bus.link import MODES, GuardedBus, die_with_parent, open_bus, resolve
 from .plant_node import PlantNode, PlantRig
 from .progress import Progress
-from .secoc import AUTO_AUTH_BUSES, node_key, write_key
-from .record import interrupts_between_writes, log_path, prepare_out_dir, start_recording, write_timing
+from .bus.secoc import AUTO_AUTH_BUSES, node_key, write_key
+from .log.record import interrupts_between_writes, log_path, prepare_out_dir, start_recording, write_timing
 from .tcu_node import TcuNode, set_cpu_affinity
 from .trace import Trace, clean
 
@@ -329,7 +330,7 @@ def _set_rt_priority(priority: int, log):
 
 
 def _idle_spinners(settings, cpus, log) -> IdleSpinners | None:
-    """The run's idle spinners on ``cpus``, started (``hil.idle_spin``); None, said in one line, when
+    """The run's idle spinners on ``cpus``, started (``hil.rt.idle_spin``); None, said in one line, when
     they cannot be."""
     try:
         spinners = IdleSpinners(cpus, rest_s=settings.idle_spin_rest_ms * 1e-3).start()
@@ -358,7 +359,7 @@ def _log_path(scenario, strategy, seed, out_dir, plant_label, log) -> Path:
 
 
 def authenticate(scenario, bus: str, transport: str, key_dir, log) -> tuple[object, list[str]]:
-    """The scenario with its ``[bus] auth`` resolved for this run (``hil/secoc.py``), and the ``--set``
+    """The scenario with its ``[bus] auth`` resolved for this run (``hil/bus/secoc.py``), and the ``--set``
     items that give the TCU process the same: ``auto`` is on for the buses only this user's processes
     can reach (``AUTO_AUTH_BUSES``) and off for the others, ``inprocess`` among them (no other node);
     on, without a key file, a new key is written in ``key_dir`` (readable by this user only).
@@ -385,7 +386,7 @@ def authenticate(scenario, bus: str, transport: str, key_dir, log) -> tuple[obje
     return scenario, items
 
 
-def run(scenario, strategy: str = "nlls", seed: int | None = None, *, bus: str = "auto", mode: str = "lockstep",
+def run(scenario, strategy: str = DEFAULT_STRATEGY, seed: int | None = None, *, bus: str = "auto", mode: str = "lockstep",
         external_tcu: bool = False, out_dir=None, record: bool = True, progress: bool | None = None,
         set_args=None, plant=None, plant_label: str | None = None, log=None) -> dict:
     """One HIL run; returns the summary (``hil run --json``).

@@ -20,13 +20,13 @@ from plant import SensorModel, WheelsetPlant
 
 from .effects import Reality
 from .errors import NoProgress, PeerSilent
-from .frames import STATE_FAULT, STATE_RUNNING, STATE_STARTING, TCU_IDS, FrameCodec, RejectCounter
-from .link import Sender, heartbeat_period_s, poll_until, silence_limit_s
-from .secoc import node_key
-from .record import (Recorder, write_command, write_frame, write_identification, write_plant_state, write_sensor,
+from .bus.frames import STATE_FAULT, STATE_RUNNING, STATE_STARTING, TCU_IDS, FrameCodec, RejectCounter
+from .bus.link import Sender, heartbeat_period_s, poll_until, silence_limit_s
+from .bus.secoc import node_key
+from .log.record import (Recorder, write_command, write_frame, write_identification, write_plant_state, write_sensor,
                      write_status)
 from .trace import Trace
-from .verdicts import ANSWERED_TWICE, BAD_SEQUENCE, DUPLICATE, FOREIGN, FRESH, LATE, NOT_REJECTED
+from .bus.verdicts import ANSWERED_TWICE, BAD_SEQUENCE, DUPLICATE, FOREIGN, FRESH, LATE, NOT_REJECTED
 
 
 #: the longest the plant node writes log rows in line before it looks at the bus again
@@ -186,7 +186,7 @@ class PlantNode:
             write_frame(self.rec, self.t_s, msg, "rx", status, wall_ns)
 
     def _accept(self, frame) -> str:
-        """Sequence checks of a decoded frame (its verdict, ``hil/verdicts.py``); FRESH records and traces it."""
+        """Sequence checks of a decoded frame (its verdict, ``hil/bus/verdicts.py``); FRESH records and traces it."""
         name, v, rec, current = frame.name, frame.value, self.rec, self.awaited
         if name == "TorqueCommand":
             if v.step < current:

@@ -17,7 +17,7 @@ equal the logged ones: count, kind, correction number and step exactly, paramete
 (the compiled kernels' last bits depend on the CPU they were built for); ``None``
 when the strategy or seed differ from the logged run's, or the log holds no identification record)
 and ``messages_read``.  A damaged log (run killed, file cut, bytes changed) replays what survived
-(``hil.logread`` skips damaged chunks); ``damage`` says what was lost and where.
+(``hil.log.read`` skips damaged chunks); ``damage`` says what was lost and where.
 """
 from __future__ import annotations
 
@@ -28,12 +28,13 @@ from pathlib import Path
 
 import can
 
+from identifier import DEFAULT_STRATEGY
 from identifier.messages import IdentificationEvent, SensorReading
 
 from .config import load_scenario
 from .errors import LogError
-from .frames import RESULT_ID, SENSOR_ID, FrameCodec
-from .logread import MAGIC, read_log, scenario_from_log
+from .bus.frames import RESULT_ID, SENSOR_ID, FrameCodec
+from .log.read import MAGIC, read_log, scenario_from_log
 from .tcu_node import TcuNode
 from .trace import Trace, clean
 
@@ -187,7 +188,7 @@ def events_match(replayed: list, logged: list) -> bool:
 def replay(src: ReplaySource, strategy: str | None = None, seed: int | None = None) -> dict:
     """Re-run the identifier on ``src``; the ``hil run --json`` summary plus replay fields."""
     scenario = src.scenario
-    strategy = strategy or src.logged_strategy or "nlls"
+    strategy = strategy or src.logged_strategy or DEFAULT_STRATEGY
     seed = seed if seed is not None else (src.logged_seed if src.logged_seed is not None else scenario.run.seed)
     period = scenario.run.exchange_period_s
     # the logged frames' MACs are of the run's key and freshness: a replay reads them unauthenticated

@@ -26,15 +26,15 @@ import time
 
 import can
 
-from identifier import STRATEGIES, TractionIdentifier
+from identifier import DEFAULT_STRATEGY, STRATEGIES, TractionIdentifier
 
 from .errors import (EXIT_INTERRUPTED, EXIT_OK, BusError, ConfigError, HilError, PeerSilent, PlantFault,
                      caused_by_interrupt)
-from .frames import (PLANT_IDS, SENSOR_ID, STATE_FAULT, STATE_FINISHED, STATE_NAMES, STATE_RUNNING, STATE_STARTING,
+from .bus.frames import (PLANT_IDS, SENSOR_ID, STATE_FAULT, STATE_FINISHED, STATE_NAMES, STATE_RUNNING, STATE_STARTING,
                      FrameCodec, RejectCounter, SampleReport)
-from .link import GuardedBus, Sender, heartbeat_period_s, poll_until, silence_limit_s
-from .secoc import node_key
-from .verdicts import BAD_SEQUENCE, FRESH, RESENT, newest, sensor_sequence
+from .bus.link import GuardedBus, Sender, heartbeat_period_s, poll_until, silence_limit_s
+from .bus.secoc import node_key
+from .bus.verdicts import BAD_SEQUENCE, FRESH, RESENT, newest, sensor_sequence
 
 #: a sensor step may jump ahead by at most this many periods (frames lost); beyond it is garbage
 MAX_STEP_GAP = 100
@@ -260,7 +260,7 @@ def add_arguments(p) -> None:
     p.add_argument("scenario", help="scenario TOML (the TCU uses its vehicle model, NFCC-0 and [identifier])")
     p.add_argument("--bus", default="auto", help="bus to listen on: auto | socketcan:<ch> | remote:<url> | "
                    "<python-can interface>:<channel> (default auto)")
-    p.add_argument("--strategy", default="nlls", help="identification strategy")
+    p.add_argument("--strategy", default=DEFAULT_STRATEGY, help=f"identification strategy (default {DEFAULT_STRATEGY})")
     p.add_argument("--seed", type=int, default=None, help="identifier seed (default: the scenario's)")
     p.add_argument("--mode", choices=("lockstep", "realtime"), default="lockstep",
                    help="sets the plant-silence limit and heartbeat period (realtime: [bus] silence_periods x "
@@ -288,7 +288,7 @@ def set_cpu_affinity(cpus, who: str, log) -> bool:
 def run_tcu(args) -> int:
     """Shared by ``hil tcu`` and the child process; raises ``HilError`` for bad input."""
     from .config import load_scenario, parse_set
-    from .link import open_bus, resolve
+    from .bus.link import open_bus, resolve
 
     if args.strategy not in STRATEGIES:
         raise ConfigError(f"unknown strategy {args.strategy!r}; available: {', '.join(sorted(STRATEGIES))}")

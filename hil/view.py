@@ -9,7 +9,7 @@ Timelines
   also drawn with matplotlib and logged as an image (``/figures/curve``), visible on any timeline.
 
 Streaming: ``write_rrd`` opens the .rrd's file sink first and reads the log twice in chunks
-(``hil.logread.read_log``'s ``on_message``): a first pass for the events and the first identifying
+(``hil.log.read.read_log``'s ``on_message``): a first pass for the events and the first identifying
 status (``LogHead``), a second that sends the per-step topics in batches of ``BATCH_ROWS`` rows.
 What stays in memory is bounded by the batch, plus the curve samples of the identification window
 and one bus-count bin per 10 ms of sim time.
@@ -37,8 +37,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .logread import LogError, read_log, scenario_from_log
-from .verdicts import REJECTED, kind
+from .log.read import LogError, read_log, scenario_from_log
+from .bus.verdicts import REJECTED, kind
 
 CREEP_TIMELINE = "creep_m_per_h"
 TIME_TIMELINE = "sim_time"

@@ -2,8 +2,8 @@
 from .messages import (IdentificationEvent, ObserverSample, SensorReading, TcuOutput, TcuStatus,
                        TorqueCommand)
 from .settings import IdentifierSettings, VehicleModel
-from .strategies import STRATEGIES, make_strategy
+from .strategies import DEFAULT_STRATEGY, STRATEGIES, make_strategy
 from .tcu import TractionIdentifier
 
 __all__ = ["IdentificationEvent", "ObserverSample", "SensorReading", "TcuOutput", "TcuStatus", "TorqueCommand",
-           "IdentifierSettings", "VehicleModel", "STRATEGIES", "make_strategy", "TractionIdentifier"]
+           "IdentifierSettings", "VehicleModel", "DEFAULT_STRATEGY", "STRATEGIES", "make_strategy", "TractionIdentifier"]

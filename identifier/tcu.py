@@ -17,7 +17,7 @@ from .messages import (STAGE_CONFIRMED, STAGE_GAVE_UP, STAGE_IDENTIFYING, STAGE_
                        SensorReading, TcuOutput, TcuStatus, TorqueCommand)
 from .observer import LoadTorqueObserver
 from .settings import IdentifierSettings
-from .strategies import Sample, make_strategy
+from .strategies import DEFAULT_STRATEGY, Sample, make_strategy
 
 KMH_PER_MS = 3.6
 
@@ -92,7 +92,7 @@ class TractionIdentifier:
     """``on_sensor(reading) -> TcuOutput`` (or its two halves, ``command(reading)`` then ``work(command)``);
     holds the observer, the detector and one strategy."""
 
-    def __init__(self, settings: IdentifierSettings, strategy: str = "nlls", seed: int = 0):
+    def __init__(self, settings: IdentifierSettings, strategy: str = DEFAULT_STRATEGY, seed: int = 0):
         self.settings = settings
         self.strategy_name = strategy
         self.strategy = make_strategy(strategy, settings, seed)

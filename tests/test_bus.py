@@ -17,9 +17,9 @@ from mcap.reader import make_reader
 
 from hil.benchmarks.robustness import alive, children_of, cmdline  # noqa: F401 (alive: other tests import it here)
 from hil.errors import BusError
-from hil.link import Hub, open_bus
-from hil.frames import PLANT_HEARTBEAT_ID, TCU_HEARTBEAT_ID, FrameCodec, load_dbc
-from hil.logread import read_log
+from hil.bus.link import Hub, open_bus
+from hil.bus.frames import PLANT_HEARTBEAT_ID, TCU_HEARTBEAT_ID, FrameCodec, load_dbc
+from hil.log.read import read_log
 from identifier.messages import SensorReading
 
 from .conftest import ROOT, hil, hil_command, subprocess_env
@@ -46,7 +46,7 @@ def run_json(scenario_args, bus, out, *extra, timeout=600):
 
 def data_streams(mcap_path):
     """(tx, rx): the (id, payload) of every valid non-heartbeat frame the plant sent / received, in order,
-    the authentication trailer zeroed (its MAC is of a key made for each run, hil/secoc.py)."""
+    the authentication trailer zeroed (its MAC is of a key made for each run, hil/bus/secoc.py)."""
     frames = read_log(mcap_path, {"/can/frames"}).topic("/can/frames")
 
     def payload(f):
@@ -79,14 +79,14 @@ FFCC_A = ["scenarios/ffcc_a.toml", "--seed", "1"]
 def inprocess_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("inprocess")
     s, _ = run_json(FFCC_A, "inprocess", out)
-    return s, out / "ffcc_a-nlls-1.mcap"
+    return s, out / "ffcc_a-gp-1.mcap"
 
 
 @pytest.fixture(scope="module")
 def hub_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("hub")
     s, err = run_json(FFCC_A, "hub", out)
-    return s, out / "ffcc_a-nlls-1.mcap", err
+    return s, out / "ffcc_a-gp-1.mcap", err
 
 
 # -- the bus factory ------------------------------------------------------------------------------
@@ -180,7 +180,7 @@ def test_local_lockstep_polling_or_sleeping_gives_the_inprocess_frames(tmp_path,
     s, _ = run_json(FFCC_A, "local", tmp_path, "--set", f"bus.lockstep_spin_s={spin_s}")
     assert s["bus"].startswith("local") and s["identified"]
     assert identification(s) == identification(s_in)
-    assert data_streams(tmp_path / "ffcc_a-nlls-1.mcap") == data_streams(path_in)
+    assert data_streams(tmp_path / "ffcc_a-gp-1.mcap") == data_streams(path_in)
 
 
 def test_a_negative_lockstep_spin_is_refused_by_name():
@@ -276,8 +276,8 @@ def test_garbage_on_the_hub_is_counted_on_both_sides_and_changes_nothing(tmp_pat
     assert s["tcu_rejected_readings"] == 0
     ref, ref_path = inprocess_run
     assert identification(s) == identification(ref)
-    assert data_streams(tmp_path / "ffcc_a-nlls-1.mcap") == data_streams(ref_path)
-    rejected = [f for f in read_log(tmp_path / "ffcc_a-nlls-1.mcap", {"/can/frames"}).topic("/can/frames")
+    assert data_streams(tmp_path / "ffcc_a-gp-1.mcap") == data_streams(ref_path)
+    rejected = [f for f in read_log(tmp_path / "ffcc_a-gp-1.mcap", {"/can/frames"}).topic("/can/frames")
                 if f.status not in ("ok", "late")]
     assert len(rejected) == sent
 
@@ -288,7 +288,7 @@ def _start_long_run(tmp_path, *extra):
                            "--set", "run.duration_s=60", "--set", "run.fault_time_s=55", *extra]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=subprocess_env(),
                             cwd=ROOT)
-    path = tmp_path / "ffcc_a-nlls-1.mcap"
+    path = tmp_path / "ffcc_a-gp-1.mcap"
     wait_for(lambda: path.exists() and path.stat().st_size > 60_000 or proc.poll() is not None, 120, "the run")
     assert proc.poll() is None, proc.communicate()[1]
     return proc, path
@@ -432,7 +432,7 @@ def test_plant_and_tcu_started_separately(tmp_path, inprocess_run):
     assert s["tcu_rejected_frames"] is None          # only the TCU knows its counters; it prints them:
     report = json.loads(out)
     assert report["samples"] == ref["samples"] and report["plant_state"] == "finished" and report["exit"] == 0
-    assert data_streams(tmp_path / "ffcc_a-nlls-1.mcap") == data_streams(ref_path)
+    assert data_streams(tmp_path / "ffcc_a-gp-1.mcap") == data_streams(ref_path)
 
 
 def test_standalone_tcu_needs_a_shared_bus():
@@ -450,7 +450,7 @@ def test_realtime_over_the_hub_records_timing(tmp_path):
     assert s["mode"] == "realtime" and s["sim_s"] == pytest.approx(0.4)
     assert isinstance(s["missed_deadlines"], int) and 0 <= s["missed_deadlines"] <= 400
     assert s["jitter_p99_us"] >= 0 and s["wall_s"] >= 0.39      # paced by the wall clock
-    timing = read_log(tmp_path / "ffcc_a-nlls-1.mcap", {"/loop/timing"}).topic("/loop/timing")
+    timing = read_log(tmp_path / "ffcc_a-gp-1.mcap", {"/loop/timing"}).topic("/loop/timing")
     assert [t.step for t in timing] == list(range(400))
     assert sum(t.missed_deadline for t in timing) == s["missed_deadlines"]
     print(f"\nrealtime 0.4 s over the hub: missed {s['missed_deadlines']}, jitter p99 {s['jitter_p99_us']:.0f} us, "
@@ -465,7 +465,7 @@ def test_bus_load_above_70_percent_warns(tmp_path):
     _, err = run_json(short, "inprocess", tmp_path / "quiet")
     assert "bus load" in err and "warning" not in err
     _, err = run_json(short, "inprocess", tmp_path / "quiet")       # the same log name again: said, not silent
-    assert "warning: replacing" in err and "ffcc_a-nlls-1.mcap" in err
+    assert "warning: replacing" in err and "ffcc_a-gp-1.mcap" in err
 
 
 def test_bad_bus_table_names_the_field(tmp_path):

@@ -193,7 +193,7 @@ def test_a_bad_drill_size_is_refused_by_name(ffcc_a_path, value, message):
 def test_a_tcu_node_drills_in_real_time_only_and_answers_the_same_frames(ffcc_a_run):
     """The drill serves deadlines: a lockstep (or replay) node runs none, a real-time one does, and
     both send the same frames for the same readings (through the fault and the identification)."""
-    from hil.frames import FrameCodec
+    from hil.bus.frames import FrameCodec
     from hil.tcu_node import TcuNode
 
     sc, readings = ffcc_a_run

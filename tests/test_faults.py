@@ -8,7 +8,7 @@ import subprocess
 import time
 from pathlib import Path
 
-from hil.logread import read_log
+from hil.log.read import read_log
 
 from .conftest import ROOT, hil_command, subprocess_env
 from .test_bus import alive, children_of, cmdline

@@ -21,7 +21,7 @@ from fmpy.fmi2 import FMU2Slave
 from fmpy.validation import validate_fmu
 
 from hil.exchange import run
-from hil.logread import read_log
+from hil.log.read import read_log
 from hil.plants import make_plant
 from hil.benchmarks.robustness import rezip
 from hil.config import load_scenario

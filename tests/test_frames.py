@@ -8,7 +8,7 @@ import cantools
 import numpy as np
 import pytest
 
-from hil.frames import (IntervalReport, COMMAND_ID, DBC_PATH, PLANT_HEARTBEAT_ID, RESULT_ID, SENSOR_ID, STATUS_ID, TCU_HEARTBEAT_ID,
+from hil.bus.frames import (IntervalReport, COMMAND_ID, DBC_PATH, PLANT_HEARTBEAT_ID, RESULT_ID, SENSOR_ID, STATUS_ID, TCU_HEARTBEAT_ID,
                         FrameCodec, bus_load, fd_frame_time_s, load_dbc)
 from hil.config import load_scenario
 from hil.tcu_node import TcuNode
@@ -33,7 +33,7 @@ def test_dbc_declares_can_fd_frames_with_fixed_ids():
     assert by_name["TorqueCommand"].frame_id == 0x110 and by_name["TorqueCommand"].length == 20
     assert by_name["TcuStatus"].length == 48 and by_name["TcuResult"].length == 64
     assert all(m.is_fd for m in db.messages)
-    # every frame ends its signals with the 8-byte authentication trailer (hil/secoc.py)
+    # every frame ends its signals with the 8-byte authentication trailer (hil/bus/secoc.py)
     for m in db.messages:
         fv, mac = m.get_signal_by_name("AuthFreshness"), m.get_signal_by_name("AuthMac")
         assert (fv.length, mac.length, mac.start) == (16, 48, fv.start + 16), m.name
@@ -73,7 +73,7 @@ def test_every_message_round_trips_exactly(codec):
 def test_intervals_and_samples_round_trip_and_pair_with_their_result(codec, ffcc_a):
     """A result's 90 % intervals travel in a TcuInterval frame right after it; the trace pairs them by
     (step, correction, kind) and a result is final once the status of its step arrived."""
-    from hil.frames import SampleReport
+    from hil.bus.frames import SampleReport
     from hil.trace import Trace
 
     e = IdentificationEvent(812, 812 * PERIOD, "unconfirmed", 3, (0.0, 0.6, -0.6, -0.5, -1.1), 0.5, 40,
@@ -253,13 +253,13 @@ def test_a_resent_reading_of_the_last_step_is_answered_with_the_same_command(ffc
 
 
 def test_every_reason_a_frame_is_refused_for_is_in_the_one_verdict_table(codec):
-    """hil/verdicts.py is the one table: whatever the codec, the authenticator or a node answers
+    """hil/bus/verdicts.py is the one table: whatever the codec, the authenticator or a node answers
     for a frame is one of its verdicts (random garbage, another key's frames, every sequence case)."""
     import tempfile
     from pathlib import Path
 
-    from hil.secoc import read_key, write_key
-    from hil.verdicts import ACTED, PASSED, REJECTED, VERDICTS, kind, newest, sensor_sequence
+    from hil.bus.secoc import read_key, write_key
+    from hil.bus.verdicts import ACTED, PASSED, REJECTED, VERDICTS, kind, newest, sensor_sequence
 
     rng = np.random.default_rng()
     seen = set()

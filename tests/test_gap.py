@@ -14,7 +14,7 @@ import pytest
 from hil.benchmarks.gap import DEFAULT_MIX, draw_case, gap_case
 from hil.gap import diagnose, read_real_log
 from hil.gap.data import describe
-from hil.logread import read_log
+from hil.log.read import read_log
 from hil.exchange import run
 from hil.effects import EFFECTS, TRUTH_KEY
 from hil.config import load_scenario
@@ -187,7 +187,7 @@ def test_torque_lag_found_when_the_command_varies(tmp_path, scenario):
     import numpy as np
 
     from hil.gap.model import ObserverReplica
-    from hil.record import Recorder
+    from hil.log.record import Recorder
     from plant import SensorModel
     from plant.reality import RealityPlant
 
@@ -344,7 +344,7 @@ def test_can_log_with_garbage_frames_skips_and_counts_them(rig_run, scenario):
 
 
 def test_can_log_with_many_steps_out_of_sequence_names_the_frame(rig_run, scenario):
-    from hil.frames import FrameCodec
+    from hil.bus.frames import FrameCodec
     from identifier.messages import SensorReading
     codec = FrameCodec(scenario.run.exchange_period_s)
     msgs = [m for m in rig_run["frames"] if not (m.arbitration_id == 0x100 and m.data[0] % 3 == 0)]

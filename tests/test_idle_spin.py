@@ -1,4 +1,4 @@
-"""The idle spinners of a real-time run (``hil.idle_spin``): when a run has them, that they rest, that
+"""The idle spinners of a real-time run (``hil.rt.idle_spin``): when a run has them, that they rest, that
 they see only the machine's absences, that the missed periods are matched with those absences, and
 that none outlives the process that started it."""
 import os
@@ -11,8 +11,8 @@ import time
 import pytest
 
 from hil.benchmarks.robustness import alive
-from hil.cpu_latency import cpuidle_driver
-from hil.idle_spin import HALT, POLL, SHALLOW, SPIN, IdleSpinners, idle_mode, misses_with_cpu_away, spin
+from hil.rt.cpu_latency import cpuidle_driver
+from hil.rt.idle_spin import HALT, POLL, SHALLOW, SPIN, IdleSpinners, idle_mode, misses_with_cpu_away, spin
 
 from .conftest import ROOT, subprocess_env
 
@@ -101,7 +101,7 @@ def test_a_process_preempting_a_spinner_is_never_time_away():
 
 STARTER = """
 import os, sys, time
-from hil.idle_spin import IdleSpinners
+from hil.rt.idle_spin import IdleSpinners
 s = IdleSpinners(rest_s=0.005).start()
 print(" ".join(str(c.pid) for c in s.children), flush=True)
 time.sleep(60)

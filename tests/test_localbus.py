@@ -1,4 +1,4 @@
-"""The relay-free local bus (``hil.localbus``) as any python-can program uses it: real sockets, real
+"""The relay-free local bus (``hil.bus.localbus``) as any python-can program uses it: real sockets, real
 processes."""
 import os
 import stat
@@ -9,7 +9,7 @@ import time
 import can
 import pytest
 
-from hil.localbus import create_channel, remove_channel
+from hil.bus.localbus import create_channel, remove_channel
 
 from .conftest import subprocess_env
 

@@ -10,9 +10,9 @@ import time
 import can
 import pytest
 
-from hil.frames import SENSOR_ID, FrameCodec
-from hil.localbus import create_channel, remove_channel
-from hil.logread import read_log
+from hil.bus.frames import SENSOR_ID, FrameCodec
+from hil.bus.localbus import create_channel, remove_channel
+from hil.log.read import read_log
 from identifier.messages import SensorReading
 
 from .conftest import ROOT, SCENARIOS, hil_command, subprocess_env
@@ -51,7 +51,7 @@ def test_a_sensor_frame_out_of_the_dbc_range_ends_the_run_with_exit_3(tmp_path, 
                      r"range \[-2000, 2000\]; fault recorded, log closed", last)
     assert m, last
     assert took < 60
-    log = read_log(tmp_path / "ffcc_a-nlls-1.mcap")
+    log = read_log(tmp_path / "ffcc_a-gp-1.mcap")
     step = int(m.group(1))
     assert not log.damage and log.ended_early.startswith(f"fault at step {step}: no command for step {step}")
     states = log.topic("/plant/state")
@@ -110,5 +110,5 @@ def test_a_forged_sensor_frame_from_a_third_node_ends_the_run_naming_it(tmp_path
     assert m and last.startswith("hil run: error: "), last
     stuck, tcu_step = int(m.group(1)), int(m.group(2))
     assert tcu_step == forged and forged - 50 <= stuck < forged, (stuck, forged)    # stuck before the forged step
-    log = read_log(tmp_path / "ffcc_a-nlls-1.mcap")
+    log = read_log(tmp_path / "ffcc_a-gp-1.mcap")
     assert log.ended_early.startswith(f"fault at step {stuck}") and not log.damage

@@ -1,5 +1,5 @@
 """Logs that survive damage: a real run's MCAP with a byte flipped inside a chunk, bytes zeroed early in
-the file, cut short, or both; ``hil.logread.read_log`` must recover every chunk the damage left intact,
+the file, cut short, or both; ``hil.log.read.read_log`` must recover every chunk the damage left intact,
 say where the damage is, and not call a log closed properly after a fault damaged.
 
 The expectation comes from the undamaged file read with the ``mcap`` library's own readers (which
@@ -15,7 +15,7 @@ import subprocess
 
 import pytest
 from hil.benchmarks.robustness import chunk_map, expected_messages, in_payload, still_intact
-from hil.logread import read_log
+from hil.log.read import read_log
 
 from .conftest import ROOT, SCENARIOS, hil, hil_command, subprocess_env
 
@@ -27,7 +27,7 @@ def log(tmp_path_factory):
     out = tmp_path_factory.mktemp("log")
     r = hil("run", SCENARIOS / "ffcc_a.toml", "--bus", "inprocess", "--out", out, "--no-rrd", "--json")
     assert r.returncode == 0, r.stderr
-    data, chunks = chunk_map(out / "ffcc_a-nlls-1.mcap")
+    data, chunks = chunk_map(out / "ffcc_a-gp-1.mcap")
     assert len(chunks) >= 10
     return data, chunks
 
@@ -127,7 +127,7 @@ def test_damage_in_the_middle_of_a_cut_log_is_stepped_over(log, tmp_path):
 
 def test_channels_lost_with_the_first_chunk_are_rebuilt(log, tmp_path):
     """The first chunk holds every schema and channel record; damaged there and cut (no summary to
-    repeat them), a railway-hil log's channels are rebuilt from hil.schemas.TOPICS."""
+    repeat them), a railway-hil log's channels are rebuilt from hil.log.schemas.TOPICS."""
     data, chunks = log
     rng = _seed()
     a, b, _ = chunks[0]
@@ -139,7 +139,7 @@ def test_channels_lost_with_the_first_chunk_are_rebuilt(log, tmp_path):
     cut = chunks[-2][0] + 10
     got = _read(tmp_path, bytes(bad[:cut]))
     assert _got(got) == _expect(chunks, lambda x, y: x != a and y <= cut)
-    assert got.rebuilt_channels >= 5 and "rebuilt from hil.schemas.TOPICS" in got.damage
+    assert got.rebuilt_channels >= 5 and "rebuilt from hil.log.schemas.TOPICS" in got.damage
     states = got.topic("/plant/state")
     assert states and all(s.t_s == pytest.approx(s.step * 1e-3) for s in states)
 
@@ -164,7 +164,7 @@ def test_a_log_closed_after_a_fault_is_not_called_damaged(tmp_path):
     did not finish, not that the log is damaged, and so does hil replay."""
     from .test_bus import children_of, cmdline, wait_for
 
-    path = tmp_path / "ffcc_a-nlls-1.mcap"
+    path = tmp_path / "ffcc_a-gp-1.mcap"
     proc = subprocess.Popen(hil_command() + ["run", "scenarios/ffcc_a.toml", "--bus", "local", "--out", str(tmp_path),
                                              "--no-rrd", "--set", "run.duration_s=60", "--set", "run.fault_time_s=55"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=subprocess_env(), cwd=ROOT)

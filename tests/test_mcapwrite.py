@@ -1,4 +1,4 @@
-"""hil/mcapwrite.py writes the file mcap's own writer writes, byte for byte, and mcap's reader reads it."""
+"""hil/log/mcapfile.py writes the file mcap's own writer writes, byte for byte, and mcap's reader reads it."""
 import io
 import random
 import secrets
@@ -7,7 +7,7 @@ import pytest
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
-from hil.mcapwrite import LeanMcapWriter
+from hil.log.mcapfile import LeanMcapWriter
 
 
 def calls(rng: random.Random, messages: int) -> list[tuple]:

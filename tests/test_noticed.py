@@ -8,9 +8,9 @@ import time
 
 import can
 
-from hil.frames import COMMAND_ID, STATE_RUNNING, FrameCodec
-from hil.localbus import create_channel, remove_channel
-from hil.logread import read_log
+from hil.bus.frames import COMMAND_ID, STATE_RUNNING, FrameCodec
+from hil.bus.localbus import create_channel, remove_channel
+from hil.log.read import read_log
 from identifier.messages import IdentificationEvent
 
 from .conftest import ROOT, hil_command, subprocess_env

@@ -6,7 +6,7 @@ import subprocess
 import numpy as np
 import pytest
 
-from hil.logread import read_log
+from hil.log.read import read_log
 from hil.exchange import run
 from hil.effects import TRUTH_KEY, CanReality, with_reality
 from hil.config import load_scenario

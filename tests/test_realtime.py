@@ -12,8 +12,8 @@ import pytest
 
 from hil.config import load_scenario, parse_set
 from hil.errors import ConfigError
-from hil.logread import read_log
-from hil.record import Recorder
+from hil.log.read import read_log
+from hil.log.record import Recorder
 
 from .conftest import ROOT, hil_command, subprocess_env
 from .test_bus import FFCC_A, alive, children_of, cmdline, data_streams, identification, run_json
@@ -154,7 +154,7 @@ def test_a_run_killed_mid_run_leaves_a_log_its_writer_process_closed(tmp_path):
     """SIGKILL of ``hil run`` (a single process: its log has a writer process): the writer writes
     every row it was handed, says the run ended without closing its log, and finishes the file."""
     from .conftest import kill_run_when_log_reaches
-    path = tmp_path / "ffcc_a-nlls-1.mcap"
+    path = tmp_path / "ffcc_a-gp-1.mcap"
     kill_run_when_log_reaches(["run", "scenarios/ffcc_a.toml", "--bus", "inprocess", "--out", str(tmp_path),
                                "--set", "run.duration_s=60", "--set", "run.fault_time_s=50"], path, 400_000)
     end = time.monotonic() + 30
@@ -176,8 +176,8 @@ def test_local_and_inprocess_buses_give_the_same_frames_in_lockstep(tmp_path):
     s_local, _ = run_json(args, "local", tmp_path / "local")
     assert s_in["bus"] == "inprocess" and s_local["bus"] == "local"
     assert identification(s_local) == identification(s_in)
-    tx_in, rx_in = data_streams(tmp_path / "in" / "ffcc_a-nlls-1.mcap")
-    tx_local, rx_local = data_streams(tmp_path / "local" / "ffcc_a-nlls-1.mcap")
+    tx_in, rx_in = data_streams(tmp_path / "in" / "ffcc_a-gp-1.mcap")
+    tx_local, rx_local = data_streams(tmp_path / "local" / "ffcc_a-gp-1.mcap")
     assert len(tx_in) == 500 and tx_local == tx_in and rx_local == rx_in
 
 
@@ -322,7 +322,7 @@ def test_the_missed_deadline_limit_does_not_touch_lockstep_and_is_range_checked(
 
 def _latency_device_or_skip():
     """The PM QoS device's bound now; CI runs as root on Linux, so there it must be readable."""
-    from hil.cpu_latency import current_latency_us
+    from hil.rt.cpu_latency import current_latency_us
     now = current_latency_us()
     if now is None:
         assert os.environ.get("CI") != "true", "/dev/cpu_dma_latency unreadable under CI (root expected)"
@@ -333,7 +333,7 @@ def _latency_device_or_skip():
 def test_a_realtime_run_holds_the_cpu_latency_request_and_ends_it(tmp_path):
     """While a real-time run goes, the kernel's CPU latency bound is 0 (idle CPUs poll); after it, the
     bound is what it was before; lockstep and bus.cpu_latency_us = -1 ask for nothing."""
-    from hil.cpu_latency import current_latency_us
+    from hil.rt.cpu_latency import current_latency_us
     before = _latency_device_or_skip()
     assert before > 0, f"another process holds a 0 us request already ({before}): cannot see this run's"
     args = list(RT_ARGS)
@@ -358,7 +358,7 @@ def test_a_realtime_run_holds_the_cpu_latency_request_and_ends_it(tmp_path):
 
 
 def test_a_refused_cpu_latency_request_is_said_and_the_run_goes_on(tmp_path):
-    from hil.cpu_latency import CpuLatencyRequest
+    from hil.rt.cpu_latency import CpuLatencyRequest
     said = []
     r = CpuLatencyRequest(0, said.append, device=str(tmp_path / "no-such-device"))
     assert r.held_us is None and len(said) == 1 and "no-such-device" in said[0] and "-1" in said[0]
@@ -393,12 +393,12 @@ def test_misses_of_a_stalled_plant_are_told_from_those_of_a_stalled_tcu(tmp_path
 
 
 def _spinners_of(pid: int) -> list[int]:
-    """The idle spinners (``hil.idle_spin``) that process ``pid`` started, by their command lines."""
+    """The idle spinners (``hil.rt.idle_spin``) that process ``pid`` started, by their command lines."""
     out = []
     for name in os.listdir("/proc"):
         if name.isdigit():
             words = cmdline(int(name)).split()
-            if "hil.idle_spin" in words and words[-1] == str(pid):
+            if "hil.rt.idle_spin" in words and words[-1] == str(pid):
                 out.append(int(name))
     return out
 

@@ -180,7 +180,7 @@ def test_can_log_written_by_python_can_replays_the_same(runs, tmp_path, suffix):
     """The frames of a real run written with python-can's own writers (candump .log, Vector .asc, .blf)."""
     import can
 
-    from hil.logread import read_log
+    from hil.log.read import read_log
 
     run, path = runs["nlls"]
     log = read_log(path, topics={"/can/frames"})

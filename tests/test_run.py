@@ -11,7 +11,7 @@ import pytest
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
-from hil.logread import read_log
+from hil.log.read import read_log
 
 from .conftest import SCENARIOS, hil_command, kill_run_when_log_reaches, subprocess_env
 
@@ -35,7 +35,7 @@ def test_json_has_the_promised_keys(ffcc_a_run):
                 "rt_percent", "params", "mse", "rmse", "mae", "r2", "peak_mu_err_percent", "peak_creep_err_percent",
                 "corrections", "mcap"):
         assert key in s, key
-    assert s["scenario"] == "ffcc_a" and s["strategy"] == "nlls" and s["seed"] == 3
+    assert s["scenario"] == "ffcc_a" and s["strategy"] == "gp" and s["seed"] == 3
     assert len(s["params"]) == 5
     # T_det is tens of milliseconds, as the paper's figures imply
     assert 0.03 < s["t_serious_s"] - s["t_fault_s"] < 0.12
@@ -43,12 +43,12 @@ def test_json_has_the_promised_keys(ffcc_a_run):
         assert s["t_identified_s"] > s["t_fault_s"]
         assert s["rt_percent"] == pytest.approx((s["t_identified_s"] - s["t_fault_s"])
                                                 / (s["t_serious_s"] - s["t_fault_s"]) * 100)
-    assert s["mcap"].endswith("ffcc_a-nlls-3.mcap")
+    assert s["mcap"].endswith("ffcc_a-gp-3.mcap")
 
 
 def test_mcap_reads_back_with_the_standard_reader(ffcc_a_run):
     s, out = ffcc_a_run
-    path = out / "ffcc_a-nlls-3.mcap"
+    path = out / "ffcc_a-gp-3.mcap"
     with open(path, "rb") as f:
         reader = make_reader(f, decoder_factories=[DecoderFactory()])
         summary = reader.get_summary()
@@ -73,7 +73,7 @@ def test_mcap_reads_back_with_the_standard_reader(ffcc_a_run):
 
 
 def test_sigkill_leaves_a_readable_prefix(tmp_path):
-    path = tmp_path / "ffcc_a-nlls-1.mcap"
+    path = tmp_path / "ffcc_a-gp-1.mcap"
     kill_run_when_log_reaches(["run", str(SCENARIOS / "ffcc_a.toml"), "--bus", "inprocess", "--out", str(tmp_path),
                                "--set", "run.duration_s=60", "--set", "run.fault_time_s=50"], path, 400_000)
     log = read_log(path)
@@ -133,7 +133,7 @@ def test_sigterm_of_the_tcu_process_is_one_line_not_a_traceback(tmp_path, delay_
     """The plant ends its TCU process with SIGTERM (a failed run, e.g. a full disk); whenever it lands,
     while Python starts (the default action: killed by the signal), while the TCU imports numpy, scipy
     and numba, or while it waits on the bus, the TCU prints no traceback into the run's stderr."""
-    from hil.localbus import create_channel, remove_channel
+    from hil.bus.localbus import create_channel, remove_channel
 
     channel = create_channel()
     try:
@@ -157,7 +157,7 @@ def test_an_interrupt_something_swallowed_still_stops_the_run():
     ImportError the interrupt became: seen once in CI, exit 0 after a full run) is remembered by the
     command's handler, and the run does not start (``interrupts_between_writes``)."""
     from hil.cli import _Interrupts
-    from hil.record import interrupts_between_writes
+    from hil.log.record import interrupts_between_writes
 
     handler = _Interrupts()
     old = signal.signal(signal.SIGINT, handler)
@@ -178,7 +178,7 @@ def test_an_interrupt_swallowed_during_a_run_still_ends_the_command_as_interrupt
     into an in-process run, which went on to exit 0) is still told to the command's handler, so
     ``hil`` ends as interrupted (exit 130) once the run returns."""
     from hil.cli import _Interrupts
-    from hil.record import interrupts_between_writes
+    from hil.log.record import interrupts_between_writes
 
     handler = _Interrupts()
     old = signal.signal(signal.SIGINT, handler)
@@ -220,4 +220,4 @@ def test_no_scenario_name_puts_a_file_outside_out(tmp_path, name, refused):
     assert sorted(p.suffix for p in logs) == [".mcap", ".rrd"], written
     assert set(written) == {scenario.relative_to(tmp_path), *logs}, written
     stem = logs[0].stem
-    assert stem.endswith("-nlls-5") and len(stem) <= 60 + len("-nlls-5") and ".." not in stem
+    assert stem.endswith("-gp-5") and len(stem) <= 60 + len("-gp-5") and ".." not in stem

@@ -1,4 +1,4 @@
-"""Frame authentication (hil/secoc.py): a node without the key cannot forge a frame, a genuine frame
+"""Frame authentication (hil/bus/secoc.py): a node without the key cannot forge a frame, a genuine frame
 sent again is a replay, and on the embedded bus a run is authenticated by default, so a third node's
 forged result, command and heartbeat and its replays change nothing and are counted by reason."""
 import json
@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 
 from hil.errors import ConfigError
-from hil.frames import COMMAND_ID, SENSOR_ID, STATE_RUNNING, FrameCodec
-from hil.localbus import create_channel, remove_channel
-from hil.secoc import read_key, write_key
+from hil.bus.frames import COMMAND_ID, SENSOR_ID, STATE_RUNNING, FrameCodec
+from hil.bus.localbus import create_channel, remove_channel
+from hil.bus.secoc import read_key, write_key
 from identifier.messages import IdentificationEvent, SensorReading, TorqueCommand
 
 from .conftest import ROOT, hil_command, subprocess_env
@@ -168,7 +168,7 @@ def test_in_process_frames_are_not_authenticated_unless_asked(tmp_path):
     log; ``on`` still authenticates them (MAC trailers), and the run identifies the same."""
     from mcap.reader import make_reader
 
-    from hil.schemas import TOPICS, TYPES
+    from hil.log.schemas import TOPICS, TYPES
 
     def trailers(summary):
         cls = TYPES[TOPICS["/can/frames"]]

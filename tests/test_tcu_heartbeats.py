@@ -8,8 +8,8 @@ import time
 import can
 import pytest
 
-from hil.frames import TCU_HEARTBEAT_ID, FrameCodec
-from hil.localbus import create_channel, remove_channel
+from hil.bus.frames import TCU_HEARTBEAT_ID, FrameCodec
+from hil.bus.localbus import create_channel, remove_channel
 from identifier.messages import SensorReading
 
 from .conftest import ROOT, subprocess_env
@@ -41,7 +41,7 @@ def _heartbeats(bus, until, stop_after: int | None = None, timeout_s: float = 60
 TCU = """
 import sys, time
 from hil.config import load_scenario, parse_set
-from hil.link import open_bus
+from hil.bus.link import open_bus
 from hil.tcu_node import TcuNode, serve
 import can
 busy_s = float(sys.argv[2])

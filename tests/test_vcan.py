@@ -15,9 +15,9 @@ import time
 
 import pytest
 
-from hil.link import open_bus, vcan_available
-from hil.frames import load_dbc
-from hil.logread import read_log
+from hil.bus.link import open_bus, vcan_available
+from hil.bus.frames import load_dbc
+from hil.log.read import read_log
 
 from .conftest import ROOT, hil_command, subprocess_env
 from .test_bus import FFCC_A, data_streams, identification, run_json
@@ -62,7 +62,7 @@ def test_inprocess_hub_and_vcan_give_identical_frames_and_identification(tmp_pat
     for bus in ("inprocess", "hub", "auto"):
         out = tmp_path / bus
         s, err = run_json(FFCC_A, bus, out)
-        runs[bus] = (s, out / "ffcc_a-nlls-1.mcap")
+        runs[bus] = (s, out / "ffcc_a-gp-1.mcap")
     s_vcan, path_vcan = runs["auto"]
     assert s_vcan["bus"] == "socketcan:vcan0"           # auto picks vcan0 where the kernel has it
     s_in, path_in = runs["inprocess"]
@@ -89,7 +89,7 @@ def test_candump_records_the_run_and_the_dbc_decodes_it_to_the_mcap_values(tmp_p
             dump.send_signal(signal.SIGINT)
             dump.wait(timeout=10)
     dumped = parse_candump((tmp_path / "candump.log").read_text())
-    log = read_log(tmp_path / "ffcc_a-nlls-1.mcap")
+    log = read_log(tmp_path / "ffcc_a-gp-1.mcap")
     frames = log.topic("/can/frames")
     # every frame the plant sent or received is on the wire, and nothing else is (per id, in order)
     by_id_mcap, by_id_dump = {}, {}
@@ -177,7 +177,7 @@ def test_cansend_garbage_during_a_run_is_counted_and_the_run_still_identifies(tm
     assert sum(s["tcu_rejected_frames"].values()) == sent
     assert s["tcu_rejected_readings"] == 0
     assert s["rejected_frames"]["non_finite:MotorSpeed"] == 3 and s["rejected_frames"]["remote_frame"] == 3
-    rejected = [f for f in read_log(tmp_path / "ffcc_a-nlls-1.mcap", {"/can/frames"}).topic("/can/frames")
+    rejected = [f for f in read_log(tmp_path / "ffcc_a-gp-1.mcap", {"/can/frames"}).topic("/can/frames")
                 if f.status not in ("ok", "late")]
     assert len(rejected) == sent
     print(f"\ncansend garbage: {sent} frames sent, plant counted {sum(s['rejected_frames'].values())}, "

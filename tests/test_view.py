@@ -62,7 +62,7 @@ def test_hil_view_save_and_no_rrd(runs, tmp_path):
     r = hil("run", str(SCENARIOS / "ffcc_a.toml"), "--bus", "inprocess", "--seed", "9", "--out", str(tmp_path),
             "--no-rrd")
     assert r.returncode == 0, r.stderr
-    assert (tmp_path / "ffcc_a-nlls-9.mcap").exists() and not (tmp_path / "ffcc_a-nlls-9.rrd").exists()
+    assert (tmp_path / "ffcc_a-gp-9.mcap").exists() and not (tmp_path / "ffcc_a-gp-9.rrd").exists()
 
 
 def test_view_of_damaged_and_foreign_files(runs, tmp_path):
@@ -102,7 +102,7 @@ def rrd_rows(path) -> tuple[dict, dict]:
 
 def test_the_rrd_streams_in_batches_with_every_point_of_the_log(runs, tmp_path, monkeypatch):
     from hil import view
-    from hil.logread import read_log
+    from hil.log.read import read_log
 
     s, mcap, _, _ = runs["ffcc_b"]
     batch = random.randrange(500, 5000)
@@ -128,7 +128,7 @@ def test_the_rrd_streams_in_batches_with_every_point_of_the_log(runs, tmp_path, 
 
 @pytest.mark.realtime
 def test_realtime_run_has_timing_in_the_recording(tmp_path):
-    from hil.logread import read_log
+    from hil.log.read import read_log
 
     # a generous TCU-silence limit (1 s): on a loaded 2-core machine the default 6 ms trips the fault handling
     r = hil("run", str(SCENARIOS / "ffcc_a.toml"), "--mode", "realtime", "--out", str(tmp_path), "--json",

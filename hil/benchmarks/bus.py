@@ -8,7 +8,7 @@ import sys
 import tempfile
 
 from ..config import load_scenario
-from ..idle_spin import AWAY_SHARE
+from ..rt.idle_spin import AWAY_SHARE
 from .judge import _median
 
 IDENT_KEYS = ("identified", "t_identified_s", "corrections", "params", "samples", "mse", "r2", "observer_lag_ms")
@@ -57,7 +57,7 @@ def register(sub) -> None:
 
 def stream_digest(mcap_path) -> dict:
     """sha256 of the (id, payload) sequence of valid non-heartbeat frames, sent and received."""
-    from ..logread import read_log
+    from ..log.read import read_log
 
     frames = read_log(mcap_path, {"/can/frames"}).topic("/can/frames")
     out = {}
@@ -75,9 +75,9 @@ def stream_digest(mcap_path) -> dict:
 def _rt_run(scenario_path, bus, seconds, sets, seed, strategy, out_dir, probe_beside: bool = False) -> dict:
     """One real-time ``hil run --json`` process: its figures, exit code, load average and whether
     SCHED_FIFO was asked for and granted (None: not asked).  The run's idle spinners
-    (``hil.idle_spin``), where it has them, say which missed periods coincide with a CPU away
+    (``hil.rt.idle_spin``), where it has them, say which missed periods coincide with a CPU away
     (``vcpu_probe``); ``probe_beside`` turns them on whatever ``[bus] idle_spin`` says (the bench asks
-    for it with the vCPU probe in SCHED_FIFO runs only: ``hil.idle_spin.idle_mode`` says why)."""
+    for it with the vCPU probe in SCHED_FIFO runs only: ``hil.rt.idle_spin.idle_mode`` says why)."""
     import os
     import subprocess
 
@@ -164,7 +164,7 @@ def cmd_realtime(args, sets) -> int:
     import time
 
     from ..config import parse_set
-    from ..link import resolve
+    from ..bus.link import resolve
     from .idle_loop import kernel_preemption, measure as measure_idle_loop
     from .vcpu_away import measure as measure_vcpu_away
 
@@ -283,7 +283,7 @@ def _cycle_word(v: dict) -> str:
 
 
 def _idle_word(r: dict) -> str:
-    """How a run's (or idle loop's) idle CPUs waited (``idle_cpus``, ``hil.idle_spin.idle_mode``) in the reports."""
+    """How a run's (or idle loop's) idle CPUs waited (``idle_cpus``, ``hil.rt.idle_spin.idle_mode``) in the reports."""
     mode, latency_us = r.get("idle_cpus"), r.get("cpu_latency_us")
     if mode == "spin":
         return f"spin (SCHED_IDLE spinners, resting {_fmt(r.get('idle_spin_rest_ms'), 'g')} ms per 100 ms)"
@@ -396,7 +396,7 @@ def realtime_markdown(args, result) -> str:
         if b["runs"]:
             out += ["Missed / 10k: all, and (in brackets) those in periods the plant itself began past the "
                     "deadline (its process or CPU stalled: no bus or TCU could have met them). *With a CPU away*: "
-                    "the missed periods in which the run's own idle spinners (`hil/idle_spin.py`, SCHED_IDLE; on "
+                    "the missed periods in which the run's own idle spinners (`hil/rt/idle_spin.py`, SCHED_IDLE; on "
                     "with the vCPU probe) saw one CPU "
                     f"away for >= {100 * AWAY_SHARE:.0f} % of a period between half a period before the period "
                     "and its deadline; the spinners only see absences in the time the run leaves idle, and none "

@@ -176,7 +176,7 @@ def truth_value(effect: str, truth: dict) -> float | None:
 
 def run_case(scenario, kind: str, effects: dict, run_seed: int, out_dir: Path, i: int) -> dict:
     from ..gap import diagnose, read_real_log
-    from ..logread import read_log
+    from ..log.read import read_log
     from ..exchange import run
     from ..effects import TRUTH_KEY, with_reality
 

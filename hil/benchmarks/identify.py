@@ -500,10 +500,10 @@ def run_oracle(data: CaseData, family: str, seed, draws: int) -> dict:
 
 
 def recommended() -> str:
-    """The strategy the README recommends to users (``identifier.strategies.RECOMMENDED``)."""
+    """The default (recommended) strategy (``identifier.strategies.DEFAULT_STRATEGY``)."""
     from identifier import strategies
 
-    return getattr(strategies, "RECOMMENDED", "proposed")
+    return strategies.DEFAULT_STRATEGY
 
 
 def cmd_family(args, strategies: list[str], overrides: dict) -> int:

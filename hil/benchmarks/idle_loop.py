@@ -10,8 +10,8 @@ the idle loop missed more deadlines than the real run beside it; ``docs/realtime
 What: two processes (as a real-time run has a plant and a TCU), each at SCHED_FIFO ``priority`` (when
 granted; normal priority otherwise, reported), pace periods of ``period_s`` exactly as the plant node
 does (sleep until ``WAKE_MARGIN_S`` before the period, then poll with ``POLL_SLICE_S`` sleeps, the last
-``SPIN_S`` without sleeping), under the run's CPU latency request when asked (``hil.cpu_latency``)
-and beside its idle spinners when it would have them (``hil.idle_spin``),
+``SPIN_S`` without sleeping), under the run's CPU latency request when asked (``hil.rt.cpu_latency``)
+and beside its idle spinners when it would have them (``hil.rt.idle_spin``),
 and do nothing else. Period k of the pair is *missed* when either process
 wakes for it later than ``deadline_fraction * period_s`` after its start ``t_k = t0 + k * period_s``
 (the bound by which the plant needs the TCU's command). Both processes share ``t0`` on CLOCK_MONOTONIC
@@ -28,9 +28,9 @@ import os
 import sys
 import time
 
-from ..cpu_latency import CpuLatencyRequest
+from ..rt.cpu_latency import CpuLatencyRequest
 from ..errors import HilError
-from ..idle_spin import SPIN, IdleSpinners, idle_mode
+from ..rt.idle_spin import SPIN, IdleSpinners, idle_mode
 from ..plant_node import POLL_SLICE_S, SPIN_S, WAKE_MARGIN_S
 from .together import run_together
 
@@ -113,8 +113,8 @@ def measure(seconds: float, priority: int = 0, period_s: float = 1e-3, deadline_
             cpu_latency_us: int = -1, idle_spin: str = "off", idle_spin_rest_ms: float = 5.0) -> dict:
     """Run the two empty loops for ``seconds`` and merge them: missed periods (either node late past the
     deadline), per 10 000 periods, the stalls behind them, the load average, SCHED_FIFO granted or not;
-    with ``cpu_latency_us`` >= 0 under the CPU latency request a real-time run holds (``hil.cpu_latency``),
-    and with the idle spinners it would have by ``idle_spin`` (``hil.idle_spin``): ``cpu_latency_us``
+    with ``cpu_latency_us`` >= 0 under the CPU latency request a real-time run holds (``hil.rt.cpu_latency``),
+    and with the idle spinners it would have by ``idle_spin`` (``hil.rt.idle_spin``): ``cpu_latency_us``
     and ``idle_cpus`` in the result say what was held."""
     latency = CpuLatencyRequest(cpu_latency_us, lambda text: None)
     idle = idle_mode(idle_spin, latency.held_us, latency.driver, fifo=priority > 0)
@@ -159,9 +159,9 @@ def main(argv=None) -> int:
     p.add_argument("seconds", type=float)
     p.add_argument("--priority", type=int, default=0, help="SCHED_FIFO priority (0: normal scheduling)")
     p.add_argument("--cpu-latency-us", type=int, default=-1,
-                   help="hold this CPU latency request meanwhile (hil/cpu_latency.py; -1: none)")
+                   help="hold this CPU latency request meanwhile (hil/rt/cpu_latency.py; -1: none)")
     p.add_argument("--idle-spin", choices=("auto", "on", "off"), default="off",
-                   help="idle spinners meanwhile, as [bus] idle_spin (hil/idle_spin.py; default off)")
+                   help="idle spinners meanwhile, as [bus] idle_spin (hil/rt/idle_spin.py; default off)")
     p.add_argument("--idle-spin-rest-ms", type=float, default=5.0)
     a = p.parse_args(argv)
     try:

@@ -25,7 +25,7 @@ Parts (``--only`` takes a comma-separated subset):
   traceback, no hang, exit 0 or 2, nothing written in the sandbox outside ``--out``.
 - ``logs``: a real run's MCAP damaged ``--logs`` times (``damage_log``: flipped bytes in chunks, zeroed
   bytes early in the file, cut short, damage and a cut, a damaged chunk length, the first chunk lost):
-  ``hil.logread.read_log`` must read each and recover every message of every chunk the damage left
+  ``hil.log.read.read_log`` must read each and recover every message of every chunk the damage left
   intact (the expectation comes from the undamaged file read with the ``mcap`` library), and nothing
   that was not in the log.
 - ``fmus``: ``--fmus`` broken FMUs made from our exported FMU (a modelIdentifier that is a path to a
@@ -187,7 +187,7 @@ def in_payload(rng: random.Random, a: int, b: int) -> int:
 
 def chunk_map(path) -> tuple[bytes, list]:
     """A log's bytes and, per chunk, (first byte, end byte, [(topic, log_time)]), read with the ``mcap``
-    library's own readers (never ``hil.logread``): the expectation damaged copies are judged by."""
+    library's own readers (never ``hil.log.read``): the expectation damaged copies are judged by."""
     from mcap.reader import make_reader
     from mcap.records import Chunk, Message
     from mcap.stream_reader import StreamReader, breakup_chunk
@@ -211,7 +211,7 @@ def chunk_map(path) -> tuple[bytes, list]:
 
 def chunk_records(data: bytes, a: int) -> bytes | None:
     """The uncompressed records of the chunk record at byte ``a`` of ``data`` (compression "" or
-    "lz4"), decompressed by the ``lz4`` package (never by ``hil.logread``), or None when they do not
+    "lz4"), decompressed by the ``lz4`` package (never by ``hil.log.read``), or None when they do not
     decompress.  The chunk's head: opcode 1, length 8, start and end times 8 + 8, uncompressed size
     8, CRC 4, compression name (4-byte length + bytes), records (8-byte length + bytes)."""
     import lz4.frame
@@ -398,7 +398,7 @@ def garbage_frame(rng: random.Random, codec, authenticated: bool):
     cannot verify); without, such a frame could decode, so it is never drawn."""
     import can
 
-    from ..frames import INTERVAL_ID, RESULT_ID, SAMPLE_ID, SENSOR_ID, STATUS_ID
+    from ..bus.frames import INTERVAL_ID, RESULT_ID, SAMPLE_ID, SENSOR_ID, STATUS_ID
     from identifier.messages import SensorReading, TorqueCommand
 
     known = {m.frame_id: m.length for m in codec.db.messages}
@@ -471,7 +471,7 @@ class _Seen(dict):
         self.history: dict = {}
 
     def __setitem__(self, fid, msg):
-        from ..frames import PLANT_HEARTBEAT_ID, SENSOR_ID, TCU_HEARTBEAT_ID
+        from ..bus.frames import PLANT_HEARTBEAT_ID, SENSOR_ID, TCU_HEARTBEAT_ID
 
         super().__setitem__(fid, msg)
         if fid in (PLANT_HEARTBEAT_ID, TCU_HEARTBEAT_ID) and SENSOR_ID not in self:
@@ -484,7 +484,7 @@ class _Seen(dict):
     def old(self, fid):
         """A frame of ``fid`` seen ``REPLAY_AGE`` frames ago; of a heartbeat (4 a second in lockstep),
         the one before the newest."""
-        from ..frames import PLANT_HEARTBEAT_ID, TCU_HEARTBEAT_ID
+        from ..bus.frames import PLANT_HEARTBEAT_ID, TCU_HEARTBEAT_ID
 
         h = self.history.get(fid)
         age = 2 if fid in (PLANT_HEARTBEAT_ID, TCU_HEARTBEAT_ID) else REPLAY_AGE
@@ -503,7 +503,7 @@ class Forger:
     def make(self, kind: str):
         import can
 
-        from ..frames import (COMMAND_ID, INTERVAL_ID, PLANT_HEARTBEAT_ID, SENSOR_ID, STATE_RUNNING, STATUS_ID,
+        from ..bus.frames import (COMMAND_ID, INTERVAL_ID, PLANT_HEARTBEAT_ID, SENSOR_ID, STATE_RUNNING, STATUS_ID,
                               TCU_HEARTBEAT_ID, SampleReport)
         from identifier.messages import (IdentificationEvent, ObserverSample, SensorReading, TcuStatus,
                                          TorqueCommand)
@@ -564,8 +564,8 @@ def frame_run(tmp: Path, seed: int, run_seed: int, garbage: int, forged: int, au
     """One lockstep ``hil run`` on a fresh localbus channel with a third node sending ``garbage`` +
     ``forged`` frames (none when both are 0); the run's summary, what was sent, and per receiver what
     it should have counted."""
-    from ..frames import SENSOR_ID, FrameCodec
-    from ..localbus import LocalBus, create_channel, remove_channel
+    from ..bus.frames import SENSOR_ID, FrameCodec
+    from ..bus.localbus import LocalBus, create_channel, remove_channel
 
     out = tmp / f"{auth}-{garbage}-{forged}"
     out.mkdir(parents=True, exist_ok=True)
@@ -867,7 +867,7 @@ def part_scenarios(seed: int, count: int, runs: int, log, max_run_steps: int = 3
 
 # -- logs ----------------------------------------------------------------------------------------------
 def part_logs(seed: int, count: int, log) -> dict:
-    from ..logread import read_log
+    from ..log.read import read_log
     from ..progress import Progress
 
     part = Part("logs", seed, f"{count} damaged copies of a real run's MCAP: every one read, every message of every "
@@ -1101,10 +1101,10 @@ KILL_VICTIMS = ("tcu", "plant", "hub")
 def kill_run(tmp: Path, victim: str, seed: int, min_bytes: int) -> dict:
     """A run SIGKILLed once its log has ``min_bytes``: its TCU or the plant (over the local bus), or
     the hub process the plant started (over the hub)."""
-    from ..logread import read_log
+    from ..log.read import read_log
 
     out = tmp / f"{victim}-{seed}"
-    path = out / f"ffcc_a-nlls-{seed}.mcap"
+    path = out / f"ffcc_a-gp-{seed}.mcap"
     bus = "hub" if victim == "hub" else "local"
     proc = subprocess.Popen(hil_cmd("run", SCENARIOS / "ffcc_a.toml", "--bus", bus, "--seed", seed, "--out", out,
                                     "--no-rrd", "--set", "run.duration_s=60", "--set", "run.fault_time_s=55"),
@@ -1211,7 +1211,7 @@ def _unmount(path: Path) -> None:
 
 
 def part_disk(seed: int, count: int, log) -> dict:
-    from ..logread import read_log
+    from ..log.read import read_log
 
     part = Part("disk", seed, f"a full disk mid-run: {count} file size limits (RLIMIT_FSIZE) and {count} small tmpfs "
                 "(where mounting is allowed), and a limit of 0: exit 2 in one line, the TCU stopped, the log readable "

@@ -8,7 +8,7 @@ same minutes as the real-time runs (``hil bench bus``).
 
 How: one process per CPU, pinned to it (``sched_setaffinity``) at normal priority (a SCHED_FIFO
 spinner would be stopped by the kernel's real-time throttling, 50 ms a second), reads the
-monotonic clock in a tight loop for ``seconds`` (``hil.idle_spin.spin``: a gap between two reads
+monotonic clock in a tight loop for ``seconds`` (``hil.rt.idle_spin.spin``: a gap between two reads
 with no context switch of the spinner is time *away*, the hypervisor holding the vCPU or interrupt
 handlers running; one with a switch is this system's own scheduler, *guest*).
 
@@ -26,10 +26,10 @@ period away is a missed deadline when the loop's process sits on that CPU; with 
 two CPUs it nearly always does. The probe cannot run beside a real-time run (it takes both CPUs),
 so it measures the machine's minute, not the run's.
 
-Beside a run the same measure comes from the run's own idle spinners (``hil.idle_spin``: the same
+Beside a run the same measure comes from the run's own idle spinners (``hil.rt.idle_spin``: the same
 loop at ``SCHED_IDLE``, in the time the run leaves idle), which also find the run's missed periods
 that coincide with a CPU away. With ``rest_s`` each spinner rests as the run's idle spinners do
-(``hil.idle_spin``: on a host that caps the VM's CPU time near its vCPU count, spinners that never
+(``hil.rt.idle_spin``: on a host that caps the VM's CPU time near its vCPU count, spinners that never
 rest exhaust the cap and measure the stalls they cause themselves); a rest is not observed.
 
 ``python -m hil.benchmarks.vcpu_away SECONDS`` prints the result as JSON.
@@ -42,7 +42,7 @@ import os
 import sys
 
 from ..errors import HilError
-from ..idle_spin import CYCLE_S, GAP_S, spin
+from ..rt.idle_spin import CYCLE_S, GAP_S, spin
 from .together import run_together
 
 #: an away gap this long counts in ``cycle_share``
@@ -99,7 +99,7 @@ def cycle_share(gaps, cycle_s: float = CYCLE_S, within_s: float = 1e-3, min_s: f
 def measure(seconds: float, period_s: float = 1e-3, deadline_fraction: float = 0.9,
             cpus: list[int] | None = None, rest_s: float = 0.0) -> dict:
     """Spin on each of ``cpus`` (default: every CPU this process may use) for ``seconds``, resting
-    ``rest_s`` per ``hil.idle_spin.CYCLE_S`` (staggered, as the idle spinners); the figures of the
+    ``rest_s`` per ``hil.rt.idle_spin.CYCLE_S`` (staggered, as the idle spinners); the figures of the
     module docstring."""
     cpus = sorted(os.sched_getaffinity(0)) if cpus is None else cpus
     cmd = [sys.executable, "-m", "hil.benchmarks.vcpu_away", "--child"]

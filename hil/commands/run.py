@@ -4,7 +4,7 @@ from __future__ import annotations
 import json
 import sys
 
-from identifier import STRATEGIES
+from identifier import DEFAULT_STRATEGY, STRATEGIES
 
 from ..config import load_scenario, parse_set
 from ..errors import ConfigError
@@ -24,7 +24,8 @@ def register(sub) -> None:
     p.add_argument("--mode", choices=("lockstep", "realtime"), default="lockstep",
                    help="lockstep: the plant waits for the TCU's command each period (deterministic); realtime: "
                    "paced by the wall clock, deadline misses and jitter recorded (default: lockstep)")
-    p.add_argument("--strategy", default="nlls", help=f"identification strategy ({', '.join(sorted(STRATEGIES))})")
+    p.add_argument("--strategy", default=DEFAULT_STRATEGY,
+                   help=f"identification strategy ({', '.join(sorted(STRATEGIES))}; default {DEFAULT_STRATEGY})")
     p.add_argument("--seed", type=int, default=None, help="seed for sensor noise and the identifier "
                    "(default: the scenario's)")
     p.add_argument("--out", default=None, help="directory for the MCAP log (default: logs/)")

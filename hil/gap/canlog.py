@@ -26,7 +26,7 @@ from pathlib import Path
 import can
 
 from ..errors import LogError
-from ..frames import COMMAND_ID, RESULT_ID, SENSOR_ID, STATUS_ID, FrameCodec
+from ..bus.frames import COMMAND_ID, RESULT_ID, SENSOR_ID, STATUS_ID, FrameCodec
 
 #: file suffixes read with ``can.LogReader``
 CAN_LOG_SUFFIXES = (".log", ".asc", ".blf", ".csv", ".trc", ".mf4")

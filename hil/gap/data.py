@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..logread import LogError, read_log
+from ..log.read import LogError, read_log
 from ..effects import TRUTH_KEY
 
 from .canlog import CAN_LOG_SUFFIXES, read_can_log

@@ -3,7 +3,7 @@
     base = "../ffcc_a.toml"        # the base scenario, relative to this file (required)
     transport = "inprocess"        # "inprocess" (lockstep, one process per point: the default) or
                                    # "process" (plant and TCU processes on a local bus of their own)
-    strategy = "nlls"              # the strategy when no axis sets it (default nlls)
+    strategy = "gp"                # the strategy when no axis sets it (default: DEFAULT_STRATEGY, gp)
     seed = 1                       # the run seed when no axis sets it (default: the scenario's)
     combine = "product"            # "product": every combination of the axes' values (the default);
                                    # "zip": the i-th value of every axis together (equal lengths)
@@ -46,6 +46,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+from identifier import DEFAULT_STRATEGY
 
 from ..config import parse_scenario
 from ..errors import ConfigError
@@ -132,7 +134,7 @@ def parse_sweep(data: dict, path: str = "<sweep>", folder: Path = Path(".")) -> 
         base_scenario = parse_scenario(base_text, str(base), overrides)
     except ConfigError as e:
         raise _fail(path, "[set]", e) from None
-    strategy = data.get("strategy", "nlls")
+    strategy = data.get("strategy", DEFAULT_STRATEGY)
     _check_strategy(path, "strategy", strategy)
     seed = data.get("seed")
     if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < 2 ** 63):

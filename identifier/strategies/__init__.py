@@ -43,9 +43,10 @@ STRATEGIES: dict[str, type[Strategy]] = {cls.name: cls for cls in (
     BayesStrategy, GpStrategy)}
 STRATEGIES.update({name: _preset(name, *spec) for name, spec in PRESETS.items()})
 
-#: the strategy the README recommends to users (intervals, confirms only what the data support, and
-#: assumes no curve form: docs/identification.md measures it beside ``bayes``)
-RECOMMENDED = "gp"
+#: the default strategy, and the one recommended: it gives intervals, confirms only what the data
+#: support and assumes no curve form (the identification guide compares it with the others). ``hil run``,
+#: ``hil tcu``, replay of a log that names none, sweeps and the TCU all take it from here.
+DEFAULT_STRATEGY = "gp"
 
 
 def make_strategy(name: str, settings, seed: int = 0) -> Strategy:
@@ -56,6 +57,6 @@ def make_strategy(name: str, settings, seed: int = 0) -> Strategy:
     return cls(settings, seed)
 
 
-__all__ = ["Sample", "Strategy", "BayesStrategy", "GpStrategy", "RECOMMENDED", "NllsStrategy", "MdipfStrategy", "ProposedStrategy",
+__all__ = ["Sample", "Strategy", "BayesStrategy", "GpStrategy", "DEFAULT_STRATEGY", "NllsStrategy", "MdipfStrategy", "ProposedStrategy",
            "ProposedMu0Strategy", "NllsOaStrategy", "ProposedOaStrategy", "fit_curve", "PRESETS", "STRATEGIES",
            "make_strategy"]

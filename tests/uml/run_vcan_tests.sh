@@ -21,7 +21,7 @@ fail_or_skip() {   # $1: why the vcan tests cannot run here
 }
 
 have_native_vcan() {
-  "$PY" -c "from hil.link import vcan_available; import sys; sys.exit(0 if vcan_available('vcan0')[0] else 1)" 2>/dev/null
+  "$PY" -c "from hil.bus.link import vcan_available; import sys; sys.exit(0 if vcan_available('vcan0')[0] else 1)" 2>/dev/null
 }
 
 if ! have_native_vcan && [ "$(id -u)" = 0 ] && command -v modprobe >/dev/null 2>&1 \

@@ -10,7 +10,7 @@ from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 
 PACKAGE = "hil"
 #: the header profile of the logs ``hil run`` writes: their channels are ``TOPICS``, registered in this
-#: order (channel and schema ids 1, 2, ...) before the first message (``hil.record.McapFile``)
+#: order (channel and schema ids 1, 2, ...) before the first message (``hil.log.record.McapFile``)
 PROFILE = "railway-hil"
 
 #: topic -> protobuf message name (the log's channels, in the order they are registered)

@@ -13,8 +13,8 @@ changed anywhere).
 
 Every skipped stretch is reported with its byte range and what was wrong (``LogContents.damaged``,
 ``damage``).  The channels and schemas of a ``railway-hil`` log (header profile ``PROFILE``) are
-registered in ``hil.schemas.TOPICS`` order, so when the damaged part held them they are rebuilt from
-``hil.schemas``.  A log closed properly after a run that did not finish
+registered in ``hil.log.schemas.TOPICS`` order, so when the damaged part held them they are rebuilt from
+``hil.log.schemas``.  A log closed properly after a run that did not finish
 (a fault, an interrupt) is not damaged: ``ended_early`` says why it ended.
 
 ``read_log(..., on_message=f)`` streams instead of collecting: each decoded message goes to
@@ -36,7 +36,7 @@ from mcap.records import Channel, Chunk, ChunkIndex, Footer, Header, Message, Me
 from mcap.stream_reader import breakup_chunk
 from mcap_protobuf.decoder import DecoderFactory
 
-from .errors import LogError
+from ..errors import LogError
 from .schemas import PROFILE, TOPICS, TYPES
 
 MAGIC = b"\x89MCAP0\r\n"
@@ -58,7 +58,7 @@ class LogContents:
     damaged: list = field(default_factory=list)      # (first byte, end byte, what) of every skipped stretch
     skipped_bytes: int = 0
     ended_early: str = ""                            # closed properly, but the run did not finish: why
-    rebuilt_channels: int = 0                        # channels rebuilt from hil.schemas.TOPICS
+    rebuilt_channels: int = 0                        # channels rebuilt from hil.log.schemas.TOPICS
 
     def topic(self, name: str) -> list:
         return [m for t, _, m in self.messages if t == name]
@@ -75,7 +75,7 @@ def scenario_from_log(log: LogContents, hint: str = ""):
     the metadata), or one LogError line; ``hint`` ends the line that says the log has none."""
     import json
 
-    from .config import ScenarioError, parse_scenario
+    from ..config import ScenarioError, parse_scenario
 
     if (log.cut or log.damaged) and not log.metadata and not log.message_count:
         raise LogError(f"{log.path}: nothing readable ({log.damage})")
@@ -222,7 +222,7 @@ class _Reader:
                 out.messages.append((ch.topic, record.log_time, decode(record.data)))
 
     def _rebuilt(self, channel_id: int):
-        """The channel (and its schema) ``hil.record`` registers as number ``channel_id``, for a
+        """The channel (and its schema) ``hil.log.record`` registers as number ``channel_id``, for a
         ``railway-hil`` log whose channel records were lost; None for another log."""
         from mcap_protobuf.schema import build_file_descriptor_set
 
@@ -389,7 +389,7 @@ def read_log(path, topics: set[str] | None = None, on_message=None) -> LogConten
         out.damage = (f"damaged in {len(out.damaged)} place(s) of {size} bytes, {out.skipped_bytes} bytes skipped: "
                       + "; ".join(parts) + more)
         if out.rebuilt_channels:
-            out.damage += f"; {out.rebuilt_channels} channel(s) rebuilt from hil.schemas.TOPICS"
+            out.damage += f"; {out.rebuilt_channels} channel(s) rebuilt from hil.log.schemas.TOPICS"
     if "summary" not in out.metadata:
         out.complete = False
         if not out.damaged:

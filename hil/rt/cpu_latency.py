@@ -15,7 +15,7 @@ while the file is open, and ends when it is closed, also when the process dies. 
 
 It works through the cpuidle driver. Where the kernel runs none (``cpuidle_driver``: the sysfs file
 reads ``none``), idle is the architecture's default, a halt, and the request changes nothing; a
-real-time run then keeps its idle CPUs busy with idle spinners instead (``hil.idle_spin``).
+real-time run then keeps its idle CPUs busy with idle spinners instead (``hil.rt.idle_spin``).
 
 The cost is said rather than hidden: while held, idle CPUs spin (power, and on a shared host CPU
 time of the host). Opening the device needs root (it is ``0600 root``); a refusal is reported and

@@ -4,7 +4,7 @@ thread-safe sender, and the timing rules both nodes share (heartbeat period, sil
 Bus specs:
   ``auto``               ``socketcan:vcan0`` when this kernel has it, otherwise ``local``
   ``socketcan:<ch>``     SocketCAN (vcan0, can0 ...), CAN FD enabled
-  ``local``              a new relay-free local bus (``hil.localbus``: Unix sockets in a directory only
+  ``local``              a new relay-free local bus (``hil.bus.localbus``: Unix sockets in a directory only
                          this user can enter), removed at the end; processes join it as ``localbus:<dir>``
   ``localbus:<dir>``     a node on an existing local bus
   ``hub``                a python-can-remote loopback hub that ``hil`` starts on 127.0.0.1 with a free
@@ -36,7 +36,7 @@ from typing import Callable
 
 import can
 
-from .errors import BusError, HilError, PeerSilent
+from ..errors import BusError, HilError, PeerSilent
 
 HUB_START_TIMEOUT_S = 15.0
 HUB_SWITCH_INTERVAL_S = 1e-4
@@ -259,7 +259,7 @@ def _open_hub(spec, name, channel, inprocess_node=None) -> BusHandle:
 
 
 def _open_local(spec, name, channel, inprocess_node=None) -> BusHandle:
-    """``local``: a new local bus (``hil.localbus``) in a directory of its own, removed at close."""
+    """``local``: a new local bus (``hil.bus.localbus``) in a directory of its own, removed at close."""
     from .localbus import create_channel, remove_channel
 
     path = create_channel()

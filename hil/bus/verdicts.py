@@ -2,8 +2,8 @@
 counters, the log's ``/can/frames`` status and the robustness bench all name a frame's verdict
 from here.
 
-A frame is judged twice.  By itself (``hil.frames.FrameCodec.classify``): does it decode, are its
-values finite and in the DBC's range, does its MAC verify (``hil/secoc.py``)?  Then in its stream,
+A frame is judged twice.  By itself (``hil.bus.frames.FrameCodec.classify``): does it decode, are its
+values finite and in the DBC's range, does its MAC verify (``hil/bus/secoc.py``)?  Then in its stream,
 by the node that receives it: is its step the next one, one already answered, or a jump?  The
 stream rules for sensor readings are here (``sensor_sequence``, ``newest``), because the TCU's
 answer (``TcuNode.handle``) and its backpressure after a stall (``newest_sensor_only``) must agree

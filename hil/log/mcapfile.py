@@ -5,7 +5,7 @@ Why it exists: a run logs nine rows per 1 ms period, and ``mcap``'s writer spend
 (a ``Message`` object, six buffer writes with a seek, the statistics, a per-entry loop for each
 message index when a chunk closes).  In lockstep over two processes the plant writes its rows while
 it waits for the TCU, so that time is on the loop's path; in real time the writer process
-(``hil/logwriter.py``) shares the machine with the loop.  Everything but the message records and
+(``hil/log/writer.py``) shares the machine with the loop.  Everything but the message records and
 their indexes is written with ``mcap``'s own record classes, as ``mcap``'s writer does.
 
 Layout (the MCAP specification, https://mcap.dev/spec; the choices are ``mcap.Writer``'s defaults

@@ -10,7 +10,7 @@ values.
 ``FrameCodec`` maps ``identifier.messages`` dataclasses to ``can.Message`` and back.  Every received
 frame goes through ``FrameCodec.classify``: it either yields a decoded ``Frame`` or a rejection
 reason (unknown id, wrong length, error/remote frame, ``forged`` or ``replayed`` when the codec
-authenticates (``hil/secoc.py``), undecodable, non-finite or out-of-range signal).  Rejected frames
+authenticates (``hil/bus/secoc.py``), undecodable, non-finite or out-of-range signal).  Rejected frames
 are counted by reason (``RejectCounter``) and never reach the identifier.  Every frame ends with the
 authentication trailer (``AuthFreshness``, ``AuthMac``); a codec without an ``Authenticator`` sends it
 zeroed and does not read it.
@@ -34,7 +34,7 @@ import cantools
 from identifier.messages import IdentificationEvent, ObserverSample, SensorReading, TcuStatus, TorqueCommand
 
 DBC_NAME = "hil.dbc"
-DBC_PATH = Path(__file__).with_name(DBC_NAME)
+DBC_PATH = Path(__file__).parent.parent / DBC_NAME
 
 # frame ids (also in the DBC; checked against it at load)
 SENSOR_ID, COMMAND_ID, STATUS_ID, RESULT_ID, INTERVAL_ID, SAMPLE_ID = 0x100, 0x110, 0x120, 0x130, 0x131, 0x140
@@ -53,7 +53,7 @@ KINDS = ("correction", "confirmed", "unconfirmed")
 INTERVAL_LEVEL_PERCENT = 90
 #: signals allowed to be non-finite (J_EF is inf before the 2nd correction and NaN on confirmation)
 NON_FINITE_OK = frozenset({"JEf"})
-#: the authentication trailer's signals (every frame's last; hil/secoc.py)
+#: the authentication trailer's signals (every frame's last; hil/bus/secoc.py)
 AUTH_SIGNALS = ("AuthFreshness", "AuthMac")
 
 
@@ -112,7 +112,7 @@ _STRUCT_CODES = {(True, True, 32): "f", (True, True, 64): "d",
 
 class FrameLayout:
     """One frame's payload signals (the authentication trailer left out: it is packed as zeros and
-    filled by ``hil.secoc``) as a little-endian ``struct`` format compiled from the DBC message.
+    filled by ``hil.bus.secoc``) as a little-endian ``struct`` format compiled from the DBC message.
 
     ``compile(message)`` returns None when a signal is not byte-aligned little-endian, not 8/16/32/64
     bits, scaled, offset or multiplexed: cantools then does that frame.  ``pack(values)`` takes a
@@ -149,7 +149,7 @@ class FrameLayout:
 
 class FrameCodec:
     """Encode/decode between frames and ``identifier.messages`` dataclasses, through the DBC.
-    ``auth``: the key (16 bytes) this node authenticates with (``hil/secoc.py``); None: it fills the
+    ``auth``: the key (16 bytes) this node authenticates with (``hil/bus/secoc.py``); None: it fills the
     trailer with zeros and does not check it."""
 
     def __init__(self, period_s: float, db=None, auth=None):

@@ -9,7 +9,7 @@ Streaming: protobuf channels, small chunks, unbuffered file.
 Why small chunks and no file buffering: a writer killed with SIGKILL leaves whatever reached the
 file.  With mcap's default 1 MiB chunks that is nothing; with ``CHUNK_SIZE`` bytes per chunk
 written straight to an unbuffered file, every finished chunk survives and can be read back (see
-``hil.logread``, which also steps over damaged chunks).  Memory stays flat because messages
+``hil.log.read``, which also steps over damaged chunks).  Memory stays flat because messages
 leave the process chunk by chunk; only the small chunk index grows with the run.
 """
 from __future__ import annotations
@@ -31,9 +31,9 @@ from mcap_protobuf.schema import build_file_descriptor_set
 
 from identifier.messages import STAGE_NAMES
 
-from .errors import ConfigError, LogWriteError
-from .logwriter import CLOSE, META, WriterGone, WriterProcess
-from .mcapwrite import LeanMcapWriter
+from ..errors import ConfigError, LogWriteError
+from .writer import CLOSE, META, WriterGone, WriterProcess
+from .mcapfile import LeanMcapWriter
 from .schemas import PROFILE, TOPICS, TYPES
 
 CHUNK_SIZE = 32 * 1024
@@ -141,17 +141,17 @@ class _DirectFile:
 
 class McapFile:
     """The log file itself: one protobuf message per row, LZ4 chunks of ``chunk_size`` bytes written
-    straight to the file descriptor ``fd`` (by ``hil.mcapwrite``: mcap's writer's file, with a leaner
+    straight to the file descriptor ``fd`` (by ``hil.log.mcapfile``: mcap's writer's file, with a leaner
     path per row).
 
     The header's profile is ``PROFILE`` and every topic's schema and channel are registered before
     the first message, in ``TOPICS`` order (ids 1, 2, ...), so a reader can rebuild them from
-    ``TOPICS`` when the chunk that held them is damaged (``hil.logread``)."""
+    ``TOPICS`` when the chunk that held them is damaged (``hil.log.read``)."""
 
     def __init__(self, fd: int, chunk_size: int):
         self._file = _DirectFile(fd)
         self._writer = LeanMcapWriter(self._file, chunk_size)
-        self._writer.start(profile=PROFILE, library=f"railway-hil hil.mcapwrite ({LIBRARY_IDENTIFIER} records)")
+        self._writer.start(profile=PROFILE, library=f"railway-hil hil.log.mcapfile ({LIBRARY_IDENTIFIER} records)")
         self._types, self._channels = {}, {}
         for topic, name in TOPICS.items():
             cls = TYPES[name]
@@ -187,7 +187,7 @@ ORPHANED = ("the run's process ended without closing its log (killed?); the rows
 
 
 def _orphaned(file: McapFile, t_s: float) -> None:
-    """The writer process's last rows when the run died (``hil.logwriter``): an error event, a fault."""
+    """The writer process's last rows when the run died (``hil.log.writer``): an error event, a fault."""
     file.write("/run/events", t_s, {"t_s": t_s, "level": "ERROR", "text": ORPHANED})
     file.metadata("fault", {"reason": ORPHANED, "t_s": repr(t_s)})
 
@@ -199,7 +199,7 @@ class Recorder:
     (``defer(queue_limit, block_when_full, writer)``), ``write`` only appends the row (about a
     microsecond) and the encoding happens off the loop's path, in one of two places:
 
-    - ``writer="process"``: a writer process takes the file over (``hil.logwriter``) and encodes
+    - ``writer="process"``: a writer process takes the file over (``hil.log.writer``) and encodes
       beside the loop; ``work`` (in a wait) ships the rows through a pipe, a batch at a time.  Rows in the
       pipe outlive a SIGKILL of this process (the child writes them and finishes the file with an
       error event).  Best where a CPU is free for it (real time, a single-process run).

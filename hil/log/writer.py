@@ -2,7 +2,7 @@
 encodes and writes them, so protobuf and MCAP (microseconds a row, nine rows a period) stay
 off the loop.
 
-Contract.  ``WriterProcess(file)`` forks; the child takes ``file`` (a ``hil.record.McapFile`` with
+Contract.  ``WriterProcess(file)`` forks; the child takes ``file`` (a ``hil.log.record.McapFile`` with
 everything written so far, its chunk builder and indexes included: fork copies them) and the parent
 must not touch ``file`` again.  The parent then hands over *items*: a row ``(topic, log_t_s,
 fields)``, ``(META, name, data)`` or ``(CLOSE,)``.  ``put`` only appends to a list; ``ship`` pickles

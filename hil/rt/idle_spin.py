@@ -4,7 +4,7 @@ while the run waits, and so that the run sees the time the machine takes a CPU a
 Why spin.  Each frame of a real-time period wakes a process asleep in the bus (the TCU on the
 sensor frame, the plant on the command). On a virtual machine an idle vCPU halts, and a halted vCPU
 runs again only when the host schedules it: tens of microseconds, and on a busy host now and then
-milliseconds. Where a cpuidle driver runs, the CPU latency request of ``hil.cpu_latency`` makes idle
+milliseconds. Where a cpuidle driver runs, the CPU latency request of ``hil.rt.cpu_latency`` makes idle
 CPUs poll instead; where none does (``/sys/devices/system/cpu/cpuidle/current_driver`` reads
 ``none``), idle is a plain halt whatever is asked, and only a runnable task keeps a vCPU running. A
 ``SCHED_IDLE`` task is such a task that takes nothing from the run: it runs only when no other task
@@ -41,7 +41,7 @@ import subprocess
 import sys
 import time
 
-from .errors import HilError
+from ..errors import HilError
 
 #: two clock reads further apart than this are a gap (far longer than a turn of the loop)
 GAP_S = 100e-6
@@ -56,7 +56,7 @@ POLL, SHALLOW, SPIN, HALT = "poll", "shallow", "spin", "halt"
 
 def idle_mode(setting: str, latency_held_us: int | None, driver: str | None, fifo: bool) -> str:
     """How the idle CPUs of a real-time run wait, from ``[bus] idle_spin`` (``setting``), the CPU
-    latency request held (``hil.cpu_latency``; None: none), the cpuidle driver (None: none) and
+    latency request held (``hil.rt.cpu_latency``; None: none), the cpuidle driver (None: none) and
     whether the run's processes run SCHED_FIFO (``fifo``): SPIN with ``"on"``, or with ``"auto"``
     where no request is carried out (none held, or no driver to carry it out) and the run is
     SCHED_FIFO; else POLL (0 us held under a driver), SHALLOW (a larger bound) or HALT.
@@ -150,7 +150,7 @@ class IdleSpinners:
         n = max(len(self.cpus), 1)
         try:
             for i, cpu in enumerate(self.cpus):
-                cmd = [sys.executable, "-m", "hil.idle_spin", str(cpu), repr(self.rest_s), repr(CYCLE_S * i / n),
+                cmd = [sys.executable, "-m", "hil.rt.idle_spin", str(cpu), repr(self.rest_s), repr(CYCLE_S * i / n),
                        str(os.getpid())]
                 # in this process's session: with autogroup scheduling a session of its own would be a
                 # group of its own, weighed as much as the run's whatever the spinner's policy

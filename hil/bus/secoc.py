@@ -33,7 +33,7 @@ from pathlib import Path
 from cryptography.hazmat.primitives.ciphers import algorithms
 from cryptography.hazmat.primitives.cmac import CMAC
 
-from .errors import ConfigError
+from ..errors import ConfigError
 
 KEY_BYTES = 16          # AES-128
 FV_BYTES = 2            # the freshness value's low bits sent in the frame

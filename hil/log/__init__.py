@@ -1,0 +1,1 @@
+"""The run log: MCAP file, recorder, writer process, topics and their schemas, reading logs back."""

@@ -1,0 +1,1 @@
+"""The host under a real-time run: the CPU latency request and the idle spinners."""
