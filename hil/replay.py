@@ -243,6 +243,12 @@ def replay(src: ReplaySource, strategy: str | None = None, seed: int | None = No
     return clean(trace.summary(strategy=strategy, seed=seed, bus="replay", mcap_path=src.path, extra=extra))
 
 
+def replay_log(path, scenario_file=None, strategy: str | None = None, seed: int | None = None) -> dict:
+    """``hil replay`` as a call: read the log at ``path`` (an MCAP log, or a CAN log with its
+    ``scenario_file``) and re-identify it (``replay``)."""
+    return replay(load_source(path, scenario_file), strategy, seed)
+
+
 def damage_warning(src: ReplaySource) -> str | None:
     """One line for stderr saying how much of a damaged log was recovered (None for a whole log)."""
     if src.complete:

@@ -14,8 +14,7 @@ import math
 
 import numpy as np
 
-from identifier.curve import mu_model, peak
-from identifier.metrics import fit_metrics, rt_percent
+from identifier.metrics import against_truth, fit_metrics, rt_percent
 from plant import StageTracker
 
 #: how long after the fault the true mu and mu^ are kept for the observer-lag figure
@@ -189,27 +188,3 @@ TRUTH_KEYS = ("peak_mu", "peak_creep_kmh", "peak_mu_err_percent", "peak_creep_er
               "r2_vs_truth", "r2_vs_truth_to_peak")
 
 
-def _r2(pred, truth) -> float:
-    ss_tot = float(np.sum((truth - truth.mean()) ** 2))
-    with np.errstate(over="ignore", invalid="ignore"):
-        ss_res = float(np.sum((pred - truth) ** 2))
-    return 1.0 - ss_res / ss_tot if ss_tot > 0 and math.isfinite(ss_res) else math.nan
-
-
-def against_truth(theta, curve) -> dict:
-    """The identified curve ``theta`` against the true fault curve ``curve`` (any friction law with
-    ``mu(creep_kmh)`` and ``peak()``): peak mu and peak creep and their errors in percent; on 200
-    points, the RMSE and R² over [0, 2 v_peak] (``curve_rmse_vs_truth``, ``r2_vs_truth``) and the R²
-    over [0, v_peak], the stable side a controller acts on (``r2_vs_truth_to_peak``)."""
-    v_true, mu_true = curve.peak()
-    v_id, mu_id = peak(theta)
-    wide, stable = np.linspace(0.0, 2.0 * v_true, 200), np.linspace(0.0, v_true, 200)
-    with np.errstate(over="ignore", invalid="ignore"):
-        fit_wide, fit_stable = mu_model(wide, theta), mu_model(stable, theta)
-    true_wide = np.asarray(curve.mu(wide), float)
-    return {"peak_mu": mu_id, "peak_creep_kmh": v_id,
-            "peak_mu_err_percent": abs(mu_id - mu_true) / abs(mu_true) * 100.0,
-            "peak_creep_err_percent": abs(v_id - v_true) / abs(v_true) * 100.0,
-            "curve_rmse_vs_truth": float(np.sqrt(np.mean((fit_wide - true_wide) ** 2))),
-            "r2_vs_truth": _r2(fit_wide, true_wide),
-            "r2_vs_truth_to_peak": _r2(fit_stable, np.asarray(curve.mu(stable), float))}

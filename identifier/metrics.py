@@ -23,10 +23,20 @@ def fit_metrics(creep_speed_kmh, mu_samples, theta) -> dict:
     return {"mse": mse, "rmse": math.sqrt(mse), "mae": float(np.mean(np.abs(resid))), "r2": r2}
 
 
-def peak_errors(theta, true_theta) -> dict:
-    """Peak mu and peak creep errors of the identified curve against the true one, in percent."""
+def _true_curve(truth):
+    """The true curve as (mu of creep in km/h, its peak (v, mu)): ``truth`` is an exponential curve's
+    parameter vector or any friction law with ``mu(creep_kmh)`` and ``peak()`` (e.g. a Polach curve)."""
+    if hasattr(truth, "peak") and hasattr(truth, "mu"):
+        return (lambda v: np.asarray(truth.mu(v), float)), truth.peak()
+    theta = np.asarray(truth, float)
+    return (lambda v: mu_model(v, theta)), peak(theta)
+
+
+def peak_errors(theta, truth) -> dict:
+    """Peak mu and peak creep of the identified curve ``theta`` and their errors against the true curve
+    ``truth`` (a parameter vector or a friction law), in percent: |x_id - x_true| / |x_true| * 100."""
     v_id, mu_id = peak(theta)
-    v_true, mu_true = peak(true_theta)
+    v_true, mu_true = _true_curve(truth)[1]
     return {
         "peak_mu_err_percent": abs(mu_id - mu_true) / abs(mu_true) * 100.0,
         "peak_creep_err_percent": abs(v_id - v_true) / abs(v_true) * 100.0,
@@ -35,22 +45,35 @@ def peak_errors(theta, true_theta) -> dict:
     }
 
 
-def curve_rmse_vs_truth(theta, true_theta, upto_kmh: float) -> float:
-    """RMSE between the identified and true curves on [0, upto_kmh] (a check the samples cannot bias)."""
+def curve_rmse_vs_truth(theta, truth, upto_kmh: float) -> float:
+    """RMSE between the identified and true curves on 200 points over [0, upto_kmh] (a check the
+    samples cannot bias)."""
     grid = np.linspace(0.0, upto_kmh, 200)
-    return float(np.sqrt(np.mean((mu_model(grid, theta) - mu_model(grid, true_theta)) ** 2)))
+    with np.errstate(over="ignore", invalid="ignore"):
+        return float(np.sqrt(np.mean((mu_model(grid, theta) - _true_curve(truth)[0](grid)) ** 2)))
 
 
-def r2_vs_truth(theta, true_theta, upto_kmh: float) -> float:
+def r2_vs_truth(theta, truth, upto_kmh: float) -> float:
     """R^2 of the identified curve against the true one on 200 points over [0, upto_kmh]: the share
     of the true curve's variation there that the identified curve reproduces (free of the mu^
     samples' noise and narrow range, which cap the paper's R^2 against the samples)."""
     grid = np.linspace(0.0, upto_kmh, 200)
-    truth = mu_model(grid, true_theta)
-    ss_tot = float(np.sum((truth - truth.mean()) ** 2))
+    true_mu = _true_curve(truth)[0](grid)
+    ss_tot = float(np.sum((true_mu - true_mu.mean()) ** 2))
     with np.errstate(over="ignore", invalid="ignore"):
-        ss_res = float(np.sum((mu_model(grid, theta) - truth) ** 2))
+        ss_res = float(np.sum((mu_model(grid, theta) - true_mu) ** 2))
     return 1.0 - ss_res / ss_tot if ss_tot > 0 and math.isfinite(ss_res) else math.nan
+
+
+def against_truth(theta, truth) -> dict:
+    """Every truth metric of the identified curve ``theta``: the peak errors, and on 200 points the RMSE
+    and R^2 over [0, 2 v_peak] (``curve_rmse_vs_truth``, ``r2_vs_truth``) and the R^2 over [0, v_peak],
+    the stable side a controller acts on (``r2_vs_truth_to_peak``)."""
+    v_true = _true_curve(truth)[1][0]
+    return {**peak_errors(theta, truth),
+            "curve_rmse_vs_truth": curve_rmse_vs_truth(theta, truth, 2.0 * v_true),
+            "r2_vs_truth": r2_vs_truth(theta, truth, 2.0 * v_true),
+            "r2_vs_truth_to_peak": r2_vs_truth(theta, truth, v_true)}
 
 
 def rt_percent(t_identified_s: float, t_fault_s: float, deterioration_time_s: float) -> float:

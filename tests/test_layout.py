@@ -132,3 +132,18 @@ def test_readme_layout_table_matches_the_tree():
     assert files <= named, f"not in the README's Layout table: {sorted(files - named)}"
     stale = {n for n in named if n.startswith("hil/") and not (ROOT / n).exists()}
     assert not stale, f"the README's Layout table names what is gone: {sorted(stale)}"
+
+
+def test_public_api_is_lazy_and_every_name_resolves():
+    """``import hil`` imports none of its modules; each public name resolves to a thing of its module."""
+    import subprocess
+    import sys
+
+    code = ("import sys, hil; before = sorted(m for m in sys.modules if m.startswith('hil.'));"
+            "names = [n for n in hil.__all__ if getattr(hil, n) is None]; print(before, names)")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True)
+    assert r.stdout.strip() == "[] []", r.stdout + r.stderr
+    import hil
+    for name in hil.__all__:
+        obj = getattr(hil, name)
+        assert obj.__module__.startswith("hil."), (name, obj.__module__)

@@ -14,7 +14,7 @@ def runs(tmp_path_factory):
     """strategy -> (hil run --json summary, log path), both from `hil run` on its default bus."""
     out = tmp_path_factory.mktemp("runs")
     res = {}
-    for strategy in ("nlls", PF_STRATEGY):
+    for strategy in ("gp", PF_STRATEGY):
         r = hil("run", str(SCENARIOS / "ffcc_a.toml"), "--strategy", strategy, "--seed", "4", "--out", str(out),
                 "--json")
         assert r.returncode == 0, r.stderr
@@ -23,7 +23,7 @@ def runs(tmp_path_factory):
     return res
 
 
-@pytest.mark.parametrize("strategy", ["nlls", PF_STRATEGY])
+@pytest.mark.parametrize("strategy", ["gp", PF_STRATEGY])
 def test_replay_reproduces_the_logged_identification(runs, strategy):
     run, path = runs[strategy]
     r = hil("replay", str(path), "--json")
@@ -42,15 +42,15 @@ def test_replay_reproduces_the_logged_identification(runs, strategy):
 
 
 def test_another_strategy_on_the_same_run(runs):
-    """The nlls run replayed with the PF strategy identifies what the PF run identified (same frames)."""
+    """The gp run replayed with the PF strategy identifies what the PF run identified (same frames)."""
     pf_run, _ = runs[PF_STRATEGY]
-    _, nlls_path = runs["nlls"]
-    r = hil("replay", str(nlls_path), "--strategy", PF_STRATEGY, "--json")
+    _, gp_path = runs["gp"]
+    r = hil("replay", str(gp_path), "--strategy", PF_STRATEGY, "--json")
     assert r.returncode == 0, r.stderr
     s = json.loads(r.stdout)
     assert s["strategy"] == PF_STRATEGY
     assert s["matches_log"] is None          # not the logged strategy: nothing to match
-    assert s["logged"]["strategy"] == "nlls"
+    assert s["logged"]["strategy"] == "gp"
     assert s["params"] == pf_run["params"] and s["t_identified_s"] == pf_run["t_identified_s"]
 
 
@@ -82,7 +82,7 @@ def test_logs_recorded_before_the_redesign_replay_to_the_same_identification(nam
 
 
 def test_bad_strategy_is_one_line(runs):
-    _, path = runs["nlls"]
+    _, path = runs["gp"]
     r = hil("replay", str(path), "--strategy", "nope")
     assert r.returncode == 2
     assert r.stderr.count("\n") == 1 and "unknown strategy 'nope'" in r.stderr
@@ -182,7 +182,7 @@ def test_can_log_written_by_python_can_replays_the_same(runs, tmp_path, suffix):
 
     from hil.log.read import read_log
 
-    run, path = runs["nlls"]
+    run, path = runs["gp"]
     log = read_log(path, topics={"/can/frames"})
     can_log = tmp_path / f"rig.{suffix}"
     written = 0

@@ -44,8 +44,7 @@ import numpy as np
 from scipy import stats
 
 from identifier import SensorReading, TractionIdentifier
-from identifier.curve import peak as exp_peak
-from identifier.metrics import rt_percent
+from identifier.metrics import peak_errors, rt_percent
 from plant import SensorModel
 
 from ..trace import clean
@@ -156,17 +155,6 @@ def observability(input_constant: bool) -> list[dict]:
     if not input_constant:
         return []
     return [{"effect": k, "why": v, "excitation": EXCITATION} for k, v in NEEDS_VARYING_TORQUE.items()]
-
-
-def peak_errors_vs_curve(theta, curve) -> dict:
-    """Peak mu and peak creep of the identified exponential curve ``theta`` and their errors (percent)
-    against the model's fault curve, whatever its law (``curve.peak()``: an exponential curve or a
-    ``PolachCurve``, which has no exponential parameter vector)."""
-    v_id, mu_id = exp_peak(theta)
-    v_true, mu_true = curve.peak()
-    return {"peak_mu_err_percent": abs(mu_id - mu_true) / abs(mu_true) * 100.0,
-            "peak_creep_err_percent": abs(v_id - v_true) / abs(v_true) * 100.0,
-            "peak_mu": mu_id, "peak_creep_kmh": v_id}
 
 
 # -- the diagnosis --------------------------------------------------------------------------------------
@@ -773,7 +761,7 @@ class Diagnosis:
                # the same keys whether or not the run published a curve (None: no curve to judge)
                "peak_mu_err_percent": None, "peak_creep_err_percent": None, "peak_mu": None, "peak_creep_kmh": None}
         if last:
-            out.update(peak_errors_vs_curve(np.asarray(last["params"]), sc.fault_curve))
+            out.update(peak_errors(np.asarray(last["params"]), sc.fault_curve))
         return out
 
     def identification(self, ctx: Context, nominal, best: Fit | None, creep_meas) -> dict:
