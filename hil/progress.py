@@ -39,3 +39,21 @@ class Progress:
             self.update(self.total)
             sys.stderr.write("\n")
             sys.stderr.flush()
+
+
+def compile_kernels(who: str) -> None:
+    """The identifier's kernels compiled in the foreground, with a bar, when this machine has not yet
+    compiled them (``identifier.kernel_cache``): once per machine and source, instead of unseen inside a
+    TCU process the plant is waiting for.  ``who`` prefixes the lines (``hil run``)."""
+    from identifier import kernel_cache
+
+    if kernel_cache.fresh():
+        return
+    sys.stderr.write(f"{who}: compiling the identifier's kernels (once per machine; later runs load them)\n")
+    sys.stderr.flush()
+    bar = Progress(1.0, f"{who}: compiling")
+    t0 = time.monotonic()
+    if kernel_cache.compile_all(lambda done, total, name: bar.update(done / total, name)):
+        bar.close()
+        sys.stderr.write(f"{who}: kernels compiled in {time.monotonic() - t0:.0f} s\n")
+        sys.stderr.flush()

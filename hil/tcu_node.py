@@ -300,6 +300,9 @@ def run_tcu(args) -> int:
         raise BusError(f"bus {args.bus}{' (no vcan0 here: hub)' if args.bus == 'auto' else ''}: the TCU alone needs "
                        "the plant's bus (socketcan:<ch>, remote:ws://HOST:PORT/ of a running hub, or a python-can "
                        "interface:channel)")
+    from .progress import compile_kernels
+
+    compile_kernels("hil tcu")      # before the bus: a first compile is shown, not spent inside the start-up wait
     node = TcuNode(scenario, args.strategy, seed, realtime=args.mode == "realtime")
     period = scenario.run.exchange_period_s
     code = EXIT_OK

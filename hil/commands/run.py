@@ -50,8 +50,11 @@ def cmd_run(args) -> int:
     from ..errors import PeerSilent
     from ..exchange import check_deadlines, run
     from ..plants import make_plant, plant_label
+    from ..progress import compile_kernels
 
     plant = make_plant(scenario, args.plant)   # None: the CasADi model
+    if args.tcu != "external":
+        compile_kernels("hil run")             # the first run on a machine: shown, not a silent wait
     try:
         summary = run(scenario, args.strategy, args.seed, bus=args.bus, mode=args.mode, out_dir=args.out,
                       set_args=args.set, plant=plant, plant_label=plant_label(plant),
