@@ -1228,8 +1228,9 @@ def _warm_calls() -> list:
         ("rownorm_propagate", lambda: rownorm_propagate(xt, w, np.zeros((5, 4)), np.empty((5, 4)), np.empty((5, 4)))),
         ("log_likelihood", lambda: log_likelihood(xt, np.zeros(5), 1.0, 0.1, -0.5, ll, tmp)),
         ("reweigh", lambda: reweigh(ll, w, np.empty(4))),
-        ("filter_step", lambda: filter_step(xt, w, np.zeros((5, 4)), np.empty((5, 4)), np.empty((5, 4)), np.zeros(5), 1.0, 0.1, -0.5,
-                    np.zeros(5), np.ones(5), True, ll, np.empty(4), tmp)),
+        ("filter_step", lambda: filter_step(
+            xt, w, np.zeros((5, 4)), np.empty((5, 4)), np.empty((5, 4)), np.zeros(5), 1.0, 0.1, -0.5, np.zeros(5),
+            np.ones(5), True, ll, np.empty(4), tmp)),
         ("vexp", lambda: vexp(np.zeros(4))),
         ("weighted_mean", lambda: weighted_mean(xt, w, np.empty(5))),
         ("systematic_resample", lambda: systematic_resample(w, 0.5, np.empty(4, np.intp))),
@@ -1237,30 +1238,42 @@ def _warm_calls() -> list:
         ("recentre", lambda: recentre(np.zeros((5, 4)), np.zeros(5), -np.ones(5), np.ones(5), True)),
         ("bounded_lm", lambda: bounded_lm(x, lo, hi, v, np.full(6, 0.1), np.zeros((0, 0)), 2, 1e-10)),
         ("bounded_lm", lambda: bounded_lm(x, lo, hi, v, np.full(6, 0.1), np.eye(6), 2, 1e-10)),
-        ("grid_best", lambda: grid_best(np.tile(np.eye(3), (4, 1, 1)), np.ones((4, 3)), 1.0, np.full((4, 2), -0.5), lo, hi)),
-        ("grid_add", lambda: grid_add(np.full((4, 2), -0.5), 1.0, 0.1, np.empty((4, 3)), np.zeros((4, 3, 3)), np.zeros((4, 3)))),
-        ("bayes_step", lambda: bayes_step(c, c, -c, -c, -c, np.zeros(4), np.zeros(4), np.zeros(4), np.zeros(4), np.zeros(4), np.full(4, 0.25), 1.0,
-                   0.0, 1.0, 1e-4, 1.0, 1.0, 0.5, 0.0, np.empty(2))),
-        ("bayes_rerun", lambda: bayes_rerun(c, c, -c, -c, -c, np.ones(3), np.zeros(3), np.ones(3), np.full(3, 1e-4), np.full(3, 0.5),
-                    np.ones(3), np.zeros(3), 1.0, np.empty(4), np.empty(4), np.empty(4), np.empty(4))),
-        ("bayes_curves", lambda: bayes_curves(u16, np.zeros(5), np.ones(5), np.array([False, True, False, True, True]), np.empty((5, 16)),
-                     np.empty(16), np.empty(16), np.empty(16), np.empty(16), np.empty(16))),
+        ("grid_best", lambda: grid_best(
+            np.tile(np.eye(3), (4, 1, 1)), np.ones((4, 3)), 1.0, np.full((4, 2), -0.5), lo, hi)),
+        ("grid_add", lambda: grid_add(
+            np.full((4, 2), -0.5), 1.0, 0.1, np.empty((4, 3)), np.zeros((4, 3, 3)), np.zeros((4, 3)))),
+        ("bayes_step", lambda: bayes_step(
+            c, c, -c, -c, -c, np.zeros(4), np.zeros(4), np.zeros(4), np.zeros(4), np.zeros(4), np.full(4, 0.25),
+            1.0, 0.0, 1.0, 1e-4, 1.0, 1.0, 0.5, 0.0, np.empty(2))),
+        ("bayes_rerun", lambda: bayes_rerun(
+            c, c, -c, -c, -c, np.ones(3), np.zeros(3), np.ones(3), np.full(3, 1e-4), np.full(3, 0.5), np.ones(3),
+            np.zeros(3), 1.0, np.empty(4), np.empty(4), np.empty(4), np.empty(4))),
+        ("bayes_curves", lambda: bayes_curves(
+            u16, np.zeros(5), np.ones(5), np.array([False, True, False, True, True]), np.empty((5, 16)),
+            np.empty(16), np.empty(16), np.empty(16), np.empty(16), np.empty(16))),
         ("weighted_moments", lambda: weighted_moments(u16[0], np.full(16, 1 / 16))),
         ("weighted_covariance5", lambda: weighted_covariance5(u16, np.full(16, 1 / 16), np.empty((5, 5)))),
         ("cholesky_lower", lambda: cholesky_lower(np.eye(5), np.empty((5, 5)))),
         ("baseline_stats", lambda: baseline_stats(np.ones((3, 16)), 20)),
-        ("bayes_curves", lambda: bayes_curves(u16, np.zeros(5), np.ones(5), np.array([False, True, False, True, True]), np.empty((5, 16)), *th16)),
-        ("bayes_move", lambda: bayes_move(u16.copy(), np.empty((5, 16)), *th16, np.zeros(16), np.zeros(16), np.zeros(16), np.zeros(16), 0, 4,
-                   np.eye(5), np.zeros((5, 16)), np.full(16, 0.5), np.zeros(5), np.ones(5),
-                   np.array([False, True, False, True, True]), np.ones(3), np.zeros(3), np.ones(3), np.full(3, 1e-4),
-                   np.full(3, 0.5), np.ones(3), np.zeros(3), 1.0)),
-        ("cloud_peaks", lambda: cloud_peaks(np.zeros((5, 4)), np.array([0.0, 1.0, -1.0, -0.54, -1.2]), np.empty(4), np.empty(4))),
+        ("bayes_curves", lambda: bayes_curves(
+            u16, np.zeros(5), np.ones(5), np.array([False, True, False, True, True]), np.empty((5, 16)), *th16)),
+        ("bayes_move", lambda: bayes_move(
+            u16.copy(), np.empty((5, 16)), *th16, np.zeros(16), np.zeros(16), np.zeros(16), np.zeros(16), 0, 4,
+            np.eye(5), np.zeros((5, 16)), np.full(16, 0.5), np.zeros(5), np.ones(5), np.array([False, True, False,
+            True, True]), np.ones(3), np.zeros(3), np.ones(3), np.full(3, 1e-4), np.full(3, 0.5), np.ones(3),
+            np.zeros(3), 1.0)),
+        ("cloud_peaks", lambda: cloud_peaks(
+            np.zeros((5, 4)), np.array([0.0, 1.0, -1.0, -0.54, -1.2]), np.empty(4), np.empty(4))),
         ("bayes_mu_at", lambda: bayes_mu_at(u16[0], u16[1], u16[2], u16[3], u16[4], 0.5, np.empty(16))),
-        ("weighted_quantiles_hist", lambda: weighted_quantiles_hist(u16[0], np.full(16, 1 / 16), np.array([0.05, 0.5, 0.95]), 64, np.empty(64), np.empty(3))),
-        ("gp_update", lambda: gp_update(np.zeros(4), np.eye(4), np.array([0, 1, 1, 2]), np.full(4, 0.1), 0.0, 1e-6, 1e-4, 0.0, np.empty(4))),
-        ("gp_peak", lambda: gp_peak(np.zeros(4), np.eye(4), 0, 2, 4.0, np.zeros((3, 4)), np.arange(3.0), 3.0, np.array([0.1, 0.5, 0.9]),
-                np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 4)), np.empty(4), np.empty(4), np.empty((3, 2)))),
-        ("exp_shape_fit", lambda: exp_shape_fit(np.zeros(2), np.ones(2), np.full(2, 2.0), 0.1, 1.0, np.ones(3), np.ones(3), np.empty(5))),
+        ("weighted_quantiles_hist", lambda: weighted_quantiles_hist(
+            u16[0], np.full(16, 1 / 16), np.array([0.05, 0.5, 0.95]), 64, np.empty(64), np.empty(3))),
+        ("gp_update", lambda: gp_update(
+            np.zeros(4), np.eye(4), np.array([0, 1, 1, 2]), np.full(4, 0.1), 0.0, 1e-6, 1e-4, 0.0, np.empty(4))),
+        ("gp_peak", lambda: gp_peak(
+            np.zeros(4), np.eye(4), 0, 2, 4.0, np.zeros((3, 4)), np.arange(3.0), 3.0, np.array([0.1, 0.5, 0.9]),
+            np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 4)), np.empty(4), np.empty(4), np.empty((3, 2)))),
+        ("exp_shape_fit", lambda: exp_shape_fit(
+            np.zeros(2), np.ones(2), np.full(2, 2.0), 0.1, 1.0, np.ones(3), np.ones(3), np.empty(5))),
     ]
 
 
