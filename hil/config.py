@@ -58,7 +58,8 @@ class BusSettings:
     lockstep_pin: bool = True             # lockstep, neither affinity set: plant and TCU process on two
                                           # different CPUs (hil.exchange.node_cpus)
     auth: str = "auto"                    # frame authentication (hil/bus/secoc.py): "on", "off", or "auto": on
-                                          # for the embedded buses (local, localbus, inprocess), off otherwise
+                                          # for the embedded buses (local, localbus), off otherwise (also
+                                          # inprocess: no other node can put a frame on it)
     auth_key_file: str = ""               # the key (32 hex digits); "": a new key per run, made by the run
 
 

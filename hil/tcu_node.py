@@ -264,7 +264,7 @@ def add_arguments(p) -> None:
     p.add_argument("--seed", type=int, default=None, help="identifier seed (default: the scenario's)")
     p.add_argument("--mode", choices=("lockstep", "realtime"), default="lockstep",
                    help="sets the plant-silence limit and heartbeat period (realtime: [bus] silence_periods x "
-                   "heartbeat_period_s, default 3 x 2 ms; lockstep: [bus] lockstep_silence_s, default 1 s)")
+                   "heartbeat_period_s, default 25 x 2 ms; lockstep: [bus] lockstep_silence_s, default 1 s)")
     p.add_argument("--set", action="append", metavar="TABLE.KEY=VALUE", help="override a scenario field")
     p.add_argument("--wait", type=float, default=None, help="seconds to wait for the plant's first frame "
                    "(default: [bus] startup_timeout_s)")

@@ -3,8 +3,8 @@
 The identifier's costliest samples after a fault are not its heaviest arithmetic but code that has
 not run for a while: before the fault the TCU runs only the observer and the slip detector, so by
 the fault the strategy's Python paths and compiled kernels have left the CPU's caches, and the
-first samples of an identification cost 2-3 times what the same work costs warm (measured with
-``hil bench identify``: the filter's opening ~70-80 us cold against ~25 us warm).
+first samples of an identification cost several times what the same work costs warm (measured
+with ``hil bench identify``: docs/design/identification.md).
 
 So, while monitoring (and, for strategies fed from the slip's settled samples, through the settle
 time after a detection), every reading also feeds one sample of a synthetic slip to a small copy of
@@ -48,7 +48,7 @@ DRILL_TRAIN_SPEED_MS = 10.0
 DRILL_SPEED_NOISE_RAD_S = 0.005
 DRILL_TORQUE_OVER_PEAK = 1.06
 _SUBSTEPS = 10
-#: attributes copied from the template per reading while the drill restarts (~15 us of copying)
+#: attributes copied from the template per reading while the drill restarts (spread over readings)
 _RESTART_ATTRIBUTES = 16
 
 

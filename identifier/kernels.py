@@ -2,14 +2,10 @@
 pieces of ``identifier/pf.py`` up to rounding.
 
 Why compiled: at N = 1000 particles a numpy call costs a few microseconds of overhead whatever
-its arithmetic, and a filter step in numpy needs about 35 of them (~65 us measured); the TCU has
-one 1 ms sampling period per sample and the issue asks for p99 <= 5 % of it.  Each kernel below
-replaces a group of numpy calls by a few passes over the cloud; the filter step allocates one
-(P + 1, P) array and nothing per particle.  Measured at N = 1000, P = 5 on a 2-core AMD EPYC
-(Zen 4, AVX-512), each call on data it has not seen before (median): ``filter_step`` ~9 us (was
-~19 us; ~9 us in a real run, was ~22 us), ``systematic_resample`` ~2.3 us (was ~12 us),
-``take_columns`` ~2 us (was ~2.6 us).  Of the step's 9 us, ~1 us is numba's dispatch of its 16
-arguments and ~3 us the 3000 exponentials (two per particle for the curve, one for its weight).
+its arithmetic, and a filter step in numpy needs about 35 of them; the TCU has one sampling period
+per sample and the issue asks for a p99 of at most 5 % of it.  Each kernel below replaces a group of
+numpy calls by a few passes over the cloud; the filter step allocates one (P + 1, P) array and
+nothing per particle.  What each kernel costs, and what it replaced: docs/design/identifier.md.
 
 How the step gets there: the five-parameter model (two exponential terms, the strategies' only
 size) has its own pieces (``_moments5``, ``_move_weigh5``) that keep every per-particle quantity in
@@ -103,10 +99,10 @@ else:                          # plain Python (the kernels are then unused, but 
 
 # exp by Cody-Waite range reduction x = k ln2 + r, |r| <= ln2 / 2, a degree-13 Taylor polynomial
 # for e^r (truncation error < 1e-17 relative) by Horner's rule in fused multiply-adds, and 2^k
-# built in the exponent bits.  The C library's exp is a call per element (~7 ns here); this is
-# plain arithmetic the compiler vectorises and inlines into the loops that call it (~0.8 ns per
-# element, bound by its 16 multiply-adds; degree 13 is what 1 ulp needs: a degree-11 minimax fit
-# would save ~0.5 us a step but add ~0.15 ulp).  Agrees with numpy.exp to 1 ulp on [-708, 709]
+# built in the exponent bits.  The C library's exp is a call per element; this is plain arithmetic
+# the compiler vectorises and inlines into the loops that call it, bound by its 16 multiply-adds
+# (degree 13 is what 1 ulp needs: a degree-11 minimax fit would be faster but add ~0.15 ulp;
+# costs in docs/design/identifier.md).  Agrees with numpy.exp to 1 ulp on [-708, 709]
 # (tests/test_kernels.py); below -708 it returns 0 where the library returns values under 3e-308
 # (a weight or a curve term that small is zero to the filter), above 709 inf, NaN for NaN.
 _LOG2E = 1.4426950408889634
@@ -239,7 +235,7 @@ def weighted_covariance5(xt, weights, cov):
 @njit(**_JIT_EXACT)
 def cholesky_lower(a, out):
     """out <- L, lower triangular with L L^T = a (symmetric positive definite, small: the cloud's
-    5 x 5 covariance); numpy.linalg.cholesky's ~15 us are its call overhead at this size."""
+    5 x 5 covariance); at this size numpy.linalg.cholesky's cost is its call overhead."""
     p = a.shape[0]
     out[:, :] = 0.0
     for i in range(p):
@@ -326,7 +322,7 @@ def _moved5(xt, noise, j, a):
 
 @njit(**_JIT)
 def _propagate5(xt, theta, noise, out):
-    """``_propagate`` of a five-row cloud in one pass, a particle at a time (~3x faster)."""
+    """``_propagate`` of a five-row cloud in one pass, a particle at a time (instead of a pass per row)."""
     a = _coefficients5(theta)
     for j in range(xt.shape[1]):
         out[0, j], out[1, j], out[2, j], out[3, j], out[4, j] = _moved5(xt, noise, j, a)
@@ -517,13 +513,12 @@ def recentre(xt, shift, lo, hi, use_box):
 
 
 # Systematic resampling writes each particle's copies as one run of ancestor indices.  A loop of
-# the particle's count mispredicts on almost every particle when the weights are new (~10 us at
-# N = 1000); instead every particle stores a block of _RUN copies of its index where its run
+# the particle's count mispredicts on almost every particle when the weights are new; instead every particle stores a block of _RUN copies of its index where its run
 # starts (no branch on the count), and the next particle's block overwrites the excess.  Only
 # counts above _RUN (a weight over _RUN / N: a few particles when the ESS is low) and the last
 # _RUN slots, where a block would overrun, take a loop.  What remains is the cumulative sum's
-# chain of additions (~1.5 us): it must be sequential to be numpy's to the bit.  _RUN = 4
-# measured best (2-8 within 20 %): fewer stores than 8, fewer counts above it than 2.
+# chain of additions: it must be sequential to be numpy's to the bit.  _RUN = 4 balances fewer
+# stores (than 8) against fewer counts above it (than 2); measured: docs/design/identifier.md.
 _RUN = 4
 
 

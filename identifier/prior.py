@@ -39,8 +39,8 @@ NAMES = ("peak_mu", "peak_creep_kmh", "mu_at_zero", "shape_a", "shape_r")
 #: the default prior box: the peak box of the fault-curve families of plant/families.py (peak mu
 #: 0.05-0.25, peak creep 0.4-3 km/h, mu(0) 0-0.02); the shape covers post-peak decays from steep (mu at
 #: 3 v_p below zero) to gentle (above 0.95 peak_mu).  A wider box confirms more rails (a posterior piled
-#: against the prior's edge is never confirmed) but also more of them wrongly (the README gives the
-#: bench's figures): this box is the safer default
+#: against the prior's edge is never confirmed) but also more of them wrongly (docs/design/identification.md
+#: gives the bench's figures): this box is the safer default
 DEFAULT_BOX = {"peak_mu": (0.05, 0.25), "peak_creep_kmh": (0.4, 3.0), "mu_at_zero": (0.0, 0.02),
                "shape_a": (0.4, 2.5), "shape_r": (1.3, 4.0)}
 LOG_SCALE = {"peak_mu": False, "peak_creep_kmh": True, "mu_at_zero": False, "shape_a": True, "shape_r": True}

@@ -24,12 +24,8 @@ class IdentifierSettings:
     torque_demand_nm: float                       # the traction torque the TCU commands
     initial_guess: tuple[float, ...]              # theta used before any fit (NFCC-0 by default)
     # The observer pole and the settle time trade the observer's noise against its transient after
-    # the fault: settle = 4/p leaves (1 + pt) e^-pt = 9 % of the transient.  Measured with hil bench
-    # identify --first-seed 200 --seeds 60 (proposed, FFCC-a / FFCC-b): p = 400 / 10 ms: RT 37.3 /
-    # 60.9 %, peak errors within 3 % / 10 % in 57 / 75 % of seeds, MSE 1.8e-6; p = 500 / 8 ms: RT
-    # 34.7 / 56.5 %, 70 / 80 %, MSE 2.4e-6 (better on every figure but the noise); p = 600 / 6 ms:
-    # 32.0 / 52.2 %, 72 / 77 %, MSE 4.7e-6; p = 800 / 4 ms: 29.3 / 47.8 %, 57 / 68 %, MSE 1.3e-5
-    # (R^2 0.88).  Shorter settle times than 4/p lose the peak errors quickly (p = 600, 5 ms: 38 / 67 %).
+    # the fault: settle = 4/p leaves (1 + pt) e^-pt = 9 % of the transient.  A faster pole settles
+    # sooner but is noisier; the trade-off measured for these defaults: docs/design/identifier.md.
     observer_pole_rad_s: float = 500.0            # double pole p of the load-torque observer (rad/s)
     lag_compensation: bool = True                 # pair mu^(k) with v_s(k - 2/(pT))
     detection_creep_rise_kmh: float = 0.03        # creep above its pre-fault mean that flags a slip
@@ -41,7 +37,7 @@ class IdentifierSettings:
     c_up: float = 3.0                             # upper confidence coefficient
     max_corrections: int = 200                    # give up (unconfirmed) after this many
     # particles of the drill that keeps the strategy's code warm before a slip (identifier/drill.py);
-    # 0: no drill.  64 keeps its samples at ~10-40 us
+    # 0: no drill.  A small copy suffices: warmth needs the code paths, not the cloud's size
     drill_particles: int = 64
     options: dict = field(default_factory=dict)   # strategy-specific tuning, by strategy name
     # the open-loop torque excitation while identifying ([identifier.excitation], identifier/excitation.py);

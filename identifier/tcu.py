@@ -49,7 +49,7 @@ class SlipDetector:
         self.consecutive = consecutive
         self._history: deque[float] = deque(maxlen=baseline_samples)
         # the baseline's running sum and sum of squares (Python floats: a numpy mean and std of 50
-        # numbers cost ~9 us a reading, most of the TCU's work while monitoring), summed afresh
+        # numbers each reading were most of the TCU's work while monitoring), summed afresh
         # each time the window has turned over, so rounding cannot drift over a long run
         self._sum = self._sum_sq = 0.0
         self._until_resum = baseline_samples

@@ -196,7 +196,7 @@ class WheelsetPlant:
     """Fixed-step wheelset-rail plant: ``step(torque_nm)`` advances one exchange period.
 
     The CasADi function is called through ``Function.buffer()`` on preallocated numpy arrays
-    (about 7 us per period instead of about 25 us with numpy arguments).  The arrays and the
+    (a fraction of the cost of a call with numpy arguments; docs/design/identifier.md).  The arrays and the
     buffer are attributes of the plant, so they live exactly as long as it does: if either were
     garbage-collected while the other is used, CasADi would read freed memory.
     """

@@ -145,7 +145,7 @@ class Hub:
         argv = ["can_remote", "--interface", "virtual", "--channel", f"hil-hub-{self.port}", "--host", "127.0.0.1",
                 "--port", str(self.port)]
         # python-can-remote 0.3.0 serves any file the user can read to any HTTP GET that is not a
-        # websocket upgrade (GET /../../etc/passwd; README, "Security advisory"): this hub answers 404
+        # websocket upgrade (GET /../../etc/passwd; SECURITY.md, the advisory): this hub answers 404
         code = (f"import runpy, sys; sys.setswitchinterval({HUB_SWITCH_INTERVAL_S!r}); sys.argv = {argv!r}; "
                 "import can_remote.server as s; s.ClientRequestHandler.send_trace_webpage = "
                 "lambda self: self.send_error(404); "

@@ -40,7 +40,7 @@ particle moved some samples after the resampling, weighted since, is still a dra
 While a move is under way the cloud is not resampled again and does not confirm (it holds copies);
 it confirms only with an effective sample size of at least ``confirm_min_ess`` N.  The first
 ``min_samples`` samples (they arrive together at the slip's detection) and a sample that publishes
-a correction neither resample nor move.  The bench (``hil bench identify``, docs/identification.md)
+a correction neither resample nor move.  The bench (``hil bench identify``, docs/design/identification.md)
 measures what the budget trades: per-sample cost against the intervals' coverage and RT.
 
 Intervals: weighted quantiles of peak_mu and peak_creep_kmh over the cloud, a credible interval.

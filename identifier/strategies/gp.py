@@ -1,7 +1,7 @@
 """``gp``: the fault curve without a form: a Gaussian-process prior over mu(v_s) and the exact
 Gaussian posterior from the motor-speed readings since the slip began (beyond the paper; the
 recommended strategy: ``bayes``'s exponential form places the peak by its shape, which on curves of
-another form confirms wrong peaks; docs/identification.md measures both).
+another form confirms wrong peaks; docs/design/identification.md measures both).
 
 State z = (omega, m) with m the curve's values at G creeps x_j, log-spaced over [``creep_min_kmh``,
 ``creep_max_kmh``]; mu(v) = h(v)^T m, h linear interpolation in log creep (below the first point: the

@@ -9,14 +9,12 @@ compares chi^_Q with chi^_{Q-1}.  ``ProposedStrategy`` (proposed.py) adds the dy
 Tuning: ``settings.options[NAME]`` (scenario ``[identifier.options.NAME]``) overrides any key of
 ``DEFAULTS`` and the shared ``window_samples`` (L), ``k_pe``, ``c_lw``, ``c_up``.  Per-dimension
 standard deviations are three numbers (lambda0, every lambda_i, every tau_i) or 2n+1 numbers.
-Defaults, measured with ``hil bench identify`` / 20 seeds on FFCC-a and FFCC-b (see the lead's
-README): L = 6 (the least the SE of eq. 29 allows; fewer samples per window is the largest RT lever,
-NLLS is unharmed); K_PE = 1e-4, c_lw = c_up = 3 (K_PE = 1e-5 adds two corrections, RT 38 -> 54 % on
-FFCC-a, with no better peak errors; c = 2 changed nothing measurable); N = 1000 (N = 300 gives the
-same medians on 10 seeds, N = 1000 is the issue's reference size); B, G, initial spread: RT and
-peak errors moved less than their seed-to-seed spread over a 4x range, so the values are the
-physical scales (G ~ 2x the mu^ noise of ~7e-4 measured as the NLLS residual; B ~ 1/6 of the
-initial spread so the cloud can move one initial sigma per window).
+Defaults (chosen with ``hil bench identify`` on FFCC-a and FFCC-b; the figures are in
+docs/design/identifier.md): L = 6 (the least the SE of eq. 29 allows; fewer samples per window is
+the largest RT lever); K_PE = 1e-4, c_lw = c_up = 3; N = 1000 (the issue's reference size); B, G,
+initial spread: RT and peak errors moved less than their seed-to-seed spread, so the values are the
+physical scales (G ~ 2x the mu^ noise, the NLLS residual; B ~ 1/6 of the initial spread so the
+cloud can move one initial sigma per window).
 
 The preliminary fit (``prelim_radius``): the paper's trust-region NLLS bounds each step by rho;
 we also keep the solution within the TCU's prior curve (NFCC-0, ``initial_guess``) +- the radius.
@@ -43,20 +41,18 @@ Choices the paper leaves open (alternatives behind options):
   "grid" (default, ``nlls.fit_curve_grid``): variable projection on a 5 x 5 lattice of tau in
   the box (lambda by one batched linear solve per lattice point), then <= 8 LM steps; "trf":
   scipy's trust-region-reflective (the paper's trust region, literally); "lm": LM from the prior.
-  On the first windows of seeds 100-119 "grid" reaches the same least-squares cost as "trf"
-  (median ratio 1.006 / 1.0006 on FFCC-a / FFCC-b) in about 1/8 of the time; the 6-sample
-  problem is a flat valley, so the two stop at different thetas of equal cost.  Downstream
-  (proposed, seeds 100-119): same RT, peak errors within 3 %/10 % in 55/60 % of seeds against
-  30/60 % with "trf", window-end p99 1.5-3.6 ms against 9-11 ms.  "lm" from the prior stops
-  early in the valley (10/10 %): kept only as a measured alternative.
+  "grid" reaches the same least-squares cost as "trf" in a fraction of the time; the 6-sample
+  problem is a flat valley, so the two stop at different thetas of equal cost.  "lm" from the
+  prior stops early in the valley: kept only as a measured alternative (the comparison:
+  docs/design/identifier.md).
 
 Cost per sample (the TCU has one sampling period, 1 ms, per sample; ``hil bench identify`` reports
 the cost of every fed sample, and its p99 is in effect a run's costliest sample).  Work that runs
 once per window runs on cold caches (2-3x its cost in a loop), so the window-end work is spread:
 - ``compiled`` (default True): the filter step is one call of ``kernels.filter_step`` (numba:
-  Theta, propagation, the "clip" box, likelihood with an inlined exp, reweighing; ~9 us at
-  N = 1000), then systematic resampling by ``kernels.systematic_resample`` / ``take_columns`` when
-  ESS is low (~5 us).  Around the windows:
+  Theta, propagation, the "clip" box, likelihood with an inlined exp, reweighing), then
+  systematic resampling by ``kernels.systematic_resample`` / ``take_columns`` when ESS is low.
+  Around the windows:
   - window 1: each sample adds to the prelim's tau lattice (``kernels.grid_add``); its last sample
     solves the lattice (``kernels.grid_best``), the next runs the LM polish (``kernels.bounded_lm``,
     one call), the one after opens the filter (the prelim's correction event moves two samples,
@@ -68,11 +64,9 @@ once per window runs on cold caches (2-3x its cost in a loop), so the window-end
     next step (``_defer_recentre``; one pass, ``kernels.recentre``), the candidate's SE for the
     next window's 2nd sample (``Strategy``);
   - random numbers (noise, first cloud, resampling uniforms) are drawn before the fault.
-  Measured in a replay (proposed, FFCC-a, seeds 1-5): quiet samples 16-24 us, the costliest
-  the opening (46-58 us) and the first step (57-60 us); before this spreading and the kernels'
-  rewrite: 28-47 us and 145-235 us (the prelim's sample).  What is left of "cold" is taken off by
-  the TCU's drill (identifier/drill.py, ``keeps_warm`` below): with the code warm, the opening
-  costs 23-29 us and the first step 35-41 us (same replay).  Variants with their own step (observer-aware, mu(0) = 0,
+  The costliest samples are then the opening and the first step; what is left of "cold" is taken
+  off by the TCU's drill (identifier/drill.py, ``keeps_warm`` below).  The costs before and after
+  this spreading: docs/design/identifier.md.  Variants with their own step (observer-aware, mu(0) = 0,
   other Theta or projections) use the compiled pieces where their step is the plain one, and
   re-centre at the correction.
 - ``compiled = False``, the numpy reference path: the filter step (``_move``, ``_log_likelihood``,
@@ -225,7 +219,7 @@ class MdipfStrategy(Strategy):
         # the first cloud, scaled and laid out (P, N) as the filter keeps it
         self._next_cloud = np.ascontiguousarray((self.rng.standard_normal((self.n_particles, p)) * self.init_std).T)
         # ... and the resampling's uniforms for as many steps (the generator's first call after a
-        # long idle spell costs ~10 us in a run; these follow the cloud, as the first draws did)
+        # long idle spell is slow; these follow the cloud, as the first draws did)
         self._uniforms = self.rng.random(self._noise_block).tolist()
         self._uniforms.reverse()             # pop() from the end takes them in the drawn order
         self._next_weights = np.full(self.n_particles, 1.0 / self.n_particles)
@@ -288,7 +282,7 @@ class MdipfStrategy(Strategy):
             return
         if self._queue:                    # still catching up on the samples fed during the prelim's polish
             self._queue.append((creep_speed_kmh, mu_hat))
-            # the filter's first step (on cold caches, ~3x a later one) alone on its sample
+            # the filter's first step (on cold caches, several times a later one) alone on its sample
             first = self._steps_taken == 0
             self._drain(1 if first else int(self.opts["catch_up_per_sample"]))
             return
@@ -529,7 +523,7 @@ class MdipfStrategy(Strategy):
                     break
             return
         # compiled: the polish was one call on the previous sample; the filter opens on this one and
-        # its first step waits for the next (each of the three costs ~20-40 us on cold caches)
+        # its first step waits for the next (each of the three is costly on cold caches)
         self._finish_prelim(now=False, catch_up=0 if self._compiled else None)
 
     def _finish_prelim(self, now: bool = True, catch_up: int | None = None) -> None:

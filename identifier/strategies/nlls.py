@@ -154,8 +154,8 @@ def _grid_lattice(theta0, radius, grid: int):
 def _solve_spd(a, b):
     """x with a x = b for a batch of symmetric positive definite (G, k, k) systems (b: (G, k)).
     k = 3 (the two-term curve's lambdas) by an unrolled LDL^T on (G,) arrays: elementwise ufuncs,
-    which the filter step keeps warm, instead of np.linalg.solve's heavier batched path (measured
-    at 30-90 us per call when it runs once per slip, against ~15 us for this); other k: np.linalg."""
+    which the filter step keeps warm, instead of np.linalg.solve's heavier batched path (costly when
+    it runs once per slip, on cold code); other k: np.linalg."""
     if a.shape[-1] != 3:
         return np.linalg.solve(a, b[..., None])[..., 0]
     a00, a10, a20, a11, a21, a22 = a[:, 0, 0], a[:, 1, 0], a[:, 2, 0], a[:, 1, 1], a[:, 2, 1], a[:, 2, 2]
@@ -284,7 +284,7 @@ class GridAccumulator:
     def add(self, creep_speed_kmh: float, target: float, k_row=None) -> None:
         """One sample; ``k_row`` (count + 1,): its row of the transform (observer-aware model)."""
         ph = self.phi[self.count]
-        if self.compiled and k_row is None:        # one compiled pass (~2 us against ~6 us of numpy calls)
+        if self.compiled and k_row is None:        # one compiled pass instead of several numpy calls
             from .. import kernels
             kernels.grid_add(self.taus, float(creep_speed_kmh), float(target), ph, self.a, self.b)
             self.tt += target * target
@@ -305,7 +305,7 @@ class GridAccumulator:
             q = (self.a * lam[:, None, :]).sum(axis=2) - 2.0 * self.b       # A lam - 2 b
             return (lam * q).sum(axis=1) + self.tt
 
-        if self.compiled:           # the lattice now, the whole polish as one step (~5 us each, warm)
+        if self.compiled:           # the lattice now, the whole polish as one step
             from .. import kernels
             start = kernels.grid_best(self.a, self.b, self.tt, self.taus, self.lo, self.hi)
             k = _NO_TRANSFORM if transform is None else np.ascontiguousarray(transform, dtype=float)

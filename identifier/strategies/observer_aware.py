@@ -200,10 +200,7 @@ class ObserverAwareMixin:
 
 class NllsOaStrategy(ObserverAwareMixin, NllsStrategy):
     """NLLS baseline with the observer-aware residual, refit on all samples at every window end.
-
-    Measured on seeds 100-119 with ``prior_radius = [0.01, 0.6, 0.05]`` (the PF prelim's box):
-    L = 6: RT 41 / 79 % (FFCC-a / FFCC-b), peak errors within 3 % / 10 % in 85 / 95 % of seeds;
-    L = 8: RT 64 / 139 %, 100 / 100 %.  Unbounded (default, the paper's NLLS): RT ~300-400 %.
+    (Its RT and accuracy, bounded and unbounded: docs/design/identifier.md.)
 
     Options (``[identifier.options.nlls_oa]``): ``prior_radius`` (default None: unbounded, like the
     paper's NLLS) keeps every refit within the TCU's prior curve +- this radius (3 or 2n+1 numbers,
@@ -253,17 +250,12 @@ def _fit_oa_from(model, v, mu, rho0, eta0, start, bounds):
 #: catch_up_at_open 0: the observer-aware filter's opening sample carries the observer states of the
 #: whole prelim window (L = 8 leaves room to catch up over the next samples)
 OA_DEFAULTS = {**PROPOSED_DEFAULTS, "projector": "clip", "catch_up_at_open": 0, "publish_latest": True}
-#: ``publish_latest`` (as proposed_latest): on seeds 200-259 at p = 500 rad/s, L = 8, peak errors within
-#: 3 % / 10 % in 75 / 82 % of seeds (FFCC-a / FFCC-b) against 53 / 68 % reporting the checked candidate;
-#: the same RT 33.3 / 52.2 %.  (L = 6 / 7 with it: RT 24.0 / 29.3 % on FFCC-a, within 47 / 63 %.)
-#: L of proposed_oa, measured on seeds 100-119 (hil bench identify's seeds 1-20 are for reporting).
-#: With the "trf" prelim, L = 6 / 7 / 8 / 10 gave median RT 28.7 / 33.3 / 32.0 / 40.0 % (FFCC-a) and
-#: peak errors within 3 % / 10 % in 30 / 45 / 65 / 70 % of seeds; with the default "grid" prelim,
-#: L = 6: RT 32.0 / 39.1 % (FFCC-a / FFCC-b), 35 / 45 % of seeds within; L = 8: RT 32.7 / 52.2 %,
-#: 65 / 75 % within.  8 is the shortest L whose accuracy is near the plateau.  Other PF constants
-#: (G 0.001-0.002, B x0.5, initial spread and box x2, Theta "identity"/"spectral") moved the share
-#: within by at most 2 seeds of 20: the paper's values are kept, so proposed_oa differs from
-#: proposed only by the measurement model, the sample feed, L and the Euclidean projection.
+#: ``publish_latest`` (as proposed_latest): reporting the filter's estimate after the confirmation
+#: window is more often within tolerance than the checked candidate, at the same RT.  L = 8 is the
+#: shortest L whose accuracy is near the plateau; other PF constants moved the accuracy by less than
+#: the seed-to-seed spread, so the paper's values are kept and proposed_oa differs from proposed only
+#: by the measurement model, the sample feed, L and the Euclidean projection (the figures, measured on
+#: seeds 100-119 and 200-259, away from the reporting seeds 1-20: docs/design/identifier.md).
 OA_WINDOW_SAMPLES = 8
 
 

@@ -34,18 +34,16 @@ from .mdipf import DEFAULTS as MDIPF_DEFAULTS
 from .mdipf import MdipfStrategy, per_dimension
 from .nlls import parameter_bounds
 
-# Defaults measured with hil bench identify (20 seeds): with the stabilised Theta the box half-widths
-# [0.003, 0.02, 0.03] .. [0.02, 0.1, 0.15] and "clip" vs "map" projection change RT and peak errors by
-# less than the seed-to-seed spread (the box binds few particles before the 2nd correction, after
+# Defaults (chosen with hil bench identify; figures in docs/design/identifier.md): with the stabilised
+# Theta the box half-widths and "clip" vs "map" projection change RT and peak errors by less than the
+# seed-to-seed spread (the box binds few particles before the 2nd correction, after
 # which the confidence check usually confirms); Delta_dn = Delta_up = 0.5 and box_recentre only act
 # from the 2nd correction on, i.e. when a confidence check failed.  The defaults are the physical
 # scales: +-3 initial sigmas.
 # Projection: "clip" (the Euclidean projection) by default; "map" (eq. 24 literally: projected
-# Gauss-Newton on prior + measurement) is kept as ``projector = "map"``.  On seeds 100-119 (hil bench
-# identify --first-seed 100, N = 1000) the two gave the same median RT (38.0 / 60.9 % on FFCC-a / -b)
-# and peak errors within 3 % / 10 % in 55 / 55 % (clip) against 55 / 60 % (map) of seeds, median
-# peak errors 2.7 / 5.5 % and 1.9 / 6.8 % (clip) against 2.9 / 6.3 % and 2.4 / 8.3 % (map); about
-# half the cloud leaves the box each step, and "map" costs ~250 us per step for them against ~5 us.
+# Gauss-Newton on prior + measurement) is kept as ``projector = "map"``.  The two give the same RT
+# and peak errors within the seeds' spread; about half the cloud leaves the box each step, and "map"
+# costs far more per step for them than "clip".
 PROPOSED_DEFAULTS = {
     **MDIPF_DEFAULTS,
     "box_halfwidth": [0.01, 0.06, 0.09],     # initial Omega: +- this around chi = 0 (lambda0, lambda_i, tau_i)
