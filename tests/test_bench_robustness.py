@@ -8,7 +8,9 @@ import os
 import random
 import secrets
 
-from hil.benchmarks.robustness import DAMAGES, PARTS, damage_log, full_scenario_text, mutate
+from hil.benchmarks.robustness import PARTS
+from hil.benchmarks.robustness.logs import DAMAGES, damage_log
+from hil.testing import full_scenario_text, mutate
 
 from .conftest import ROOT, hil
 
@@ -91,12 +93,12 @@ def test_a_failure_quotes_the_traceback_with_the_line_that_says_where():
     import subprocess
     import sys
 
-    from hil.benchmarks.robustness import _traceback
+    from hil.testing import first_traceback
 
     code = "import threading\ndef f(): raise OSError(28, 'No space left on device')\n" \
            "t = threading.Thread(target=f, name='writer'); t.start(); t.join()\nprint('last line')"
     err = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60).stderr
-    quoted = _traceback("before\n" + err)
+    quoted = first_traceback("before\n" + err)
     assert quoted.startswith("Exception in thread writer"), quoted
     assert "Traceback (most recent call last)" in quoted and "No space left on device" in quoted
-    assert _traceback("hil run: error: a plain one-line error\n") == ""
+    assert first_traceback("hil run: error: a plain one-line error\n") == ""
