@@ -47,7 +47,8 @@ Each part is a module of this package (``frames``, ``scenarios``, ``logs``, ``fm
 ``report`` writes the table and the markdown.  What a probe shares with the tests (``hil`` as a
 subprocess, a log's chunk map, the scenario mutants) is ``hil.testing``.
 
-The result: a terminal table by default, one JSON object with ``--json``, and with ``--report DIR``
+The result: a terminal table by default (lines within ``hil.benchmarks.terminal.WIDTH``), the markdown report
+with ``--markdown``, one JSON object with ``--json``, and with ``--report DIR``
 ``DIR/robustness.md`` and ``DIR/robustness.json``.  Exit code 1 when a probe failed.
 """
 from __future__ import annotations
@@ -88,6 +89,8 @@ def register(sub) -> None:
     p.add_argument("--memory-seconds", default="10,60", help="the two run lengths compared (default 10,60)")
     p.add_argument("--only", default=None, help=f"comma-separated parts ({', '.join(PARTS)}; default all)")
     p.add_argument("--report", metavar="DIR", default=None, help="write DIR/robustness.md and DIR/robustness.json")
+    p.add_argument("--markdown", action="store_true", help="print the report as markdown (every figure in one table; "
+                   "what --report writes to robustness.md)")
     p.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
     p.set_defaults(func=cmd_robustness)
 
@@ -169,7 +172,7 @@ def cmd_robustness(args) -> int:
         (out / "robustness.json").write_text(json.dumps(doc, indent=1) + "\n")
         (out / "robustness.md").write_text(markdown(doc))
         log(f"bench robustness: wrote {out / 'robustness.md'} and {out / 'robustness.json'}")
-    print(json.dumps(doc) if args.json else table(doc))
+    print(json.dumps(doc) if args.json else markdown(doc) if args.markdown else table(doc))
     if not doc["passed"]:
         log(f"bench robustness: failures found; repeat with: {cmd}")
     return 0 if doc["passed"] else 1

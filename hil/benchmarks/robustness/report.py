@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 
+from .. import terminal
+
 
 def headline(r: dict) -> str:
     """A part's figures in one line."""
@@ -46,15 +48,19 @@ def headline(r: dict) -> str:
 
 
 def table(doc: dict) -> str:
+    """The terminal's view: per part its verdict, cases and figures, then the failures, every line within
+    ``terminal.WIDTH`` (the same text as the markdown report's, wrapped)."""
     lines = [f"hil bench robustness, seed {doc['seed']}: {doc['wall_s']} s, load {doc['load_before']} -> "
              f"{doc['load_after']}", ""]
     for name, r in doc["parts"].items():
-        lines.append(f"{name:<10} {'pass' if r['passed'] else 'FAIL':<5} {r['cases']:>5} cases  {headline(r)}")
-        lines.append(f"{'':<10} target: {r['target']}")
+        lines.append(terminal.wrap(f"{name:<10} {'pass' if r['passed'] else 'FAIL':<5} {r['cases']:>5} cases  "
+                                   f"{headline(r)}", indent=" " * 11))
+        lines.append(terminal.wrap(f"target: {r['target']}", indent=" " * 19, first=" " * 11))
     failures = [(name, f) for name, r in doc["parts"].items() for f in r["failures"]]
     if failures:
-        lines += ["", f"{len(failures)} failure(s); repeat with: {doc['command']}"]
-        lines += [f"  {name} case {f['case']}: {f['what']}: {f['detail']}" for name, f in failures]
+        lines += ["", terminal.wrap(f"{len(failures)} failure(s); repeat with: {doc['command']}", indent="    ")]
+        lines += [terminal.wrap(f"  {name} case {f['case']}: {f['what']}: {f['detail']}", indent="    ")
+                  for name, f in failures]
     else:
         lines += ["", "0 failures"]
     return "\n".join(lines)
@@ -65,7 +71,7 @@ def markdown(doc: dict) -> str:
              f"Written by `{doc['command']} --report docs` on {doc['utc']}, {doc['machine']}, {doc['cores']} cores "
              f"(load average {doc['load_before']} before, {doc['load_after']} after); {doc['wall_s']} s in all.  "
              "The seed was drawn at run time; the command above repeats every case.  What each part does: "
-             "`hil/benchmarks/robustness.py`.", "",
+             "`hil/benchmarks/robustness/`.", "",
              "| part | verdict | cases | figures | target | wall s |", "|---|---|---|---|---|---|"]
     for name, r in doc["parts"].items():
         lines.append(f"| {name} | {'pass' if r['passed'] else '**FAIL**'} | {r['cases']} | {headline(r)} | "
