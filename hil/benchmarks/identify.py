@@ -11,9 +11,9 @@ Per case and seed the plant, the sensors and the TCU's torque demand run once; t
 are recorded and then replayed, reading by reading, into a fresh ``TractionIdentifier`` per
 strategy, so every strategy sees the identical data.  Each ``on_sensor`` call of the identifying
 phase (slip detected -> confirmed or end of run) is timed: that is the cost per sample.  A run
-feeds 18-40 samples, so a seed's p99 is in effect its costliest sample (a window's end, the
-spread prelim's polish or the filter's opening); the table's p99 is the median over seeds of
-that, the worst seed's beside it.  Readings are fed with the garbage collector frozen and
+feeds at most a few hundred samples (docs/design/benchmarks.md has the counts), so a seed's p99 is
+set by its few costliest samples (a window's end, the spread prelim's polish or the filter's
+opening); the table's p99 is the median over seeds of that, the worst seed's beside it.  Readings are fed with the garbage collector frozen and
 disabled, as the TCU process runs in real time; the readings before the strategy's first sample
 (monitoring, where the drill of identifier/drill.py keeps the strategy's code warm) are timed too.
 Seeds 1..N are for reporting; tune on others (``--first-seed``).  Beside each strategy's curve the

@@ -5,7 +5,7 @@ simulated; the run seeds drawn at run time unless ``--seed``, and printed) runs 
 workers have already run one point (imports and caches warm, not timed):
 
 1. a local cluster of 1 worker (``hil sweep --workers 1``), then
-2. a local cluster of 2 workers (the default on this 2-core machine), back to back, ``--rounds`` times
+2. a local cluster of 2 workers (one per core of a 2-core machine), back to back, ``--rounds`` times
    (alternating, so a change in the machine's load falls on both);
 3. once, a ``dask scheduler --host 127.0.0.1`` and two ``dask worker ... --nthreads 1`` processes started
    separately, as a cluster of machines would be (``hil sweep --scheduler tcp://127.0.0.1:PORT``).
@@ -222,8 +222,8 @@ def cmd_sweep_bench(args) -> int:
 def terminal_text(doc: dict) -> str:
     """The columns a reader decides on, within ``terminal.WIDTH``; every column with ``--markdown``."""
     f = lambda x, spec: "n/a" if x is None else format(x, spec)  # noqa: E731
-    head = ["phase", "workers", "makespan s", "CPU / wall", "gap ms", "overhead ms", "points/h/core", "same table"]
-    rows = [[p["label"], str(p["workers"]), f"{p['makespan_s']:.1f}", f"{p['cpu_share_median'] * 100:.0f} %",
+    head = ["phase", "makespan s", "CPU / wall", "gap ms", "overhead ms", "pts/h/core", "same table"]
+    rows = [[p["label"].replace("2 dask worker processes", "2 workers"), f"{p['makespan_s']:.1f}", f"{p['cpu_share_median'] * 100:.0f} %",
              f(p["gap_ms_median"], ".1f"), f"{p['overhead_ms_per_point']:.0f}", f"{p['points_per_hour_per_core']:.0f}",
              "yes" if doc["same_table_as_local_2_workers"].get(p["label"]) else "NO"] for p in doc["phases"]]
     per_round = ", ".join(f"{e * 100:.0f} %" for e in doc["parallel_efficiency_per_round"])

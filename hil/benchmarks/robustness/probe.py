@@ -10,12 +10,9 @@ RUN_TIMEOUT_S = 300.0
 
 
 def short(text: str, n: int = 300) -> str:
+    """``text`` on one line, cut to ``n`` characters (a failure's record stays readable)."""
     text = " ".join(str(text).split())
     return text if len(text) <= n else text[:n - 3] + "..."
-
-
-class _Timeout(Exception):
-    pass
 
 
 class Part:

@@ -54,7 +54,7 @@ def table(doc: dict) -> str:
              f"{doc['load_after']}", ""]
     for name, r in doc["parts"].items():
         lines.append(terminal.wrap(f"{name:<10} {'pass' if r['passed'] else 'FAIL':<5} {r['cases']:>5} cases  "
-                                   f"{headline(r)}", indent=" " * 11))
+                                   f"{headline(r)}", indent=" " * 11, first=""))
         lines.append(terminal.wrap(f"target: {r['target']}", indent=" " * 19, first=" " * 11))
     failures = [(name, f) for name, r in doc["parts"].items() for f in r["failures"]]
     if failures:
