@@ -113,7 +113,7 @@ def cmd_fmu(args) -> int:
     if args.json:
         print(json.dumps(out))
         return 0
-    say = lambda text: print(terminal.wrap(text, indent="  "))  # noqa: E731
+    say = lambda text: print(terminal.wrap(text, indent="    ", first=""))  # noqa: E731
     say(f"export (CasADi codegen + gcc + zip): {out['export_s']:.2f} s; fmpy.validation: "
         f"{out['validation_problems'] or 'no problems'}")
     say(f"cost per plant step ({steps} steps, 1 exchange period each): FMU {out['fmu_us_per_step']:.1f} us, "
