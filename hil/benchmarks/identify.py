@@ -13,9 +13,10 @@ strategy, so every strategy sees the identical data.  Each ``on_sensor`` call of
 phase (slip detected -> confirmed or end of run) is timed: that is the cost per sample.  A run
 feeds at most a few hundred samples (docs/design/benchmarks.md has the counts), so a seed's p99 is
 set by its few costliest samples (a window's end, the spread prelim's polish or the filter's
-opening); the table's p99 is the median over seeds of that, the worst seed's beside it.  Readings are fed with the garbage collector frozen and
-disabled, as the TCU process runs in real time; the readings before the strategy's first sample
-(monitoring, where the drill of identifier/drill.py keeps the strategy's code warm) are timed too.
+opening); the table's p99 is the median over seeds of that, the worst seed's beside it.  Readings
+are fed with the garbage collector frozen and disabled, as the TCU process runs in real time; the
+readings before the strategy's first sample (monitoring, where the drill of identifier/drill.py
+keeps the strategy's code warm) are timed too.
 Seeds 1..N are for reporting; tune on others (``--first-seed``).  Beside each strategy's curve the
 bench reports what its samples alone determine (``data_limit``: the NLLS baseline's fit to them
 from the true curve), so an accuracy figure shows how much of it comes from the data and how much from the prior.
@@ -43,6 +44,7 @@ from .judge import TOL_PEAK_CREEP_PERCENT, TOL_PEAK_MU_PERCENT, judge
 from .judge import quantile_or_inf as judge_quantile
 from .judge import aggregate as judge_aggregate
 from .judge import table as judge_table
+from .judge import unconfirmed_fraction
 from ..exchange import collector_paused
 from ..progress import Progress
 from ..sweep.engine import map_in_order
@@ -365,9 +367,8 @@ def terminal_table(results: dict, cases: list[str], n_seeds: int) -> str:
     for strat, per_case in results.items():
         for case in cases:
             r = per_case[case]
-            unconfirmed = None if r.get("confirmed_fraction") is None else 1.0 - r["confirmed_fraction"]
             rows.append([strat, case, _pct(r["correct_fraction"]), _pct(r["wrong_confirmation_fraction"]),
-                         _pct(unconfirmed), _f(r["rt_percent"], ".1f"), _f(r["peak_mu_err_percent"], ".2f"),
+                         _pct(unconfirmed_fraction(r)), _f(r["rt_percent"], ".1f"), _f(r["peak_mu_err_percent"], ".2f"),
                          f"{_pct(r['coverage_peak_mu'])} / {_pct(r['coverage_peak_creep'])}"])
     notes = terminal.wrap(
         f"Medians over {n_seeds} seeds. correct: confirmed with peak μ err <= {TOL_PEAK_MU_PERCENT:g} % and peak "

@@ -169,8 +169,11 @@ def table(results: dict, wide: bool, markdown: bool) -> str:
     return terminal.columns(head, rows)
 
 
+def unconfirmed_fraction(r: dict) -> float | None:
+    """The draws not confirmed within the run, from an aggregate (None when unknown)."""
+    confirmed = r.get("confirmed_fraction")
+    return None if confirmed is None else 1.0 - confirmed
+
+
 def _value(r: dict, key: str):
-    if key == "unconfirmed_fraction":
-        confirmed = r.get("confirmed_fraction")
-        return None if confirmed is None else 1.0 - confirmed
-    return r.get(key)
+    return unconfirmed_fraction(r) if key == "unconfirmed_fraction" else r.get(key)
