@@ -1,11 +1,11 @@
-import os
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import pytest
+from hil.testing import hil_command, subprocess_env
+from hil.testing import run_hil as hil  # noqa: F401 (tests import it from here)
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENARIOS = ROOT / "scenarios"
@@ -19,24 +19,6 @@ def ffcc_a_path():
 @pytest.fixture
 def ffcc_b_path():
     return SCENARIOS / "ffcc_b.toml"
-
-
-def hil_command():
-    """The installed console script when present, else the module (same code)."""
-    exe = Path(sys.executable).with_name("hil")
-    return [str(exe)] if exe.exists() else [sys.executable, "-m", "hil.cli"]
-
-
-def subprocess_env():
-    env = dict(os.environ)
-    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
-    return env
-
-
-def hil(*args, timeout: float = 300, cwd=None) -> subprocess.CompletedProcess:
-    """``hil ARGS`` as a user runs it, output captured."""
-    return subprocess.run(hil_command() + [str(a) for a in args], capture_output=True, text=True,
-                          env=subprocess_env(), timeout=timeout, cwd=cwd)
 
 
 def kill_run_when_log_reaches(args, log_path: Path, min_bytes: int, timeout_s: float = 120.0) -> None:

@@ -11,7 +11,7 @@ import time
 
 import pytest
 
-from hil.benchmarks.robustness import SET_CHOICES, full_scenario_text, mutate
+from hil.testing import SET_CHOICES, full_scenario_text, mutate
 from hil.config import load_scenario, parse_scenario, parse_set
 from hil.errors import EXIT_USAGE, HilError
 

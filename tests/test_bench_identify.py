@@ -50,7 +50,8 @@ def test_json_results_shape_same_data_for_every_strategy_and_plots(tmp_path):
 
 
 def test_markdown_table_and_bad_input(tmp_path):
-    p = run(["--cases", "ffcc_b", "--seeds", "1", "--strategies", "proposed_fast", "--particles", "100"], tmp_path)
+    p = run(["--cases", "ffcc_b", "--seeds", "1", "--strategies", "proposed_fast", "--particles", "100",
+             "--markdown"], tmp_path)
     assert p.returncode == 0, p.stderr
     header = p.stdout.splitlines()[0]
     for col in ("MSE", "RMSE", "MAE", "R²", "RT %", "corrections", "peak μ err %", "peak creep err %", "correct",
@@ -62,6 +63,29 @@ def test_markdown_table_and_bad_input(tmp_path):
         bad = run(args, tmp_path)
         assert bad.returncode != 0 and "Traceback" not in bad.stderr
         assert len(bad.stderr.strip().splitlines()) == 1 and word in bad.stderr
+
+
+def test_the_default_output_fits_a_terminal_and_markdown_keeps_every_column(tmp_path):
+    """By default the columns a reader decides on, no line over 100 characters; ``--markdown`` the full
+    table (the paper's Table 3, verdicts, costs) with the same verdicts."""
+    args = ["--cases", "ffcc_a", "--seeds", "1", "--strategies", "nlls"]
+    p = run(args, tmp_path)
+    assert p.returncode == 0, p.stderr
+    lines = p.stdout.splitlines()
+    assert max(len(line) for line in lines) <= 100, max(lines, key=len)
+    head = lines[0].split("  ")
+    assert [h.strip() for h in head if h.strip()] == ["strategy", "case", "correct", "wrong", "unconfirmed", "RT %",
+                                                     "peak μ err %", "covers μ / creep"]
+    row = lines[1].split()
+    assert row[:2] == ["nlls", "ffcc_a"]
+    m = run(args + ["--markdown"], tmp_path)
+    assert m.returncode == 0, m.stderr
+    header = m.stdout.splitlines()[0]
+    assert header.count("|") - 1 == 23 and "cost p99 µs" in header and "R² vs truth" in header
+    full = m.stdout.splitlines()[2].split("|")[1:-1]
+    cols = [c.strip() for c in header.split("|")[1:-1]]
+    assert full[cols.index("correct")].strip() == row[2] and full[cols.index("RT %")].strip() == row[5]
+    assert full[cols.index("peak μ err %")].strip() == row[6]
 
 
 def test_observer_aware_strategy_reports_its_own_fit_beside_the_papers(tmp_path):

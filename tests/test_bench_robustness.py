@@ -8,7 +8,9 @@ import os
 import random
 import secrets
 
-from hil.benchmarks.robustness import DAMAGES, PARTS, damage_log, full_scenario_text, mutate
+from hil.benchmarks.robustness import PARTS
+from hil.benchmarks.robustness.logs import DAMAGES, damage_log
+from hil.testing import full_scenario_text, mutate
 
 from .conftest import ROOT, hil
 
@@ -61,6 +63,22 @@ def test_every_part_at_small_counts_finds_no_failure(tmp_path):
     assert (tmp_path / "doc" / "robustness.md").read_text().startswith(f"# hil bench robustness --seed {seed} ")
 
 
+def test_the_default_output_fits_a_terminal_and_markdown_is_the_report(tmp_path):
+    """The terminal table wraps every line within 100 characters; ``--markdown`` prints the report's table."""
+    seed = secrets.randbits(31)
+    print(f"bench seed {seed}")
+    args = ("bench", "robustness", "--seed", seed, "--only", "logs", "--logs", "7")
+    r = hil(*args, timeout=300, cwd=ROOT)
+    assert r.returncode == 0, r.stderr[-2000:]
+    lines = r.stdout.splitlines()
+    assert max(len(line) for line in lines) <= 100, max(lines, key=len)
+    assert lines[2].startswith("logs       pass      7 cases  7 damaged logs (") and lines[-1] == "0 failures"
+    m = hil(*args, "--markdown", timeout=300, cwd=ROOT)
+    assert m.returncode == 0, m.stderr[-2000:]
+    assert m.stdout.startswith(f"# hil bench robustness --seed {seed} --logs 7 --only logs")
+    assert "| part | verdict | cases | figures | target | wall s |" in m.stdout and "| logs | pass | 7 | 7 damaged" in m.stdout
+
+
 def test_bad_arguments_are_one_line_and_exit_2():
     for args, says in ((["--only", "frames,nope"], "--only: unknown part(s) nope"),
                        (["--logs", "-1"], "--logs: must be >= 0"),
@@ -91,12 +109,12 @@ def test_a_failure_quotes_the_traceback_with_the_line_that_says_where():
     import subprocess
     import sys
 
-    from hil.benchmarks.robustness import _traceback
+    from hil.testing import first_traceback
 
     code = "import threading\ndef f(): raise OSError(28, 'No space left on device')\n" \
            "t = threading.Thread(target=f, name='writer'); t.start(); t.join()\nprint('last line')"
     err = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60).stderr
-    quoted = _traceback("before\n" + err)
+    quoted = first_traceback("before\n" + err)
     assert quoted.startswith("Exception in thread writer"), quoted
     assert "Traceback (most recent call last)" in quoted and "No space left on device" in quoted
-    assert _traceback("hil run: error: a plain one-line error\n") == ""
+    assert first_traceback("hil run: error: a plain one-line error\n") == ""

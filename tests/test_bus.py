@@ -15,7 +15,7 @@ import can
 import pytest
 from mcap.reader import make_reader
 
-from hil.benchmarks.robustness import alive, children_of, cmdline  # noqa: F401 (alive: other tests import it here)
+from hil.testing import alive, children_of, cmdline  # noqa: F401 (alive: other tests import it here)
 from hil.errors import BusError
 from hil.bus.link import Hub, open_bus
 from hil.bus.frames import PLANT_HEARTBEAT_ID, TCU_HEARTBEAT_ID, FrameCodec, load_dbc

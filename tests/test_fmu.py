@@ -23,7 +23,7 @@ from fmpy.validation import validate_fmu
 from hil.exchange import run
 from hil.log.read import read_log
 from hil.plants import make_plant
-from hil.benchmarks.robustness import rezip
+from hil.testing import rezip
 from hil.config import load_scenario
 from plant import WheelsetPlant
 from plant.fmu import export_fmu, model_param_names, parameter_values

@@ -10,7 +10,7 @@ import time
 
 import pytest
 
-from hil.benchmarks.robustness import alive
+from hil.testing import alive
 from hil.rt.cpu_latency import cpuidle_driver
 from hil.rt.idle_spin import HALT, POLL, SHALLOW, SPIN, IdleSpinners, idle_mode, misses_with_cpu_away, spin
 

@@ -14,7 +14,7 @@ import signal
 import subprocess
 
 import pytest
-from hil.benchmarks.robustness import chunk_map, expected_messages, in_payload, still_intact
+from hil.testing import chunk_map, expected_messages, in_payload, still_intact
 from hil.log.read import read_log
 
 from .conftest import ROOT, SCENARIOS, hil, hil_command, subprocess_env
@@ -23,7 +23,7 @@ from .conftest import ROOT, SCENARIOS, hil, hil_command, subprocess_env
 @pytest.fixture(scope="module")
 def log(tmp_path_factory):
     """A real 1 s run, its bytes, and per chunk (first byte, end byte, [(topic, log_time)]) as the mcap
-    library reads them (``hil.benchmarks.robustness.chunk_map``, shared with ``hil bench robustness``)."""
+    library reads them (``hil.testing.chunk_map``, shared with ``hil bench robustness``)."""
     out = tmp_path_factory.mktemp("log")
     r = hil("run", SCENARIOS / "ffcc_a.toml", "--bus", "inprocess", "--out", out, "--no-rrd", "--json")
     assert r.returncode == 0, r.stderr

@@ -9,6 +9,7 @@ import tempfile
 
 from ..config import load_scenario
 from ..rt.idle_spin import AWAY_SHARE
+from . import terminal
 from .judge import _median
 
 IDENT_KEYS = ("identified", "t_identified_s", "corrections", "params", "samples", "mse", "r2", "observer_lag_ms")
@@ -330,7 +331,7 @@ def realtime_text(args, result) -> str:
     for t in result["targets"]:
         lines.append(f"  {'MET' if t['met'] else 'not measured' if t['met'] is None else 'NOT MET'}: {t['target']}: "
                      f"{t['measured']}")
-    return "\n".join(lines)
+    return terminal.wrap_lines("\n".join(lines))
 
 
 def realtime_markdown(args, result) -> str:
@@ -455,18 +456,17 @@ def cmd_bus(args) -> int:
         print(json.dumps(result))
         return 0
     print(f"{scenario.name} seed {args.seed}, lockstep:")
-    for r in rows:
-        st = r["streams"]
-        print(f"  {r['bus']:<18} {r['sim_s_per_wall_s']:6.2f} sim s/wall s  round trip p50 "
-              f"{r['round_trip_p50_us']:7.0f} us  tx {st['tx']['frames']} frames {st['tx']['sha256']}  "
-              f"rx {st['rx']['frames']} frames {st['rx']['sha256']}  same frames: "
-              f"{'yes' if r['same_frames_as_first'] else 'NO'}  same identification: "
-              f"{'yes' if r['same_identification_as_first'] else 'NO'}")
+    head = ["bus", "sim s/wall s", "round trip µs", "tx frames", "rx frames", "same frames", "same ident."]
+    print(terminal.columns(head, [[r["bus"], f"{r['sim_s_per_wall_s']:.2f}", f"{r['round_trip_p50_us']:.0f}",
+                                   str(r["streams"]["tx"]["frames"]), str(r["streams"]["rx"]["frames"]),
+                                   "yes" if r["same_frames_as_first"] else "NO",
+                                   "yes" if r["same_identification_as_first"] else "NO"] for r in rows], indent="  "))
     ident = first["identification"]
-    print(f"  identification ({first['bus']}): identified {ident['identified']} at {ident['t_identified_s']} s "
-          f"after {ident['corrections']} corrections")
+    print(terminal.wrap(f"round trip: p50; same: the sha256 of the frames sent and received (in --json) and the "
+                        f"identification as over {first['bus']}, which identified {ident['identified']} at "
+                        f"{ident['t_identified_s']} s after {ident['corrections']} corrections", indent="  "))
     if rt:
-        print(f"realtime {rt['sim_s']:.1f} s over {rt['bus']}: missed deadlines {rt['missed_deadlines']}, jitter p99 "
+        print(terminal.wrap(f"realtime {rt['sim_s']:.1f} s over {rt['bus']}: missed deadlines {rt['missed_deadlines']}, jitter p99 "
               f"{rt['jitter_p99_us']:.0f} us (max {rt['jitter_max_us']:.0f}), round trip p50 "
-              f"{rt['round_trip_p50_us']:.0f} us p99 {rt['round_trip_p99_us']:.0f} us")
+              f"{rt['round_trip_p50_us']:.0f} us p99 {rt['round_trip_p99_us']:.0f} us", indent="  "))
     return 0

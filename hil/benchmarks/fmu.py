@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import json
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -10,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from ..config import load_scenario
+from . import terminal
 
 STATE_FIELDS = ("motor_speed_rad_s", "train_speed_ms", "creep_speed_kmh", "mu", "load_torque_nm")
 #: summary keys that depend on the wall clock, not on the run
@@ -113,17 +113,17 @@ def cmd_fmu(args) -> int:
     if args.json:
         print(json.dumps(out))
         return 0
-    f = sys.stdout
-    print(f"export (CasADi codegen + gcc + zip): {out['export_s']:.2f} s; fmpy.validation: "
-          f"{out['validation_problems'] or 'no problems'}", file=f)
-    print(f"cost per plant step ({steps} steps, 1 exchange period each): FMU {out['fmu_us_per_step']:.1f} us, "
-          f"CasADi {out['casadi_us_per_step']:.1f} us, FMI 3.0 FMU {out['fmu3_us_per_step']:.1f} us", file=f)
-    print(f"FMI 3.0 export: fmpy.validation {out['fmi3_validation_problems'] or 'no problems'}; max |FMU - CasADi| "
-          + ", ".join(f"{k} {v:.3g}" for k, v in out["fmi3_max_abs_deviation"].items()), file=f)
+    say = lambda text: print(terminal.wrap(text, indent="    ", first=""))  # noqa: E731
+    say(f"export (CasADi codegen + gcc + zip): {out['export_s']:.2f} s; fmpy.validation: "
+        f"{out['validation_problems'] or 'no problems'}")
+    say(f"cost per plant step ({steps} steps, 1 exchange period each): FMU {out['fmu_us_per_step']:.1f} us, "
+        f"CasADi {out['casadi_us_per_step']:.1f} us, FMI 3.0 FMU {out['fmu3_us_per_step']:.1f} us")
+    say(f"FMI 3.0 export: fmpy.validation {out['fmi3_validation_problems'] or 'no problems'}; max |FMU - CasADi| "
+        + ", ".join(f"{k} {v:.3g}" for k, v in out["fmi3_max_abs_deviation"].items()))
     for name, r in out["scenarios"].items():
         dev = max(r["max_abs_deviation"].values())
         dev_sim = max(r["simulate_fmu_max_abs_deviation"].values())
-        print(f"{name}: max |FMU - CasADi| {dev:.3g} (FmuPlant, moving torque), {dev_sim:.3g} (fmpy.simulate_fmu); "
-              f"identification identical: {r['identification_identical']}; loop {r['loop_casadi_x_realtime']:.1f}x "
-              f"real time with CasADi, {r['loop_fmu_x_realtime']:.1f}x with the FMU", file=f)
+        say(f"{name}: max |FMU - CasADi| {dev:.3g} (FmuPlant, moving torque), {dev_sim:.3g} (fmpy.simulate_fmu); "
+            f"identification identical: {r['identification_identical']}; loop {r['loop_casadi_x_realtime']:.1f}x "
+            f"real time with CasADi, {r['loop_fmu_x_realtime']:.1f}x with the FMU")
     return 0

@@ -11,11 +11,12 @@ Per case and seed the plant, the sensors and the TCU's torque demand run once; t
 are recorded and then replayed, reading by reading, into a fresh ``TractionIdentifier`` per
 strategy, so every strategy sees the identical data.  Each ``on_sensor`` call of the identifying
 phase (slip detected -> confirmed or end of run) is timed: that is the cost per sample.  A run
-feeds 18-40 samples, so a seed's p99 is in effect its costliest sample (a window's end, the
-spread prelim's polish or the filter's opening); the table's p99 is the median over seeds of
-that, the worst seed's beside it.  Readings are fed with the garbage collector frozen and
-disabled, as the TCU process runs in real time; the readings before the strategy's first sample
-(monitoring, where the drill of identifier/drill.py keeps the strategy's code warm) are timed too.
+feeds at most a few hundred samples (docs/design/benchmarks.md has the counts), so a seed's p99 is
+set by its few costliest samples (a window's end, the spread prelim's polish or the filter's
+opening); the table's p99 is the median over seeds of that, the worst seed's beside it.  Readings
+are fed with the garbage collector frozen and disabled, as the TCU process runs in real time; the
+readings before the strategy's first sample (monitoring, where the drill of identifier/drill.py
+keeps the strategy's code warm) are timed too.
 Seeds 1..N are for reporting; tune on others (``--first-seed``).  Beside each strategy's curve the
 bench reports what its samples alone determine (``data_limit``: the NLLS baseline's fit to them
 from the true curve), so an accuracy figure shows how much of it comes from the data and how much from the prior.
@@ -38,10 +39,12 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError
+from . import terminal
 from .judge import TOL_PEAK_CREEP_PERCENT, TOL_PEAK_MU_PERCENT, judge
 from .judge import quantile_or_inf as judge_quantile
 from .judge import aggregate as judge_aggregate
 from .judge import table as judge_table
+from .judge import unconfirmed_fraction
 from ..exchange import collector_paused
 from ..progress import Progress
 from ..sweep.engine import map_in_order
@@ -68,9 +71,10 @@ def register(sub) -> None:
                    "printed)")
     p.add_argument("--base", default="ffcc_a", help="with --family: the scenario whose vehicle, NFCC-0, sensors and "
                    "TCU settings every draw keeps (default ffcc_a)")
-    p.add_argument("--wide", action="store_true", help="with --family: every column, not only those of an 80-column "
-                   "terminal")
-    p.add_argument("--markdown", action="store_true", help="with --family: the whole report as markdown")
+    p.add_argument("--wide", action="store_true", help="with --family: every column aligned, not only those a "
+                   "reader decides on")
+    p.add_argument("--markdown", action="store_true", help="every column: with --cases the full table (Table 3, "
+                   "verdicts, costs) and its notes, with --family the whole report, as markdown")
     p.add_argument("--report", metavar="DIR", default=None, help="with --family: also write DIR/identification.md "
                    "(the markdown report) and DIR/identification.json (what --json prints)")
     p.add_argument("--oracle-draws", type=int, default=None, help="curves the offline oracle draws from the family "
@@ -356,7 +360,26 @@ def _limit(r) -> str:
     return f"{r['lsq_truth_ok_peaks'] * 100:.0f}%, {_f(r['lsq_truth_r2_vs_truth'], '.3f')}"
 
 
+def terminal_table(results: dict, cases: list[str], n_seeds: int) -> str:
+    """The columns a reader decides on, within ``terminal.WIDTH``: verdicts, RT, peak mu error, coverage."""
+    head = ["strategy", "case", "correct", "wrong", "unconfirmed", "RT %", "peak μ err %", "covers μ / creep"]
+    rows = []
+    for strat, per_case in results.items():
+        for case in cases:
+            r = per_case[case]
+            rows.append([strat, case, _pct(r["correct_fraction"]), _pct(r["wrong_confirmation_fraction"]),
+                         _pct(unconfirmed_fraction(r)), _f(r["rt_percent"], ".1f"), _f(r["peak_mu_err_percent"], ".2f"),
+                         f"{_pct(r['coverage_peak_mu'])} / {_pct(r['coverage_peak_creep'])}"])
+    notes = terminal.wrap(
+        f"Medians over {n_seeds} seeds. correct: confirmed with peak μ err <= {TOL_PEAK_MU_PERCENT:g} % and peak "
+        f"creep err <= {TOL_PEAK_CREEP_PERCENT:g} % of the true curve's; wrong: confirmed otherwise; covers: the "
+        "strategy's 90 % intervals hold the true peak. Every column (Table 3, costs) and the notes: --markdown; "
+        "every figure: --json.")
+    return terminal.columns(head, rows) + "\n\n" + notes
+
+
 def table(results: dict, cases: list[str], n_seeds: int) -> str:
+    """The paper's Table 3 with the verdicts, peak errors and costs: every column, as markdown."""
     head = ("| strategy | case | MSE | RMSE | MAE | R² | R² true curve | R² obs. model (true) | R² vs truth | RT % | corrections | peak μ err % | "
             "peak creep err % | identified | correct | wrong confirmations | 90 % CI covers peak μ / creep | cost median µs | cost p99 µs | p99 % of period | "
             "p99 between windows µs | monitoring cost median / p99 µs | the samples' LS from truth: ok peaks, R² vs truth |")
@@ -461,7 +484,7 @@ def cmd_identify(args) -> int:
     if args.json:
         print(json.dumps(clean({"recommended": recommended(), "results": results})))
     else:
-        print(table(results, cases, len(seeds)))
+        print(table(results, cases, len(seeds)) if args.markdown else terminal_table(results, cases, len(seeds)))
     return 0
 
 
@@ -575,9 +598,9 @@ def cmd_family(args, strategies: list[str], overrides: dict) -> int:
         else:
             print(f"family {args.family}: {args.draws} draws, seed {seed}; recommended strategy: {recommended()}")
             print(judge_table(results, args.wide, args.markdown))
-            print(f"oracle (the family's exact prior, hil/benchmarks/oracle.py): RT median "
-                  f"{_f(oracle_median, '.1f')} %, p90 {_f(oracle_summary['rt_p90_percent'], '.1f')} %; before the "
-                  f"serious stage in {_pct(_fraction_below(oracle_rts, 100.0))} of draws")
+            print(terminal.wrap(f"oracle (the family's exact prior, hil/benchmarks/oracle.py): RT median "
+                                f"{_f(oracle_median, '.1f')} %, p90 {_f(oracle_summary['rt_p90_percent'], '.1f')} %; "
+                                f"before the serious stage in {_pct(_fraction_below(oracle_rts, 100.0))} of draws"))
     return 0
 
 

@@ -25,6 +25,8 @@ import math
 
 import numpy as np
 
+from . import terminal
+
 TOL_PEAK_MU_PERCENT = 3.0
 TOL_PEAK_CREEP_PERCENT = 10.0
 
@@ -138,9 +140,11 @@ COLUMNS = (("strategy", None, "{}"), ("confirmed before serious", "confirmed_bef
            ("CI width peak creep %", "ci_width_peak_creep_median_percent", ".1f"),
            ("RT median %", "rt_median_percent", ".1f"), ("RT p90 %", "rt_p90_percent", ".1f"),
            ("oracle RT median %", "oracle_rt_median_percent", ".1f"), ("cost p99 µs", "cost_p99_us", ".0f"))
-#: the columns that fit an 80-column terminal
-NARROW = ("strategy", "correct", "wrong confirmations", "90 % CI covers peak μ", "… peak creep", "RT median %",
-          "oracle RT median %")
+#: what a terminal shows by default (``hil.benchmarks.terminal.WIDTH``): the columns a reader decides on
+TERMINAL = (("strategy", None, "{}"), ("correct", "correct_fraction", "pct"),
+            ("wrong", "wrong_confirmation_fraction", "pct"), ("unconfirmed", "unconfirmed_fraction", "pct"),
+            ("covers μ", "coverage_peak_mu", "pct"), ("covers creep", "coverage_peak_creep", "pct"),
+            ("RT median %", "rt_median_percent", ".1f"), ("oracle RT %", "oracle_rt_median_percent", ".1f"))
 
 
 def _cell(value, fmt: str) -> str:
@@ -154,13 +158,22 @@ def _cell(value, fmt: str) -> str:
 
 
 def table(results: dict, wide: bool, markdown: bool) -> str:
-    """``results``: strategy -> aggregate (plus ``oracle_rt_median_percent`` and ``cost_p99_us``)."""
-    cols = [c for c in COLUMNS if wide or markdown or c[0] in NARROW]
-    rows = [[name] + [_cell(r.get(key), fmt) for _, key, fmt in cols[1:]] for name, r in results.items()]
+    """``results``: strategy -> aggregate (plus ``oracle_rt_median_percent`` and ``cost_p99_us``): every
+    column as markdown or, with ``wide``, aligned; else the ``TERMINAL`` columns."""
+    cols = COLUMNS if wide or markdown else TERMINAL
+    rows = [[name] + [_cell(_value(r, key), fmt) for _, key, fmt in cols[1:]] for name, r in results.items()]
     head = [c[0] for c in cols]
     if markdown:
         return "\n".join(["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
                          + ["| " + " | ".join(r) + " |" for r in rows])
-    widths = [max(len(h), *(len(r[i]) for r in rows)) for i, h in enumerate(head)]
-    line = lambda cells: "  ".join(c.rjust(w) if i else c.ljust(w) for i, (c, w) in enumerate(zip(cells, widths)))  # noqa: E731
-    return "\n".join([line(head)] + [line(r) for r in rows])
+    return terminal.columns(head, rows)
+
+
+def unconfirmed_fraction(r: dict) -> float | None:
+    """The draws not confirmed within the run, from an aggregate (None when unknown)."""
+    confirmed = r.get("confirmed_fraction")
+    return None if confirmed is None else 1.0 - confirmed
+
+
+def _value(r: dict, key: str):
+    return unconfirmed_fraction(r) if key == "unconfirmed_fraction" else r.get(key)

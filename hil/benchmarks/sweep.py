@@ -5,7 +5,7 @@ simulated; the run seeds drawn at run time unless ``--seed``, and printed) runs 
 workers have already run one point (imports and caches warm, not timed):
 
 1. a local cluster of 1 worker (``hil sweep --workers 1``), then
-2. a local cluster of 2 workers (the default on this 2-core machine), back to back, ``--rounds`` times
+2. a local cluster of 2 workers (one per core of a 2-core machine), back to back, ``--rounds`` times
    (alternating, so a change in the machine's load falls on both);
 3. once, a ``dask scheduler --host 127.0.0.1`` and two ``dask worker ... --nthreads 1`` processes started
    separately, as a cluster of machines would be (``hil sweep --scheduler tcp://127.0.0.1:PORT``).
@@ -45,6 +45,7 @@ from ..sweep.engine import Engine
 from ..sweep.point import THREAD_ENV, run_point, threads_seen
 from ..sweep.spec import parse_sweep
 from ..sweep.table import comparable
+from . import terminal
 
 BASE = Path(__file__).resolve().parents[2] / "scenarios" / "ffcc_a.toml"
 
@@ -60,6 +61,8 @@ def register(sub) -> None:
                    "(default 2; the efficiency of each round and their median are reported)")
     p.add_argument("--no-external", action="store_true", help="skip the separately started scheduler and workers")
     p.add_argument("--report", metavar="DIR", default=None, help="write DIR/sweep.md and DIR/sweep.json")
+    p.add_argument("--markdown", action="store_true", help="print the report as markdown (every column and the "
+                   "notes; what --report writes to sweep.md)")
     p.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
     p.set_defaults(func=cmd_sweep_bench)
 
@@ -212,8 +215,23 @@ def cmd_sweep_bench(args) -> int:
         (out / "sweep.json").write_text(json.dumps(doc, indent=1) + "\n")
         (out / "sweep.md").write_text(text)
         log(f"bench sweep: wrote {out / 'sweep.md'} and {out / 'sweep.json'}")
-    print(json.dumps(doc) if args.json else text)
+    print(json.dumps(doc) if args.json else text if args.markdown else terminal_text(doc))
     return 0
+
+
+def terminal_text(doc: dict) -> str:
+    """The columns a reader decides on, within ``terminal.WIDTH``; every column with ``--markdown``."""
+    f = lambda x, spec: "n/a" if x is None else format(x, spec)  # noqa: E731
+    head = ["phase", "makespan s", "CPU / wall", "gap ms", "overhead ms", "pts/h/core", "same table"]
+    rows = [[p["label"].replace("2 dask worker processes", "2 workers"), f"{p['makespan_s']:.1f}", f"{p['cpu_share_median'] * 100:.0f} %",
+             f(p["gap_ms_median"], ".1f"), f"{p['overhead_ms_per_point']:.0f}", f"{p['points_per_hour_per_core']:.0f}",
+             "yes" if doc["same_table_as_local_2_workers"].get(p["label"]) else "NO"] for p in doc["phases"]]
+    per_round = ", ".join(f"{e * 100:.0f} %" for e in doc["parallel_efficiency_per_round"])
+    return "\n".join([terminal.wrap(f"hil bench sweep: {doc['points']} points per phase, seed {doc['seed']}, "
+                                     f"{doc['cores']} cores"), "", terminal.columns(head, rows), "",
+                      terminal.wrap(f"Parallel efficiency, 2 local workers against 1: "
+                                    f"{doc['parallel_efficiency'] * 100:.0f} % (median over rounds: {per_round}). "
+                                    "Medians per point; every column and the notes: --markdown.")])
 
 
 def markdown(doc: dict) -> str:

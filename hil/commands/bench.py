@@ -1,5 +1,6 @@
 """``hil bench NAME``: benchmarks that print their figures.  Each lives in
-``hil/benchmarks/<name>.py`` with ``register(subparsers)``; modules without it are helpers."""
+``hil/benchmarks/<name>.py`` (or the package ``<name>/``) with ``register(subparsers)``; modules without it
+are helpers."""
 from __future__ import annotations
 
 import importlib
