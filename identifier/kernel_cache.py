@@ -8,8 +8,8 @@ a TCU child process, where the plant waits for the TCU with a start-up timeout a
 progress bar (``compile_all``).
 
 The stamp ``__pycache__/kernels-compiled.json`` beside the source records what the cache was built from:
-the source's SHA-256, numba's version, the Python version and the host CPU.  ``kernels.warm_up`` writes it
-after compiling every kernel, in whichever process that happens.  A stamp that differs, or none, means
+the source's SHA-256, numba's version, the Python version and the host CPU.  ``compile_all`` writes it
+after ``kernels.warm_up`` has compiled (or loaded) every kernel.  A stamp that differs, or none, means
 "not compiled here"; where the directory is not writable there is no stamp and ``fresh()`` always says no
 (the caller then warms the kernels up in the foreground each time: loading them from numba's user cache).
 """
@@ -76,4 +76,5 @@ def compile_all(progress=None) -> bool:
     if not kernels.AVAILABLE:
         return False
     kernels.warm_up(progress)
+    mark()                      # every kernel is in numba's cache now: later runs need not show a compile
     return True

@@ -1286,6 +1286,3 @@ def warm_up(progress=None) -> None:
     if progress is not None:
         progress(len(calls), len(calls), "")
     _warmed = True
-    from .kernel_cache import mark
-
-    mark()                      # every kernel is in numba's cache now: later runs need not show a compile
