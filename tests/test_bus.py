@@ -191,10 +191,11 @@ def test_a_negative_lockstep_spin_is_refused_by_name():
 def test_frames_change_nothing_against_the_identifier_fed_directly(inprocess_run):
     """The same sensor readings fed straight into a TractionIdentifier, no frames, no bus (as the
     bench does): the frames' doubles add no quantisation, so the identification is the same."""
+    from identifier import DEFAULT_STRATEGY
     from hil.benchmarks.identify import generate, replay
     from hil.config import load_scenario
 
-    direct, _ = replay(generate(load_scenario(ROOT / "scenarios/ffcc_a.toml"), 1), "nlls", None)
+    direct, _ = replay(generate(load_scenario(ROOT / "scenarios/ffcc_a.toml"), 1), DEFAULT_STRATEGY, None)
     s, _ = inprocess_run
     keys = [k for k in IDENT_KEYS if k != "observer_lag_ms"]     # the bench keeps no observer trace
     assert {k: s[k] for k in keys} == {k: direct[k] for k in keys}
