@@ -59,8 +59,8 @@ TRANSPORTS = ("inprocess", "process", "external")
 def log_writer(mode: str, transport: str, cpus: int | None = None) -> str:
     """Where a run's log rows are encoded (``Recorder.defer``): in a writer process of their own,
     unless two lockstep nodes poll on a machine of two CPUs or fewer, where a third busy process can
-    only take its CPU from them (the plant then writes while it waits for the TCU; the README gives
-    the measurement behind the rule)."""
+    only take its CPU from them (the plant then writes while it waits for the TCU;
+    ``docs/design/session.md`` gives the measurement behind the rule)."""
     cpus = cpus or os.cpu_count() or 1
     return "inline" if mode == "lockstep" and transport != "inprocess" and cpus <= 2 else "process"
 
@@ -71,7 +71,7 @@ def node_cpus(settings, mode: str, transport: str) -> tuple[tuple, tuple]:
     two CPUs this process may use, one each.  Why: two lockstep nodes poll the bus in turns
     (``lockstep_spin_s``), and the kernel wakes a node on the CPU of the node that woke it; where
     both land on one CPU while a third process holds the other, one spins on the CPU the other needs
-    (the README gives the measurement, taken with this setting on and off)."""
+    (``docs/design/session.md`` gives the measurement, taken with this setting on and off)."""
     plant, tcu = tuple(settings.cpu_affinity_plant), tuple(settings.cpu_affinity_tcu)
     if plant or tcu or mode != "lockstep" or transport != "process" or not settings.lockstep_pin:
         return plant, tcu
