@@ -308,6 +308,7 @@ class Session:
         self.latency: CpuLatencyRequest | None = None
         self.spinners: IdleSpinners | None = None
         self.idle: str | None = None
+        self.load: dict | None = None
         self.rec = self.node = self.timing = self.summary = None
         self.wall_s = 0.0
         self._stack: contextlib.ExitStack | None = None
