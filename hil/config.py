@@ -56,7 +56,7 @@ class BusSettings:
     cpu_affinity_plant: tuple = ()        # CPUs the plant process runs on (empty: no setting)
     cpu_affinity_tcu: tuple = ()          # CPUs the TCU process runs on (empty: no setting)
     lockstep_pin: bool = True             # lockstep, neither affinity set: plant and TCU process on two
-                                          # different CPUs (hil.exchange.node_cpus)
+                                          # different CPUs (hil.session.node_cpus)
     auth: str = "auto"                    # frame authentication (hil/bus/secoc.py): "on", "off", or "auto": on
                                           # for the embedded buses (local, localbus), off otherwise (also
                                           # inprocess: no other node can put a frame on it)
