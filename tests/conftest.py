@@ -1,4 +1,6 @@
+import hashlib
 import os
+import secrets
 import signal
 import subprocess
 import sys
@@ -9,6 +11,57 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENARIOS = ROOT / "scenarios"
+
+# -- seeds of generated cases --------------------------------------------------------------------------
+# HIL_TEST_SEED unset: the fixed base seed below (a run is reproducible); an integer: that base seed;
+# "random": a base seed drawn once when the session starts (printed in the header and the summary, and
+# handed to xdist's workers through the environment).  tests/run.sh sets "random" under CI=true.
+FIXED_BASE_SEED = 20240601
+_SEED_COUNTS: dict = {}
+_SEED_MODE = {"": "fixed", "random": "drawn at random"}.get(os.environ.get("HIL_TEST_SEED", "").strip(), "pinned")
+
+
+def _base_seed() -> int:
+    value = os.environ.get("HIL_TEST_SEED", "").strip()
+    if value == "":
+        return FIXED_BASE_SEED
+    if value == "random":           # only when this process is not under a session that resolved it
+        value = os.environ["HIL_TEST_SEED"] = str(secrets.randbits(31))
+    try:
+        return int(value)
+    except ValueError:
+        raise pytest.UsageError(f"HIL_TEST_SEED={value!r}: expected unset, an integer or 'random'") from None
+
+
+def case_seed(what: str = "") -> int:
+    """The seed of a generated case in the running test: a hash of the base seed (HIL_TEST_SEED), the
+    test's node id and ``what``, in [0, 2**31).  The n-th call with the same ``what`` in one test gets
+    its own seed (n is part of the hash), so a test drawing several cases draws different ones, the
+    same on every run with the same base seed.  Printed (shown with the test's output when it fails),
+    with what reproduces it: ``HIL_TEST_SEED=<base> pytest <node id>``."""
+    current = os.environ.get("PYTEST_CURRENT_TEST", "outside a test (setup)")
+    node = current.rsplit(" (", 1)[0]           # "<node id> (setup|call|teardown)"
+    base = _base_seed()
+    n = _SEED_COUNTS.get((node, what), 0)
+    _SEED_COUNTS[node, what] = n + 1
+    digest = hashlib.blake2b(f"{base}|{node}|{what}|{n}".encode(), digest_size=8).digest()
+    seed = int.from_bytes(digest, "little") % (1 << 31)
+    print(f"{what + ': ' if what else ''}seed {seed} (HIL_TEST_SEED={base} pytest {node})")
+    return seed
+
+
+def pytest_configure(config):
+    if not hasattr(config, "workerinput"):          # the controller (or a run without xdist) resolves "random"
+        _base_seed()
+
+
+def pytest_report_header(config):
+    return f"test seeds: HIL_TEST_SEED={_base_seed()} ({_SEED_MODE})"
+
+
+def pytest_terminal_summary(terminalreporter):
+    terminalreporter.write_line(f"test seeds: HIL_TEST_SEED={_base_seed()} ({_SEED_MODE}) reproduces this run's "
+                                "generated cases")
 
 
 @pytest.fixture

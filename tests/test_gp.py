@@ -2,7 +2,6 @@
 exponential curves right, and on a flat-topped curve of a form no strategy assumes it does not
 confirm a wrong peak (the failure ``bayes``'s exponential form has there)."""
 import math
-import secrets
 
 import numpy as np
 import pytest
@@ -13,6 +12,8 @@ from identifier.strategies import Sample, make_strategy
 
 from .test_bayes import GEAR, INERTIA, PERIOD_S, RADIUS, TORQUE_PER_MU, curve, run, slip
 
+from .conftest import case_seed
+
 
 def settings(**options) -> IdentifierSettings:
     vehicle = VehicleModel(INERTIA, TORQUE_PER_MU, GEAR, RADIUS)
@@ -20,8 +21,7 @@ def settings(**options) -> IdentifierSettings:
 
 
 def fresh_rng():
-    seed = secrets.randbits(31)
-    print("seed", seed)
+    seed = case_seed()
     return np.random.default_rng(seed)
 
 

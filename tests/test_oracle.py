@@ -1,21 +1,19 @@
 """The information limit of ``hil bench identify`` (hil/benchmarks/oracle.py) on real plant runs of
 drawn fault curves: it knows the family's prior, so its intervals must cover the truth as they say,
 and it may not be later than the strategy that uses a broader prior on the same samples."""
-import secrets
 
 
 from hil.benchmarks.identify import generate, replay, run_oracle
 from hil.config import parse_scenario
 from plant import families
 
-from .conftest import SCENARIOS
+from .conftest import SCENARIOS, case_seed
 
 DRAWS = 12
 
 
 def test_the_oracle_covers_the_truth_and_is_not_later_than_bayes():
-    seed = secrets.randbits(31)
-    print("seed", seed)
+    seed = case_seed()
     base = (SCENARIOS / "ffcc_a.toml").read_text()
     covered, runs, not_later = 0, 0, 0
     for i in range(DRAWS):
