@@ -2,20 +2,51 @@
 # The whole test suite, from a fresh clone: makes the virtualenv, installs the package and what the
 # bus and viewer tests need, runs pytest on the host with the vcan tests on real SocketCAN vcan0 beside it
 # (natively when this kernel has vcan, otherwise inside User-Mode Linux).
+#   bash tests/run.sh            everything (what CI runs)
+#   bash tests/run.sh --fast     the fast tier: all but the tests marked slow, vcan or realtime, including
+#                                one real two-process run over the local bus; minutes on a warm tree
+# Other arguments go to pytest.  Seeds of generated cases: fixed unless HIL_TEST_SEED says otherwise
+# (an integer pins the base seed, "random" draws one); under CI=true they are drawn (tests/conftest.py).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ROOT=$(pwd)
 PY=${PYTHON:-python3}
 
+FAST=0
+ARGS=()
+for a in "$@"; do
+  if [ "$a" = "--fast" ]; then FAST=1; else ARGS+=("$a"); fi
+done
+set -- ${ARGS[@]+"${ARGS[@]}"}
+
+if [ "${CI:-}" = "true" ] && [ -z "${HIL_TEST_SEED:-}" ]; then HIL_TEST_SEED=random; fi
+if [ "${HIL_TEST_SEED:-}" = "random" ]; then   # one base seed for the host, vcan and real-time sessions
+  HIL_TEST_SEED=$(( $(od -An -N4 -tu4 /dev/urandom | tr -d ' ') % 2147483648 ))
+  echo "== test seeds drawn at random: HIL_TEST_SEED=$HIL_TEST_SEED reproduces them" >&2
+fi
+[ -n "${HIL_TEST_SEED:-}" ] && export HIL_TEST_SEED
+
 if [ ! -x .venv/bin/python ]; then
   echo "== creating .venv" >&2
   "$PY" -m venv .venv
 fi
-echo "== installing the package and test dependencies" >&2
-.venv/bin/python -m pip install -q --disable-pip-version-check --upgrade pip >/dev/null
-.venv/bin/python -m pip install -q --disable-pip-version-check -e ".[test]"
-# third-party FMUs for tests/test_fmu.py; --no-deps: gemseo-fmu pins fmpy<=0.3.19 and pulls gemseo[all]
-.venv/bin/python -m pip install -q --disable-pip-version-check --no-deps "gemseo-fmu==3.1.1"
+# The installs are skipped when the stamp says they were done for this pyproject.toml and this list, and
+# the package still imports from this tree (a warm tree: seconds, not a minute of pip).
+GEMSEO_FMU="gemseo-fmu==3.1.1"
+STAMP=.venv/.hil-tests-installed
+WANT="$(sha256sum pyproject.toml | cut -d' ' -f1) .[test,docs] $GEMSEO_FMU $ROOT"
+if [ -f "$STAMP" ] && [ "$(cat "$STAMP")" = "$WANT" ] \
+   && (cd / && "$ROOT/.venv/bin/python" -I -c "import hil, sys; sys.exit(not hil.__file__.startswith('$ROOT/'))") 2>/dev/null; then
+  echo "== package and test dependencies installed for this pyproject.toml ($STAMP): no pip" >&2
+else
+  echo "== installing the package and test dependencies" >&2
+  rm -f "$STAMP"
+  .venv/bin/python -m pip install -q --disable-pip-version-check --upgrade pip >/dev/null
+  .venv/bin/python -m pip install -q --disable-pip-version-check -e ".[test,docs]"
+  # third-party FMUs for tests/test_fmu.py; --no-deps: gemseo-fmu pins fmpy<=0.3.19 and pulls gemseo[all]
+  .venv/bin/python -m pip install -q --disable-pip-version-check --no-deps "$GEMSEO_FMU"
+  echo "$WANT" > "$STAMP"
+fi
 
 # Debian packages: UML + can-utils for the vcan tests, Vulkan for Rerun's headless viewer.
 NEED_DEB=()
