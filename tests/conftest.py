@@ -41,6 +41,9 @@ def case_seed(what: str = "") -> int:
     with what reproduces it: ``HIL_TEST_SEED=<base> pytest <node id>``."""
     current = os.environ.get("PYTEST_CURRENT_TEST", "outside a test (setup)")
     node = current.rsplit(" (", 1)[0]           # "<node id> (setup|call|teardown)"
+    head, _, group = node.rpartition("@")       # xdist's loadgroup appends "@<group>": ours is the file
+    if head and group == head.split("::", 1)[0]:
+        node = head
     base = _base_seed()
     n = _SEED_COUNTS.get((node, what), 0)
     _SEED_COUNTS[node, what] = n + 1
@@ -62,6 +65,49 @@ def pytest_report_header(config):
 def pytest_terminal_summary(terminalreporter):
     terminalreporter.write_line(f"test seeds: HIL_TEST_SEED={_base_seed()} ({_SEED_MODE}) reproduces this run's "
                                 "generated cases")
+
+
+# -- tiers -------------------------------------------------------------------------------------------
+# The slow tests: out of the fast tier (``tests/run.sh --fast`` deselects -m slow).  Each took 10 s or
+# more in a full run on the 2-core CI machine (pytest --durations); a name matches every parameter case.
+# Kept here, in one list, rather than as decorators scattered over the files.
+SLOW = {
+}
+# The tests that time the machine (CPU shares, pacing loops, heartbeats while busy): tests/run.sh runs
+# them alone, never beside another xdist worker (the real-time tests have their own marker).
+SERIAL = {
+    "tests/test_idle_loop.py::test_a_stall_of_the_pacing_loop_shows_as_late_wakes",
+    "tests/test_idle_loop.py::test_two_paced_processes_merge_their_late_periods",
+    "tests/test_idle_spin.py::test_a_resting_spinner_hands_its_rests_back_and_counts_no_rest_as_a_gap",
+    "tests/test_idle_spin.py::test_a_process_preempting_a_spinner_is_never_time_away",
+    "tests/test_idle_spin.py::test_spinners_take_nothing_from_a_process_at_normal_priority",
+    "tests/test_vcpu_away.py::test_a_process_stopped_by_the_kernel_is_a_guest_gap_not_time_away",
+    "tests/test_vcpu_away.py::test_measure_merges_one_spinner_per_cpu",
+    "tests/test_tcu_heartbeats.py::test_heartbeats_keep_coming_while_the_tcu_is_held_by_long_work_and_come_from_its_loop_otherwise",
+}
+
+
+@pytest.hookimpl(tryfirst=True)          # before -m deselects (and xdist renames grouped tests)
+def pytest_collection_modifyitems(config, items):
+    """Marks the SLOW and SERIAL tests, and keeps the tests that share a module-scoped fixture (one
+    recorded run read by several tests) on one xdist worker: the fixture is then made once."""
+    names = {item.nodeid.split("[", 1)[0] for item in items}
+    files = {name.split("::", 1)[0] for name in names}
+    whole_files = not any("::" in str(a) for a in config.args)
+    for listed in (SLOW, SERIAL):
+        gone = {n for n in listed if n.split("::", 1)[0] in files and n not in names}
+        if gone and whole_files:
+            raise pytest.UsageError(f"tests/conftest.py lists tests that no longer exist: {sorted(gone)}")
+    for item in items:
+        name = item.nodeid.split("[", 1)[0]
+        if name in SLOW:
+            item.add_marker(pytest.mark.slow)
+        if name in SERIAL:
+            item.add_marker(pytest.mark.serial)
+        info = getattr(item, "_fixtureinfo", None)
+        shared = info and any(d.scope == "module" for defs in info.name2fixturedefs.values() for d in defs)
+        if shared:
+            item.add_marker(pytest.mark.xdist_group(item.nodeid.split("::", 1)[0]))
 
 
 @pytest.fixture

@@ -68,9 +68,25 @@ if [ ${#NEED_DEB[@]} -gt 0 ]; then
 fi
 
 mkdir -p tests/artefacts
+PYTEST=(.venv/bin/python -m pytest)
+# Two workers (pytest-xdist): tests sharing a module-scoped run stay on one worker (tests/conftest.py
+# groups them, --dist loadgroup); the tests marked serial or realtime time the machine and run alone.
+PARALLEL=(-n 2 --dist loadgroup)
+if [ "$FAST" = 1 ]; then
+  echo "== pytest --fast (all but the slow, vcan and real-time tests; two workers)" >&2
+  status=0
+  "${PYTEST[@]}" "${PARALLEL[@]}" -m "not slow and not vcan and not realtime and not serial" --durations=10 "$@" \
+    || status=$?
+  echo "== pytest --fast: the tests that time the machine, alone" >&2
+  rt_rc=0
+  "${PYTEST[@]}" -m "serial and not slow and not vcan and not realtime" "$@" || rt_rc=$?
+  [ "$rt_rc" = 0 ] || [ "$rt_rc" = 5 ] || status=$rt_rc      # 5: arguments that select none of them
+  exit $status
+fi
+
 status=0
 # The vcan tests (inside User-Mode Linux: ~6 min, mostly the guest's Python start-ups) run beside the
-# host tests; the real-time tests, which time the machine, run alone once both are done.
+# host tests; the tests that time the machine (serial, realtime) run alone once both are done.
 VCAN_RUNNER=$(ls tests/uml/run_vcan_tests.sh tests/uml/run_in_uml.sh 2>/dev/null | head -n 1 || true)
 VCAN_LOG=$(mktemp /tmp/hil-vcan-log.XXXXXX)
 vcan_pid=""
@@ -93,8 +109,8 @@ elif [ "${CI:-}" = "true" ]; then
   status=1
 fi
 
-echo "== pytest (host, all but the vcan and real-time tests)" >&2
-.venv/bin/python -m pytest -m "not vcan and not realtime" --durations=15 "$@" || status=$?
+echo "== pytest (host, all but the vcan tests and those that time the machine; two workers)" >&2
+"${PYTEST[@]}" "${PARALLEL[@]}" -m "not vcan and not realtime and not serial" --durations=15 "$@" || status=$?
 
 if [ -n "$vcan_pid" ]; then
   waited=0
@@ -110,8 +126,8 @@ if [ -n "$vcan_pid" ]; then
   vcan_pid=""
 fi
 
-echo "== pytest (host, the real-time tests, alone on the machine)" >&2
+echo "== pytest (host, the tests that time the machine: real-time runs, pacing, CPU shares; alone)" >&2
 rt_rc=0
-.venv/bin/python -m pytest -m "realtime and not vcan" "$@" || rt_rc=$?
+"${PYTEST[@]}" -m "(realtime or serial) and not vcan" --durations=5 "$@" || rt_rc=$?
 [ "$rt_rc" = 0 ] || [ "$rt_rc" = 5 ] || status=$rt_rc      # 5: arguments that select none of them
 exit $status
