@@ -69,9 +69,9 @@ fi
 
 mkdir -p tests/artefacts
 PYTEST=(.venv/bin/python -m pytest)
-# Two workers (pytest-xdist): tests sharing a module-scoped run stay on one worker (tests/conftest.py
-# groups them, --dist loadgroup); the tests marked serial or realtime time the machine and run alone.
-PARALLEL=(-n 2 --dist loadgroup)
+# Two workers (pytest-xdist), a test file at a time (--dist loadfile: a module's recorded run, made once,
+# serves all its tests); the tests marked serial or realtime time the machine and run alone.
+PARALLEL=(-n 2 --dist loadfile)
 if [ "$FAST" = 1 ]; then
   echo "== pytest --fast (all but the slow, vcan and real-time tests; two workers)" >&2
   status=0
