@@ -48,14 +48,17 @@ else
   echo "$WANT" > "$STAMP"
 fi
 
-# Debian packages: UML + can-utils for the vcan tests, Vulkan for Rerun's headless viewer.
+# Debian packages: UML + can-utils for the vcan tests, Vulkan for Rerun's headless viewer (neither in the
+# fast tier).
 NEED_DEB=()
-command -v linux >/dev/null 2>&1 || [ -x /usr/bin/linux ] || NEED_DEB+=(user-mode-linux)
-command -v insmod >/dev/null 2>&1 || [ -x /usr/sbin/insmod ] || [ -x /sbin/insmod ] || NEED_DEB+=(kmod)
-command -v candump >/dev/null 2>&1 || NEED_DEB+=(can-utils)
 command -v gcc >/dev/null 2>&1 || NEED_DEB+=(gcc)          # building our FMU
-dpkg -s mesa-vulkan-drivers >/dev/null 2>&1 || NEED_DEB+=(mesa-vulkan-drivers)
-dpkg -s libvulkan1 >/dev/null 2>&1 || NEED_DEB+=(libvulkan1)
+if [ "$FAST" = 0 ]; then
+  command -v linux >/dev/null 2>&1 || [ -x /usr/bin/linux ] || NEED_DEB+=(user-mode-linux)
+  command -v insmod >/dev/null 2>&1 || [ -x /usr/sbin/insmod ] || [ -x /sbin/insmod ] || NEED_DEB+=(kmod)
+  command -v candump >/dev/null 2>&1 || NEED_DEB+=(can-utils)
+  dpkg -s mesa-vulkan-drivers >/dev/null 2>&1 || NEED_DEB+=(mesa-vulkan-drivers)
+  dpkg -s libvulkan1 >/dev/null 2>&1 || NEED_DEB+=(libvulkan1)
+fi
 if [ ${#NEED_DEB[@]} -gt 0 ]; then
   if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
     echo "== apt-get install ${NEED_DEB[*]}" >&2
