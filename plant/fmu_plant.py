@@ -34,10 +34,14 @@ import weakref
 import xml.etree.ElementTree as ET
 import zipfile
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .model import PlantConfig, PlantState, creep_speed_kmh, equilibrium
+
+if TYPE_CHECKING:                      # fmpy is imported where an FMU is read, not with this module
+    from fmpy.model_description import ModelDescription
 
 #: role -> default FMU variable name (what plant/fmu/export.py writes)
 ROLES = {"torque_nm": "torque_nm", "motor_speed_rad_s": "motor_speed_rad_s", "train_speed_ms": "train_speed_ms",
@@ -176,7 +180,7 @@ def _real_types(fmi_version: str) -> tuple[str, ...]:
     return ("Real",) if fmi_version.startswith("2") else ("Float64",)
 
 
-def read_model_description(path) -> "fmpy.model_description.ModelDescription":  # noqa: F821
+def read_model_description(path) -> "ModelDescription":
     """The model description of the FMI 2.0 or 3.0 FMU ``path`` (a zip archive), or FmuError naming
     what it is instead (missing, a folder, not a zip, no or a huge modelDescription.xml, FMI 1.0)."""
     import fmpy
@@ -207,7 +211,7 @@ def read_model_description(path) -> "fmpy.model_description.ModelDescription":  
             from None
 
 
-def read_fmu(path) -> "fmpy.model_description.ModelDescription":  # noqa: F821
+def read_fmu(path) -> "ModelDescription":
     """Model description of a Co-Simulation FMU with a binary for this platform and nothing
     ``archive_problems`` objects to, or FmuError."""
     import fmpy

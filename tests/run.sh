@@ -2,29 +2,63 @@
 # The whole test suite, from a fresh clone: makes the virtualenv, installs the package and what the
 # bus and viewer tests need, runs pytest on the host with the vcan tests on real SocketCAN vcan0 beside it
 # (natively when this kernel has vcan, otherwise inside User-Mode Linux).
+#   bash tests/run.sh            everything (what CI runs)
+#   bash tests/run.sh --fast     the fast tier: all but the tests marked slow, vcan or realtime, including
+#                                one real two-process run over the local bus; minutes on a warm tree
+# Other arguments go to pytest.  Seeds of generated cases: fixed unless HIL_TEST_SEED says otherwise
+# (an integer pins the base seed, "random" draws one); under CI=true they are drawn (tests/conftest.py).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ROOT=$(pwd)
 PY=${PYTHON:-python3}
 
+FAST=0
+ARGS=()
+for a in "$@"; do
+  if [ "$a" = "--fast" ]; then FAST=1; else ARGS+=("$a"); fi
+done
+set -- ${ARGS[@]+"${ARGS[@]}"}
+
+if [ "${CI:-}" = "true" ] && [ -z "${HIL_TEST_SEED:-}" ]; then HIL_TEST_SEED=random; fi
+if [ "${HIL_TEST_SEED:-}" = "random" ]; then   # one base seed for the host, vcan and real-time sessions
+  HIL_TEST_SEED=$(( $(od -An -N4 -tu4 /dev/urandom | tr -d ' ') % 2147483648 ))
+  echo "== test seeds drawn at random: HIL_TEST_SEED=$HIL_TEST_SEED reproduces them" >&2
+fi
+[ -n "${HIL_TEST_SEED:-}" ] && export HIL_TEST_SEED
+
 if [ ! -x .venv/bin/python ]; then
   echo "== creating .venv" >&2
   "$PY" -m venv .venv
 fi
-echo "== installing the package and test dependencies" >&2
-.venv/bin/python -m pip install -q --disable-pip-version-check --upgrade pip >/dev/null
-.venv/bin/python -m pip install -q --disable-pip-version-check -e ".[test]"
-# third-party FMUs for tests/test_fmu.py; --no-deps: gemseo-fmu pins fmpy<=0.3.19 and pulls gemseo[all]
-.venv/bin/python -m pip install -q --disable-pip-version-check --no-deps "gemseo-fmu==3.1.1"
+# The installs are skipped when the stamp says they were done for this pyproject.toml and this list, and
+# the package still imports from this tree (a warm tree: seconds, not a minute of pip).
+GEMSEO_FMU="gemseo-fmu==3.1.1"
+STAMP=.venv/.hil-tests-installed
+WANT="$(sha256sum pyproject.toml | cut -d' ' -f1) .[test,docs] $GEMSEO_FMU $ROOT"
+if [ -f "$STAMP" ] && [ "$(cat "$STAMP")" = "$WANT" ] \
+   && (cd / && "$ROOT/.venv/bin/python" -I -c "import hil, sys; sys.exit(not hil.__file__.startswith('$ROOT/'))") 2>/dev/null; then
+  echo "== package and test dependencies installed for this pyproject.toml ($STAMP): no pip" >&2
+else
+  echo "== installing the package and test dependencies" >&2
+  rm -f "$STAMP"
+  .venv/bin/python -m pip install -q --disable-pip-version-check --upgrade pip >/dev/null
+  .venv/bin/python -m pip install -q --disable-pip-version-check -e ".[test,docs]"
+  # third-party FMUs for tests/test_fmu.py; --no-deps: gemseo-fmu pins fmpy<=0.3.19 and pulls gemseo[all]
+  .venv/bin/python -m pip install -q --disable-pip-version-check --no-deps "$GEMSEO_FMU"
+  echo "$WANT" > "$STAMP"
+fi
 
-# Debian packages: UML + can-utils for the vcan tests, Vulkan for Rerun's headless viewer.
+# Debian packages: UML + can-utils for the vcan tests, Vulkan for Rerun's headless viewer (neither in the
+# fast tier).
 NEED_DEB=()
-command -v linux >/dev/null 2>&1 || [ -x /usr/bin/linux ] || NEED_DEB+=(user-mode-linux)
-command -v insmod >/dev/null 2>&1 || [ -x /usr/sbin/insmod ] || [ -x /sbin/insmod ] || NEED_DEB+=(kmod)
-command -v candump >/dev/null 2>&1 || NEED_DEB+=(can-utils)
 command -v gcc >/dev/null 2>&1 || NEED_DEB+=(gcc)          # building our FMU
-dpkg -s mesa-vulkan-drivers >/dev/null 2>&1 || NEED_DEB+=(mesa-vulkan-drivers)
-dpkg -s libvulkan1 >/dev/null 2>&1 || NEED_DEB+=(libvulkan1)
+if [ "$FAST" = 0 ]; then
+  command -v linux >/dev/null 2>&1 || [ -x /usr/bin/linux ] || NEED_DEB+=(user-mode-linux)
+  command -v insmod >/dev/null 2>&1 || [ -x /usr/sbin/insmod ] || [ -x /sbin/insmod ] || NEED_DEB+=(kmod)
+  command -v candump >/dev/null 2>&1 || NEED_DEB+=(can-utils)
+  dpkg -s mesa-vulkan-drivers >/dev/null 2>&1 || NEED_DEB+=(mesa-vulkan-drivers)
+  dpkg -s libvulkan1 >/dev/null 2>&1 || NEED_DEB+=(libvulkan1)
+fi
 if [ ${#NEED_DEB[@]} -gt 0 ]; then
   if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
     echo "== apt-get install ${NEED_DEB[*]}" >&2
@@ -37,9 +71,25 @@ if [ ${#NEED_DEB[@]} -gt 0 ]; then
 fi
 
 mkdir -p tests/artefacts
+PYTEST=(.venv/bin/python -m pytest)
+# Two workers (pytest-xdist), a test file at a time (--dist loadfile: a module's recorded run, made once,
+# serves all its tests); the tests marked serial or realtime time the machine and run alone.
+PARALLEL=(-n 2 --dist loadfile)
+if [ "$FAST" = 1 ]; then
+  echo "== pytest --fast (all but the slow, vcan and real-time tests; two workers)" >&2
+  status=0
+  "${PYTEST[@]}" "${PARALLEL[@]}" -m "not slow and not vcan and not realtime and not serial" --durations=10 "$@" \
+    || status=$?
+  echo "== pytest --fast: the tests that time the machine, alone" >&2
+  rt_rc=0
+  "${PYTEST[@]}" -m "serial and not slow and not vcan and not realtime" "$@" || rt_rc=$?
+  [ "$rt_rc" = 0 ] || [ "$rt_rc" = 5 ] || status=$rt_rc      # 5: arguments that select none of them
+  exit $status
+fi
+
 status=0
 # The vcan tests (inside User-Mode Linux: ~6 min, mostly the guest's Python start-ups) run beside the
-# host tests; the real-time tests, which time the machine, run alone once both are done.
+# host tests; the tests that time the machine (serial, realtime) run alone once both are done.
 VCAN_RUNNER=$(ls tests/uml/run_vcan_tests.sh tests/uml/run_in_uml.sh 2>/dev/null | head -n 1 || true)
 VCAN_LOG=$(mktemp /tmp/hil-vcan-log.XXXXXX)
 vcan_pid=""
@@ -62,8 +112,8 @@ elif [ "${CI:-}" = "true" ]; then
   status=1
 fi
 
-echo "== pytest (host, all but the vcan and real-time tests)" >&2
-.venv/bin/python -m pytest -m "not vcan and not realtime" --durations=15 "$@" || status=$?
+echo "== pytest (host, all but the vcan tests and those that time the machine; two workers)" >&2
+"${PYTEST[@]}" "${PARALLEL[@]}" -m "not vcan and not realtime and not serial" --durations=15 "$@" || status=$?
 
 if [ -n "$vcan_pid" ]; then
   waited=0
@@ -79,8 +129,8 @@ if [ -n "$vcan_pid" ]; then
   vcan_pid=""
 fi
 
-echo "== pytest (host, the real-time tests, alone on the machine)" >&2
+echo "== pytest (host, the tests that time the machine: real-time runs, pacing, CPU shares; alone)" >&2
 rt_rc=0
-.venv/bin/python -m pytest -m "realtime and not vcan" "$@" || rt_rc=$?
+"${PYTEST[@]}" -m "(realtime or serial) and not vcan" --durations=5 "$@" || rt_rc=$?
 [ "$rt_rc" = 0 ] || [ "$rt_rc" = 5 ] || status=$rt_rc      # 5: arguments that select none of them
 exit $status

@@ -5,7 +5,6 @@ and a handful of the inputs an outside probe found go through the real ``hil run
 import math
 import random
 import re
-import secrets
 import subprocess
 import time
 
@@ -15,7 +14,7 @@ from hil.testing import SET_CHOICES, full_scenario_text, mutate
 from hil.config import load_scenario, parse_scenario, parse_set
 from hil.errors import EXIT_USAGE, HilError
 
-from .conftest import SCENARIOS, hil_command, subprocess_env
+from .conftest import SCENARIOS, case_seed, hil_command, subprocess_env
 
 #: the paper's scenario with every optional table filled in, so mutations reach them too; the mutator
 #: is the library's (``hil bench robustness`` uses the same one)
@@ -32,8 +31,7 @@ def test_base_scenario_loads(tmp_path):
 def test_mutated_scenarios_fail_in_one_line_or_load(tmp_path):
     """300 seeded mutants of a full scenario through load_scenario: each either loads or raises a
     HilError whose message is one line; never another exception."""
-    seed = secrets.randbits(31)
-    print(f"mutation seed {seed}")
+    seed = case_seed("mutation")
     rng = random.Random(seed)
     path = tmp_path / "m.toml"
     outcomes = {"loaded": 0, "refused": 0}

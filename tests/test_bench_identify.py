@@ -1,7 +1,7 @@
 """``hil bench identify`` end to end through the real CLI (real plant, real strategies)."""
 import json
 
-from .conftest import hil
+from .conftest import case_seed, hil
 
 
 def run(args, tmp_path):
@@ -179,7 +179,6 @@ def test_form_limit_is_zero_on_its_own_form_and_not_on_a_flat_polach_peak():
     """``form_limit``: the identifier's form fitted to a noiseless true curve.  On a curve of that form
     (FFCC-a) it finds the peak exactly; on Polach curves seen only up to their peak (flat tops) it
     misses the peak creep on some: what a wrong confirmation there owes to the form."""
-    import secrets
 
     from hil.benchmarks.identify import case_path, form_limit
     from hil.config import parse_scenario
@@ -189,8 +188,7 @@ def test_form_limit_is_zero_on_its_own_form_and_not_on_a_flat_polach_peak():
     v_peak, _ = sc.fault_curve.peak()
     exact = form_limit(sc.fault_curve, 2.0 * v_peak)
     assert exact["form_ok"] and exact["form_peak_creep_err_percent"] < 0.5 and exact["form_peak_mu_err_percent"] < 0.1
-    seed = secrets.randbits(31)
-    print("seed", seed)
+    seed = case_seed()
     base = case_path("ffcc_a").read_text()
     creep_errors = []
     for i in range(6):

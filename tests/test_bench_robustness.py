@@ -6,21 +6,19 @@ the probes find nothing.  The master seed is drawn at test time and printed."""
 import json
 import os
 import random
-import secrets
 
 from hil.benchmarks.robustness import PARTS
 from hil.benchmarks.robustness.logs import DAMAGES, damage_log
 from hil.testing import full_scenario_text, mutate
 
-from .conftest import ROOT, hil
+from .conftest import ROOT, case_seed, hil
 
 SMALL = ["--garbage", "300", "--forged", "60", "--scenarios", "40", "--scenario-runs", "2", "--logs", "14",
          "--fmus", "12", "--kills", "1", "--disk", "1", "--memory-seconds", "2,6"]
 
 
 def test_every_part_at_small_counts_finds_no_failure(tmp_path):
-    seed = secrets.randbits(31)
-    print(f"bench seed {seed}")
+    seed = case_seed("bench")
     r = hil("bench", "robustness", "--seed", seed, *SMALL, "--json", "--report", tmp_path / "doc", timeout=600,
             cwd=ROOT)
     assert f"seed {seed} (repeat with: hil bench robustness --seed {seed} " in r.stderr
@@ -90,8 +88,7 @@ def test_bad_arguments_are_one_line_and_exit_2():
 
 def test_the_generators_repeat_for_a_seed():
     """The same seed gives the same mutants and the same damage: a failure's seed and case index repeat it."""
-    seed = secrets.randbits(31)
-    print(f"generator seed {seed}")
+    seed = case_seed("generator")
     base = full_scenario_text()
     a, b = random.Random(seed), random.Random(seed)
     assert [mutate(base, a) for _ in range(50)] == [mutate(base, b) for _ in range(50)]

@@ -1,18 +1,16 @@
 """The TCU's open-loop torque excitation (identifier/excitation.py): a function of the step since the
 detected slip and of the seed only, the same in the TCU and in the bench's plant run."""
-import secrets
 
 import numpy as np
 import pytest
 
 from identifier.excitation import Excitation
 
-from .conftest import SCENARIOS, hil
+from .conftest import SCENARIOS, case_seed, hil
 
 
 def test_the_sine_has_its_amplitude_frequency_and_duration_and_depends_on_the_seed_only():
-    seed = secrets.randbits(31)
-    print("seed", seed)
+    seed = case_seed()
     period_s = 1e-3
     ex = Excitation(amplitude_fraction=0.05, frequency_hz=50.0, duration_s=0.2)
     s = np.array([ex.shape(k, period_s, seed) for k in range(-5, 400)])
@@ -31,8 +29,7 @@ def test_the_sine_has_its_amplitude_frequency_and_duration_and_depends_on_the_se
 
 
 def test_prbs_is_plus_or_minus_one_held_for_half_a_period():
-    seed = secrets.randbits(31)
-    print("seed", seed)
+    seed = case_seed()
     ex = Excitation(amplitude_fraction=0.1, frequency_hz=100.0, duration_s=1.0, kind="prbs")
     s = np.array([ex.shape(k, 1e-3, seed) for k in range(1000)])
     assert set(np.unique(s)) <= {-1.0, 1.0}
@@ -64,8 +61,7 @@ def test_the_tcu_commands_what_the_bench_plant_was_given():
     from hil.config import parse_scenario
     from identifier import TractionIdentifier
 
-    seed = secrets.randbits(31) % 1000 + 1
-    print("seed", seed)
+    seed = case_seed() % 1000 + 1
     overrides = {"identifier.excitation.amplitude_fraction": 0.05, "identifier.excitation.frequency_hz": 100.0,
                  "identifier.excitation.duration_s": 0.03, "run.duration_s": 1.3}
     sc = parse_scenario((SCENARIOS / "ffcc_a.toml").read_text(), "ffcc_a", overrides)

@@ -7,7 +7,6 @@ printed: a failure names the seed that reproduces it.
 """
 import json
 import math
-import secrets
 
 import numpy as np
 import pytest
@@ -16,7 +15,7 @@ from hil.config import ScenarioError, parse_scenario
 from plant import PolachCurve, WheelsetPlant, families
 from plant.families import FAMILIES, Base, describe, draw, draw_rng, draw_scenario_text, sample_curves
 
-from .conftest import SCENARIOS, hil
+from .conftest import SCENARIOS, case_seed, hil
 
 BASE_TEXT = (SCENARIOS / "ffcc_a.toml").read_text()
 FFCC_A_FAULT = """[curves.fault]               # FFCC-a, paper Table 2 (v_s in km/h)
@@ -36,9 +35,7 @@ stiffness = 40.0
 
 
 def fresh_seed(what: str) -> int:
-    seed = secrets.randbits(31)
-    print(f"{what}: seed {seed}")
-    return seed
+    return case_seed(what)
 
 
 def polach_scenario_text(fault_table: str = POLACH_FAULT) -> str:

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from hil.log.read import read_log
 
-from .conftest import ROOT, hil_command, subprocess_env
+from .conftest import ROOT, case_seed, hil_command, subprocess_env
 from .test_bus import alive, children_of, cmdline
 
 
@@ -36,8 +36,9 @@ def _run_with_file_limit(limit_bytes: int, out: Path, seed: int, bus: str = "loc
 
 
 def test_a_disk_that_fills_mid_run_ends_it_in_one_line_with_the_tcu_stopped_and_the_log_readable(tmp_path):
-    limit = random.randrange(300_000, 1_500_000)
-    seed = random.randrange(100_000, 1_000_000)
+    rng = random.Random(case_seed())
+    limit = rng.randrange(300_000, 1_500_000)
+    seed = rng.randrange(100_000, 1_000_000)
     print(f"file size limit {limit} bytes, seed {seed}")
     r = _run_with_file_limit(limit, tmp_path, seed)
     assert r.returncode == 2, r.stderr
@@ -62,8 +63,9 @@ def test_a_full_disk_at_the_start_leaves_no_empty_log(tmp_path):
 
 
 def test_the_hub_killed_mid_run_ends_it_in_one_line_exit_3(tmp_path):
-    seed = random.randrange(100_000, 1_000_000)
-    after_s = random.uniform(0.5, 2.0)
+    rng = random.Random(case_seed())
+    seed = rng.randrange(100_000, 1_000_000)
+    after_s = rng.uniform(0.5, 2.0)
     print(f"seed {seed}, hub killed {after_s:.2f} s into the run")
     proc = subprocess.Popen([*hil_command(), "run", "scenarios/ffcc_a.toml", "--bus", "hub", "--seed", str(seed),
                              "--out", str(tmp_path), "--set", "run.duration_s=60", "--set", "run.fault_time_s=30"],

@@ -14,6 +14,8 @@ from hil.config import load_scenario
 from hil.tcu_node import TcuNode
 from identifier.messages import IdentificationEvent, ObserverSample, SensorReading, TcuStatus, TorqueCommand
 
+from .conftest import case_seed
+
 PERIOD = 1e-3
 
 
@@ -240,7 +242,7 @@ def test_a_resent_reading_of_the_last_step_is_answered_with_the_same_command(ffc
     rejected), and its identifier does not see the reading twice."""
     node = TcuNode(ffcc_a, "nlls", 1)
     c = node.codec
-    rng = np.random.default_rng()
+    rng = np.random.default_rng(case_seed())
     last = int(rng.integers(5, 200))
     for k in range(last + 1):
         first = node.handle(c.sensor(SensorReading(k, 63.7 + 0.01 * k, 10.0)))
@@ -261,7 +263,7 @@ def test_every_reason_a_frame_is_refused_for_is_in_the_one_verdict_table(codec):
     from hil.bus.secoc import read_key, write_key
     from hil.bus.verdicts import ACTED, PASSED, REJECTED, VERDICTS, kind, newest, sensor_sequence
 
-    rng = np.random.default_rng()
+    rng = np.random.default_rng(case_seed())
     seen = set()
     ids = [SENSOR_ID, COMMAND_ID, STATUS_ID, RESULT_ID, PLANT_HEARTBEAT_ID, TCU_HEARTBEAT_ID, 0x7FF, 0x0]
     with tempfile.TemporaryDirectory() as d:
@@ -293,8 +295,7 @@ def test_every_reason_a_frame_is_refused_for_is_in_the_one_verdict_table(codec):
 def test_compiled_layouts_give_cantools_bytes_and_values_for_every_frame(codec):
     """The struct layouts compiled from the DBC encode and decode as cantools does, for random values
     across each signal's whole range (ints to their limits, floats of any magnitude, infinities)."""
-    seed = random.randrange(2**32)
-    print(f"seed {seed}")
+    seed = case_seed()
     rng = random.Random(seed)
     assert all(codec.layouts[fid] is not None for fid in codec.layouts)   # every frame of hil.dbc compiles
     for m in codec.db.messages:

@@ -5,7 +5,6 @@ Cases are drawn with a seed chosen when the test runs (printed, for reproduction
 """
 import json
 import os
-import time
 
 import numpy as np
 import pytest
@@ -20,7 +19,7 @@ from hil.effects import EFFECTS, TRUTH_KEY
 from hil.config import load_scenario
 from hil.sweep.engine import map_in_order
 
-from .conftest import SCENARIOS, hil
+from .conftest import SCENARIOS, case_seed, hil
 
 FFCC_A = SCENARIOS / "ffcc_a.toml"
 # A quantised speed steps at slightly different instants in the real run and in the augmented
@@ -31,9 +30,7 @@ FFCC_A = SCENARIOS / "ffcc_a.toml"
 
 
 def fresh_seed() -> int:
-    seed = int.from_bytes(os.urandom(4), "little") ^ time.time_ns() % (1 << 31)
-    print(f"gap test seed {seed}")
-    return seed
+    return case_seed("gap test")
 
 
 @pytest.fixture(scope="module")

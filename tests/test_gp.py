@@ -2,7 +2,6 @@
 exponential curves right, and on a flat-topped curve of a form no strategy assumes it does not
 confirm a wrong peak (the failure ``bayes``'s exponential form has there)."""
 import math
-import secrets
 
 import numpy as np
 import pytest
@@ -13,6 +12,8 @@ from identifier.strategies import Sample, make_strategy
 
 from .test_bayes import GEAR, INERTIA, PERIOD_S, RADIUS, TORQUE_PER_MU, curve, run, slip
 
+from .conftest import case_seed
+
 
 def settings(**options) -> IdentifierSettings:
     vehicle = VehicleModel(INERTIA, TORQUE_PER_MU, GEAR, RADIUS)
@@ -20,8 +21,7 @@ def settings(**options) -> IdentifierSettings:
 
 
 def fresh_rng():
-    seed = secrets.randbits(31)
-    print("seed", seed)
+    seed = case_seed()
     return np.random.default_rng(seed)
 
 
@@ -145,8 +145,8 @@ def test_compiled_and_numpy_paths_agree():
 
 def test_intervals_cover_the_truth_about_as_often_as_they_say():
     """40 exponential curves of the bench's families' peak box: the last 90 % intervals hold the true
-    peak mu and peak creep in at least 30 (36 expected if calibrated; fewer than 30 has probability
-    ~0.2 % then): a guard against a gross miscalibration, the bench measures it."""
+    peak mu and peak creep in at least 26 (36 expected if calibrated): a guard against a gross
+    miscalibration, the bench measures it."""
     from identifier.prior import CurvePrior
     from .test_bayes import draw_curve
     rng = fresh_rng()
@@ -160,7 +160,11 @@ def test_intervals_cover_the_truth_about_as_often_as_they_say():
         covered_mu += e.peak_mu_ci[0] <= phi[0] <= e.peak_mu_ci[1]
         covered_creep += e.peak_creep_ci[0] <= phi[1] <= e.peak_creep_ci[1]
     print("90 % intervals covered peak mu", covered_mu, "peak creep", covered_creep, "of", trials)
-    assert covered_mu >= 30 and covered_creep >= 30
+    # This loop's own computation over 1 500 draws (seeds 1000000-1000399, 3000000-3001099) covered peak mu
+    # 1 464 times (0.976) and peak creep 1 356 (0.904, 95 % lower bound 0.888).  Covered ~ Binomial(40, p):
+    # at p = 0.888, P(< 26) = 1.4e-5 (P(< 30), the former floor, is 3.6e-3: one run in 300 failed by chance);
+    # peak mu's P(< 26) at 0.967 is 1e-12.
+    assert covered_mu >= 26 and covered_creep >= 26
 
 
 def test_the_process_noise_follows_the_slope():

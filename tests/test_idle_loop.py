@@ -6,11 +6,13 @@ import time
 
 from hil.benchmarks.idle_loop import measure, pace
 
+from .conftest import case_seed
+
 
 def test_a_stall_of_the_pacing_loop_shows_as_late_wakes():
     """A thread holding the interpreter for ``stall_ms`` stalls the pacer as a descheduled CPU would:
     the periods it covers wake late by up to the stall, however quiet the machine."""
-    stall_ms = random.randrange(15, 40)
+    stall_ms = random.Random(case_seed("stall")).randrange(15, 40)
     print(f"stall {stall_ms} ms")
     old = sys.getswitchinterval()
     sys.setswitchinterval(1.0)                 # the busy thread keeps the interpreter for its whole stall

@@ -14,7 +14,7 @@ from hil.testing import alive
 from hil.rt.cpu_latency import cpuidle_driver
 from hil.rt.idle_spin import HALT, POLL, SHALLOW, SPIN, IdleSpinners, idle_mode, misses_with_cpu_away, spin
 
-from .conftest import ROOT, subprocess_env
+from .conftest import ROOT, case_seed, subprocess_env
 
 
 @pytest.mark.parametrize("setting, held_us, driver, fifo, mode", [
@@ -58,7 +58,7 @@ def test_misses_with_cpu_away_looks_from_half_a_period_before_to_the_deadline():
 def test_a_resting_spinner_hands_its_rests_back_and_counts_no_rest_as_a_gap():
     """Spinning 0.5 s with a rest of ``rest`` ms per 100 ms uses at most 0.5 s less five rests of CPU
     time (a spinner without rests would use about 0.5 s); the rests are not gaps."""
-    rest_ms = random.choice([10.0, 20.0, 30.0])
+    rest_ms = random.Random(case_seed("rest")).choice([10.0, 20.0, 30.0])
     print(f"rest {rest_ms} ms per 100 ms")
     cpu0, wall0 = time.process_time(), time.perf_counter()
     gaps, turns = spin(time.perf_counter(), 0.5, rest_s=rest_ms * 1e-3)
@@ -88,7 +88,7 @@ def test_a_process_preempting_a_spinner_is_never_time_away():
     gap is the guest's. (Misread, as by a first version that compared the switch count with the one read
     just after the previous clock read, ~20 ms of it showed as time away; the machine's own absences
     beside such a second measured 0.1-0.3 ms.)"""
-    busy_ms, sleep_ms = random.choice([(1.0, 1.0), (2.0, 2.0), (0.5, 1.5)])
+    busy_ms, sleep_ms = random.Random(case_seed("burner")).choice([(1.0, 1.0), (2.0, 2.0), (0.5, 1.5)])
     print(f"burner: {busy_ms} ms busy, {sleep_ms} ms asleep, for 1 s")
     with IdleSpinners(cpus=[0]) as spinners:
         burner = subprocess.run([sys.executable, "-c", BURNER % (1.0, busy_ms * 1e-3, sleep_ms * 1e-3)], timeout=30)

@@ -9,7 +9,6 @@ import collections
 import json
 import os
 import random
-import secrets
 import signal
 import subprocess
 
@@ -17,7 +16,7 @@ import pytest
 from hil.testing import chunk_map, expected_messages, in_payload, still_intact
 from hil.log.read import read_log
 
-from .conftest import ROOT, SCENARIOS, hil, hil_command, subprocess_env
+from .conftest import ROOT, SCENARIOS, case_seed, hil, hil_command, subprocess_env
 
 
 @pytest.fixture(scope="module")
@@ -33,8 +32,7 @@ def log(tmp_path_factory):
 
 
 def _seed() -> random.Random:
-    seed = secrets.randbits(31)
-    print(f"damage seed {seed}")
+    seed = case_seed("damage")
     return random.Random(seed)
 
 

@@ -1,13 +1,14 @@
 """hil/log/mcapfile.py writes the file mcap's own writer writes, byte for byte, and mcap's reader reads it."""
 import io
 import random
-import secrets
 
 import pytest
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
 from hil.log.mcapfile import LeanMcapWriter
+
+from .conftest import case_seed
 
 
 def calls(rng: random.Random, messages: int) -> list[tuple]:
@@ -38,8 +39,7 @@ def write(writer, sequence) -> None:
 
 @pytest.mark.parametrize("messages, chunk_size", [(0, 32768), (1, 500), (4000, 700), (4000, 32768)])
 def test_the_same_bytes_as_mcaps_writer_and_readable_by_its_reader(messages, chunk_size):
-    seed = secrets.randbelow(2**31)
-    print(f"seed {seed}")
+    seed = case_seed()
     sequence = calls(random.Random(seed), messages)
     theirs, ours = io.BytesIO(), io.BytesIO()
     write(Writer(theirs, chunk_size=chunk_size, compression=CompressionType.LZ4), sequence)

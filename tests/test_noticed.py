@@ -13,11 +13,11 @@ from hil.bus.localbus import create_channel, remove_channel
 from hil.log.read import read_log
 from identifier.messages import IdentificationEvent
 
-from .conftest import ROOT, hil_command, subprocess_env
+from .conftest import ROOT, case_seed, hil_command, subprocess_env
 
 
 def test_replayed_and_forged_frames_are_counted_in_the_summary_and_warned_in_the_log(tmp_path):
-    at_step = random.randrange(200, 800)
+    at_step = random.Random(case_seed("forging step")).randrange(200, 800)
     print(f"forging at the first command of step >= {at_step}")
     channel = create_channel()
     proc = None

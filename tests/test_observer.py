@@ -4,6 +4,8 @@ import pytest
 
 from identifier.observer import LoadTorqueObserver
 
+from .conftest import case_seed
+
 J, T = 16.6, 1e-3
 
 
@@ -47,13 +49,11 @@ def test_the_gap_diagnosis_replays_the_tcus_observer_exactly():
     """hil/gap/model.ObserverReplica runs the TCU's LoadTorqueObserver over a whole record as one
     linear filter (``state_space``): the same mu^ as stepping the observer, on random speeds and
     commands (seed drawn at test time)."""
-    import secrets
 
     from hil.config import load_scenario
     from hil.gap.model import ObserverReplica
     from identifier.observer import LoadTorqueObserver
-    seed = secrets.randbits(31)
-    print("seed", seed)
+    seed = case_seed()
     g = np.random.default_rng(seed)
     settings = load_scenario("scenarios/ffcc_a.toml").identifier_settings()
     n = 2000

@@ -15,7 +15,7 @@ from hil.errors import ConfigError
 from hil.log.read import read_log
 from hil.log.record import Recorder
 
-from .conftest import ROOT, hil_command, subprocess_env
+from .conftest import ROOT, case_seed, hil_command, subprocess_env
 from .test_bus import FFCC_A, alive, children_of, cmdline, data_streams, identification, run_json
 
 pytestmark = pytest.mark.realtime
@@ -63,8 +63,7 @@ def _stall_20ms(pid: int, proc, times: int, every_s: float) -> int:
 
 
 def test_a_tcu_stalled_20ms_at_times_does_not_end_a_realtime_run(tmp_path):
-    seed = random.randrange(1, 10_000)
-    print(f"seed {seed}")
+    seed = case_seed() % 9999 + 1
     with _hil_process([*RT_ARGS, "--seed", str(seed), "--out", str(tmp_path)]) as proc:
         stalls = _stall_20ms(_tcu_child(proc.pid), proc, 5, 0.15)
         out, err = proc.communicate(timeout=120)
@@ -82,7 +81,7 @@ def test_a_tcu_stalled_20ms_at_times_does_not_end_a_realtime_run(tmp_path):
 
 def test_recording_queue_overflow_counts_exactly_the_dropped_rows(tmp_path):
     """Rows written in line while the loop waits: a full queue drops and counts each row beyond it."""
-    limit, extra = 10, random.randrange(1, 50)
+    limit, extra = 10, random.Random(case_seed("extra")).randrange(1, 50)
     print(f"extra rows {extra}")
     rec = Recorder(tmp_path / "q.mcap")
     rec.defer(queue_limit=limit, block_when_full=False, writer="inline")
@@ -106,7 +105,7 @@ def test_the_writer_process_is_a_batch_task_whatever_the_loops_priority(tmp_path
     try:
         rec = Recorder(tmp_path / "b.mcap")
         rec.defer(queue_limit=1000, block_when_full=True, writer="process")
-        n = random.randrange(200, 3000)
+        n = random.Random(case_seed("rows")).randrange(200, 3000)
         print(f"rows {n}, loop under SCHED_FIFO: {fifo}")
         for i in range(n):
             rec.event(i * 1e-3, "info", f"row {i}")
@@ -125,7 +124,7 @@ def test_the_writer_process_is_a_batch_task_whatever_the_loops_priority(tmp_path
 def test_a_stalled_writer_process_fills_the_pipe_then_the_queue_and_the_rest_is_counted(tmp_path):
     """The writer process stopped (SIGSTOP): the pipe and then the queue fill, never blocking the
     loop; every row after that is dropped and counted, and the rows kept are the first ones, whole."""
-    limit = random.randrange(100, 2000)
+    limit = random.Random(case_seed("limit")).randrange(100, 2000)
     print(f"queue limit {limit}")
     rec = Recorder(tmp_path / "p.mcap")
     rec.defer(queue_limit=limit, block_when_full=False, writer="process")
@@ -253,8 +252,7 @@ MISS_ARGS = ["run", "scenarios/ffcc_a.toml", "--mode", "realtime", "--bus", "loc
 
 def test_a_realtime_run_over_its_missed_deadline_limit_exits_5_after_writing_its_logs(tmp_path):
     # a deadline 1 us into each period: no command over a real bus arrives that fast, so every step misses
-    seed = random.randrange(1, 10_000)
-    print(f"seed {seed}")
+    seed = case_seed() % 9999 + 1
     r = subprocess.run([*hil_command(), *MISS_ARGS, "--seed", str(seed), "--out", str(tmp_path),
                         "--set", "bus.deadline_fraction=0.001", "--set", "bus.max_missed_fraction=0"],
                        cwd=ROOT, env=subprocess_env(), capture_output=True, text=True, timeout=180)

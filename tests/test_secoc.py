@@ -3,7 +3,6 @@ sent again is a replay, and on the embedded bus a run is authenticated by defaul
 forged result, command and heartbeat and its replays change nothing and are counted by reason."""
 import json
 import os
-import secrets
 import stat
 import subprocess
 import time
@@ -18,15 +17,13 @@ from hil.bus.localbus import create_channel, remove_channel
 from hil.bus.secoc import read_key, write_key
 from identifier.messages import IdentificationEvent, SensorReading, TorqueCommand
 
-from .conftest import ROOT, hil_command, subprocess_env
+from .conftest import ROOT, case_seed, hil_command, subprocess_env
 
 PERIOD = 1e-3
 
 
 def fresh_seed(what: str) -> int:
-    seed = secrets.randbits(31)
-    print(f"{what}: seed {seed}")
-    return seed
+    return case_seed(what)
 
 
 def pair(key=None):

@@ -20,7 +20,7 @@ from hil.sweep.driver import run_sweep
 from hil.sweep.spec import load_sweep
 from hil.sweep.table import TOL_PEAK_CREEP_PERCENT, TOL_PEAK_MU_PERCENT, comparable
 
-from .conftest import ROOT
+from .conftest import ROOT, case_seed
 
 BASE = ROOT / "scenarios" / "ffcc_a.toml"
 
@@ -32,8 +32,7 @@ def sweep_file(tmp_path, axes: str, name="t", extra="") -> Path:
 
 
 def drawn_seeds(n: int, where: str) -> list[int]:
-    seed = random.SystemRandom().randrange(1, 2 ** 31)
-    print(f"{where}: run seeds from master seed {seed}")
+    seed = case_seed(f"{where}: master seed of the run seeds")
     rng = random.Random(seed)
     return [rng.randrange(1, 2 ** 31) for _ in range(n)]
 
@@ -161,8 +160,7 @@ def test_a_failing_point_is_a_row_and_the_sweep_goes_on(tmp_path):
 
 
 def test_bench_identify_on_two_workers_gives_the_serial_verdicts(capsys):
-    seed = random.SystemRandom().randrange(1, 2 ** 30)
-    print(f"bench identify draws seed {seed}", file=sys.stderr)
+    seed = case_seed("bench identify draws") % (1 << 30) + 1
     args = ["bench", "identify", "--family", "default", "--draws", "3", "--seed", str(seed), "--strategies", "nlls",
             "--oracle-draws", "50", "--json"]
     assert main(args) == 0

@@ -12,7 +12,7 @@ from hil.bus.frames import TCU_HEARTBEAT_ID, FrameCodec
 from hil.bus.localbus import create_channel, remove_channel
 from identifier.messages import SensorReading
 
-from .conftest import ROOT, subprocess_env
+from .conftest import ROOT, case_seed, subprocess_env
 
 SILENCE_S, HEARTBEAT_S = 0.05, 0.002
 
@@ -68,7 +68,7 @@ def test_heartbeats_keep_coming_while_the_tcu_is_held_by_long_work_and_come_from
     """A TCU process answers one sensor frame with work that holds its interpreter for ``busy_s``
     (longer than the silence limit), as a strategy's fit does: its heartbeats still come, never further
     apart than the silence limit.  Idle, its loop sends them every heartbeat period."""
-    busy_s = random.uniform(0.15, 0.35)
+    busy_s = random.Random(case_seed("busy")).uniform(0.15, 0.35)
     print(f"busy {busy_s * 1e3:.0f} ms")
     plant_bus = can.Bus(interface="localbus", channel=channel)
     tcu = subprocess.Popen([sys.executable, "-c", TCU, channel, repr(busy_s)], cwd=ROOT, env=subprocess_env(),

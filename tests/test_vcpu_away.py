@@ -10,7 +10,7 @@ import time
 
 from hil.benchmarks.vcpu_away import cycle_share, measure, periods_away
 
-from .conftest import ROOT, subprocess_env
+from .conftest import ROOT, case_seed, subprocess_env
 
 
 def test_periods_away_sums_one_cpus_gaps_within_a_period_but_never_across_cpus():
@@ -27,7 +27,7 @@ def test_periods_away_sums_one_cpus_gaps_within_a_period_but_never_across_cpus()
 def test_a_process_stopped_by_the_kernel_is_a_guest_gap_not_time_away():
     """SIGSTOP takes the spinner off its CPU through this system's scheduler: the gap across the stop
     is as long as the stop and is counted as the guest's, never as the machine's."""
-    stop_ms = random.randrange(15, 40)
+    stop_ms = random.Random(case_seed("stop")).randrange(15, 40)
     print(f"stop {stop_ms} ms")
     child = subprocess.Popen([sys.executable, "-m", "hil.benchmarks.vcpu_away", "--child", "0", "1.0", "0", "0"],
                              cwd=ROOT, env=subprocess_env(), stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
@@ -74,7 +74,7 @@ def test_measure_merges_one_spinner_per_cpu():
 def test_cycle_share_tells_absences_that_end_together_each_cycle_from_scattered_ones():
     """Absences that end at the same point of a 100 ms cycle (a host's CPU quota running out) give a
     share near 1; absences at random points give about 2 ms / 100 ms; short ones do not count."""
-    rng = random.Random(random.randrange(1 << 30))
+    rng = random.Random(case_seed())
     cycle = 0.1
     together = [(k * cycle + 0.0437 - d, d) for k, d in
                 ((rng.randrange(600), rng.uniform(0.4e-3, 2.5e-3)) for _ in range(40))]

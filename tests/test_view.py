@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from .conftest import ROOT, SCENARIOS, hil
+from .conftest import ROOT, SCENARIOS, case_seed, hil
 
 ARTEFACTS = ROOT / "tests" / "artefacts"
 RERUN = Path(sys.executable).with_name("rerun")
@@ -105,7 +105,7 @@ def test_the_rrd_streams_in_batches_with_every_point_of_the_log(runs, tmp_path, 
     from hil.log.read import read_log
 
     s, mcap, _, _ = runs["ffcc_b"]
-    batch = random.randrange(500, 5000)
+    batch = random.Random(case_seed("batch")).randrange(500, 5000)
     print(f"batch {batch} rows")
     monkeypatch.setattr(view, "BATCH_ROWS", batch)
     small, _ = view.write_rrd(mcap, tmp_path / "small.rrd")

@@ -60,6 +60,7 @@ trap 'rm -rf "$DIR"' EXIT
   echo "export CI='${CI:-}'"
   echo "export HOME='${HOME:-/root}'"
   echo "export HIL_UML=1"
+  [ -n "${HIL_TEST_SEED:-}" ] && echo "export HIL_TEST_SEED='$HIL_TEST_SEED'"
   echo "export HIL_UML_CWD='$ROOT'"
   echo "export PYTHONDONTWRITEBYTECODE=1"
   echo "export TMPDIR='$DIR/tmp'"
