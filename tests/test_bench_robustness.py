@@ -63,8 +63,7 @@ def test_every_part_at_small_counts_finds_no_failure(tmp_path):
 
 def test_the_default_output_fits_a_terminal_and_markdown_is_the_report(tmp_path):
     """The terminal table wraps every line within 100 characters; ``--markdown`` prints the report's table."""
-    seed = secrets.randbits(31)
-    print(f"bench seed {seed}")
+    seed = case_seed("bench")
     args = ("bench", "robustness", "--seed", seed, "--only", "logs", "--logs", "7")
     r = hil(*args, timeout=300, cwd=ROOT)
     assert r.returncode == 0, r.stderr[-2000:]
