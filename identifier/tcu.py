@@ -94,7 +94,6 @@ class TractionIdentifier:
 
     def __init__(self, settings: IdentifierSettings, strategy: str = DEFAULT_STRATEGY, seed: int = 0):
         self.settings = settings
-        self.strategy_name = strategy
         self.strategy = make_strategy(strategy, settings, seed)
         self.seed = seed
         self.excitation = Excitation.from_dict(settings.excitation)

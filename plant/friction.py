@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 from scipy.optimize import brentq, minimize_scalar
@@ -87,16 +86,6 @@ class FrictionCurve(_CurveShape):
             raise ValueError(f"curve {self.name!r}: {len(self.lambdas)} lambdas but {len(self.taus)} taus")
         if not self.lambdas:
             raise ValueError(f"curve {self.name!r}: needs at least one exponential term")
-
-    # -- construction ----------------------------------------------------------------------
-    @classmethod
-    def from_params(cls, params: Sequence[float], name: str = "") -> "FrictionCurve":
-        """From the flat vector (lambda0, lambda1..n, tau1..n) used by the identifiers."""
-        p = [float(x) for x in params]
-        if len(p) < 3 or len(p) % 2 == 0:
-            raise ValueError(f"curve {name!r}: parameter vector must have length 1 + 2n, got {len(p)}")
-        n = (len(p) - 1) // 2
-        return cls(p[0], tuple(p[1:1 + n]), tuple(p[1 + n:]), name)
 
     @property
     def params(self) -> np.ndarray:

@@ -63,7 +63,7 @@ def test_inprocess_hub_and_vcan_give_identical_frames_and_identification(tmp_pat
         out = tmp_path / bus
         s, err = run_json(FFCC_A, bus, out)
         runs[bus] = (s, out / "ffcc_a-gp-1.mcap")
-    s_vcan, path_vcan = runs["auto"]
+    s_vcan, _ = runs["auto"]
     assert s_vcan["bus"] == "socketcan:vcan0"           # auto picks vcan0 where the kernel has it
     s_in, path_in = runs["inprocess"]
     assert s_in["identified"]

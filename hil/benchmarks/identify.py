@@ -709,7 +709,7 @@ def write_plots(out_dir: Path, first_runs: dict, strategies: list[str]) -> list[
     for case, runs in first_runs.items():
         if not runs:
             continue
-        any_summary, _, data = next(iter(runs.values()))
+        _, _, data = next(iter(runs.values()))
         sc = data.scenario
         true_theta = sc.fault_curve.params
         v_peak, _ = sc.fault_curve.peak()

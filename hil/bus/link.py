@@ -18,8 +18,7 @@ Bus specs:
                          and timing come from python-can's own configuration (``~/.canrc``)
 
 ``BusHandle.peer_spec`` is what a second process passes to ``open_bus`` to reach the same bus.
-Backends are looked up by name in ``BACKENDS`` (as python-can's ``BACKENDS``); ``register_backend``
-adds one.  Errors are ``BusError``: one line naming the bus and what is available here.
+Backends are looked up by name in ``BACKENDS`` (as python-can's ``BACKENDS``).  Errors are ``BusError``: one line naming the bus and what is available here.
 """
 from __future__ import annotations
 
@@ -310,11 +309,6 @@ BACKENDS: dict[str, Opener] = {
     "udp_multicast": _open_refused,
     "virtual": _open_local_only,      # python-can's virtual bus lives inside one process
 }
-
-
-def register_backend(name: str, opener: Opener) -> None:
-    """Make ``open_bus(name)`` / ``open_bus(f"{name}:CHANNEL")`` use ``opener``."""
-    BACKENDS[name] = opener
 
 
 def open_bus(spec: str, inprocess_node=None) -> BusHandle:

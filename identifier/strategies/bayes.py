@@ -366,12 +366,6 @@ class BayesStrategy(SpeedModelStrategy):
                                            self._q_out[:k])
         return self._q_out[:k].copy()
 
-    def intervals(self, level: float) -> tuple[tuple[float, float], tuple[float, float]]:
-        """Central credible intervals of peak mu and peak creep (km/h) at ``level``."""
-        qs = (0.5 * (1.0 - level), 0.5 * (1.0 + level))
-        mu, creep = self.quantiles(0, qs), self.quantiles(1, qs)
-        return (float(mu[0]), float(mu[1])), (float(creep[0]), float(creep[1]))
-
     def summary(self, level: float) -> tuple[np.ndarray, tuple[float, float], tuple[float, float]]:
         """The posterior's curve (weighted medians of peak mu and peak creep, the rest from the
         weighted mean in u) and the central intervals at ``level``: one quantile pass per coordinate."""

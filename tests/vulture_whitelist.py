@@ -1,0 +1,49 @@
+"""Names vulture takes for dead that are used from outside Python's sight (``tests/test_layout.py`` runs
+vulture with this file): each line says who uses it."""
+from vulture.whitelist_utils import Whitelist
+
+_ = Whitelist()
+
+# python-can calls these on every interface (BusABC): hil/bus/link.py, hil/bus/localbus.py
+_.channel_info
+_._recv_internal
+_._is_shutdown
+_._detect_available_configs
+# the lazy public API: Python calls module __getattr__ / __dir__; hil.__init__._API names replay_log by string
+__getattr__
+__dir__
+replay_log
+# numba's @intrinsic signatures take (typingctx, ...) and codegen (context, builder, ...): identifier/kernels.py
+typingctx
+context
+# FMI callbacks filled into a ctypes structure the FMU calls: plant/fmu_plant.py
+_.logger
+_.allocateMemory
+_.freeMemory
+_._callbacks
+cat
+inst
+# only for annotations (TYPE_CHECKING): plant/fmu_plant.py
+ModelDescription
+# a reference kept so that CasADi's buffer outlives the compiled call bound to it: plant/model.py, reality.py
+_._buffer
+# mcap's Statistics record, written whole at the end of the file: hil/log/mcapfile.py
+_.schema_count
+_.channel_count
+_.metadata_count
+_.chunk_count
+# Table 1 parameters read by name (getattr) as the load-transfer effect's defaults: plant/params.py
+half_bogie_distance_m
+half_wheelbase_m
+coupler_height_m
+bogie_height_m
+# pytest hooks and marks
+pytest_configure
+pytest_report_header
+pytest_terminal_summary
+pytest_itemcollected
+pytest_collection_modifyitems
+pytestmark
+# a fixture requested by name (tests/test_vcan.py), urllib's request target set by hand (tests/test_bus.py)
+vcan0
+_.selector
