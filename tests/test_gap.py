@@ -533,3 +533,36 @@ def test_a_held_out_bristle_is_not_named_as_another_class(tmp_path, scenario):
     print("truth as a candidate:", truth)
     assert all(truth["shrink_percent"] > r["held_out_shrink"] * 100 for n, r in rows.items()
                if EFFECTS[n].effect_class == "adhesion_lag")
+
+
+def test_a_candidate_whose_fit_fails_is_counted_and_named(tmp_path, scenario):
+    """A model whose wheelbase is zero (a scenario built past the loader, which refuses one): the axle
+    load transfer divides by it, so both load-transfer forms fail to fit on a real run.  They are
+    counted and named (JSON, the text summary, report.md), ranked as removing nothing, and every other
+    candidate is still fitted and judged."""
+    import dataclasses
+
+    from hil.gap.report import text_summary, write_report
+
+    seed = fresh_seed() % 100000
+    summary = run(scenario, "nlls", seed, bus="inprocess", out_dir=tmp_path, progress=False, log=print)
+    bad = dataclasses.replace(scenario, vehicle=dataclasses.replace(scenario.vehicle, half_wheelbase_m=0.0))
+    out, result = diagnose(read_real_log(summary["mcap"]), bad, identify=False)
+    failed = out["which"]["failed_candidates"]
+    print(failed)
+    assert sorted((f["name"], f["step"]) for f in failed) == [("load_transfer", "alone"),
+                                                              ("load_transfer_pitch", "alone")]
+    for f in failed:
+        assert f["effect"] == "load_transfer" and f["form"] == EFFECTS[f["name"]].form
+        assert f["error"].split(":")[0] in ("FloatingPointError", "ZeroDivisionError"), f
+    assert result.failed == failed
+    rows = {r["candidate"]: r for r in out["which"]["ranking"]}
+    for name in ("load_transfer", "load_transfer_pitch"):
+        assert rows[name]["note"].startswith("fit failed") and rows[name]["share"] == 0.0
+    fitted = {n for n, r in rows.items() if not r["note"].startswith("fit failed")}
+    assert fitted == {n for n, s in EFFECTS.items() if s.candidate} - {"load_transfer", "load_transfer_pitch"}
+    text = text_summary(out)
+    assert "FAILED FITS (2;" in text and "load_transfer (static, alone)" in text, text
+    md = write_report(out, result, tmp_path / "report").read_text()
+    assert "| load_transfer_pitch | pitch_mode | alone |" in md, md
+    assert json.loads(json.dumps(out))["which"]["failed_candidates"] == failed

@@ -186,12 +186,12 @@ def run_case(scenario, kind: str, effects: dict, run_seed: int, out_dir: Path, i
     path = summary["mcap"]
     t0 = time.perf_counter()
     held_out = sorted(n for n in effects if n in HELD_OUT)             # the truth's own form is no candidate
-    out, dg = diagnose(read_real_log(path), scenario, identify=False, exclude=held_out)   # blind: no truth here
+    out, result = diagnose(read_real_log(path), scenario, identify=False, exclude=held_out)   # blind: no truth here
     wall = time.perf_counter() - t0
     truth = read_log(path).metadata[TRUTH_KEY]                          # only now, for scoring
     which = out["which"]
     truth_set = truth_classes(effects)
-    limit = oracle(dg, effects, truth_set) if which["gap_present"] and truth_set else None
+    limit = oracle(result, effects, truth_set) if which["gap_present"] and truth_set else None
     named_set = sorted(which["named_set"])
     rec = {"case": i, "kind": kind, "effects": effects, "truth_classes": truth_set, "named": which["named"],
            "named_set": named_set, "confidence": which["confidence"], "verdict": which["verdict"],
@@ -202,7 +202,8 @@ def run_case(scenario, kind: str, effects: dict, run_seed: int, out_dir: Path, i
            "best_form": which["ranking"][0]["form"], "diagnosis_s": wall, "log": path,
            "description": (which.get("description") or {}).get("sentence"),
            "described_variables": (which.get("description") or {}).get("variables", []),
-           "oracle": limit, "excluded": held_out, "ranked_candidates": [r["candidate"] for r in which["ranking"]]}
+           "oracle": limit, "excluded": held_out, "ranked_candidates": [r["candidate"] for r in which["ranking"]],
+           "failed_candidates": which["failed_candidates"]}
     if kind == "outside":
         right = set().union(*(OUTSIDE_VARIABLES[n] for n in effects))
         line_hz = (which.get("description") or {}).get("line_hz") if "periodic" in rec["described_variables"] \
@@ -238,17 +239,17 @@ def run_case(scenario, kind: str, effects: dict, run_seed: int, out_dir: Path, i
     return rec
 
 
-def oracle(dg, effects: dict, truth_set: list) -> dict | None:
+def oracle(result, effects: dict, truth_set: list) -> dict | None:
     """The information limit of one case: the truth itself (its own equations and parameters, only
     the initial state fitted) scored as one more candidate by the diagnosis' own rules.  ``separable``:
-    it removes a material share and beats, by the diagnosis' margin (``Diagnosis.beats``), the rail
+    it removes a material share and beats, by the diagnosis' margin (``select.beats``), the rail
     nuisance and the best candidate of a class the truth does not have (of several effects: the best
     single candidate).  A case the truth itself cannot be
     told apart in is beyond what any candidate could be expected to name from this log.  None where a
     truth effect has no exact model here (quantisation, a tachometer gain, the CAN bus)."""
     from plant.reality import fill_defaults
     from ..gap.candidates import fit_nominal
-    from ..gap.diagnose import MIN_SCORE_GAIN, MIN_SHRINK
+    from ..gap.select import MIN_SCORE_GAIN, MIN_SHRINK, beats, entry
 
     plant = {n: p for n, p in effects.items() if EFFECTS[n].level == "plant"}
     sensor = {n: p for n, p in effects.items() if n not in plant}
@@ -256,18 +257,18 @@ def oracle(dg, effects: dict, truth_set: list) -> dict | None:
              "motor_delay": ("motor_delay", "delay_ms")}
     if set(sensor) - set(exact):
         return None
-    periods = {exact[n][0]: p[exact[n][1]] * 1e-3 / dg.data.period_s for n, p in sensor.items()}
-    ctx = dg.ctx.on_top_of_effects(
-        fill_defaults({n: {**EFFECTS[n].params, **p} for n, p in plant.items()}, dg.ctx.cfg), **periods)
+    periods = {exact[n][0]: p[exact[n][1]] * 1e-3 / result.data.period_s for n, p in sensor.items()}
+    ctx = result.ctx.on_top_of_effects(
+        fill_defaults({n: {**EFFECTS[n].params, **p} for n, p in plant.items()}, result.ctx.cfg), **periods)
     fit = fit_nominal(ctx)
     fit.name = "truth"
-    row = dg._entry(dg.ctx, fit, dg.base)
+    row = entry(result.ctx, fit, result.base)
     # the alternatives: another class's best for one effect; for several, any single candidate too (a
     # pair is told apart only when it beats the best single effect: the second one shows)
-    others = [r for r in dg.ranking if len(truth_set) > 1 or r["effect"] not in truth_set]
+    others = [r for r in result.ranking if len(truth_set) > 1 or r["effect"] not in truth_set]
     material = row["held_out_shrink"] >= MIN_SHRINK and row["score_gain"] > MIN_SCORE_GAIN
-    over_rail = dg.rail is None or dg.beats(row, dg.rail)
-    over_others = all(dg.beats(row, r) for r in others[:1])
+    over_rail = result.rail is None or beats(row, result.rail)
+    over_others = all(beats(row, r) for r in others[:1])
     return {"shrink_percent": row["held_out_shrink"] * 100, "held_out_gap": row["held_out_gap"],
             "score_gain": row["score_gain"], "material": material, "beats_rail": over_rail,
             "beats_other_classes": over_others, "separable": bool(material and over_rail and over_others)}
@@ -334,6 +335,7 @@ def summarise(records: list[dict]) -> dict:
         "median_param_err_percent": float(np.median(perr)) if perr else None,
         "param_within_20_percent": sum(p <= 20 for p in perr) / len(perr) if perr else None,
         "per_form": per_form, "confusion": confusion,
+        "failed_fits": sum(len(r.get("failed_candidates", [])) for r in records),
         "median_diagnosis_s": float(np.median([r["diagnosis_s"] for r in records])) if records else None,
     }
 
@@ -423,7 +425,10 @@ def cmd_gap_bench(args) -> int:
         print(f"hil bench gap: case {rec['case'] + 1}/{args.cases}: {rec['kind']} {'+'.join(rec['effects'])} -> "
               f"{'+'.join(rec['named_set']) or 'none'} [{rec['confidence']}] "
               f"({'ok' if rec['correct'] else 'WRONG'}{', FALSE-CONFIDENT' if rec['false_confident'] else ''}), "
-              f"shrink {rec['shrink_percent']:.0f} %{extra}; truth told apart: {_oracle_cell(rec.get('oracle'))}",
+              f"shrink {rec['shrink_percent']:.0f} %{extra}; truth told apart: {_oracle_cell(rec.get('oracle'))}"
+              + (f"; {len(rec['failed_candidates'])} candidate fits failed: "
+                 + ", ".join(f"{f['name']} ({f['step']})" for f in rec["failed_candidates"])
+                 if rec["failed_candidates"] else ""),
               file=sys.stderr, flush=True)
     result = summarise(records)
     result.update({"seed": seed, "seed_drawn": seed_drawn, "mix": mix, "mix_arg": args.mix,

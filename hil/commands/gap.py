@@ -30,10 +30,10 @@ def cmd_gap(args) -> int:
         raise ConfigError(f"--max-creep-kmh {args.max_creep_kmh}: must be > 0")
     scenario = load_scenario(args.model)
     data = read_real_log(args.real_log, scenario.run.exchange_period_s)
-    out, dg = diagnose(data, scenario, block=args.block, max_creep_kmh=args.max_creep_kmh,
+    out, result = diagnose(data, scenario, block=args.block, max_creep_kmh=args.max_creep_kmh,
                        identify=not args.no_identify, progress=True)
     if args.report:
-        path = write_report(out, dg, args.report)
+        path = write_report(out, result, args.report)
         out["report"] = str(path)
     if args.json:
         print(json.dumps(out))

@@ -4,6 +4,6 @@ how far it shrinks with that effect added -- judged on held-out data, never on t
 The diagnosis reads logs only through ``data.read_real_log``, which drops the truth.
 """
 from .data import RealData, read_real_log
-from .diagnose import NONE, Diagnosis, diagnose
+from .diagnose import NONE, Diagnosis, DiagnosisResult, diagnose
 
-__all__ = ["RealData", "read_real_log", "NONE", "Diagnosis", "diagnose"]
+__all__ = ["RealData", "read_real_log", "NONE", "Diagnosis", "DiagnosisResult", "diagnose"]

@@ -126,7 +126,7 @@ class Context:
 # -- candidates --------------------------------------------------------------------------------------
 #: the measured initial state is a nuisance pair fitted with every model (nominal included), within
 #: X0_BOUND sensor-noise standard deviations of the straight-line estimate over the first 20 ms (whose
-#: own error is about half a standard deviation)
+#: own error is a fraction of one: docs/design/gap-diagnosis.md)
 X0_BOUND = 5.0
 
 

@@ -1,8 +1,8 @@
 """The nominal model (and the nominal model plus one candidate effect) replayed on a real log's inputs.
 
 * ``Simulator``: the CasADi period step of ``plant.reality.RealityModel`` rolled over the whole run
-  with ``mapaccum`` (one call simulates every period; about 10 ms for 1000 periods), the fitted
-  effect parameters as a vector input.
+  with ``mapaccum`` (one call simulates every period, so a least-squares fit can afford hundreds of
+  whole-run simulations), the fitted effect parameters as a vector input.
 * ``observer_mu_hat``: the TCU's load-torque observer (identifier/observer.py, eq. 4-5) as a linear
   filter over whole arrays (scipy ``lfilter``), so the model's mu^ is computed exactly the way the
   TCU computes it, without a Python loop per sample.

@@ -36,6 +36,10 @@ def text_summary(out: dict) -> str:
                                            f"{_f((r.get('param_ci') or {}).get(k, [None, None])[1], '.3g')}]"
                                            if (r.get("param_ci") or {}).get(k) else "")
                          for k, v in r["params"].items()) + (f"  AT BOUND: {', '.join(bounds)}" if bounds else ""))
+    failed = which.get("failed_candidates") or []
+    if failed:
+        lines.append(f"    FAILED FITS ({len(failed)}; a candidate is not judged where its fit failed): " + "; ".join(
+            f"{f['name']} ({f['form'] or f['effect']}, {f['step']}): {f['error']}" for f in failed))
     if which.get("description"):
         lines.append(f"    DESCRIBED (sparse regression of what the nominal model leaves): "
                      f"{which['description']['sentence']}")
@@ -69,7 +73,9 @@ def text_summary(out: dict) -> str:
     return "\n".join(lines)
 
 
-def write_report(out: dict, dg, directory) -> Path:
+def write_report(out: dict, result, directory) -> Path:
+    """report.md, PNG plots and gap.json of ``out`` (the answer) into ``directory``; the plots read the
+    signals from ``result`` (a ``diagnose.DiagnosisResult``)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -78,9 +84,10 @@ def write_report(out: dict, dg, directory) -> Path:
 
     d = Path(directory)
     d.mkdir(parents=True, exist_ok=True)
-    a = dg.arrays
-    t = a["t"]
-    w = a["window"]
+    a = {"meas": result.ctx.meas, "nominal": result.nominal, "best": result.best.pred, "best_name": result.best.name,
+         "sigma": result.ctx.sigma_nom}
+    t = result.data.t_s
+    w = result.ctx.window
     pngs = []
 
     # 1. signals: measured, nominal, best candidate
@@ -157,7 +164,7 @@ def write_report(out: dict, dg, directory) -> Path:
     # 5. identified curves
     ident = out.get("identification")
     if ident:
-        sc = dg.scenario
+        sc = result.scenario
         grid = np.linspace(0, 3 * sc.fault_curve.peak()[0], 300)
         fig, ax = plt.subplots(figsize=(7, 4))
         ax.plot(grid, sc.fault_curve.mu(grid), "k-", lw=1.5, label="model's fault curve")
@@ -191,6 +198,12 @@ def write_report(out: dict, dg, directory) -> Path:
     for r in rk:
         md.append(f"| {r['effect']} | " + ", ".join(f"{k}={v:.4g}" for k, v in r["params"].items())
                   + f" | {r['score_gain']:.1f} | {r['held_out_shrink'] * 100:.1f} % |")
+    if out["which"].get("failed_candidates"):
+        md += ["", f"Candidate fits that failed ({len(out['which']['failed_candidates'])}; a candidate that failed "
+               "alone is ranked with the nominal model's prediction):", "",
+               "| candidate | form | step | error |", "|---|---|---|---|"]
+        for f_ in out["which"]["failed_candidates"]:
+            md.append(f"| {f_['name']} | {f_['form']} | {f_['step']} | {f_['error'].replace('|', '/')} |")
     md += ["", "## How far it shrinks (held-out blocks)", "",
            "| signal | RMSE before | RMSE after | gap before | gap after | noise floor |", "|---|---|---|---|---|---|"]
     for s, v in out["shrink"]["per_signal"].items():

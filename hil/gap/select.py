@@ -1,0 +1,429 @@
+"""WHICH effect explains the gap: candidate selection, judged on held-out data.
+
+The run is cut into alternating blocks of ``block`` samples: even blocks fit each candidate, odd
+blocks judge it.  Score on held-out blocks (``score``) = Gaussian negative log-likelihood with the
+noise floor sigma_s the candidate expects, relative to the nominal floor sigma0_s,
+
+    NLL = sum_s sum_k (r_sk / sigma_s)^2 + 2 n_s log(sigma_s / sigma0_s),   score = NLL + k log(n)
+
+(k log(n): the BIC penalty, k fitted parameters).  "Gap" = sqrt(max(RMSE^2 - sigma^2, 0)), the part a
+model can remove, in nominal noise units averaged over the signals; shrink = 1 - gap_after / gap_before.
+The nuisance is fitted too: the rail's fault curve scaled in mu and in creep (``candidates.RAIL``),
+the most common real gap.  Graded answer (``judge``), every row of the ranking with its form, share
+of the held-out gap removed, parameter interval (``candidates.interval_halfwidths``) and at-bound flag:
+
+- the rail curve removes >= ``MIN_SHRINK`` and no effect beats it by the margin: "the rail's curve
+  differs: peak mu -2 %" (named "none", confidence "nuisance");
+- the best effect and the rail curve both remove >= ``MIN_SHRINK`` and neither beats the other:
+  "rail or axle load: not separable in this log" (named "none", confidence "not_separable");
+- the best effect removes >= ``MIN_SHRINK``, gains ``MIN_SCORE_GAIN`` over the nominal model, beats
+  the runner-up and the rail curve by the margin (``beats``: a held-out score better by
+  ``MIN_MARGIN`` and a remaining gap at most ``MARGIN_GAP_RATIO`` of theirs) and its fit is not
+  pinned (every parameter at a bound): named (confidence "confident");
+- it removes >= ``MIN_SHRINK`` without that margin: "none named with confidence: most likely X"
+  ("tentative"); otherwise "none of the candidates" ("none").
+
+A quantiser changes the noise, not the mean, so it is judged apart and first (``quantiser``): speeds
+on a lattice coarser than the scenario's own name it beside whatever explains the mean, and its noise
+(q^2 / 12) joins every model's noise floor.  No noise-floor test: an effect written with other
+equations than its candidate leaves a remainder above the noise and is still the right answer when it
+beats every alternative.  Two effects: ``forward`` (a second effect on top of the first, pairs fitted
+together) and ``rejudge``.
+
+A candidate whose fit fails is never dropped silently: each failure (a least-squares start the model
+cannot be evaluated at, a model that diverges, a CasADi evaluation error: ``FIT_ERRORS``) is appended
+to the caller's ``failed`` list (``failure``: name, form, step, error) and the diagnosis reports them
+(``which.failed_candidates``).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..effects import EFFECTS
+from .candidates import (RAIL, SIGNALS, Context, Fit, PlantCandidate, SensorDelayCandidate, candidates, fit_pair,
+                         plant_side)
+
+NONE = "none"
+MIN_SHRINK = 0.8           # fraction of the held-out gap a named effect must remove
+MIN_MARGIN = 25.0          # held-out score by which it must beat the runner-up and the nuisance, and ...
+MARGIN_GAP_RATIO = 0.5     # ... the gap it leaves must be at most this fraction of theirs, unless ...
+NOISE_GAP = 0.5            # ... theirs is already this close to the noise floor (noise units)
+FORWARD_MIN_SHARE = 0.15   # forward selection starts from a best single effect removing at least this, and
+FORWARD_MAX_SHARE = 0.9    # ... and below this (a form that differs from its candidate's leaves a remainder:
+                           #     a second effect fitted into that remainder would be a false name) unless ...
+FORWARD_MIN_LEFT = 2.5     # ... it leaves at least this many noise units (above what a form's misfit leaves)
+FORWARD_MIN_REMAINDER = 0.5  # accepts a second one removing at least this fraction of what the first left
+FORWARD_JOINT = 3          # pairs fitted together: the best this many forms of a plant first, or plant seconds
+MIN_SCORE_GAIN = 25.0      # held-out NLL + BIC penalty improvement over the nominal model
+QUANTUM_OVER_SCENARIO = 1.5  # a lattice of speeds this many times the scenario's own quantum is a quantiser to name
+MIN_GAP = 0.5              # combined gap (noise units) below which there is no gap to explain (above what the
+                           # sensor noise alone leaves on a nominal run: docs/design/gap-diagnosis.md)
+
+#: what a candidate's fit can raise: least_squares' ValueError (residuals not finite at a start, a start
+#: outside the bounds; numpy's LinAlgError is a ValueError), the simulator's FloatingPointError (the model
+#: diverged) and other ArithmeticErrors (overflow in exp of a log-space parameter), CasADi's RuntimeError
+FIT_ERRORS = (ArithmeticError, ValueError, RuntimeError)
+
+
+def quiet(msg: str) -> None:
+    """The default progress sink: say nothing."""
+
+
+def failure(name: str, step: str, error: BaseException) -> dict:
+    """One failed candidate fit, as the report lists it: candidate ``name``, its effect class and form,
+    the ``step`` of the diagnosis it failed in, and the error."""
+    spec = EFFECTS.get(name)
+    return {"name": name, "effect": spec.effect_class if spec else name, "form": spec.form if spec else "",
+            "step": step, "error": f"{type(error).__name__}: {error}"}
+
+
+def fit_candidates(ctx: Context, nom_fit: Fit, cands, failed: list, say=quiet) -> list[Fit]:
+    """Every candidate fitted alone on the training blocks.  A fit that fails is kept in the ranking
+    with the nominal model's prediction (it removes nothing) and ``note`` "fit failed: ...", and is
+    appended to ``failed``."""
+    nominal = {k: nom_fit.pred[k] for k in SIGNALS}
+    fits = []
+    for cand in cands:
+        say(f"fitting candidate {cand.name}")
+        try:
+            fit = cand.fit(ctx, nom_fit)
+        except FIT_ERRORS as e:
+            failed.append(failure(cand.name, "alone", e))
+            fit = Fit(cand.name, {}, 1, dict(nominal), dict(ctx.sigma_nom), note=f"fit failed: {e}")
+        fits.append(fit)
+    return fits
+
+
+def fit_rail(ctx: Context, nom_fit: Fit, base: dict, failed: list, say=quiet) -> tuple[Fit | None, dict | None]:
+    """The nuisance: the rail's fault curve scaled in mu and in creep, fitted as a candidate; (fit, its
+    ranking row), or (None, None) when the fit fails (appended to ``failed``)."""
+    say("fitting the nuisance: the rail's fault curve (scale in mu and creep)")
+    try:
+        rail_fit = RAIL.fit(ctx, nom_fit)
+    except FIT_ERRORS as e:
+        failed.append(failure(RAIL.name, "nuisance", e))
+        say(f"rail curve fit failed: {e}")
+        return None, None
+    return rail_fit, entry(ctx, rail_fit, base)
+
+
+def quantiser(ctx: Context, nom_fit: Fit, cands, failed: list, say=quiet) -> tuple[dict | None, Fit | None]:
+    """The quantisation candidate's fit when the measured speeds sit on a lattice (coherence > 0.9, so
+    never on continuous readings) at least ``QUANTUM_OVER_SCENARIO`` times the scenario's own quantum:
+    ({"params", "note"}, the fit: the augmented replay of a quantiser-only answer); else (None, None)
+    (and when the candidate is not in ``cands``, or its fit fails: appended to ``failed``, and it is
+    fitted again with the rest)."""
+    cand = next((c for c in cands if c.name == "sensor_quantisation"), None)
+    if cand is None:
+        return None, None
+    say("fitting candidate sensor_quantisation (judged apart: it changes the noise)")
+    try:
+        fit = cand.fit(ctx, nom_fit)
+    except FIT_ERRORS as e:
+        failed.append(failure(cand.name, "quantiser (judged apart)", e))
+        return None, None
+    sens = ctx.scenario.sensors
+    own = {"motor_quantum_rad_s": sens.motor_speed_quantum_rad_s, "train_quantum_ms": sens.train_speed_quantum_ms}
+    if not any(q > 0 and q >= QUANTUM_OVER_SCENARIO * own.get(k, 0.0) for k, q in fit.params.items()):
+        return None, None
+    return {"params": dict(fit.params), "note": fit.note}, fit
+
+
+def entry(ctx: Context, fit: Fit, base: dict) -> dict:
+    """One ranking row: held-out score gain and shrink against the nominal model, form, interval."""
+    sc_ = score(ctx, fit)
+    shrink = 1 - sc_["gap"] / base["gap"] if base["gap"] > 0 else 0.0
+    spec = EFFECTS.get(fit.name)
+    return {"effect": spec.effect_class if spec else fit.name, "form": spec.form if spec else "",
+            "candidate": fit.name, "params": fit.params, "k": fit.k,
+            "score_gain": base["score"] - sc_["score"], "held_out_shrink": shrink,
+            "share": min(max(shrink, 0.0), 1.0), "held_out_gap": sc_["gap"],
+            "held_out_gap_own_floor": sc_["gap_own_floor"], "at_bound": fit.extra.get("at_bound", {}),
+            "param_ci": fit.extra.get("param_ci", {}), "note": fit.note, "per_signal": sc_["per_signal"]}
+
+
+def beats(a: dict, b: dict) -> bool:
+    """``a`` explains the held-out data better than ``b`` by the margin: a better held-out score by
+    MIN_MARGIN and a remaining gap at most MARGIN_GAP_RATIO of ``b``'s (unless ``b``'s is already
+    within the noise: then the score alone decides)."""
+    if b["score_gain"] + MIN_MARGIN > a["score_gain"]:
+        return False
+    return a["held_out_gap"] <= MARGIN_GAP_RATIO * b["held_out_gap"] or b["held_out_gap"] <= NOISE_GAP
+
+
+def beats_on_top(a: dict, b: dict, first: dict) -> bool:
+    """Second effect ``a`` beats second effect ``b`` on top of ``first``: a better held-out score by
+    MIN_MARGIN, and either it leaves at most MARGIN_GAP_RATIO of what ``b`` leaves (``beats``' rule)
+    or it removes at least 1 / MARGIN_GAP_RATIO times as much of the gap ``first`` left (the margin
+    judged on what is left to explain: the first rule is out of reach of a right second effect when
+    its form differs from the truth's and leaves a remainder of its own; the second alone is out of
+    reach of a right second that removes everything when ``b`` removes more than half)."""
+    if b["score_gain"] + MIN_MARGIN > a["score_gain"]:
+        return False
+    left = first["held_out_gap"]
+    return (a["held_out_gap"] <= MARGIN_GAP_RATIO * b["held_out_gap"]
+            or MARGIN_GAP_RATIO * (left - a["held_out_gap"]) >= left - b["held_out_gap"])
+
+
+def judge(base, ranking, rail, gap_present):
+    """(named, named_set, verdict, nuisances, confidence) -- see the module docstring, step 3."""
+    best = ranking[0]
+    runner = next((r for r in ranking[1:] if r["effect"] != best["effect"]), None)   # another class's best
+    nuisances = []
+    if rail is not None:
+        p = rail["params"]
+        nuisances.append({"name": "rail_curve", "params": p, "score_gain": rail["score_gain"],
+                          "held_out_shrink": rail["held_out_shrink"], "held_out_gap": rail["held_out_gap"],
+                          "at_bound": rail["at_bound"], "param_ci": rail["param_ci"],
+                          "peak_mu_percent": (p["peak_mu_scale"] - 1) * 100,
+                          "peak_creep_percent": (p["creep_scale"] - 1) * 100})
+    if not gap_present:
+        return NONE, [], (f"no significant gap: held-out residuals are within {base['gap']:.2f} noise units of "
+                          f"the sensor noise floor"), nuisances, "none"
+    desc = (f"{best['effect']} ({best['form']}) removes {best['share'] * 100:.0f} % of the held-out gap, leaves "
+            f"{best['held_out_gap']:.2f} noise units, fitted "
+            + ", ".join(f"{k}={v:.4g}" for k, v in best["params"].items()))
+    material = best["held_out_shrink"] >= MIN_SHRINK and best["score_gain"] > MIN_SCORE_GAIN
+    over_runner = runner is None or beats(best, runner)
+    rail_material = rail is not None and rail["held_out_shrink"] >= MIN_SHRINK and \
+        rail["score_gain"] > MIN_SCORE_GAIN
+    over_rail = rail is None or beats(best, rail)
+    bounded = [k for k, v in best["at_bound"].items() if v]
+    bound_note = f" (fit at its bound: {', '.join(bounded)})" if bounded else ""
+    # a fit with every parameter at a bound is pinned (the effect vanishes or runs off its range): no
+    # name; one parameter of several at a bound (viscous loss 0 beside a Coulomb loss) is only said
+    pinned = bool(bounded) and len(bounded) == len(best["at_bound"])
+    if rail_material and (rail is not None and (not material or beats(rail, best))):
+        n = nuisances[0]
+        return NONE, [], (f"the rail's curve differs: peak mu {n['peak_mu_percent']:+.1f} %, peak creep "
+                          f"{n['peak_creep_percent']:+.1f} % removes {rail['share'] * 100:.0f} % of the held-out "
+                          f"gap, more than any effect (best: {desc})"), nuisances, "nuisance"
+    if material and rail_material and not over_rail:
+        return NONE, [], (f"rail or {what(best['effect'])}: not separable in this log (the rail's curve "
+                          f"scaled by {nuisances[0]['peak_mu_percent']:+.1f} % removes "
+                          f"{rail['share'] * 100:.0f} %, {desc})"), nuisances, "not_separable"
+    if material and over_runner and over_rail and not pinned:
+        return best["effect"], [best["effect"]], (f"{best['effect']} explains the gap: {desc}{bound_note}"), nuisances, \
+            "confident"
+    if material:
+        why = "its fit sits at a bound" if pinned else (
+            f"it does not beat {runner['effect']} ({runner['share'] * 100:.0f} %) by the margin" if not over_runner
+            else "it does not beat the rail-curve nuisance by the margin")
+        return NONE, [], (f"none named with confidence: most likely {desc}{bound_note}; {why}"), nuisances, \
+            "tentative"
+    return NONE, [], (f"none of the candidates: the best, {desc}, removes less than "
+                      f"{MIN_SHRINK * 100:.0f} %{bound_note}"), nuisances, "none"
+
+
+# -- forward selection -----------------------------------------------------------------------------
+def forward(ctx: Context, nom_fit: Fit, base: dict, first: Fit, first_row: dict, rail_fit, ranking, exclude,
+            failed: list, say=quiet) -> dict | None:
+    """Second step of forward selection: every form of every other class fitted on top of the first
+    (its parameters held), judged on held-out data against the first alone.  Sensor-level pairs are not
+    tried (a delay on a delay is one delay).  Accepted when the best second effect removes at least
+    ``FORWARD_MIN_REMAINDER`` of what the first left, gains ``MIN_MARGIN`` in held-out score, beats the
+    best second effect of another class by the margin (``beats_on_top``) and its fit is not pinned at
+    its bounds; the pair is then compared with the rail curve plus the same second effect.  ``exclude``:
+    candidates not to offer; a fit that fails at any step is appended to ``failed`` (a second effect
+    whose fit on top fails is not ranked; a failed joint fit or refit keeps the fit it would replace)."""
+    if first.name == "sensor_quantisation":
+        return None
+    sensor_first = "plant" not in first.extra
+    ctx2 = ctx.on_top_of(first)
+    on_first = pseudo(first, nom_fit)
+    rows, fits2 = [], {}
+    # a second effect of another class, in each of its forms (the form that explains most alone is not
+    # always the one that explains most of what the first left)
+    by_name = {c.name: c for c in candidates(ctx.scenario, exclude)}
+    first_cand = by_name.get(first.name)
+    joint = set()         # seconds already fitted together with the first
+    first_forms = [r for r in ranking if r["effect"] == first_row["effect"]
+                   and isinstance(by_name.get(r["candidate"]), PlantCandidate)][:FORWARD_JOINT]
+    for cand in by_name.values():
+        if EFFECTS[cand.name].effect_class == first_row["effect"] or \
+                cand.name == "torque_lag" and ctx.data.torque_cmd_nm.std() < 1e-9:
+            continue
+        if sensor_first and not isinstance(cand, PlantCandidate):
+            continue
+        say(f"forward selection: {cand.name} on top of {first.name}")
+        try:
+            f2 = cand.fit(ctx2, on_first)
+        except FIT_ERRORS as e:
+            failed.append(failure(cand.name, f"on top of {first.name}", e))
+            continue
+        row = entry(ctx, f2, base)
+        if isinstance(first_cand, PlantCandidate) and isinstance(cand, SensorDelayCandidate):
+            # a plant effect fitted alone absorbs part of a sensor delay (a lag looks like a delay), so
+            # the delay on top finds little of it: fit the pair together for every sensor form, with
+            # the first class's best FORWARD_JOINT forms (the form best alone need not be best in a pair)
+            for r1 in first_forms:
+                c1 = by_name[r1["candidate"]]
+                try:
+                    say(f"forward selection: {c1.name} and {cand.name} fitted together")
+                    jf = fit_pair(ctx, c1, cand, r1["params"], f2.extra[cand.ARGUMENT[cand.form]],
+                                  f2.extra["x0"])
+                    jrow = entry(ctx, jf, base)
+                    if jrow["score_gain"] > row["score_gain"]:
+                        row = dict(jrow, first_params=jf.extra["plant_params"], first_form=r1["form"])
+                        joint.add(cand.name)
+                except FIT_ERRORS as e:       # keep the greedy fit
+                    failed.append(failure(cand.name, f"together with {c1.name}", e))
+        fits2[cand.name] = f2
+        rows.append(row)
+    if not rows:
+        return None
+    rows.sort(key=lambda r: -r["score_gain"])
+    if isinstance(first_cand, SensorDelayCandidate):
+        # and a sensor form fitted alone absorbs part of a lag: the best FORWARD_JOINT plant seconds are
+        # fitted together with it
+        for i, row in enumerate(rows[:FORWARD_JOINT]):
+            cand = by_name[row["candidate"]]
+            if not isinstance(cand, PlantCandidate):
+                continue
+            try:
+                say(f"forward selection: {cand.name} and {first.name} fitted together")
+                f2 = fits2[cand.name]
+                jf = fit_pair(ctx, cand, first_cand, f2.params, first.extra[first_cand.ARGUMENT[first_cand.form]],
+                              f2.extra["x0"])
+                jrow = entry(ctx, plant_side(jf, cand), base)
+                if jrow["score_gain"] > row["score_gain"]:
+                    rows[i] = dict(jrow, first_params=jf.params)
+                    joint.add(cand.name)
+            except FIT_ERRORS as e:           # keep the greedy fit
+                failed.append(failure(cand.name, f"together with {first.name}", e))
+        rows.sort(key=lambda r: -r["score_gain"])
+    second = rows[0]
+    runner = next((r for r in rows[1:] if r["effect"] != second["effect"]), None)   # another class's best
+    # the first was fitted alone and absorbed part of the second: refit each on top of the other
+    # (one round of coordinate descent), keeping the refit only if it scores better
+    f1_now, f2_now = first, fits2[second["candidate"]]      # the pair as it stands
+    if second["candidate"] not in joint:     # (a second fitted together with the first is done)
+        f2 = f2_now
+        refit, under = first.name, f2.name
+        try:
+            say(f"forward selection: refitting {first.name} on top of {f2.name}, then back")
+            f1b = by_name[first.name].fit(ctx.on_top_of(f2), pseudo(f2, nom_fit))
+            refit, under = f2.name, first.name
+            f2b = by_name[f2.name].fit(ctx.on_top_of(f1b), pseudo(f1b, nom_fit))
+            row = entry(ctx, f2b, base)
+            if row["score_gain"] > second["score_gain"]:
+                second = row
+                second["first_params"] = f1b.params
+                f1_now, f2_now = f1b, f2b
+        except FIT_ERRORS as e:               # keep the greedy pair
+            failed.append(failure(refit, f"refit on top of {under}", e))
+        # a plant effect and a sensor form: fit both together, from where the pair stands
+        c1, c2 = by_name[first.name], by_name[second["candidate"]]
+        plant_c, sensor_c, plant_f, sensor_f = (c1, c2, f1_now, f2_now) if isinstance(c1, PlantCandidate) \
+            else (c2, c1, f2_now, f1_now)
+        try:
+            if isinstance(plant_c, PlantCandidate) and isinstance(sensor_c, SensorDelayCandidate):
+                say(f"forward selection: {plant_c.name} and {sensor_c.name} fitted together")
+                jf = fit_pair(ctx, plant_c, sensor_c, plant_f.params,
+                              sensor_f.extra[SensorDelayCandidate.ARGUMENT[sensor_c.form]], f2_now.extra["x0"])
+                if c2.name == sensor_c.name:          # the second is the sensor form: the row as it is
+                    row, first_params = entry(ctx, jf, base), jf.extra["plant_params"]
+                else:                                 # the second is the plant effect: name the row after it
+                    row, first_params = entry(ctx, plant_side(jf, plant_c), base), jf.params
+                if row["score_gain"] > second["score_gain"]:
+                    second = row
+                    second["first_params"] = first_params
+        except FIT_ERRORS as e:               # keep the pair as it is
+            failed.append(failure(plant_c.name, f"together with {sensor_c.name}", e))
+    removed = 1 - second["held_out_gap"] / first_row["held_out_gap"] if first_row["held_out_gap"] > 0 else 0.0
+    bounded = [k for k, v in second["at_bound"].items() if v]
+    bounded = bounded if len(bounded) == len(second["at_bound"]) else []      # pinned, as in ``judge``
+    accepted = (second["score_gain"] - first_row["score_gain"] >= MIN_MARGIN and removed >= FORWARD_MIN_REMAINDER
+                and (runner is None or beats_on_top(second, runner, first_row)) and not bounded
+                and second["held_out_shrink"] >= MIN_SHRINK)
+    out = {"first": first_row["effect"], "first_form": second.get("first_form", first_row["form"]),
+           "second": second["effect"],
+           "second_form": second["form"],
+           "second_params": second["params"], "first_params": second.get("first_params", first.params),
+           "pair_held_out_shrink": second["held_out_shrink"],
+           "second_removes_of_remainder": removed, "accepted": bool(accepted),
+           "ranking": [{k: r[k] for k in ("effect", "form", "params", "score_gain", "held_out_shrink",
+                                          "held_out_gap", "at_bound")} for r in rows]}
+    if accepted and rail_fit is not None:
+        # is the first effect the rail in disguise?  the rail curve plus the same second effect
+        cand = by_name[second["candidate"]]
+        try:
+            r2 = cand.fit(ctx.on_top_of(rail_fit), Fit("rail_curve", rail_fit.params, 0, rail_fit.pred,
+                                                        dict(ctx.sigma_nom), extra={
+                                                            "x0": rail_fit.extra["x0"],
+                                                            "plant_motor": rail_fit.extra["plant_motor"],
+                                                            "plant_train": rail_fit.extra["plant_train"]}))
+            row = entry(ctx, r2, base)
+            out["rail_pair"] = {"held_out_shrink": row["held_out_shrink"], "score_gain": row["score_gain"],
+                                "held_out_gap": row["held_out_gap"]}
+            out["pair_vs_rail"] = ("pair" if beats(second, row) else
+                                   "rail" if beats(row, second) else "not_separable")
+        except FIT_ERRORS as e:               # the pair stands untested against the rail
+            failed.append(failure(cand.name, "on top of the rail curve", e))
+            out["pair_vs_rail"] = "pair"
+    else:
+        out["pair_vs_rail"] = "pair"
+    return out
+
+
+def pseudo(fit: Fit, nom_fit: Fit) -> Fit:
+    """``fit`` as the 'nominal' another candidate builds on (its plant trajectory and start)."""
+    return Fit(fit.name, fit.params, 0, fit.pred, dict(fit.sigma),
+               extra={"x0": fit.extra["x0"],
+                      "plant_motor": fit.extra.get("plant_motor", nom_fit.extra["plant_motor"]),
+                      "plant_train": fit.extra.get("plant_train", nom_fit.extra["plant_train"])})
+
+
+def rejudge(named, named_set, verdict, confidence, best, fw, ranking=()):
+    """The answer once forward selection accepted a second effect.  A first effect that was only
+    "most likely" alone because it did not beat the rail nuisance by the margin is named with the
+    second when the pair beats the rail curve with the same second effect (that comparison is the
+    test of the first against the rail, now that the second no longer hides in its remainder)."""
+    first, second = fw["first"], fw["second"]
+    pair = (f"{second} ({fw['second_form']}) on top of {first} ({fw['first_form']}) removes "
+            f"{fw['second_removes_of_remainder'] * 100:.0f} % "
+            f"of what {first} left (together {fw['pair_held_out_shrink'] * 100:.0f} % of the gap), fitted "
+            + ", ".join(f"{k}={v:.4g}" for k, v in fw["second_params"].items()))
+    if fw["pair_vs_rail"] == "rail":
+        return second, [second], (
+            f"{second} explains part of the gap and the rail's curve differs: {pair}; the rail curve with "
+            f"{second} explains it better than {first} with {second}"), "confident"
+    if fw["pair_vs_rail"] == "not_separable":
+        return second, [second], (f"{second} found, and rail or {what(first)}: not separable in this log; "
+                                  f"{pair}"), "confident"
+    runner = next((r for r in ranking if r["effect"] != best["effect"]), None)
+    only_the_rail = (runner is None or beats(best, runner)) and not any(best["at_bound"].values())
+    if confidence == "tentative" and not (only_the_rail and "rail_pair" in fw):
+        return second, [second], (f"{second} found; {pair}; {first} is only the most likely first effect "
+                                  f"({verdict})"), "confident"
+    return first, sorted([first, second]), (f"{first} and {second} explain the gap: {first} ({best['form']}) "
+                                            f"removes {best['share'] * 100:.0f} % alone; {pair}"), "confident"
+
+
+def what(effect: str) -> str:
+    return {"load_transfer": "axle load"}.get(effect, effect)
+
+
+# -- scores ---------------------------------------------------------------------------------------
+def score(ctx: Context, fit: Fit) -> dict:
+    nll, n, gap2, own2 = 0.0, 0, 0.0, 0.0
+    per = {}
+    for s in SIGNALS:
+        sel = ctx.held & ctx.valid[s]
+        r = ctx.meas[s][sel] - fit.pred[s][sel]
+        if r.size == 0:     # a log without this signal (e.g. no TCU observer topic)
+            per[s] = {"rmse": None, "gap": None}
+            continue
+        sg = fit.sigma[s]
+        nll += float(np.sum((r / sg) ** 2) + r.size * 2 * math.log(sg / ctx.sigma_nom[s]))
+        n += r.size
+        ms = float(np.mean(r ** 2)) if r.size else math.nan
+        g2 = max(ms - sg ** 2, 0.0)
+        gap2 += g2 / ctx.sigma_nom[s] ** 2
+        own2 += g2 / sg ** 2
+        per[s] = {"rmse": math.sqrt(ms), "gap": math.sqrt(g2)}
+    m = max(sum(1 for s in SIGNALS if per[s]["rmse"] is not None), 1)
+    return {"score": nll + fit.k * math.log(max(n, 2)), "gap": math.sqrt(gap2 / m),
+            "gap_own_floor": math.sqrt(own2 / m), "per_signal": per}
