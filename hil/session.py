@@ -276,12 +276,9 @@ def _recorded(summary: dict | None) -> dict | None:
     return {**summary, "reality": f"effects under the {TRUTH_KEY!r} metadata"}
 
 
-def _log_path(scenario, strategy, seed, out_dir, plant_label, log) -> Path:
-    path = log_path(scenario, strategy, seed, prepare_out_dir(out_dir), plant_label, scenario.extra.get("reality"))
-    if path.exists():
-        log(f"warning: replacing {path} (a log of an earlier run with the same scenario, strategy, seed, plant "
-            "and effects)")
-    return path
+def _log_path(scenario, strategy, seed, out_dir, plant_label) -> Path:
+    """The run's log path, its directory made (a bad ``--out`` fails here, before anything starts)."""
+    return log_path(scenario, strategy, seed, prepare_out_dir(out_dir), plant_label, scenario.extra.get("reality"))
 
 
 # -- the session ----------------------------------------------------------------------------------------
@@ -330,7 +327,7 @@ class Session:
         self.load = bus_load(FrameCodec(period).db, period, settings.heartbeat_period_s, settings.bitrate,
                              settings.data_bitrate)
         if self.record:
-            self.path = _log_path(scenario, self.strategy, self.seed, self.out_dir, self.plant_label, log)
+            self.path = _log_path(scenario, self.strategy, self.seed, self.out_dir, self.plant_label)
         stack.enter_context(interrupts_between_writes())   # SIGTERM ends a run like Ctrl-C, never mid-write
         report_dir = (stack.enter_context(temporary_directory("hil-tcu-", "the TCU's report"))
                       if self.transport == "process" else None)
@@ -380,6 +377,9 @@ class Session:
                 f"(raise [bus] bitrate/data_bitrate or the exchange period)")
         if not self.record:
             return
+        if self.path.exists():        # said when it happens: a run that fails before this leaves the old log
+            log(f"warning: replacing {self.path} (a log of an earlier run with the same scenario, strategy, seed, "
+                "plant and effects)")
         plant = self.plant
         self.rec = start_recording(
             scenario, self.strategy, self.seed, handle.name, self.mode, self.path,

@@ -472,3 +472,13 @@ def test_bus_load_above_70_percent_warns(tmp_path):
 def test_bad_bus_table_names_the_field(tmp_path):
     r = hil_run(["scenarios/ffcc_a.toml", "--bus", "inprocess", "--set", "bus.bitrate=-5"], check=False)
     assert r.returncode == 2 and "[bus] bitrate" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+
+
+def test_a_run_that_fails_before_logging_keeps_the_old_log_and_does_not_say_replacing(tmp_path):
+    """The log of an earlier run stays as it was when a later run with the same name fails at the bus, and
+    the warning that it is being replaced comes only when it is."""
+    old = tmp_path / "ffcc_a-gp-1.mcap"
+    old.write_bytes(b"an earlier run's log")
+    r = hil_run(["scenarios/ffcc_a.toml", "--bus", "socketcan:nocan7", "--out", str(tmp_path)], check=False)
+    assert r.returncode == 2 and "replacing" not in r.stderr, r.stderr
+    assert old.read_bytes() == b"an earlier run's log"

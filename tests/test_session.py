@@ -9,7 +9,7 @@ from pathlib import Path
 import can.interfaces.virtual
 import pytest
 
-from hil.benchmarks.robustness import children_of, cmdline
+from hil.testing import children_of, cmdline
 from hil.config import load_scenario, parse_set
 from hil.errors import BusError
 from hil.exchange import run

@@ -10,21 +10,21 @@ _._recv_internal
 _._is_shutdown
 _._detect_available_configs
 # the lazy public API: Python calls module __getattr__ / __dir__; hil.__init__._API names replay_log by string
-__getattr__
-__dir__
-replay_log
+_.__getattr__
+_.__dir__
+_.replay_log
 # numba's @intrinsic signatures take (typingctx, ...) and codegen (context, builder, ...): identifier/kernels.py
-typingctx
-context
+_.typingctx
+_.context
 # FMI callbacks filled into a ctypes structure the FMU calls: plant/fmu_plant.py
 _.logger
 _.allocateMemory
 _.freeMemory
 _._callbacks
-cat
-inst
+_.cat
+_.inst
 # only for annotations (TYPE_CHECKING): plant/fmu_plant.py
-ModelDescription
+_.ModelDescription
 # a reference kept so that CasADi's buffer outlives the compiled call bound to it: plant/model.py, reality.py
 _._buffer
 # mcap's Statistics record, written whole at the end of the file: hil/log/mcapfile.py
@@ -33,17 +33,17 @@ _.channel_count
 _.metadata_count
 _.chunk_count
 # Table 1 parameters read by name (getattr) as the load-transfer effect's defaults: plant/params.py
-half_bogie_distance_m
-half_wheelbase_m
-coupler_height_m
-bogie_height_m
+_.half_bogie_distance_m
+_.half_wheelbase_m
+_.coupler_height_m
+_.bogie_height_m
 # pytest hooks and marks
-pytest_configure
-pytest_report_header
-pytest_terminal_summary
-pytest_itemcollected
-pytest_collection_modifyitems
-pytestmark
+_.pytest_configure
+_.pytest_report_header
+_.pytest_terminal_summary
+_.pytest_itemcollected
+_.pytest_collection_modifyitems
+_.pytestmark
 # a fixture requested by name (tests/test_vcan.py), urllib's request target set by hand (tests/test_bus.py)
-vcan0
+_.vcan0
 _.selector

@@ -61,7 +61,6 @@ class Context:
         self.sigma_nom = sigma_nom
         self.meas = {"motor": data.motor_speed_rad_s, "train": data.train_speed_ms, "mu_hat": data.tcu_mu_hat}
         self.valid = {s: np.isfinite(v) for s, v in self.meas.items()}
-        self.mu_gain = observer.noise_gain()
         self._sims = {}
         self.base_effects = {}                                  # plant effects held fixed underneath
         self.base_delays = {k: 0.0 for k in SENSOR_FORMS_OF_CONTEXT}   # and sensor forms (periods)
