@@ -47,7 +47,7 @@ def register(sub) -> None:
                    "before each round: how often the machine takes a CPU away for most of a period; and SCHED_IDLE "
                    "spinners beside each run: which missed periods coincide with a CPU away)")
     p.add_argument("--doc", metavar="DIR", default=None,
-                   help="with --realtime-runs: also write DIR/realtime.md and DIR/realtime.json (e.g. docs; --doc-name "
+                   help="with --realtime-runs: also write DIR/realtime.md and DIR/realtime.json (e.g. docs/benchmarks; --doc-name "
                    "names them)")
     p.add_argument("--doc-name", default="realtime",
                    help="with --doc: the files' name without extension (default realtime: DIR/realtime.md, .json)")

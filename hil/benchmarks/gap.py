@@ -112,7 +112,7 @@ def register(sub) -> None:
     p.add_argument("--mix", default=None,
                    help="case mix KIND=F,... over " + ", ".join(KINDS) + " (default "
                    + ",".join(f"{k}={v}" for k, v in DEFAULT_MIX.items()) + ")")
-    p.add_argument("--doc", metavar="DIR", default=None, help="write gap.md and gap.json into DIR (e.g. docs)")
+    p.add_argument("--doc", metavar="DIR", default=None, help="write gap.md and gap.json into DIR (e.g. docs/benchmarks)")
     p.add_argument("--out", default=None, help="keep the MCAP logs here (default: a temporary directory)")
     p.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
     p.add_argument("--scheduler", metavar="ADDRESS", default=None, help="run the cases on this Dask cluster "
@@ -345,7 +345,7 @@ def markdown(result: dict) -> str:
     pct = lambda v: "-" if v is None else f"{v * 100:.0f} %"  # noqa: E731
     lines = ["# `hil bench gap`: the blind check of `hil gap`", "",
              f"Written by `hil bench gap {result['scenario']} --cases {result['cases']} --seed {result['seed']}"
-             f"{' --mix ' + result['mix_arg'] if result.get('mix_arg') else ''} --doc docs` "
+             f"{' --mix ' + result['mix_arg'] if result.get('mix_arg') else ''} --doc docs/benchmarks` "
              f"(seed drawn at run time: {result['seed_drawn']}); wall {result['wall_s']:.0f} s, "
              f"median diagnosis {f(result['median_diagnosis_s'], '.1f')} s.", "",
              "Cases by kind: " + ", ".join(f"{k} {v}" for k, v in result["by_kind"].items()), "",

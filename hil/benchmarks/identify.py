@@ -663,7 +663,7 @@ def law_lines(results: dict) -> list[str]:
 
 
 def family_markdown(args, seed: int, results: dict, oracle_summary: dict, load_before) -> str:
-    """The whole report of a --family run as a markdown document (what docs/identification.md holds)."""
+    """The whole report of a --family run as a markdown document (what docs/benchmarks/identification.md holds)."""
     import platform
 
     from plant import families

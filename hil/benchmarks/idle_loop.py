@@ -5,7 +5,7 @@ the loop *and* of the machine. On a shared virtual machine the vCPU can be away 
 the kernel here is built ``PREEMPT_NONE``. This probe shows what the machine does to a paced loop in
 the same minutes as the real runs. It is context, **not a lower bound**: an idle loop leaves its vCPU
 idle most of each period, and an idle vCPU can be woken later than a busy one (measured: rounds where
-the idle loop missed more deadlines than the real run beside it; ``docs/realtime.md``).
+the idle loop missed more deadlines than the real run beside it; ``docs/benchmarks/realtime.md``).
 
 What: two processes (as a real-time run has a plant and a TCU), each at SCHED_FIFO ``priority`` (when
 granted; normal priority otherwise, reported), pace periods of ``period_s`` exactly as the plant node

@@ -238,7 +238,7 @@ def markdown(doc: dict) -> str:
     f = lambda x, spec: "n/a" if x is None else format(x, spec)  # noqa: E731
     cmd = f"hil bench sweep --points {doc['points']} --rounds {len(doc['parallel_efficiency_per_round'])} --seed {doc['seed']}"
     lines = [f"# {cmd}", "",
-             f"Written by `{cmd} --report docs` on {doc['utc']}, "
+             f"Written by `{cmd} --report docs/benchmarks` on {doc['utc']}, "
              f"{doc['machine']}, {doc['cores']} cores (shared: see the load averages).  Each point: FFCC-a, `nlls`, "
              f"in-process lockstep, {doc['duration_s']:g} s simulated, run seeds drawn from the master seed.  Every "
              "cluster's workers ran one point before the clock started.", "",

@@ -53,8 +53,9 @@ from the prior box's edges (a posterior piled against an edge says the truth lie
 prior can represent, not that it is known); (3) the fit holds: the normalised innovations squared,
 averaged with the weights over the last ``fit_window`` samples, stay below ``fit_nis_max`` (a law of
 another form than the prior's, fitted by its nearest exponential curve, leaves structured residuals
-that a narrow interval alone would hide).  It does not catch every such law: the README gives the
-bench's wrong confirmations, all on Polach curves.  The event carries the curve and its 90 % intervals.  When the creep passes the prior's highest peak creep
+that a narrow interval alone would hide).  It does not catch every such law: the design note
+``docs/design/identification.md`` gives the bench's wrong confirmations, all on Polach curves.  The event
+carries the curve and its 90 % intervals.  When the creep passes the prior's highest peak creep
 (the TCU then knows the serious stage has begun without having pinned the curve) or after
 ``max_samples``, an ``unconfirmed`` event reports the best estimate and its intervals instead.
 """

@@ -68,7 +68,7 @@ def table(doc: dict) -> str:
 
 def markdown(doc: dict) -> str:
     lines = [f"# {doc['command']}", "",
-             f"Written by `{doc['command']} --report docs` on {doc['utc']}, {doc['machine']}, {doc['cores']} cores "
+             f"Written by `{doc['command']} --report docs/benchmarks` on {doc['utc']}, {doc['machine']}, {doc['cores']} cores "
              f"(load average {doc['load_before']} before, {doc['load_after']} after); {doc['wall_s']} s in all.  "
              "The seed was drawn at run time; the command above repeats every case.  What each part does: "
              "`hil/benchmarks/robustness/`.", "",
