@@ -19,7 +19,7 @@ from hil.effects import EFFECTS, TRUTH_KEY
 from hil.config import load_scenario
 from hil.sweep.engine import map_in_order
 
-from .conftest import SCENARIOS, case_seed, hil
+from .conftest import ROOT, SCENARIOS, case_seed, hil
 
 FFCC_A = SCENARIOS / "ffcc_a.toml"
 # A quantised speed steps at slightly different instants in the real run and in the augmented
@@ -566,3 +566,17 @@ def test_a_candidate_whose_fit_fails_is_counted_and_named(tmp_path, scenario):
     md = write_report(out, result, tmp_path / "report").read_text()
     assert "| load_transfer_pitch | pitch_mode | alone |" in md, md
     assert json.loads(json.dumps(out))["which"]["failed_candidates"] == failed
+
+
+def test_bench_gap_summary_fits_a_terminal():
+    """``hil bench gap``'s default summary, rendered from the stored report, keeps every line within 100
+    characters and every figure of it (the full report is ``--markdown``)."""
+    from hil.benchmarks.gap import summary_text
+    from hil.benchmarks.terminal import WIDTH, wrap_lines
+
+    result = json.loads((ROOT / "docs" / "benchmarks" / "gap.json").read_text())
+    text = wrap_lines(summary_text(result))
+    assert max(len(line) for line in text.splitlines()) <= WIDTH == 100
+    flat = " ".join(text.split())
+    assert f"{result['cases']} cases (seed {result['seed']})" in flat
+    assert f"false-confident rate {result['false_confident_rate']:.3f}" in flat

@@ -39,6 +39,7 @@ import numpy as np
 
 from ..effects import EFFECTS
 from ..sweep.engine import map_in_order
+from .terminal import wrap, wrap_lines
 
 U = lambda g, a, b: float(g.uniform(a, b))  # noqa: E731
 LOGU = lambda g, a, b: float(math.exp(g.uniform(math.log(a), math.log(b))))  # noqa: E731
@@ -115,6 +116,8 @@ def register(sub) -> None:
     p.add_argument("--doc", metavar="DIR", default=None, help="write gap.md and gap.json into DIR (e.g. docs/benchmarks)")
     p.add_argument("--out", default=None, help="keep the MCAP logs here (default: a temporary directory)")
     p.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
+    p.add_argument("--markdown", action="store_true", help="print the report's markdown (gap.md) instead of the "
+                   "short summary")
     p.add_argument("--scheduler", metavar="ADDRESS", default=None, help="run the cases on this Dask cluster "
                    "(tcp://HOST:PORT; hil sweep's engine)")
     p.add_argument("--workers", type=int, default=None, help="run the cases on a local Dask cluster of this many "
@@ -422,13 +425,13 @@ def cmd_gap_bench(args) -> int:
                                                   file=sys.stderr, flush=True)):
         records.append(rec)
         extra = f" param err {rec['param_err_percent']:.1f} %" if "param_err_percent" in rec else ""
-        print(f"hil bench gap: case {rec['case'] + 1}/{args.cases}: {rec['kind']} {'+'.join(rec['effects'])} -> "
-              f"{'+'.join(rec['named_set']) or 'none'} [{rec['confidence']}] "
-              f"({'ok' if rec['correct'] else 'WRONG'}{', FALSE-CONFIDENT' if rec['false_confident'] else ''}), "
-              f"shrink {rec['shrink_percent']:.0f} %{extra}; truth told apart: {_oracle_cell(rec.get('oracle'))}"
-              + (f"; {len(rec['failed_candidates'])} candidate fits failed: "
-                 + ", ".join(f"{f['name']} ({f['step']})" for f in rec["failed_candidates"])
-                 if rec["failed_candidates"] else ""),
+        print(wrap(f"hil bench gap: case {rec['case'] + 1}/{args.cases}: {rec['kind']} {'+'.join(rec['effects'])} -> "
+                   f"{'+'.join(rec['named_set']) or 'none'} [{rec['confidence']}] "
+                   f"({'ok' if rec['correct'] else 'WRONG'}{', FALSE-CONFIDENT' if rec['false_confident'] else ''}), "
+                   f"shrink {rec['shrink_percent']:.0f} %{extra}; truth told apart: {_oracle_cell(rec.get('oracle'))}"
+                   + (f"; {len(rec['failed_candidates'])} candidate fits failed: "
+                      + ", ".join(f"{f['name']} ({f['step']})" for f in rec["failed_candidates"])
+                      if rec["failed_candidates"] else ""), indent="    "),
               file=sys.stderr, flush=True)
     result = summarise(records)
     result.update({"seed": seed, "seed_drawn": seed_drawn, "mix": mix, "mix_arg": args.mix,
@@ -443,25 +446,35 @@ def cmd_gap_bench(args) -> int:
         print(f"hil bench gap: wrote {d / 'gap.md'} and {d / 'gap.json'}", file=sys.stderr)
     if args.json:
         print(json.dumps(result))
+    elif args.markdown:
+        print(markdown(result), end="")
     else:
-        from ..trace import fmt as f
-        print(f"gap bench: {result['cases']} cases (seed {seed}): " +
-              ", ".join(f"{k} {v}" for k, v in result["by_kind"].items()))
-        print(f"  top-1 held-out forms {f(result['top1_accuracy_held_out_forms'], '.3f')}, library forms "
-              f"{f(result['top1_accuracy_library_forms'], '.3f')}; set accuracy {f(result['set_accuracy'], '.3f')}; "
-              f"'none' accuracy {f(result['none_accuracy'], '.3f')} (rail {f(result['none_accuracy_rail'], '.3f')}, "
-              f"outside {f(result['none_accuracy_outside'], '.3f')}); out-of-library described by the right "
-              f"variable {f(result.get('description_right_outside'), '.3f')} "
-              f"({f(result.get('description_right_outside_with_gap'), '.3f')} of the "
-              f"{result.get('outside_with_gap')} with a gap)")
-        print(f"  false-confident rate {f(result['false_confident_rate'], '.3f')}; two effects both found "
-              f"{f(result['two_effect_both_found'], '.3f')}; median shrink when right "
-              f"{f(result['median_shrink_percent'], '.1f')} %; median parameter error "
-              f"{f(result['median_param_err_percent'], '.2f')} %")
-        print(f"  the limit (the truth scored as a candidate, {result['oracle_cases']} cases): held-out forms told "
-              f"apart {result['held_out_separable']} (top-1 there {f(result['top1_accuracy_held_out_separable'], '.3f')}), "
-              f"beyond the log {result['held_out_beyond_the_log']}; two-effect told apart "
-              f"{result['two_effect_separable']} (both found there {f(result['two_effect_both_found_separable'], '.3f')}), "
-              f"beyond the log {result['two_effect_beyond_the_log']}; wrong answers beyond the log "
-              f"{result['wrong_beyond_the_log']}, told apart {result['wrong_separable']}")
+        print(wrap_lines(summary_text(result)))
     return 0
+
+
+def summary_text(result: dict) -> str:
+    """The figures a reader decides on, one paragraph each (``wrap_lines`` fits them to a terminal)."""
+    from ..trace import fmt as f
+
+    lines = []
+    lines.append(f"gap bench: {result['cases']} cases (seed {result['seed']}): " +
+                 ", ".join(f"{k} {v}" for k, v in result["by_kind"].items()))
+    lines.append(f"  top-1 held-out forms {f(result['top1_accuracy_held_out_forms'], '.3f')}, library forms "
+                 f"{f(result['top1_accuracy_library_forms'], '.3f')}; set accuracy {f(result['set_accuracy'], '.3f')}; "
+                 f"'none' accuracy {f(result['none_accuracy'], '.3f')} (rail {f(result['none_accuracy_rail'], '.3f')}, "
+                 f"outside {f(result['none_accuracy_outside'], '.3f')}); out-of-library described by the right "
+                 f"variable {f(result.get('description_right_outside'), '.3f')} "
+                 f"({f(result.get('description_right_outside_with_gap'), '.3f')} of the "
+                 f"{result.get('outside_with_gap')} with a gap)")
+    lines.append(f"  false-confident rate {f(result['false_confident_rate'], '.3f')}; two effects both found "
+                 f"{f(result['two_effect_both_found'], '.3f')}; median shrink when right "
+                 f"{f(result['median_shrink_percent'], '.1f')} %; median parameter error "
+                 f"{f(result['median_param_err_percent'], '.2f')} %")
+    lines.append(f"  the limit (the truth scored as a candidate, {result['oracle_cases']} cases): held-out forms told "
+                 f"apart {result['held_out_separable']} (top-1 there {f(result['top1_accuracy_held_out_separable'], '.3f')}), "
+                 f"beyond the log {result['held_out_beyond_the_log']}; two-effect told apart "
+                 f"{result['two_effect_separable']} (both found there {f(result['two_effect_both_found_separable'], '.3f')}), "
+                 f"beyond the log {result['two_effect_beyond_the_log']}; wrong answers beyond the log "
+                 f"{result['wrong_beyond_the_log']}, told apart {result['wrong_separable']}")
+    return "\n".join(lines)
