@@ -164,6 +164,7 @@ SLOW = {
     "tests/test_view.py::test_hil_view_save_and_no_rrd",
     "tests/test_view.py::test_the_rrd_streams_in_batches_with_every_point_of_the_log",
     "tests/test_view.py::test_view_of_damaged_and_foreign_files",
+    "tests/test_kernel_cache.py::test_hil_run_compiles_in_the_foreground_once",
 }
 # The tests that time the machine (CPU shares, pacing loops, heartbeats while busy, signals at a delay):
 # tests/run.sh runs them alone, never beside another xdist worker (the real-time tests have their own marker).
@@ -180,6 +181,8 @@ SERIAL = {
     # workers and a loaded machine the 0.15 s and 0.7 s cases caught the interpreter still starting)
     "tests/test_run.py::test_ctrl_c_during_start_up_is_one_line_not_a_traceback",
     "tests/test_run.py::test_sigterm_of_the_tcu_process_is_one_line_not_a_traceback",
+    # removes the kernels' compile stamp: a hil run beside it would say it compiles
+    "tests/test_kernel_cache.py::test_hil_run_compiles_in_the_foreground_once",
 }
 
 

@@ -70,6 +70,10 @@ if [ ${#NEED_DEB[@]} -gt 0 ]; then
   fi
 fi
 
+# The identifier's kernels compiled before any test runs hil: a first run says so on stderr, which the tests
+# that read a run's stderr do not expect (numba caches them beside the source; later runs load them).
+.venv/bin/python -c "from hil.progress import compile_kernels; compile_kernels('tests/run.sh')"
+
 mkdir -p tests/artefacts
 PYTEST=(.venv/bin/python -m pytest)
 # Two workers (pytest-xdist), a test file at a time (--dist loadfile: a module's recorded run, made once,
