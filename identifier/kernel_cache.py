@@ -8,7 +8,8 @@ a TCU child process, where the plant waits for the TCU with a start-up timeout a
 progress bar (``compile_all``).
 
 The stamp ``__pycache__/kernels-compiled.json`` beside the source records what the cache was built from:
-the source's SHA-256, numba's version, the Python version and the host CPU.  ``compile_all`` writes it
+the source's SHA-256, numba's version, the Python version and the target numba compiles for (the host
+CPU as numba's cache keys it).  ``compile_all`` writes it
 after ``kernels.warm_up`` has compiled (or loaded) every kernel.  A stamp that differs, or none, means
 "not compiled here"; where the directory is not writable there is no stamp and ``fresh()`` always says no
 (the caller then warms the kernels up in the foreground each time: loading them from numba's user cache).
@@ -26,14 +27,16 @@ SOURCE = Path(__file__).with_name("kernels.py")
 STAMP = SOURCE.parent / "__pycache__" / "kernels-compiled.json"
 
 
-def _cpu_name() -> str:
+def _host() -> dict:
+    """The target numba compiles for, as numba's cache keys it (``codegen.magic_tuple``: the triple, the host
+    CPU's name and features), read from llvmlite (a few tens of ms; numba itself takes seconds to import).
+    Read by CPUID, so a guest kernel (User-Mode Linux) on the same CPU is the same host."""
     try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
+        from llvmlite import binding
+    except ImportError:
+        return {"machine": platform.machine()}
+    return {"triple": binding.get_process_triple(), "cpu": binding.get_host_cpu_name(),
+            "features": binding.get_host_cpu_features().flatten()}
 
 
 def _identity() -> dict:
@@ -43,7 +46,7 @@ def _identity() -> dict:
     except metadata.PackageNotFoundError:
         numba_version = None
     return {"source_sha256": hashlib.sha256(SOURCE.read_bytes()).hexdigest(), "numba": numba_version,
-            "python": sys.version.split()[0], "machine": platform.machine(), "cpu": _cpu_name()}
+            "python": sys.version.split()[0], **_host()}
 
 
 def fresh() -> bool:

@@ -197,15 +197,22 @@ def pytest_itemcollected(item):
 
 # Under xdist (--dist loadfile) a worker takes a file at a time in collection order: the longest file
 # first (test_gap.py: about half of the host tests' time) runs beside all the others instead of last.
-LONGEST_FIRST = ["tests/test_gap.py"]
+LONGEST_FIRST = ["tests/test_gap.py::test_blind_cases_with_a_seed_chosen_now",
+                 "tests/test_gap.py::test_reader_drops_the_truth_even_from_the_scenario_text",
+                 "tests/test_gap.py::test_bench_gap_json_keys",
+                 "tests/test_gap.py"]
 
 
 def pytest_collection_modifyitems(config, items):
-    """Under xdist, LONGEST_FIRST's files first.  A name in SLOW or SERIAL that no collected test has any
-    more is an error (a renamed test would otherwise silently leave its tier)."""
+    """Under xdist, LONGEST_FIRST's tests first, in its order (a test matches the first entry its node id
+    starts with), so that the longest start at once and the workers steal the rest (``--dist worksteal``).
+    A name in SLOW or SERIAL that no collected test has any more is an error (a renamed test would
+    otherwise silently leave its tier)."""
     if hasattr(config, "workerinput"):
-        first = {f: i for i, f in enumerate(LONGEST_FIRST)}
-        items.sort(key=lambda item: first.get(item.nodeid.split("::", 1)[0], len(first)))
+        def rank(item):
+            return next((i for i, p in enumerate(LONGEST_FIRST) if item.nodeid.startswith(p)), len(LONGEST_FIRST))
+
+        items.sort(key=rank)
     if any("::" in str(a) for a in config.args):        # tests picked by name: the rest are not collected
         return
     names = {item.nodeid.split("[", 1)[0] for item in items} | {item.nodeid for item in items}

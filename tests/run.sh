@@ -76,9 +76,10 @@ fi
 
 mkdir -p tests/artefacts
 PYTEST=(.venv/bin/python -m pytest)
-# Two workers (pytest-xdist), a test file at a time (--dist loadfile: a module's recorded run, made once,
-# serves all its tests); the tests marked serial or realtime time the machine and run alone.
-PARALLEL=(-n 2 --dist loadfile)
+# Two workers (pytest-xdist) stealing tests from each other (--dist worksteal: the gap tests, half of the
+# host's time, would hold one worker for all of it a file at a time; a module's recorded run is then made
+# at most once per worker); the tests marked serial or realtime time the machine and run alone.
+PARALLEL=(-n 2 --dist worksteal)
 if [ "$FAST" = 1 ]; then
   echo "== pytest --fast (all but the slow, vcan and real-time tests; two workers)" >&2
   status=0
