@@ -12,10 +12,15 @@ The nuisance is fitted too: the rail's fault curve scaled in mu and in creep (``
 the most common real gap.  Graded answer (``judge``), every row of the ranking with its form, share
 of the held-out gap removed, parameter interval (``candidates.interval_halfwidths``) and at-bound flag:
 
-- the rail curve removes >= ``MIN_SHRINK`` and no effect beats it by the margin: "the rail's curve
-  differs: peak mu -2 %" (named "none", confidence "nuisance");
-- the best effect and the rail curve both remove >= ``MIN_SHRINK`` and neither beats the other:
-  "rail or axle load: not separable in this log" (named "none", confidence "not_separable");
+- the explanations are the best candidate of each class and the rail curve (``explanations``); those
+  that remove >= ``MIN_SHRINK`` and gain ``MIN_SCORE_GAIN`` are compared.  When the best of them does
+  not beat one of another class by the margin (``beats``), the answer lists them all: "the rail curve
+  or compliance (viscous_coulomb): not separable in this log" (named "none", confidence
+  "not_separable"; the diagnosis adds where their fits differ most, ``where.separation``);
+- the rail curve is the best and beats every other by the margin: "the rail's curve differs: peak mu
+  -2 %" (named "none", confidence "nuisance").  Once it leaves the held-out gap within the noise
+  (``within_noise``: ``NOISE_GAP`` noise units) an effect must beat it on both counts
+  (``beats_strictly``), and nothing is fitted on top of it (no forward selection);
 - the best effect removes >= ``MIN_SHRINK``, gains ``MIN_SCORE_GAIN`` over the nominal model, beats
   the runner-up and the rail curve by the margin (``beats``: a held-out score better by
   ``MIN_MARGIN`` and a remaining gap at most ``MARGIN_GAP_RATIO`` of theirs) and its fit is not
@@ -282,9 +287,13 @@ def forward(ctx: Context, nom_fit: Fit, base: dict, first: Fit, first_row: dict,
     tried (a delay on a delay is one delay).  Accepted when the best second effect removes at least
     ``FORWARD_MIN_REMAINDER`` of what the first left, gains ``MIN_MARGIN`` in held-out score, beats the
     best second effect of another class by the margin (``beats_on_top``) and its fit is not pinned at
-    its bounds; the pair is then compared with the rail curve plus the same second effect.  ``exclude``:
-    candidates not to offer; a fit that fails at any step is appended to ``failed`` (a second effect
-    whose fit on top fails is not ranked; a failed joint fit or refit keeps the fit it would replace)."""
+    its bounds; and, as a single effect must (issue 35), the pair beats every class's best single
+    candidate by the margin (``beats``), no parameter of it sits at a bound of its range but a zero
+    floor (``implausible``), and the pair or the rail curve with the same second effect beats the rail
+    curve alone.  ``rejected_because`` says which test failed.  The pair is then compared with the rail
+    curve plus the same second effect.  ``exclude``: candidates not to offer; a fit that fails at any
+    step is appended to ``failed`` (a second effect whose fit on top fails is not ranked; a failed joint
+    fit or refit keeps the fit it would replace)."""
     if first.name == "sensor_quantisation":
         return None
     sensor_first = "plant" not in first.extra
@@ -296,8 +305,9 @@ def forward(ctx: Context, nom_fit: Fit, base: dict, first: Fit, first_row: dict,
     by_name = {c.name: c for c in candidates(ctx.scenario, exclude)}
     first_cand = by_name.get(first.name)
     joint = set()         # seconds already fitted together with the first
-    first_forms = [r for r in ranking if r["effect"] == first_row["effect"]
-                   and isinstance(by_name.get(r["candidate"]), PlantCandidate)][:FORWARD_JOINT]
+    first_forms = [r for r in ranking if r["effect"] == first_row["effect"]     # (a form whose fit failed
+                   and isinstance(by_name.get(r["candidate"]), PlantCandidate)    # alone has no parameters)
+                   and not r["note"].startswith("fit failed")][:FORWARD_JOINT]
     for cand in by_name.values():
         if EFFECTS[cand.name].effect_class == first_row["effect"] or \
                 cand.name == "torque_lag" and ctx.data.torque_cmd_nm.std() < 1e-9:
