@@ -638,3 +638,39 @@ def test_a_constant_power_limit_is_not_separable_and_lists_both(tmp_path, scenar
     assert sb["difference_noise_units"] > 0 and set(sb["between"]) <= {a["explanation"] for a in which["not_separable"]}
     text = text_summary(out)
     assert "NOT SEPARABLE:" in text and "separate by:" in text, text
+
+
+def test_grades_are_scored_and_the_calibration_is_read_back(tmp_path):
+    """Issue 35 item 1, the table's plumbing (no diagnosis): the bench grades answers as the issue defines
+    "right" per grade, writes per grade the right answers and their count, and ``hil gap``'s reader gives
+    the line printed beside an answer of that grade; no file, no line."""
+    from hil.benchmarks.gap import calibration, grade_right
+    from hil.gap.calibration import grade_line, read_calibration
+
+    def case(effects, truth, named_set, grade, listed=(), best="compliance", oracle=None):
+        which = {"named_set": named_set, "confidence": grade, "ranking": [{"effect": best}],
+                 "not_separable": [{"effect": e} for e in listed]}
+        rec = {"effects": effects, "truth_classes": truth, "oracle": oracle, "confidence": grade}
+        return dict(rec, grade_right=grade_right(rec, which))
+
+    cases = [case({"compliance": {}}, ["compliance"], ["compliance"], "confident"),          # right
+             case({"rail_curve": {}}, [], ["adhesion_lag"], "confident"),                      # wrong: a rail
+             case({"power_limit": {}}, [], [], "not_separable", ["rail_curve", "compliance"]),  # right: outside
+             case({"load_transfer": {}}, ["load_transfer"], [], "not_separable", ["rail_curve", "compliance"]),
+             case({"rail_curve": {}}, [], [], "nuisance"),                                     # right
+             case({"tachometer_gain": {}}, [], [], "nuisance"),                                # wrong: no rail
+             case({"bristle": {}}, ["adhesion_lag"], [], "tentative", best="adhesion_lag"),   # right
+             case({}, [], [], "none"),                                                          # right: nominal
+             case({"bristle": {}}, ["adhesion_lag"], [], "none", oracle={"separable": False}),  # right: beyond
+             case({"bristle": {}}, ["adhesion_lag"], [], "none", oracle={"separable": True})]   # wrong
+    assert [c["grade_right"] for c in cases] == [True, False, True, False, True, False, True, True, True, False]
+    table = calibration(cases)
+    assert {g: (v["right"], v["cases"]) for g, v in table.items()} == {
+        "confident": (1, 2), "tentative": (1, 1), "not_separable": (1, 2), "nuisance": (1, 2), "none": (2, 3)}
+    lo, hi = table["none"]["interval95"]
+    assert lo < 2 / 3 < hi
+    path = tmp_path / "gap-calibration.json"
+    assert read_calibration(path) is None and grade_line("confident", read_calibration(path)) is None
+    path.write_text(json.dumps({"seed": 7, "cases": 10, "grades": table}))
+    line = grade_line("none", read_calibration(path))
+    assert line["sentence"] == "none: right in 2 of 3 bench cases" and line["seed"] == 7
