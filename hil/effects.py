@@ -93,6 +93,10 @@ EFFECTS: dict[str, EffectSpec] = {s.name: s for s in [
     EffectSpec("torque_ripple", "plant", {"amplitude": 0.02, "frequency_hz": 60.0, "phase_rad": 0.0},
                "sinusoidal torque ripple (fraction of the torque)",
                {"amplitude": "-", "frequency_hz": "Hz", "phase_rad": "rad"}, candidate=False),
+    EffectSpec("power_limit", "plant", {"power_kw": None, "power_ratio": 1.01},
+               "constant-power region of the drive: the motor torque capped at power_kw / omega_m (above the base "
+               "speed power_kw / torque); power_kw None: power_ratio x the scenario's equilibrium power",
+               {"power_kw": "kW", "power_ratio": "-"}, candidate=False),
     EffectSpec("wheel_radius", "plant", {"error_percent": 0.2}, "true wheel radius = nominal x (1 + error)",
                {"error_percent": "%"}, candidate=False),
     EffectSpec("sensor_delay", "sensor", {"delay_ms": 3.0}, "speed sensors report values delay_ms old",
@@ -139,7 +143,8 @@ def check_effect(name: str, params: dict, where: str = "reality") -> dict:
     for k, v in out.items():
         if v is not None and v < 0 and k not in ("phase_rad", "error_percent"):
             raise ValueError(f"{where} {name}.{k}: must be >= 0, got {v}")
-    for k in ("relaxation_length_m", "stiffness_per_m", "tau_ms", "peak_mu_scale", "creep_scale", "pitch_hz"):
+    for k in ("relaxation_length_m", "stiffness_per_m", "tau_ms", "peak_mu_scale", "creep_scale", "pitch_hz",
+              "power_ratio"):
         if k in out and not out[k] > 0:
             raise ValueError(f"{where} {name}.{k}: must be > 0, got {out[k]}")
     if name in ("torque_lag", "adhesion_lag") and out["tau_s"] <= 0:
@@ -148,6 +153,8 @@ def check_effect(name: str, params: dict, where: str = "reality") -> dict:
         raise ValueError(f"{where} compliance.stiffness_nm_rad: must be > 0, got {out['stiffness_nm_rad']}")
     if name == "gear_efficiency" and not 0 < out["efficiency"] <= 1:
         raise ValueError(f"{where} gear_efficiency.efficiency: must be in (0, 1], got {out['efficiency']}")
+    if name == "power_limit" and out["power_kw"] is not None and not out["power_kw"] > 0:
+        raise ValueError(f"{where} power_limit.power_kw: must be > 0, got {out['power_kw']}")
     if name == "can" and not out["loss"] < 1:
         raise ValueError(f"{where} can.loss: must be < 1, got {out['loss']}")
     return out

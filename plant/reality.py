@@ -24,6 +24,10 @@ A "real" run is the nominal plant plus one or more of these effects.  Three leve
     ``bristle`` (LuGre-type: a bristle state whose relaxation rate is |w| / g(v_s), plus damping).
   - ``resistance``     running-resistance mismatch: the Davis polynomial scaled by ``factor``.
   - ``torque_ripple``  (not a diagnosis candidate) sinusoidal ripple on the motor torque.
+  - ``power_limit``    (not a diagnosis candidate) the drive's constant-power region: the motor torque
+    capped at P_max / omega_m, so above the base speed P_max / T the torque falls as the motor speeds up
+        T = min(T_cmd, P_max / omega_m),   P_max = power_kw * 1e3
+    (power_kw None: power_ratio x the equilibrium power T0 omega0, binding from power_ratio x omega0).
   - ``wheel_radius``   (not a diagnosis candidate) true wheel radius off the nominal one.
 
 * **sensor** effects (``RealitySensors`` wraps ``plant.SensorModel``): ``sensor_delay`` (delay_ms,
@@ -47,7 +51,7 @@ from .params import KMH_PER_MS
 
 
 #: the plant-level effects this module integrates, in the order they act on the torque path
-PLANT_ORDER = ("torque_lag", "torque_ripple", "drivetrain_damping", "gear_efficiency", "compliance", "wheel_radius", "rail_curve",
+PLANT_ORDER = ("torque_lag", "power_limit", "torque_ripple", "drivetrain_damping", "gear_efficiency", "compliance", "wheel_radius", "rail_curve",
                "adhesion_lag", "creep_relaxation", "bristle", "load_transfer", "load_transfer_pitch", "resistance")
 #: the bristle model's relaxation rate (1/s) is capped here (time constant >= 0.25 ms, 2.5 RK4
 #: sub-steps, a quarter period): the cap slows only transients faster than a sample, never the steady state
@@ -66,6 +70,9 @@ def fill_defaults(effects: dict, cfg: PlantConfig) -> dict:
             for k in ("half_bogie_distance_m", "half_wheelbase_m", "coupler_height_m", "bogie_height_m"):
                 if q.get(k) is None:
                     q[k] = float(getattr(p, k))
+        if name == "power_limit" and q.get("power_kw") is None:
+            x0, torque0 = equilibrium(cfg)
+            q["power_kw"] = float(q.get("power_ratio", 1.0) * torque0 * x0[0] * 1e-3)
         out[name] = q
     return out
 
@@ -121,6 +128,8 @@ class RealityModel:
         torque = x[self._i("torque_actual")] if "torque_lag" in e else torque_cmd
         if "torque_lag" in e:
             dx[self._i("torque_actual")] = (torque_cmd - torque) / e["torque_lag"]["tau_s"]
+        if "power_limit" in e:
+            torque = ca.fmin(torque, e["power_limit"]["power_kw"] * 1e3 / ca.fmax(omega_m, 1.0))
         if "torque_ripple" in e:
             r = e["torque_ripple"]
             torque = torque * (1 + r["amplitude"] * ca.sin(2 * math.pi * r["frequency_hz"] * t + r["phase_rad"]))

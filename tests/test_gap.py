@@ -580,3 +580,101 @@ def test_bench_gap_summary_fits_a_terminal():
     flat = " ".join(text.split())
     assert f"{result['cases']} cases (seed {result['seed']})" in flat
     assert f"false-confident rate {result['false_confident_rate']:.3f}" in flat
+
+
+def test_a_creep_stretched_rail_is_the_nuisance_and_nothing_more_is_named(tmp_path, scenario):
+    """Issue 35 item 3: a rail whose curve is stretched (or shrunk) in creep inside the nuisance's range,
+    drawn as the bench's out-of-library family draws it.  The rail curve leaves the held-out gap within
+    the noise, so the answer is the nuisance with nothing named, and no second effect is fitted on top of
+    anything (before, compliance plus an adhesion lag on top was named "confident")."""
+    from hil.benchmarks.gap import FAMILY
+    from hil.effects import with_reality
+    from hil.gap.select import NOISE_GAP
+    seed = fresh_seed()
+    g = np.random.default_rng(seed)
+    cls, effect, sampler = FAMILY["rail_stretch"]
+    assert cls == "nuisance" and not EFFECTS[effect].candidate
+    effects = {effect: sampler(g)}
+    real = with_reality(scenario, effects)
+    s = run(real, "nlls", int(g.integers(1, 1 << 30)), bus="inprocess", out_dir=tmp_path, progress=False, log=print)
+    out, _ = diagnose(read_real_log(s["mcap"]), scenario, identify=False)
+    which = out["which"]
+    rail = which["nuisances"][0]
+    print(f"seed {seed}: {effects} ->", which["confidence"], which["verdict"][:300])
+    assert which["gap_present"]
+    assert rail["held_out_gap"] <= NOISE_GAP                    # the nuisance alone is within the noise ...
+    assert which["named"] == "none" and which["named_set"] == []   # ... so nothing is named
+    assert which["confidence"] == "nuisance", which["verdict"]
+    assert which["forward"] is None                            # and no second effect was tried
+    assert rail["peak_creep_percent"] == pytest.approx((effects[effect]["creep_scale"] - 1) * 100, abs=1.5)
+    assert which["not_separable"] == [] and which["separate_by"] is None
+
+
+def test_a_constant_power_limit_is_not_separable_and_lists_both(tmp_path, scenario):
+    """Issue 35 item 2: the drive's constant-power region (the torque capped at P_max / omega_m, no
+    candidate), binding from 0.5-3 % above the equilibrium speed.  The rail curve and the drivetrain
+    losses (compliance's viscous + Coulomb form) each remove nearly all of its gap and neither beats the
+    other by the margin: the answer is "not_separable", listing both, with where their fits differ most;
+    nothing is named (before, a second effect on top of one of them could be named "confident").
+    (The bench's family draws up to 5 %: at 3.8 % (test seed 2080877675) the rail curve alone left 1.66
+    noise units against compliance's 14.0 and the answer was "nuisance", wrong for an effect outside
+    the library; the bench counts such cases, this test pins the range where two candidates mimic it:
+    not_separable at 0.5, 1 and 3 %.)"""
+    from hil.benchmarks.gap import FAMILY
+    from hil.effects import with_reality
+    from hil.gap.report import text_summary
+    seed = fresh_seed()
+    g = np.random.default_rng(seed)
+    cls, effect, _ = FAMILY["power_limit"]
+    assert cls == "outside" and not EFFECTS[effect].candidate
+    effects = {effect: {"power_ratio": float(g.uniform(1.005, 1.03))}}
+    real = with_reality(scenario, effects)
+    s = run(real, "nlls", int(g.integers(1, 1 << 30)), bus="inprocess", out_dir=tmp_path, progress=False, log=print)
+    out, _ = diagnose(read_real_log(s["mcap"]), scenario, identify=False)
+    which = out["which"]
+    listed = [a["effect"] for a in which["not_separable"]]
+    print(f"seed {seed}: {effects} ->", which["confidence"], listed, which["separate_by"], which["verdict"][:300])
+    assert which["named"] == "none" and which["named_set"] == []
+    assert which["confidence"] == "not_separable", which["verdict"]
+    assert {"rail_curve", "compliance"} <= set(listed), listed
+    sb = which["separate_by"]
+    assert sb["signal"] in ("motor", "train", "mu_hat") and sb["stage"] in ("normal", "early", "serious")
+    assert sb["difference_noise_units"] > 0 and set(sb["between"]) <= {a["explanation"] for a in which["not_separable"]}
+    text = text_summary(out)
+    assert "NOT SEPARABLE:" in text and "separate by:" in text, text
+
+
+def test_grades_are_scored_and_the_calibration_is_read_back(tmp_path):
+    """Issue 35 item 1, the table's plumbing (no diagnosis): the bench grades answers as the issue defines
+    "right" per grade, writes per grade the right answers and their count, and ``hil gap``'s reader gives
+    the line printed beside an answer of that grade; no file, no line."""
+    from hil.benchmarks.gap import calibration, grade_right
+    from hil.gap.calibration import grade_line, read_calibration
+
+    def case(effects, truth, named_set, grade, listed=(), best="compliance", oracle=None):
+        which = {"named_set": named_set, "confidence": grade, "ranking": [{"effect": best}],
+                 "not_separable": [{"effect": e} for e in listed]}
+        rec = {"effects": effects, "truth_classes": truth, "oracle": oracle, "confidence": grade}
+        return dict(rec, grade_right=grade_right(rec, which))
+
+    cases = [case({"compliance": {}}, ["compliance"], ["compliance"], "confident"),          # right
+             case({"rail_curve": {}}, [], ["adhesion_lag"], "confident"),                      # wrong: a rail
+             case({"power_limit": {}}, [], [], "not_separable", ["rail_curve", "compliance"]),  # right: outside
+             case({"load_transfer": {}}, ["load_transfer"], [], "not_separable", ["rail_curve", "compliance"]),
+             case({"rail_curve": {}}, [], [], "nuisance"),                                     # right
+             case({"tachometer_gain": {}}, [], [], "nuisance"),                                # wrong: no rail
+             case({"bristle": {}}, ["adhesion_lag"], [], "tentative", best="adhesion_lag"),   # right
+             case({}, [], [], "none"),                                                          # right: nominal
+             case({"bristle": {}}, ["adhesion_lag"], [], "none", oracle={"separable": False}),  # right: beyond
+             case({"bristle": {}}, ["adhesion_lag"], [], "none", oracle={"separable": True})]   # wrong
+    assert [c["grade_right"] for c in cases] == [True, False, True, False, True, False, True, True, True, False]
+    table = calibration(cases)
+    assert {g: (v["right"], v["cases"]) for g, v in table.items()} == {
+        "confident": (1, 2), "tentative": (1, 1), "not_separable": (1, 2), "nuisance": (1, 2), "none": (2, 3)}
+    lo, hi = table["none"]["interval95"]
+    assert lo < 2 / 3 < hi
+    path = tmp_path / "gap-calibration.json"
+    assert read_calibration(path) is None and grade_line("confident", read_calibration(path)) is None
+    path.write_text(json.dumps({"seed": 7, "cases": 10, "grades": table}))
+    line = grade_line("none", read_calibration(path))
+    assert line["sentence"] == "none: right in 2 of 3 bench cases" and line["seed"] == 7

@@ -81,6 +81,32 @@ def test_torque_lag_delays_a_torque_step(scenario):
     assert np.allclose(trajectory(lag2, t0, 200), trajectory(WheelsetPlant(cfg), t0, 200), atol=1e-9)
 
 
+def test_a_power_limit_caps_the_torque_at_power_over_speed(scenario):
+    """The drive's constant-power region: T = min(T_cmd, P_max / omega_m).  Far above the equilibrium power
+    it never binds (the nominal plant); at 0.98 of it, it binds from the start, and the motor then
+    accelerates as under a torque of P_max / omega_m."""
+    from plant.model import equilibrium
+    cfg = scenario.plant_config()
+    x0, t0 = equilibrium(cfg)
+    far = RealityPlant(cfg, {"power_limit": {"power_kw": 10 * t0 * x0[0] * 1e-3, "power_ratio": 1.0}})
+    assert np.allclose(trajectory(far, t0, 300), trajectory(WheelsetPlant(cfg), t0, 300), atol=1e-9)
+    _, params = parse_effect("power_limit:power_ratio=0.98")
+    capped = RealityPlant(cfg, {"power_limit": params})
+    assert capped.effects["power_limit"]["power_kw"] == pytest.approx(0.98 * t0 * x0[0] * 1e-3, rel=1e-12)
+    # the nominal plant commanded P_max / omega_m at each period's start (omega_m moves by < 1e-3 of
+    # itself in a period, so the cap held per period is the cap to that order)
+    nom = WheelsetPlant(cfg)
+    p_w = params["power_ratio"] * t0 * x0[0]
+    by_hand, w = [], x0[0]
+    for _ in range(300):
+        s = nom.step(min(t0, p_w / w))
+        w = s.motor_speed_rad_s
+        by_hand.append(w)
+    got = trajectory(capped, t0, 300)[:, 0]
+    assert np.max(np.abs(got - np.array(by_hand))) < 1e-4 * np.max(np.abs(np.array(by_hand) - x0[0]))
+    assert got[-1] < trajectory(WheelsetPlant(cfg), t0, 300)[-1, 0] - 0.01   # and the cap slows the motor
+
+
 def test_compliance_rings_after_the_fault_only(scenario):
     cfg = scenario.plant_config()
     nom = WheelsetPlant(cfg)

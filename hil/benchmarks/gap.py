@@ -13,7 +13,14 @@ K real runs, each drawn (seeded; the seed is drawn at run time unless given, and
   nuisance, whose right answer names no effect;
 * ``two_effect``: one plant effect and one sensor effect at once;
 * ``outside``: an effect outside every class (torque ripple, wheel radius, tachometer gain): right answer
-  "none", and a sparse description (``which.description``) naming what the missing term depends on.
+  "none", and a sparse description (``which.description``) naming what the missing term depends on;
+* ``out_of_library``: a member of ``FAMILY``, effects that are no candidate and that a combination of
+  candidates can mimic, each classed in advance (``outside``: the right answer names no effect;
+  ``nuisance``: the rail's curve is what differs): the drive's constant-power torque limit
+  (``power_limit``: the torque capped at P_max / omega_m once the motor runs 0.5-5 % above its
+  equilibrium speed; the rail curve and the drivetrain losses each remove most of its gap) and a rail
+  curve stretched (or shrunk) in creep by 6-14 % (``rail_stretch``, inside the nuisance's range 0.85-1.18);
+* ``nominal``: no effect at all (right answer: no gap, "none").
 
 Each run is recorded to MCAP, diagnosed through ``hil.gap.read_real_log`` (which drops the truth
 key), and only then compared with the truth.  Scores: top-1 (single effects: the named class is the
@@ -21,6 +28,13 @@ truth's class), set accuracy (``named_set`` equals the truth's classes), "none" 
 outside cases), false-confident rate (a named class absent from the truth: every name claims at least
 ``MIN_SHRINK`` of the gap), both-found rate of two-effect cases, median held-out shrink when right,
 parameter error where the forms match.
+
+Per grade (``calibration``), the fraction of right answers (issue 35): ``confident`` / ``tentative``
+right when every effect named (for ``tentative`` the "most likely" one) is a true effect;
+``not_separable`` when its list holds every true class (the rail curve for a nuisance; any list for
+a truth outside the library); ``nuisance`` when the rail's curve differs; ``none`` when the truth is
+outside the library, nominal, or beyond what the log tells apart (the oracle).  ``--doc DIR`` writes it
+to ``DIR/gap-calibration.json``, which ``hil gap`` prints beside its answer.
 
 Not drawn: ``torque_lag``.  The TCU commands a constant torque, so a first-order torque lag never
 acts and no diagnosis can see it (the gap is zero); it stays in the library and among the candidates.
@@ -83,13 +97,29 @@ OUTSIDE = {
 #: (``LINE_TOLERANCE``; a torque ripple under a command constant over the window: nothing in the log
 #: says the sine scales with the torque)
 OUTSIDE_VARIABLES = {"torque_ripple": {"torque"}, "wheel_radius": {"creep_speed", "motor_speed"},
-                     "tachometer_gain": {"motor_speed"}}
+                     "tachometer_gain": {"motor_speed"}, "power_limit": {"motor_speed", "torque"}}
+#: the out-of-library family: member -> (its class, decided before any diagnosis: "outside" (no effect
+#: is right) or "nuisance" (the rail's curve differs), the reality effect that makes it, sampler(rng) ->
+#: its parameters).  None is a candidate (``EFFECTS[effect].candidate`` is False).
+FAMILY = {
+    # the drive's constant-power region: T = min(T_cmd, P_max / omega_m), P_max a ratio of the equilibrium
+    # power, so the cap binds once the motor runs that much above its equilibrium speed (at the fault's
+    # creep rise, or earlier as the train accelerates)
+    "power_limit": ("outside", "power_limit", lambda g: {"power_ratio": U(g, 1.005, 1.05)}),
+    # the rail's curve stretched in creep, inside the nuisance's range (candidates.RAIL: 0.85-1.18)
+    "rail_stretch": ("nuisance", "rail_curve",
+                     lambda g: {"peak_mu_scale": 1.0, "creep_scale": float(g.choice([-1, 1])) * U(g, 0.06, 0.14)
+                                + 1.0}),
+}
 LINE_TOLERANCE = 0.02
 PLANT_FORMS = ("load_transfer", "compliance", "adhesion_lag", "resistance", "creep_relaxation", "bristle",
                "load_transfer_pitch")
 SENSOR_FORMS = ("sensor_delay", "sensor_quantisation", "can", "sensor_lowpass", "motor_delay")
-KINDS = ("held_out_form", "library_form", "rail", "two_effect", "outside")
-DEFAULT_MIX = {"held_out_form": 0.4, "library_form": 0.15, "rail": 0.15, "two_effect": 0.1, "outside": 0.2}
+KINDS = ("held_out_form", "library_form", "rail", "two_effect", "outside", "out_of_library", "nominal")
+#: the five first kinds in the proportions they always had; the out-of-library family and the nominal row beside
+DEFAULT_MIX = {"held_out_form": 0.4, "library_form": 0.15, "rail": 0.15, "two_effect": 0.1, "outside": 0.2,
+               "out_of_library": 0.15, "nominal": 0.05}
+GRADES = ("confident", "tentative", "not_separable", "nuisance", "none")
 
 
 def _sample(name: str, g) -> dict:
@@ -101,8 +131,16 @@ def _sample(name: str, g) -> dict:
 
 
 def truth_classes(effects: dict) -> list[str]:
-    """The classes a right answer names: effects outside every class and the rail name none."""
-    return sorted({EFFECTS[n].effect_class for n in effects if n not in OUTSIDE and n != "rail_curve"})
+    """The classes a right answer names: effects that are no candidate (outside every class, the rail,
+    the out-of-library family) name none."""
+    return sorted({EFFECTS[n].effect_class for n in effects if EFFECTS[n].candidate})
+
+
+def member_of(kind: str, effects: dict) -> str | None:
+    """The out-of-library family member a case was drawn as (None for the other kinds)."""
+    if kind != "out_of_library":
+        return None
+    return next(m for m, (_, effect, _) in FAMILY.items() if effect in effects)
 
 
 def register(sub) -> None:
@@ -161,9 +199,14 @@ def draw_case(seed: int, i: int, mix: dict) -> tuple[str, dict, int]:
         a = PLANT_FORMS[int(g.integers(len(PLANT_FORMS)))]
         b = SENSOR_FORMS[int(g.integers(len(SENSOR_FORMS)))]
         effects = {a: _sample(a, g), b: _sample(b, g)}
-    else:
+    elif kind == "outside":
         name = sorted(OUTSIDE)[int(g.integers(len(OUTSIDE)))]
         effects = {name: _sample(name, g)}
+    elif kind == "out_of_library":
+        _, effect, sampler = FAMILY[sorted(FAMILY)[int(g.integers(len(FAMILY)))]]
+        effects = {effect: sampler(g)}
+    else:                                  # nominal: no effect
+        effects = {}
     return kind, effects, int(g.integers(1, 2 ** 31 - 1))
 
 
@@ -191,7 +234,7 @@ def run_case(scenario, kind: str, effects: dict, run_seed: int, out_dir: Path, i
     held_out = sorted(n for n in effects if n in HELD_OUT)             # the truth's own form is no candidate
     out, result = diagnose(read_real_log(path), scenario, identify=False, exclude=held_out)   # blind: no truth here
     wall = time.perf_counter() - t0
-    truth = read_log(path).metadata[TRUTH_KEY]                          # only now, for scoring
+    truth = read_log(path).metadata.get(TRUTH_KEY, {})                  # only now, for scoring (none: nominal)
     which = out["which"]
     truth_set = truth_classes(effects)
     limit = oracle(result, effects, truth_set) if which["gap_present"] and truth_set else None
@@ -206,13 +249,15 @@ def run_case(scenario, kind: str, effects: dict, run_seed: int, out_dir: Path, i
            "description": (which.get("description") or {}).get("sentence"),
            "described_variables": (which.get("description") or {}).get("variables", []),
            "oracle": limit, "excluded": held_out, "ranked_candidates": [r["candidate"] for r in which["ranking"]],
-           "failed_candidates": which["failed_candidates"]}
-    if kind == "outside":
+           "failed_candidates": which["failed_candidates"], "gap_present": which["gap_present"],
+           "member": member_of(kind, effects),
+           "not_separable": [a["effect"] for a in which.get("not_separable") or []]}
+    rec["member_class"] = FAMILY[rec["member"]][0] if rec["member"] else None
+    if kind == "outside" or rec["member_class"] == "outside":
         right = set().union(*(OUTSIDE_VARIABLES[n] for n in effects))
         line_hz = (which.get("description") or {}).get("line_hz") if "periodic" in rec["described_variables"] \
             else None
         rec["described_line_hz"] = line_hz
-        rec["gap_present"] = which["gap_present"]
         rec["description_right"] = bool(set(rec["described_variables"]) & right) or any(
             line_hz is not None and abs(line_hz / p["frequency_hz"] - 1) <= LINE_TOLERANCE
             for p in effects.values() if "frequency_hz" in p)
@@ -222,6 +267,7 @@ def run_case(scenario, kind: str, effects: dict, run_seed: int, out_dir: Path, i
         rec["correct"] = which["named"] == "none"
     else:
         rec["correct"] = rec["set_correct"]
+    rec["grade_right"] = grade_right(rec, which)
     if kind == "rail":
         n = which["nuisances"]
         rec["rail_reported"] = bool(n) and "rail" in which["verdict"]
@@ -240,6 +286,24 @@ def run_case(scenario, kind: str, effects: dict, run_seed: int, out_dir: Path, i
             rec["fitted_value"] = fitted
             rec["param_err_percent"] = abs(fitted - true_v) / abs(true_v) * 100
     return rec
+
+
+def grade_right(rec: dict, which: dict) -> bool:
+    """Is the answer right for its grade (module docstring, issue 35 item 1)?  ``rec``: the case's record
+    so far (truth classes, effects, oracle); ``which``: the diagnosis' answer."""
+    truth, grade = set(rec["truth_classes"]), which["confidence"]
+    rail = "rail_curve" in rec["effects"]
+    beyond = bool(rec.get("oracle")) and not rec["oracle"]["separable"]
+    if grade == "confident":
+        return bool(which["named_set"]) and set(which["named_set"]) <= truth
+    if grade == "tentative":
+        return which["ranking"][0]["effect"] in truth
+    if grade == "not_separable":
+        listed = {a["effect"] for a in which.get("not_separable") or []}
+        return truth <= listed and (not rail or "rail_curve" in listed)
+    if grade == "nuisance":
+        return rail
+    return not truth or beyond      # none: outside, nominal or the rail with no gap, or beyond the log
 
 
 def oracle(result, effects: dict, truth_set: list) -> dict | None:
@@ -302,7 +366,7 @@ def summarise(records: list[dict]) -> dict:
     perr = [r["param_err_percent"] for r in records if "param_err_percent" in r]
     per_form = {}
     for r in records:
-        key = "+".join(sorted(r["effects"]))
+        key = "+".join(sorted(r["effects"])) or "nominal"
         d = per_form.setdefault(key, {"cases": 0, "correct": 0})
         d["cases"] += 1
         d["correct"] += int(r["correct"])
@@ -313,8 +377,21 @@ def summarise(records: list[dict]) -> dict:
         confusion.setdefault(row, {n: 0 for n in labels})[r["named"]] += 1
     sep = lambda rs: [r for r in rs if (r.get("oracle") or {}).get("separable")]  # noqa: E731
     beyond = lambda rs: [r for r in rs if r.get("oracle") and not r["oracle"]["separable"]]  # noqa: E731
+    ool = [r for r in records if r["kind"] == "out_of_library"]
+    outside_like = [r for r in records if r["kind"] in ("rail", "outside", "out_of_library")]
+    confident = [r for r in records if r["confidence"] == "confident"]
+    confident_wrong = sum(not r["grade_right"] for r in confident)
     return {
         "cases": len(records), "by_kind": {k: sum(r["kind"] == k for r in records) for k in KINDS},
+        "calibration": calibration(records),
+        "confident_wrong": confident_wrong, "confident_cases": len(confident),
+        "confident_wrong_upper95": upper95(confident_wrong, len(confident)),
+        "confident_wrong_outside_and_nuisance": sum(r["confidence"] == "confident" and not r["grade_right"]
+                                                    for r in outside_like),
+        "outside_and_nuisance_cases": len(outside_like),
+        "none_accuracy_out_of_library": _rate(ool), "grade_right_out_of_library": _rate(ool, "grade_right"),
+        "nominal_no_gap": _rate([dict(r, no_gap=not r["gap_present"]) for r in records if r["kind"] == "nominal"],
+                                "no_gap"),
         "oracle_cases": sum(bool(r.get("oracle")) for r in records),
         "held_out_separable": len(sep(held)), "held_out_beyond_the_log": len(beyond(held)),
         "top1_accuracy_held_out_separable": _rate(sep(held)),
@@ -343,6 +420,25 @@ def summarise(records: list[dict]) -> dict:
     }
 
 
+def calibration(records: list[dict]) -> dict:
+    """Per grade: cases, right answers (``grade_right``), their fraction and its 95 % interval (Clopper-Pearson)."""
+    out = {}
+    for g in GRADES:
+        rs = [r for r in records if r["confidence"] == g]
+        k = sum(bool(r["grade_right"]) for r in rs)
+        out[g] = {"cases": len(rs), "right": k, "fraction": k / len(rs) if rs else None,
+                  "interval95": [1 - upper95(len(rs) - k, len(rs)), upper95(k, len(rs))] if rs else None}
+    return out
+
+
+def upper95(k: int, n: int) -> float | None:
+    """The 95 % Clopper-Pearson upper bound of a rate seen k times in n (two-sided, 2.5 % each side)."""
+    from scipy.stats import beta
+    if n == 0:
+        return None
+    return 1.0 if k >= n else float(beta.ppf(0.975, k + 1, n - k))
+
+
 def markdown(result: dict) -> str:
     from ..trace import fmt as f
     pct = lambda v: "-" if v is None else f"{v * 100:.0f} %"  # noqa: E731
@@ -366,6 +462,14 @@ def markdown(result: dict) -> str:
              f"{result['by_kind'].get('outside', 0)}) | {pct(result.get('description_right_outside_with_gap'))} | "
              "(the limit) |",
              f"| two-effect cases, both found | {pct(result['two_effect_both_found'])} | >= 70 % |",
+             f"| confident answers wrong | {result.get('confident_wrong')} of {result.get('confident_cases')} "
+             f"(95 % upper bound {pct(result.get('confident_wrong_upper95'))}) | <= 2 of >= 100 |",
+             f"| confident wrong among rail, outside and out-of-library cases | "
+             f"{result.get('confident_wrong_outside_and_nuisance')} of {result.get('outside_and_nuisance_cases')} | "
+             "0 of >= 60 |",
+             f"| out-of-library family: 'none' / right for its grade | {pct(result.get('none_accuracy_out_of_library'))}"
+             f" / {pct(result.get('grade_right_out_of_library'))} | >= 90 % |",
+             f"| nominal row: no gap | {pct(result.get('nominal_no_gap'))} | 100 % |",
              f"| ... held-out forms where the truth itself is told apart ({result['held_out_separable']} of "
              f"{result['by_kind']['held_out_form']}; {result['held_out_beyond_the_log']} beyond the log) | "
              f"{pct(result['top1_accuracy_held_out_separable'])} | (the limit) |",
@@ -381,7 +485,13 @@ def markdown(result: dict) -> str:
              "candidate of another class by the margin, no candidate can be expected to be named from that log: "
              f"{result['wrong_beyond_the_log']} of the wrong answers are such cases, {result['wrong_separable']} "
              "are not (column 'truth told apart' below).",
-             "", "## Per effect (or pair)", "", "| truth | cases | right |", "|---|---|---|"]
+             "", "## Each grade, calibrated", "", "| grade | cases | right | fraction (95 % interval) |",
+             "|---|---|---|---|"]
+    for g, c in (result.get("calibration") or {}).items():
+        iv = c["interval95"]
+        lines.append(f"| {g} | {c['cases']} | {c['right']} | {pct(c['fraction'])}"
+                     + (f" ({iv[0] * 100:.0f}-{iv[1] * 100:.0f} %)" if iv else "") + " |")
+    lines += ["", "## Per effect (or pair)", "", "| truth | cases | right |", "|---|---|---|"]
     for k, v in sorted(result["per_form"].items()):
         lines.append(f"| {k} | {v['cases']} | {v['correct']} |")
     lines += ["", "## Every case", "", "| # | kind | truth | named | confidence | shrink | truth told apart "
@@ -389,6 +499,7 @@ def markdown(result: dict) -> str:
     for r in result["records"]:
         truth = "; ".join(f"{n}(" + ", ".join(f"{k}={v:.4g}" for k, v in p.items() if v is not None) + ")"
                           for n, p in r["effects"].items())
+        truth = (f"{r['member']}: " if r.get("member") else "") + (truth or "nominal")
         lines.append(f"| {r['case']} | {r['kind']} | {truth} | {r['named']} | {r['confidence']} | "
                      f"{r['shrink_percent']:.0f} % | {_oracle_cell(r.get('oracle'))} | "
                      f"{r['verdict'][:160].replace('|', '/')} |")
@@ -425,9 +536,12 @@ def cmd_gap_bench(args) -> int:
                                                   file=sys.stderr, flush=True)):
         records.append(rec)
         extra = f" param err {rec['param_err_percent']:.1f} %" if "param_err_percent" in rec else ""
-        print(wrap(f"hil bench gap: case {rec['case'] + 1}/{args.cases}: {rec['kind']} {'+'.join(rec['effects'])} -> "
-                   f"{'+'.join(rec['named_set']) or 'none'} [{rec['confidence']}] "
-                   f"({'ok' if rec['correct'] else 'WRONG'}{', FALSE-CONFIDENT' if rec['false_confident'] else ''}), "
+        print(wrap(f"hil bench gap: case {rec['case'] + 1}/{args.cases}: {rec['kind']} "
+                   f"{rec.get('member') or '+'.join(rec['effects']) or 'nominal'} -> "
+                   f"{'+'.join(rec['named_set']) or 'none'} [{rec['confidence']}"
+                   f"{': ' + ' or '.join(rec['not_separable']) if rec.get('not_separable') else ''}] "
+                   f"({'ok' if rec['correct'] else 'WRONG'}{', FALSE-CONFIDENT' if rec['false_confident'] else ''}; "
+                   f"grade {'right' if rec['grade_right'] else 'wrong'}), "
                    f"shrink {rec['shrink_percent']:.0f} %{extra}; truth told apart: {_oracle_cell(rec.get('oracle'))}"
                    + (f"; {len(rec['failed_candidates'])} candidate fits failed: "
                       + ", ".join(f"{f['name']} ({f['step']})" for f in rec["failed_candidates"])
@@ -439,11 +553,15 @@ def cmd_gap_bench(args) -> int:
                    "records": [{k: v for k, v in r.items() if k != "log" or args.out} for r in records]})
     result = clean(result)
     if args.doc:
+        from ..gap.calibration import CALIBRATION_FILE
         d = Path(args.doc)
         d.mkdir(parents=True, exist_ok=True)
         (d / "gap.json").write_text(json.dumps(result, indent=1) + "\n")
         (d / "gap.md").write_text(markdown(result))
-        print(f"hil bench gap: wrote {d / 'gap.md'} and {d / 'gap.json'}", file=sys.stderr)
+        (d / CALIBRATION_FILE).write_text(json.dumps(
+            {"seed": result["seed"], "cases": result["cases"], "mix": result["mix"], "scenario": result["scenario"],
+             "grades": result["calibration"]}, indent=1) + "\n")
+        print(f"hil bench gap: wrote {d / 'gap.md'}, {d / 'gap.json'} and {d / CALIBRATION_FILE}", file=sys.stderr)
     if args.json:
         print(json.dumps(result))
     elif args.markdown:
@@ -471,6 +589,13 @@ def summary_text(result: dict) -> str:
                  f"{f(result['two_effect_both_found'], '.3f')}; median shrink when right "
                  f"{f(result['median_shrink_percent'], '.1f')} %; median parameter error "
                  f"{f(result['median_param_err_percent'], '.2f')} %")
+    cal = result.get("calibration")
+    if cal:
+        lines.append("  right per grade: " + ", ".join(f"{g} {c['right']} of {c['cases']}" for g, c in cal.items())
+                     + f"; confident wrong {result['confident_wrong']} of {result['confident_cases']} (95 % upper "
+                     f"bound {f(result['confident_wrong_upper95'], '.3f')}); out-of-library 'none' "
+                     f"{f(result['none_accuracy_out_of_library'], '.3f')}; nominal no gap "
+                     f"{f(result['nominal_no_gap'], '.3f')}")
     lines.append(f"  the limit (the truth scored as a candidate, {result['oracle_cases']} cases): held-out forms told "
                  f"apart {result['held_out_separable']} (top-1 there {f(result['top1_accuracy_held_out_separable'], '.3f')}), "
                  f"beyond the log {result['held_out_beyond_the_log']}; two-effect told apart "

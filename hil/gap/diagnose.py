@@ -29,14 +29,15 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..trace import clean
+from .calibration import grade_line, read_calibration
 from .candidates import SIGNALS, UNITS, Context, Fit, candidates, fit_nominal
 from .identify import identification
 from .model import ObserverReplica, initial_line
 from .select import (FORWARD_MAX_SHARE, FORWARD_MIN_LEFT, FORWARD_MIN_SHARE, MARGIN_GAP_RATIO, MIN_GAP, MIN_MARGIN,
                      MIN_SCORE_GAIN, MIN_SHRINK, NOISE_GAP, NONE, entry, fit_candidates, fit_rail, forward, judge,
-                     quantiser, rejudge, score)
+                     label, quantiser, rejudge, score, within_noise)
 from .sparse import describe_residual
-from .where import normal_running_replay, observability, where
+from .where import normal_running_replay, observability, separation, where
 
 
 @dataclass
@@ -148,10 +149,24 @@ class Diagnosis:
         ranking = [entry(ctx, fit, base) for fit in fits]
         ranking.sort(key=lambda r: -r["score_gain"])
         best = ranking[0]
-        named, named_set, verdict, nuisances, confidence = judge(base, ranking, rail, gap_present)
+        named, named_set, verdict, nuisances, confidence, alternatives = judge(base, ranking, rail, gap_present)
         best_fit = next(f for f in fits if f.name == best["candidate"])
+        # what would tell a "not separable" answer's explanations apart: where their fits differ most
+        separate = []
+        if alternatives:
+            by_name = {f.name: f for f in fits}
+            preds = {label(r): (rail_fit.pred if r is rail else by_name[r["candidate"]].pred) for r in alternatives}
+            separate = separation(ctx, preds, creep_meas)
+            if separate:
+                sb = separate[0]      # the two best: the first two explanations listed
+                verdict += (f"; they differ most on {sb['signal']} in the {sb['stage']} stage "
+                            f"({sb['difference_noise_units']:.2f} noise units between {sb['between'][0]} and "
+                            f"{sb['between'][1]})")
         forward_ = None
+        # nothing is named on top of an explanation that leaves the held-out gap within the noise: the
+        # rail nuisance (``within_noise``) or the best single effect (its gap above NOISE_GAP)
         if gap_present and FORWARD_MIN_SHARE <= best["held_out_shrink"] and best["held_out_gap"] > NOISE_GAP and \
+                not within_noise(rail) and \
                 (best["held_out_shrink"] < FORWARD_MAX_SHARE or best["held_out_gap"] >= FORWARD_MIN_LEFT):
             forward_ = forward(ctx, nom_fit, base, best_fit, best, rail_fit, ranking, exclude, failed, say)
             if forward_ is not None and forward_["accepted"]:
@@ -183,13 +198,19 @@ class Diagnosis:
             "where": where_,
             "which": {"named": named, "named_set": named_set, "verdict": verdict, "gap_present": gap_present,
                       "confidence": confidence, "nominal_held_out_gap": base["gap"], "ranking": ranking,
+                      "not_separable": [{"explanation": label(r), "effect": r["effect"], "form": r["form"],
+                                         "held_out_shrink": r["held_out_shrink"], "held_out_gap": r["held_out_gap"],
+                                         "score_gain": r["score_gain"]} for r in alternatives],
+                      "separate_by": separate[0] if separate else None,
+                      "separate_by_pairs": separate,
                       "nuisances": nuisances, "forward": forward_, "unobservable": unobservable,
                       "failed_candidates": failed,
+                      "calibration": grade_line(confidence, read_calibration()),
                       "quantiser": lattice,
                       "description": description,
                       "rule": {"min_shrink": MIN_SHRINK, "min_score_gain": MIN_SCORE_GAIN,
                                "margin_score": MIN_MARGIN, "margin_gap_ratio": MARGIN_GAP_RATIO,
-                               "min_gap": MIN_GAP}},
+                               "min_gap": MIN_GAP, "within_noise_gap": NOISE_GAP}},
             "shrink": {"effect": best["effect"], "named": named, "held_out_gap_shrink_percent":
                        best["held_out_shrink"] * 100, "per_signal": shrink_table},
         }

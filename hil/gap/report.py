@@ -28,6 +28,9 @@ def text_summary(out: dict) -> str:
                  f"{s} {_f(w['tests'][s]['ljung_box_p'], '.2g')}" for s in SIGNALS)
              + ("; input constant: no input cross-correlation test" if w["input_constant"] else ""),
              f"  WHICH: {which['verdict']}"]
+    cal = which.get("calibration")
+    if cal:
+        lines.append(f"    [{cal['sentence']} (hil bench gap, seed {cal['seed']}: {cal['path']})]")
     for r in which["ranking"]:
         bounds = [k for k, v in (r.get("at_bound") or {}).items() if v]
         lines.append(f"    {r['effect']:20s} {r.get('form', ''):18s} score gain {r['score_gain']:12.1f}  held-out gap "
@@ -36,6 +39,14 @@ def text_summary(out: dict) -> str:
                                            f"{_f((r.get('param_ci') or {}).get(k, [None, None])[1], '.3g')}]"
                                            if (r.get("param_ci") or {}).get(k) else "")
                          for k, v in r["params"].items()) + (f"  AT BOUND: {', '.join(bounds)}" if bounds else ""))
+    if which.get("not_separable"):
+        lines.append("    NOT SEPARABLE: " + "; ".join(
+            f"{a['explanation']} removes {a['held_out_shrink'] * 100:.1f} %, leaves {a['held_out_gap']:.2f} noise units"
+            for a in which["not_separable"]))
+        for sb in which.get("separate_by_pairs") or []:
+            lines.append(f"    separate by: {sb['between'][0]} vs {sb['between'][1]} differ most on {sb['signal']} in "
+                         f"the {sb['stage']} stage ({sb['difference_noise_units']:.2f} noise units over "
+                         f"{sb['periods']} periods)")
     failed = which.get("failed_candidates") or []
     if failed:
         lines.append(f"    FAILED FITS ({len(failed)}; a candidate is not judged where its fit failed): " + "; ".join(

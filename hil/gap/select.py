@@ -12,10 +12,15 @@ The nuisance is fitted too: the rail's fault curve scaled in mu and in creep (``
 the most common real gap.  Graded answer (``judge``), every row of the ranking with its form, share
 of the held-out gap removed, parameter interval (``candidates.interval_halfwidths``) and at-bound flag:
 
-- the rail curve removes >= ``MIN_SHRINK`` and no effect beats it by the margin: "the rail's curve
-  differs: peak mu -2 %" (named "none", confidence "nuisance");
-- the best effect and the rail curve both remove >= ``MIN_SHRINK`` and neither beats the other:
-  "rail or axle load: not separable in this log" (named "none", confidence "not_separable");
+- the explanations are the best candidate of each class and the rail curve (``explanations``); those
+  that remove >= ``MIN_SHRINK`` and gain ``MIN_SCORE_GAIN`` are compared.  When the best of them does
+  not beat one of another class by the margin (``beats``), the answer lists them all: "the rail curve
+  or compliance (viscous_coulomb): not separable in this log" (named "none", confidence
+  "not_separable"; the diagnosis adds where their fits differ most, ``where.separation``);
+- the rail curve is the best and beats every other by the margin: "the rail's curve differs: peak mu
+  -2 %" (named "none", confidence "nuisance").  Once it leaves the held-out gap within the noise
+  (``within_noise``: ``NOISE_GAP`` noise units) an effect must beat it on both counts
+  (``beats_strictly``), and nothing is fitted on top of it (no forward selection);
 - the best effect removes >= ``MIN_SHRINK``, gains ``MIN_SCORE_GAIN`` over the nominal model, beats
   the runner-up and the rail curve by the margin (``beats``: a held-out score better by
   ``MIN_MARGIN`` and a remaining gap at most ``MARGIN_GAP_RATIO`` of theirs) and its fit is not
@@ -167,8 +172,46 @@ def beats_on_top(a: dict, b: dict, first: dict) -> bool:
             or MARGIN_GAP_RATIO * (left - a["held_out_gap"]) >= left - b["held_out_gap"])
 
 
+def explanations(ranking, rail):
+    """The best row of each class (the ranking is sorted by score gain) and the rail nuisance's row
+    (``effect`` "rail_curve"): the explanations an answer is judged among."""
+    out, seen = [], set()
+    for r in ranking:
+        if r["effect"] not in seen:
+            seen.add(r["effect"])
+            out.append(r)
+    if rail is not None:
+        out.append(rail)
+    return sorted(out, key=lambda r: -r["score_gain"])
+
+
+def material(row) -> bool:
+    """``row`` removes at least ``MIN_SHRINK`` of the held-out gap and gains ``MIN_SCORE_GAIN``."""
+    return row is not None and row["held_out_shrink"] >= MIN_SHRINK and row["score_gain"] > MIN_SCORE_GAIN
+
+
+def within_noise(row) -> bool:
+    """``row`` is material and leaves the held-out gap within the noise (``NOISE_GAP`` noise units, the
+    level ``beats`` already treats as "within the noise": below it only the score tells models apart):
+    nothing is named on top of such an explanation."""
+    return material(row) and row["held_out_gap"] <= NOISE_GAP
+
+
+def beats_strictly(a: dict, b: dict) -> bool:
+    """``beats`` without its noise exemption: a better held-out score by MIN_MARGIN *and* a remaining gap
+    at most MARGIN_GAP_RATIO of ``b``'s (how an effect must beat a nuisance that is within the noise)."""
+    return b["score_gain"] + MIN_MARGIN <= a["score_gain"] and a["held_out_gap"] <= MARGIN_GAP_RATIO * b["held_out_gap"]
+
+
+def label(row) -> str:
+    """An explanation as the verdict names it: its class and form, or "the rail curve"."""
+    return "the rail curve" if row["effect"] == "rail_curve" else f"{row['effect']} ({row['form']})"
+
+
 def judge(base, ranking, rail, gap_present):
-    """(named, named_set, verdict, nuisances, confidence) -- see the module docstring, step 3."""
+    """(named, named_set, verdict, nuisances, confidence, alternatives) -- see the module docstring;
+    ``alternatives``: the explanations listed by a "not_separable" answer (ranking rows, the rail's
+    included), best score first ([] otherwise)."""
     best = ranking[0]
     runner = next((r for r in ranking[1:] if r["effect"] != best["effect"]), None)   # another class's best
     nuisances = []
@@ -181,40 +224,59 @@ def judge(base, ranking, rail, gap_present):
                           "peak_creep_percent": (p["creep_scale"] - 1) * 100})
     if not gap_present:
         return NONE, [], (f"no significant gap: held-out residuals are within {base['gap']:.2f} noise units of "
-                          f"the sensor noise floor"), nuisances, "none"
+                          f"the sensor noise floor"), nuisances, "none", []
     desc = (f"{best['effect']} ({best['form']}) removes {best['share'] * 100:.0f} % of the held-out gap, leaves "
             f"{best['held_out_gap']:.2f} noise units, fitted "
             + ", ".join(f"{k}={v:.4g}" for k, v in best["params"].items()))
-    material = best["held_out_shrink"] >= MIN_SHRINK and best["score_gain"] > MIN_SCORE_GAIN
-    over_runner = runner is None or beats(best, runner)
-    rail_material = rail is not None and rail["held_out_shrink"] >= MIN_SHRINK and \
-        rail["score_gain"] > MIN_SCORE_GAIN
-    over_rail = rail is None or beats(best, rail)
     bounded = [k for k, v in best["at_bound"].items() if v]
     bound_note = f" (fit at its bound: {', '.join(bounded)})" if bounded else ""
     # a fit with every parameter at a bound is pinned (the effect vanishes or runs off its range): no
     # name; one parameter of several at a bound (viscous loss 0 beside a Coulomb loss) is only said
     pinned = bool(bounded) and len(bounded) == len(best["at_bound"])
-    if rail_material and (rail is not None and (not material or beats(rail, best))):
+    rail_desc = ""
+    if rail is not None:
         n = nuisances[0]
-        return NONE, [], (f"the rail's curve differs: peak mu {n['peak_mu_percent']:+.1f} %, peak creep "
-                          f"{n['peak_creep_percent']:+.1f} % removes {rail['share'] * 100:.0f} % of the held-out "
-                          f"gap, more than any effect (best: {desc})"), nuisances, "nuisance"
-    if material and rail_material and not over_rail:
-        return NONE, [], (f"rail or {what(best['effect'])}: not separable in this log (the rail's curve "
-                          f"scaled by {nuisances[0]['peak_mu_percent']:+.1f} % removes "
-                          f"{rail['share'] * 100:.0f} %, {desc})"), nuisances, "not_separable"
-    if material and over_runner and over_rail and not pinned:
+        rail_desc = (f"peak mu {n['peak_mu_percent']:+.1f} %, peak creep {n['peak_creep_percent']:+.1f} % removes "
+                     f"{rail['share'] * 100:.0f} % of the held-out gap, leaves {rail['held_out_gap']:.2f} noise units")
+    # the explanations that matter, best held-out score first; the top one and every other one it does
+    # not beat by the margin.  Once the rail curve leaves the gap within the noise, an effect must beat
+    # it on both counts (score and half its gap: ``beats_strictly``), not by the score alone
+    cands = [r for r in explanations(ranking, rail) if material(r)]
+    quiet_rail = within_noise(rail)
+    if quiet_rail:
+        cands = [r for r in cands if r is rail or beats_strictly(r, rail)] + \
+            [r for r in cands if r is not rail and not beats_strictly(r, rail) and not beats(rail, r)]
+        cands.sort(key=lambda r: -r["score_gain"])
+        if cands and cands[0] is not rail and not beats_strictly(cands[0], rail):
+            cands.remove(rail)
+            cands.insert(0, rail)          # within the noise, the rail stands first unless strictly beaten
+    if cands:
+        top = cands[0]
+        listed = [top] + [r for r in cands[1:] if r["effect"] != top["effect"] and not beats(top, r)]
+        if len(listed) > 1:
+            names = " or ".join(label(r) for r in listed)
+            return NONE, [], (f"{names}: not separable in this log ("
+                              + "; ".join(f"{label(r)} removes {r['share'] * 100:.0f} %, leaves "
+                                          f"{r['held_out_gap']:.2f} noise units" for r in listed)
+                              + ")"), nuisances, "not_separable", listed
+        if top is rail:
+            within = " (within the noise: nothing more is named)" if quiet_rail else ""
+            return NONE, [], (f"the rail's curve differs: {rail_desc}{within}, more than any effect (best: {desc})"), \
+                nuisances, "nuisance", []
+    is_material = material(best)
+    over_runner = runner is None or beats(best, runner)
+    over_rail = rail is None or beats(best, rail)
+    if is_material and over_runner and over_rail and not pinned:
         return best["effect"], [best["effect"]], (f"{best['effect']} explains the gap: {desc}{bound_note}"), nuisances, \
-            "confident"
-    if material:
+            "confident", []
+    if is_material:
         why = "its fit sits at a bound" if pinned else (
             f"it does not beat {runner['effect']} ({runner['share'] * 100:.0f} %) by the margin" if not over_runner
             else "it does not beat the rail-curve nuisance by the margin")
         return NONE, [], (f"none named with confidence: most likely {desc}{bound_note}; {why}"), nuisances, \
-            "tentative"
+            "tentative", []
     return NONE, [], (f"none of the candidates: the best, {desc}, removes less than "
-                      f"{MIN_SHRINK * 100:.0f} %{bound_note}"), nuisances, "none"
+                      f"{MIN_SHRINK * 100:.0f} %{bound_note}"), nuisances, "none", []
 
 
 # -- forward selection -----------------------------------------------------------------------------
@@ -225,9 +287,13 @@ def forward(ctx: Context, nom_fit: Fit, base: dict, first: Fit, first_row: dict,
     tried (a delay on a delay is one delay).  Accepted when the best second effect removes at least
     ``FORWARD_MIN_REMAINDER`` of what the first left, gains ``MIN_MARGIN`` in held-out score, beats the
     best second effect of another class by the margin (``beats_on_top``) and its fit is not pinned at
-    its bounds; the pair is then compared with the rail curve plus the same second effect.  ``exclude``:
-    candidates not to offer; a fit that fails at any step is appended to ``failed`` (a second effect
-    whose fit on top fails is not ranked; a failed joint fit or refit keeps the fit it would replace)."""
+    its bounds; and, as a single effect must (issue 35), the pair beats every class's best single
+    candidate by the margin (``beats``), no parameter of it sits at a bound of its range but a zero
+    floor (``implausible``), and the pair or the rail curve with the same second effect beats the rail
+    curve alone.  ``rejected_because`` says which test failed.  The pair is then compared with the rail
+    curve plus the same second effect.  ``exclude``: candidates not to offer; a fit that fails at any
+    step is appended to ``failed`` (a second effect whose fit on top fails is not ranked; a failed joint
+    fit or refit keeps the fit it would replace)."""
     if first.name == "sensor_quantisation":
         return None
     sensor_first = "plant" not in first.extra
@@ -239,8 +305,9 @@ def forward(ctx: Context, nom_fit: Fit, base: dict, first: Fit, first_row: dict,
     by_name = {c.name: c for c in candidates(ctx.scenario, exclude)}
     first_cand = by_name.get(first.name)
     joint = set()         # seconds already fitted together with the first
-    first_forms = [r for r in ranking if r["effect"] == first_row["effect"]
-                   and isinstance(by_name.get(r["candidate"]), PlantCandidate)][:FORWARD_JOINT]
+    first_forms = [r for r in ranking if r["effect"] == first_row["effect"]     # (a form whose fit failed
+                   and isinstance(by_name.get(r["candidate"]), PlantCandidate)    # alone has no parameters)
+                   and not r["note"].startswith("fit failed")][:FORWARD_JOINT]
     for cand in by_name.values():
         if EFFECTS[cand.name].effect_class == first_row["effect"] or \
                 cand.name == "torque_lag" and ctx.data.torque_cmd_nm.std() < 1e-9:
@@ -335,15 +402,29 @@ def forward(ctx: Context, nom_fit: Fit, base: dict, first: Fit, first_row: dict,
     removed = 1 - second["held_out_gap"] / first_row["held_out_gap"] if first_row["held_out_gap"] > 0 else 0.0
     bounded = [k for k, v in second["at_bound"].items() if v]
     bounded = bounded if len(bounded) == len(second["at_bound"]) else []      # pinned, as in ``judge``
-    accepted = (second["score_gain"] - first_row["score_gain"] >= MIN_MARGIN and removed >= FORWARD_MIN_REMAINDER
-                and (runner is None or beats_on_top(second, runner, first_row)) and not bounded
-                and second["held_out_shrink"] >= MIN_SHRINK)
+    off_range = implausible(second, [by_name[n] for n in (second["candidate"], first.name) if n in by_name])
+    # the pair must earn its place as a single effect would: beat every class's best single candidate by
+    # the margin (``beats``), not only the first alone
+    unbeaten = [r["candidate"] for r in explanations(ranking, None) if not beats(second, r)]
+    why = [w for w, bad in (
+        (f"it gains less than {MIN_MARGIN:g} in held-out score over {first_row['effect']} alone",
+         second["score_gain"] - first_row["score_gain"] < MIN_MARGIN),
+        (f"it removes less than {FORWARD_MIN_REMAINDER * 100:.0f} % of what {first_row['effect']} left",
+         removed < FORWARD_MIN_REMAINDER),
+        (f"it does not beat {runner['effect'] if runner else ''} on top by the margin",
+         runner is not None and not beats_on_top(second, runner, first_row)),
+        ("its fit is pinned at its bounds", bool(bounded)),
+        (f"parameters at a bound of their range: {', '.join(off_range)}", bool(off_range)),
+        (f"the pair removes less than {MIN_SHRINK * 100:.0f} %", second["held_out_shrink"] < MIN_SHRINK),
+        (f"the pair does not beat the single candidate(s) {', '.join(unbeaten)} by the margin", bool(unbeaten)),
+    ) if bad]
+    accepted = not why
     out = {"first": first_row["effect"], "first_form": second.get("first_form", first_row["form"]),
            "second": second["effect"],
            "second_form": second["form"],
            "second_params": second["params"], "first_params": second.get("first_params", first.params),
            "pair_held_out_shrink": second["held_out_shrink"],
-           "second_removes_of_remainder": removed, "accepted": bool(accepted),
+           "second_removes_of_remainder": removed, "accepted": bool(accepted), "rejected_because": why,
            "ranking": [{k: r[k] for k in ("effect", "form", "params", "score_gain", "held_out_shrink",
                                           "held_out_gap", "at_bound")} for r in rows]}
     if accepted and rail_fit is not None:
@@ -360,11 +441,40 @@ def forward(ctx: Context, nom_fit: Fit, base: dict, first: Fit, first_row: dict,
                                 "held_out_gap": row["held_out_gap"]}
             out["pair_vs_rail"] = ("pair" if beats(second, row) else
                                    "rail" if beats(row, second) else "not_separable")
+            # and against the rail alone: the pair, or the rail with the same second effect (the first
+            # being the rail in disguise), beats it by the margin a single effect needs
+            rail_row = entry(ctx, rail_fit, base)
+            if not (beats(second, rail_row) or beats(row, rail_row)):
+                out["accepted"] = False
+                out["rejected_because"] = ["neither the pair nor the rail curve with the same second effect beats "
+                                           "the rail curve alone by the margin"]
         except FIT_ERRORS as e:               # the pair stands untested against the rail
             failed.append(failure(cand.name, "on top of the rail curve", e))
             out["pair_vs_rail"] = "pair"
     else:
         out["pair_vs_rail"] = "pair"
+    return out
+
+
+def implausible(row: dict, cands) -> list[str]:
+    """The parameters of a (pair's) ranking row fitted at a bound of their range, but a zero lower bound
+    (an absent term of an additive form, as a viscous loss of 0 beside a Coulomb loss, or no delay): a
+    fit that ran off its range is no physically plausible second effect.  ``cands``: the candidates
+    whose parameters the row holds (bounds)."""
+    values = {**(row.get("first_params") or {}), **row["params"]}
+    out = []
+    for k, hit in (row.get("at_bound") or {}).items():
+        if not hit:
+            continue
+        zero_floor = False
+        for c in cands:
+            if isinstance(c, PlantCandidate) and k in c.fit_params:
+                i = c.fit_params.index(k)
+                zero_floor = c.lo[i] == 0.0 and values.get(k, 1.0) <= 2e-3 * c.hi[i]
+            elif isinstance(c, SensorDelayCandidate) and k == c.param:
+                zero_floor = values.get(k, 1.0) <= 1e-3
+        if not zero_floor:
+            out.append(k)
     return out
 
 

@@ -241,3 +241,30 @@ def where(ctx: Context, nominal: dict, creep_meas) -> dict:
             "t_det_measured_s": t_det(st_meas), "t_det_model_s": t_det(st_model),
             "per_creep_band": per_band, "per_frequency_band": per_freq, "tests": tests,
             "input_constant": bool(np.std(torque) < 1e-9)}
+
+
+def separation(ctx: Context, preds: dict, creep_meas) -> list[dict]:
+    """Where explanations that the held-out score cannot tell apart differ most: for each pair of
+    ``preds`` ({name: predicted signals}, the first against each other), the signal and stage (by the
+    measured creep, ``stages``; at least ``WHERE_MIN_PERIODS`` periods in the analysis window) where the
+    RMS of their predictions' difference, in noise units, is largest.  A log with more samples there (a
+    longer stage, an excitation that reaches it) is what would separate them."""
+    sc = ctx.scenario
+    st = stages(ctx.data.t_s, creep_meas, sc.run.fault_time_s, sc.fault_curve.peak()[0])
+    names = list(preds)
+    out = []
+    for other in names[1:]:
+        a, b = preds[names[0]], preds[other]
+        best = None
+        for s in SIGNALS:
+            for i, nm in enumerate(("normal", "early", "serious")):
+                sel = ctx.window & (st == i) & ctx.valid[s]
+                if sel.sum() < WHERE_MIN_PERIODS:
+                    continue
+                d = float(np.sqrt(np.mean(((a[s] - b[s])[sel] / ctx.sigma_nom[s]) ** 2)))
+                if best is None or d > best["difference_noise_units"]:
+                    best = {"between": [names[0], other], "signal": s, "stage": nm, "difference_noise_units": d,
+                            "periods": int(sel.sum())}
+        if best is not None:
+            out.append(best)
+    return out
