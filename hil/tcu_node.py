@@ -308,6 +308,7 @@ def run_tcu(args) -> int:
     code = EXIT_OK
     error = None
     handle = open_bus(bus)
+    _bus_open.append(True)
     try:        # from here the bus is closed whatever ends the process (a SIGTERM from the plant included)
         set_cpu_affinity(settings.cpu_affinity_tcu, "TCU", lambda m: print(m, file=sys.stderr, flush=True))
         if args.mode == "realtime":     # a full collection over scipy's and casadi's objects stalls both threads
@@ -362,10 +363,19 @@ def _write_report(report: dict, path, to_stdout: bool) -> None:
 
 
 _terminated = []
+_bus_open = []        # not empty once run_tcu holds the bus: from then on a SIGTERM unwinds to its cleanup
 
 
 def _terminate(signum, frame):
+    """SIGTERM (the plant ends its TCU this way).  Before the bus is open there is nothing to give back,
+    and an interrupt raised inside an import is unsafe: a library may swallow it (the TCU then waits out
+    its start-up timeout) or the interpreter may still die of SIGINT at exit, after the one line was
+    printed (exit -2 instead of 130, seen in CI).  So until then the process ends here, with the one line.
+    From the bus on, a ``KeyboardInterrupt`` unwinds ``run_tcu``, which closes the bus and writes the report."""
     _terminated.append(signum)
+    if not _bus_open:
+        os.write(2, b"hil tcu: interrupted\n")
+        os._exit(EXIT_INTERRUPTED)
     raise KeyboardInterrupt
 
 
