@@ -370,7 +370,7 @@ def _terminate(signum, frame):
     """SIGTERM (the plant ends its TCU this way).  Before the bus is open there is nothing to give back,
     and an interrupt raised inside an import is unsafe: a library may swallow it (the TCU then waits out
     its start-up timeout) or the interpreter may still die of SIGINT at exit, after the one line was
-    printed (exit -2 instead of 130, seen in CI).  So until then the process ends here, with the one line.
+    printed (exit -2 instead of 130).  So until then the process ends here, with the one line.
     From the bus on, a ``KeyboardInterrupt`` unwinds ``run_tcu``, which closes the bus and writes the report."""
     _terminated.append(signum)
     if not _bus_open:

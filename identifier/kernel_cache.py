@@ -29,7 +29,7 @@ STAMP = SOURCE.parent / "__pycache__" / "kernels-compiled.json"
 
 def _host() -> dict:
     """The target numba compiles for, as numba's cache keys it (``codegen.magic_tuple``: the triple, the host
-    CPU's name and features), read from llvmlite (a few tens of ms; numba itself takes seconds to import).
+    CPU's name and features), read from llvmlite, which imports quickly where numba does not.
     Read by CPUID, so a guest kernel (User-Mode Linux) on the same CPU is the same host."""
     try:
         from llvmlite import binding

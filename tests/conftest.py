@@ -72,7 +72,7 @@ def pytest_terminal_summary(terminalreporter):
 # The slow tests: out of the fast tier (``tests/run.sh --fast`` deselects -m slow).  Chosen from one full
 # run's durations (pytest --durations, two workers, on the shared 2-core machine under load ~12-17): each
 # took 10 s or more there (set-up included), or uses a module's expensive recorded run that only slow tests
-# would otherwise share; and the gap diagnosis tests (30-165 s each in CI).  A name without [...] is every
+# would otherwise share; and the gap diagnosis tests (each runs whole diagnoses).  A name without [...] is every
 # parameter case.  The fast tier keeps one real two-process run over the local bus:
 # test_bus.py::test_local_lockstep_polling_or_sleeping_gives_the_inprocess_frames[0].
 SLOW = {
