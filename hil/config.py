@@ -4,7 +4,12 @@ Tables: ``name``/``description``, ``[vehicle]``, ``[curves.normal]``/``[curves.f
 the default, or, for the fault curve only, ``model = "polach"``: plant/friction.py), ``[run]``,
 ``[sensors]``, ``[identifier]`` (+ ``[identifier.options.NAME]``), ``[bus]`` (``BusSettings``),
 ``[plant]`` (an FMU instead of the CasADi model) and ``[reality]`` (effects the nominal model lacks,
-checked against ``hil.effects``).  ``parse_set`` turns ``--set TABLE.KEY=VALUE`` items into the
+checked against ``hil.effects``), ``[control]`` (the TCU's control law, its options and the driver's
+demand profile) and ``[[rail]]`` (the rail along the run as segments in time, plant/rail.py).
+
+With ``[[rail]]`` the rail is the segments' curves: ``[curves.fault]`` may be left out, and the run's
+"fault" (``fault_time_s``, ``fault_curve``: the first drop the identification figures judge) is the
+second segment's start and curve.  ``--set rail.N.KEY=VALUE`` addresses segment N (from 0).  ``parse_set`` turns ``--set TABLE.KEY=VALUE`` items into the
 overrides ``load_scenario`` applies over the file.
 
 Every problem is one ``ConfigError`` (alias ``ScenarioError``) line naming the file and the field, e.g.
@@ -21,6 +26,7 @@ from pathlib import Path
 from identifier.settings import IdentifierSettings, VehicleModel
 from plant import (FrictionCurve, PlantConfig, PolachCurve, SensorConfig, WheelsetParams, equilibrium,
                    train_speed_before_fault)
+from plant.rail import DemandProfile, RailSchedule, RailSegment, Recovery
 
 from .errors import ConfigError, ScenarioError
 
@@ -75,6 +81,15 @@ class RunConfig:
 
 
 @dataclass(frozen=True)
+class ControlSettings:
+    """The scenario's optional ``[control]`` table: the TCU's control law (identifier/control), its options
+    by law, and the driver's demand profile (None: the paper's constant demand, the equilibrium torque)."""
+    law: str = "demand"
+    demand: DemandProfile | None = None
+    options: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
 class Scenario:
     name: str
     path: str
@@ -89,11 +104,21 @@ class Scenario:
     extra: dict = field(default_factory=dict)         # the raw [plant], [reality] and [bus] tables
     overrides: dict = field(default_factory=dict)     # --set TABLE.KEY=VALUE applied over source_text
     bus: BusSettings = field(default_factory=BusSettings)
+    control: ControlSettings = field(default_factory=ControlSettings)
+    rail: RailSchedule | None = None                  # [[rail]]: the rail along the run
 
     def plant_config(self) -> PlantConfig:
         r = self.run
         return PlantConfig(self.vehicle, self.normal_curve, self.fault_curve, r.mu_required, r.fault_time_s,
-                           r.initial_train_speed_ms, r.integration_step_s, r.exchange_period_s)
+                           r.initial_train_speed_ms, r.integration_step_s, r.exchange_period_s, self.rail,
+                           self.control.demand)
+
+    def demand_torque_nm(self, t_s: float) -> float:
+        """The driver's demand as motor torque at ``t_s``: ``mu_d(t) * torque_per_mu_nm`` with a demand
+        profile, else the paper's constant demand (the equilibrium torque the TCU commands)."""
+        if self.control.demand is None:
+            return self.identifier_settings().torque_demand_nm
+        return self.control.demand.at(t_s) * self.vehicle.torque_per_mu_nm
 
     def identifier_settings(self) -> IdentifierSettings:
         v = self.vehicle
@@ -318,11 +343,21 @@ def parse_scenario(text: str, path: str = "<scenario>", overrides: dict | None =
         *tables, key = dotted.split(".")
         node = data
         for i, t in enumerate(tables):
-            node = node.setdefault(t, {})
-            if not isinstance(node, dict):
+            if isinstance(node, list):          # rail.N: the N-th segment (from 0)
+                if not (t.isdigit() and int(t) < len(node)):
+                    raise ConfigError(f"--set {dotted}: {'.'.join(tables[:i])} has segments 0..{len(node) - 1} in "
+                                      f"{path}, not {t!r}")
+                node = node[int(t)]
+            else:
+                node = node.setdefault(t, {})
+            if not isinstance(node, (dict, list)):
                 raise ConfigError(f"--set {dotted}: {'.'.join(tables[:i + 1])} is not a table in {path}")
+        if isinstance(node, list):
+            raise ConfigError(f"--set {dotted}: {'.'.join(tables)} is a list of segments in {path}; name one "
+                              f"(e.g. {'.'.join(tables)}.0.{key})")
         node[key] = value
-    known = {"name", "description", "vehicle", "curves", "run", "sensors", "identifier", *_OPTIONAL_TABLES}
+    known = {"name", "description", "vehicle", "curves", "run", "sensors", "identifier", *_OPTIONAL_TABLES,
+             "control", "rail"}
     for key in data:
         if key not in known:
             raise _fail(path, key, f"unknown key (known: {', '.join(sorted(known))})")
@@ -333,6 +368,18 @@ def parse_scenario(text: str, path: str = "<scenario>", overrides: dict | None =
     for f in dataclasses.fields(vehicle):
         _in_range(path, f"[vehicle] {f.name}", getattr(vehicle, f.name), VEHICLE_RANGES[f.name])
 
+    control_raw = data.get("control", {})
+    if not isinstance(control_raw, dict):
+        raise _fail(path, "[control]", "must be a table")
+    demand = _demand(path, control_raw)
+    run_table = data.get("run")
+    segmented = "rail" in data
+    if isinstance(run_table, dict):        # the first demand and the rail's first change fill in what is left out
+        if demand is not None:
+            run_table.setdefault("mu_required", demand.demand_mu[0])
+        if segmented and isinstance(data["rail"], list) and len(data["rail"]) > 1 \
+                and isinstance(data["rail"][1], dict) and "start_s" in data["rail"][1]:
+            run_table.setdefault("fault_time_s", data["rail"][1]["start_s"])
     run = RunConfig(**_table(path, data, "run", RunConfig))
     _check(path, "[run] mu_required", 0 < run.mu_required < 1, "must be in (0, 1)", run.mu_required)
     _check(path, "[run] fault_time_s", run.fault_time_s >= 0, "must be >= 0", run.fault_time_s)
@@ -364,13 +411,24 @@ def parse_scenario(text: str, path: str = "<scenario>", overrides: dict | None =
         if curves is not None and key in curves and not isinstance(curves[key], dict):
             raise _fail(path, f"[curves.{key}]", f"must be a table, got {curves[key]!r}")
     normal = _curve(path, data, "normal")
-    fault = _curve(path, data, "fault", lambda: float(train_speed_before_fault(
-        vehicle, run.mu_required, run.initial_train_speed_ms, run.fault_time_s)))
+    rail = _rail(path, data, vehicle, run) if segmented else None
+    if rail is None:
+        fault = _curve(path, data, "fault", lambda: float(train_speed_before_fault(
+            vehicle, run.mu_required, run.initial_train_speed_ms, run.fault_time_s)))
+    else:
+        if isinstance(curves, dict) and "fault" in curves:
+            raise _fail(path, "[curves.fault]", "leave it out with [[rail]]: the rail's segments are the run's curves")
+        fault = rail.segments[1].curve
+        _check(path, "[run] fault_time_s", run.fault_time_s == rail.segments[1].start_s,
+               f"must be the second rail segment's start {rail.segments[1].start_s:g} with [[rail]] (or left out)",
+               run.fault_time_s)
+    first = normal if rail is None else rail.segments[0].curve
     try:
-        normal.creep_for_mu(run.mu_required)
+        first.creep_for_mu(run.mu_required)
     except ValueError:
-        raise _fail(path, "[run] mu_required", f"NFCC-0 never reaches {run.mu_required} on its stable side "
-                    f"(its peak is {normal.peak()[1]:.4f})") from None
+        what = "NFCC-0" if rail is None else "the first rail segment"
+        raise _fail(path, "[run] mu_required", f"{what} never reaches {run.mu_required} on its stable side "
+                    f"(its peak is {first.peak()[1]:.4f})") from None
 
     ident_raw = data.get("identifier", {})
     if not isinstance(ident_raw, dict):
@@ -396,8 +454,14 @@ def parse_scenario(text: str, path: str = "<scenario>", overrides: dict | None =
     _plant(path, data)
     _reality(path, data)
     extra = {k: data[k] for k in _OPTIONAL_TABLES if k in data}
+    control = _control(path, control_raw, demand, segmented)
+    if rail is not None:
+        for table in ("reality", "plant"):
+            if data.get(table):
+                raise _fail(path, f"[{table}]", "not with [[rail]] yet: the rail's segments run on the CasADi plant "
+                            "without reality effects")
     scenario = Scenario(name, path, text, description, vehicle, normal, fault, run, sensors, identifier, extra,
-                        dict(overrides or {}), bus)
+                        dict(overrides or {}), bus, control, rail)
     try:
         scenario.identifier_settings()
         from identifier.observer import LoadTorqueObserver
@@ -406,6 +470,134 @@ def parse_scenario(text: str, path: str = "<scenario>", overrides: dict | None =
         raise _fail(path, "[identifier]", e) from None
     _check_strategy_options(path, scenario)
     return scenario
+
+
+#: [[rail]] segment keys besides a curve's (``model`` and its keys, or ``peak_mu`` and ``peak_creep_kmh`` with
+#: an optional exp shape, or ``family`` with ``seed`` and ``index``)
+SEGMENT_KEYS = ("start_s", "transition_s", "label", "recovers_to", "energy_clean_j")
+PEAK_KEYS = ("peak_mu", "peak_creep_kmh", "mu0", "asymptote_ratio", "term_ratio")
+FAMILY_KEYS = ("family", "seed", "index")
+#: the exp shape a segment given by its peak takes when it names none (a wet rail's; plant/families.py)
+PEAK_SHAPE_DEFAULTS = {"mu0": 0.0, "asymptote_ratio": 0.35, "term_ratio": 2.2}
+CONTROL_KEYS = ("law", "demand_mu", "options")
+
+
+def _demand(path, table) -> DemandProfile | None:
+    """``[control] demand_mu = [[t_s, mu], ...]``: the driver's demand profile, or None."""
+    if "demand_mu" not in table:
+        return None
+    pts = table["demand_mu"]
+    where = "[control] demand_mu"
+    if not isinstance(pts, list) or not pts or not all(isinstance(p, list) and len(p) == 2 for p in pts):
+        raise _fail(path, where, f"must be a list of [t_s, mu] points, got {pts!r}")
+    times = tuple(_coerce(path, where, p[0], float) for p in pts)
+    mus = tuple(_coerce(path, where, p[1], float) for p in pts)
+    _check(path, where, times[0] == 0.0, "must start at t = 0", pts[0])
+    _check(path, where, all(b >= a for a, b in zip(times, times[1:])), "times must not decrease", list(times))
+    _check(path, where, all(0.0 <= m < 1.0 for m in mus), "demands must be in [0, 1) (equivalent mu)", list(mus))
+    return DemandProfile(times, mus)
+
+
+def _control(path, table, demand, segmented: bool) -> ControlSettings:
+    from identifier.control import LAWS, check_options
+
+    for key in table:
+        if key not in CONTROL_KEYS:
+            raise _fail(path, f"[control] {key}", f"unknown key (known: {', '.join(CONTROL_KEYS)})")
+    if segmented and "law" not in table:
+        raise _fail(path, "[control] law", f"a scenario with [[rail]] names its control law (known: {', '.join(LAWS)})")
+    law = _coerce(path, "[control] law", table.get("law", "demand"), str)
+    if law not in LAWS:
+        raise _fail(path, "[control] law", f"unknown control law {law!r} (known: {', '.join(LAWS)})")
+    options = table.get("options", {})
+    if not isinstance(options, dict):
+        raise _fail(path, "[control.options]", "must be a table of tables, one per law")
+    for name, opts in options.items():
+        where = f"[control.options.{name}]"
+        if name not in LAWS:
+            raise _fail(path, where, f"unknown control law (known: {', '.join(LAWS)})")
+        if not isinstance(opts, dict):
+            raise _fail(path, where, "must be a table")
+        try:
+            check_options(name, opts)
+        except ValueError as e:
+            raise _fail(path, where, e) from None
+    return ControlSettings(law, demand, {k: dict(v) for k, v in options.items()})
+
+
+def _rail(path, data, vehicle, run) -> RailSchedule:
+    """``[[rail]]``: segments in time, each with a curve (module docstring, plant/rail.py)."""
+    from plant.families import FAMILIES, draw_rng, exp_coefficients, sample_curves
+
+    segs = data["rail"]
+    if not isinstance(segs, list) or len(segs) < 2 or not all(isinstance(t, dict) for t in segs):
+        raise _fail(path, "[[rail]]", "must be at least two segments ([[rail]] tables): the rail changes along the run")
+    segments, recovery = [], {}
+    for i, t in enumerate(segs):
+        where = f"[[rail]] {i}"
+        curve_keys = set(t) - set(SEGMENT_KEYS)
+        start = _coerce(path, f"{where} start_s", t.get("start_s", math.nan if i else 0.0), float) \
+            if "start_s" in t or i == 0 else None
+        if start is None:
+            raise _fail(path, f"{where} start_s", "missing field")
+        _check(path, f"{where} start_s", (start == 0.0) if i == 0 else (0.0 < start < run.duration_s),
+               "must be 0 for the first segment" if i == 0 else "must be inside the run (0, duration_s)", start)
+        transition = _coerce(path, f"{where} transition_s", t.get("transition_s", 0.0), float)
+        _check(path, f"{where} transition_s", transition >= 0.0 and not (i == 0 and transition > 0.0),
+               "must be >= 0 (and 0 for the first segment)", transition)
+        label = _coerce(path, f"{where} label", t.get("label", ""), str)
+        speed = float(train_speed_before_fault(vehicle, run.mu_required, run.initial_train_speed_ms, start))
+        name = label or f"rail{i}"
+        if "family" in t:
+            for k in curve_keys:
+                if k not in FAMILY_KEYS:
+                    raise _fail(path, f"{where} {k}", f"unknown key for a drawn curve (known: {', '.join(FAMILY_KEYS)})")
+            family = _coerce(path, f"{where} family", t["family"], str)
+            if family not in FAMILIES:
+                raise _fail(path, f"{where} family", f"unknown family {family!r} (known: {', '.join(FAMILIES)})")
+            seed, index = (_coerce(path, f"{where} {k}", t.get(k, 0), int) for k in ("seed", "index"))
+            _check(path, f"{where} seed", seed >= 0 and index >= 0, "seed and index must be >= 0", (seed, index))
+            curve = sample_curves(family, 1, draw_rng(family, seed, index), speed).curve(0, name)
+        elif "peak_mu" in t or "peak_creep_kmh" in t:
+            for k in curve_keys:
+                if k not in PEAK_KEYS:
+                    raise _fail(path, f"{where} {k}", f"unknown key for a curve given by its peak (known: "
+                                f"{', '.join(PEAK_KEYS)})")
+            v = {k: _coerce(path, f"{where} {k}", t[k], float) if k in t else PEAK_SHAPE_DEFAULTS.get(k)
+                 for k in PEAK_KEYS}
+            for k in ("peak_mu", "peak_creep_kmh"):
+                if v[k] is None:
+                    raise _fail(path, f"{where} {k}", "missing field")
+            _check(path, f"{where} peak_mu", 0.0 < v["peak_mu"] < 1.0, "must be in (0, 1)", v["peak_mu"])
+            _check(path, f"{where} peak_creep_kmh", 0.05 <= v["peak_creep_kmh"] <= 20.0, "must be in [0.05, 20]",
+                   v["peak_creep_kmh"])
+            _check(path, f"{where} mu0", 0.0 <= v["mu0"] < v["peak_mu"], "must be in [0, peak_mu)", v["mu0"])
+            _check(path, f"{where} asymptote_ratio", 0.0 <= v["asymptote_ratio"] <= 0.9, "must be in [0, 0.9]",
+                   v["asymptote_ratio"])
+            _check(path, f"{where} term_ratio", 1.1 <= v["term_ratio"] <= 10.0, "must be in [1.1, 10]", v["term_ratio"])
+            l0, l1, l2, t1, t2 = (float(x) for x in exp_coefficients(v["peak_mu"], v["peak_creep_kmh"], v["mu0"],
+                                                                      v["asymptote_ratio"], v["term_ratio"]))
+            curve = FrictionCurve(l0, (l1, l2), (t1, t2), name)
+        else:
+            curve = _curve(path, {"curves": {name: {k: t[k] for k in curve_keys}}}, name, lambda: speed)
+        if "family" in t or "peak_mu" in t:
+            v_peak, mu_peak = curve.peak()
+            _check(path, where, mu_peak > 0 and 0 < v_peak < 29, "must rise to a positive peak inside 0-29 km/h",
+                   (v_peak, mu_peak))
+        segments.append(RailSegment(start, curve, transition, label))
+        if "recovers_to" in t or "energy_clean_j" in t:
+            j = _coerce(path, f"{where} recovers_to", t.get("recovers_to", -1), int)
+            _check(path, f"{where} recovers_to", 0 <= j < len(segs) and j != i,
+                   "must name another segment (its index from 0) whose curve this one recovers to", j)
+            e = _coerce(path, f"{where} energy_clean_j", t.get("energy_clean_j", math.nan), float)
+            _check(path, f"{where} energy_clean_j", e > 0, "must be > 0 (J dissipated for 63 % recovery)", e)
+            recovery[i] = (j, e)
+    for i, (j, e) in recovery.items():
+        recovery[i] = Recovery(e, segments[j].curve)
+    try:
+        return RailSchedule(tuple(segments), recovery)
+    except ValueError as e:
+        raise _fail(path, "[[rail]]", e) from None
 
 
 AUTH_MODES = ("auto", "on", "off")

@@ -15,7 +15,7 @@ import time
 
 import can
 
-from identifier.messages import SensorReading, TorqueCommand
+from identifier.messages import DriverDemand, SensorReading, TorqueCommand
 from plant import SensorModel, WheelsetPlant
 
 from .effects import Reality
@@ -23,8 +23,9 @@ from .errors import NoProgress, PeerSilent
 from .bus.frames import STATE_FAULT, STATE_RUNNING, STATE_STARTING, TCU_IDS, FrameCodec, RejectCounter
 from .bus.link import Sender, heartbeat_period_s, poll_until, silence_limit_s
 from .bus.secoc import node_key
-from .log.record import (Recorder, write_command, write_frame, write_identification, write_plant_state, write_sensor,
-                     write_status)
+from .log.record import (Recorder, write_command, write_frame, write_identification, write_plant_state,
+                         write_rail_truth, write_sensor, write_status)
+from .traction import TruthTrack
 from .trace import Trace
 from .bus.verdicts import ANSWERED_TWICE, BAD_SEQUENCE, DUPLICATE, FOREIGN, FRESH, LATE, NOT_REJECTED
 
@@ -56,6 +57,8 @@ class PlantRig:
         self.sensors = self.reality.wrap_sensors(SensorModel(scenario.sensors, seed))
         self.trace = trace
         self.recorder = recorder
+        #: the truth the closed-loop metrics judge by (hil/traction.py): never sent to the TCU
+        self.truth = TruthTrack(scenario)
 
     @property
     def step(self) -> int:
@@ -65,15 +68,21 @@ class PlantRig:
     def t_s(self) -> float:
         return self.plant.t_s
 
+    def demand(self) -> DriverDemand:
+        """The driver's demand for the current step (the scenario's profile, or the paper's constant one)."""
+        return DriverDemand(self.plant.step_index, self.truth.demand_torque_nm(self.plant.t_s))
+
     def sense(self) -> SensorReading:
-        """The reading the TCU gets this period (after any CAN effect)."""
+        """The reading the TCU gets this period (after any CAN effect); the step's truth is kept."""
         s = self.plant.state
         k = self.plant.step_index
         stage = self.trace.plant(k, s.t_s, s.creep_speed_kmh, s.mu)
+        truth = self.truth.add(s, getattr(self.plant, "cleaned", ()))
         omega, v = self.sensors.measure(s.motor_speed_rad_s, s.train_speed_ms)
         if self.recorder:
             write_plant_state(self.recorder, k, s, stage)
             write_sensor(self.recorder, s.t_s, k, omega, v)
+            write_rail_truth(self.recorder, k, s.t_s, *truth)
         return self.reality.deliver(SensorReading(k, omega, v))
 
     def apply(self, command: TorqueCommand) -> None:
@@ -140,8 +149,10 @@ class PlantNode:
             write_frame(self.rec, self.t_s, msg, "tx", FRESH, time.time_ns())
 
     def send_sensor(self) -> None:
-        """Sense the plant at its current step and send the reading; that step's command is awaited."""
+        """Send the driver's demand, sense the plant at its current step and send the reading; that step's
+        command is awaited."""
         self.awaited = self.rig.step
+        self.send(self.codec.demand(self.rig.demand()))
         self._sensor_reading = self.rig.sense()
         self._sensor_msg = self.codec.sensor(self._sensor_reading)
         self.send(self._sensor_msg)
@@ -241,9 +252,8 @@ class PlantNode:
             self.tcu_state = v.state
             self.tcu_step = v.step
             return FRESH
-        if name == "PlantSensor":
-            self.notice("sensor_from_another_node", f"a PlantSensor frame for step {v.step} this plant did not "
-                        "send")
+        if name in ("PlantSensor", "DriverDemand"):
+            self.notice("sensor_from_another_node", f"a {name} frame for step {v.step} this plant did not send")
         return FOREIGN        # plant frames from another node on the bus
 
     def notice(self, what: str, text: str) -> None:

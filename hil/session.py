@@ -42,7 +42,7 @@ from .bus.link import MODES, GuardedBus, die_with_parent, open_bus, resolve
 from .bus.secoc import AUTO_AUTH_BUSES, node_key, write_key
 from .effects import TRUTH_KEY
 from .errors import BusError, ConfigError, HilError, LogWriteError, PeerSilent, PlantError
-from .log.record import interrupts_between_writes, log_path, prepare_out_dir, start_recording
+from .log.record import interrupts_between_writes, log_path, prepare_out_dir, start_recording, write_control_metrics
 from .plant_node import PlantNode, PlantRig
 from .rt.cpu_latency import CpuLatencyRequest
 from .rt.idle_spin import SPIN, IdleSpinners, idle_mode
@@ -265,7 +265,7 @@ def _tcu_counters(report: dict | None) -> dict:
     report = report or {}
     return {"tcu_rejected_frames": report.get("rejected_frames"), "tcu_rejected_readings": report.get("rejected_readings"),
             "tcu_events": report.get("events"), "tcu_stale_skipped": report.get("stale_skipped"),
-            "tcu_resent": report.get("resent")}
+            "tcu_resent": report.get("resent"), "tcu_rearms": report.get("rearms")}
 
 
 def _recorded(summary: dict | None) -> dict | None:
@@ -405,7 +405,9 @@ class Session:
                    "bus_load_percent": load["load_percent"],
                    "frame_auth": self.scenario.bus.auth, "cpu_latency_us": self.latency.held_us, "idle_cpus": self.idle,
                    **(node.counters() if node else {}),
-                   **(timing.summary(node.late_commands) if timing else {}), **extra}))
+                   **(timing.summary(node.late_commands) if timing else {}),
+                   "control": "external" if tcu.transport == "external" else self.scenario.control.law,
+                   **(node.rig.truth.metrics() if node else {}), **extra}))
 
     def finish(self, timing, wall_s: float, verdict: dict | None = None) -> dict:
         """After the loop (its ``Timing`` and wall seconds): the TCU told the run is over and its last
@@ -425,6 +427,7 @@ class Session:
         summary = self.summary = self.summarise({**self.tcu.finish(node), **away})
         summary.update(verdict or {})
         if self.rec:
+            write_control_metrics(self.rec, node.t_s, summary["control"], summary)
             summary["messages"] = self.rec.messages + 1      # + the summary itself
             summary["log_rows_dropped"] = self.rec.overflow  # real time: rows the full queue could not take
         return summary

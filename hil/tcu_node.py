@@ -54,7 +54,11 @@ class TcuNode:
             settings = dataclasses.replace(settings, drill_particles=0)
         self.settings = settings
         self.codec = codec or FrameCodec(scenario.run.exchange_period_s, auth=node_key(scenario.bus))
-        self.identifier = TractionIdentifier(self.settings, strategy, seed)
+        law = scenario.control.law
+        self.identifier = TractionIdentifier(self.settings, strategy, seed, law, scenario.control.options.get(law))
+        self.last_demand_step = -1
+        self._samples_base = 0       # samples sent before the identifier's last re-arm (indices run on)
+        self._strategy = self.identifier.strategy
         self.rejected = RejectCounter()
         self.last_step = -1
         self._jump: int | None = None     # step of the last out-of-sequence sensor frame
@@ -113,6 +117,13 @@ class TcuNode:
                     results.append(interval)
             return ([] if send is not None else [command_frame]) + self._new_samples(reading.step) + results \
                 + [c.status(out.status, out.observer)]
+        if frame.name == "DriverDemand":
+            if frame.value.step <= self.last_demand_step:
+                self.rejected[BAD_SEQUENCE] += 1
+                return []
+            self.last_demand_step = frame.value.step
+            self.identifier.demand_nm = frame.value.torque_nm
+            return []
         if frame.name == "PlantHeartbeat":
             self.plant_state = frame.value.state
             if frame.value.state in (STATE_FINISHED, STATE_FAULT):
@@ -121,14 +132,18 @@ class TcuNode:
 
     def _new_samples(self, step: int) -> list[can.Message]:
         strategy = self.identifier.strategy
+        if strategy is not self._strategy:          # re-armed: a fresh strategy, the indices run on
+            self._strategy = strategy
+            self._samples_base = self.samples_sent
         n = strategy.samples
-        if n == self.samples_sent:
+        base = self._samples_base
+        if base + n == self.samples_sent:
             return []
         v, mu = strategy.data()
         detected = self.identifier.detector.detected_step
-        frames = [self.codec.sample(SampleReport(step, i, -1 if detected is None else detected, float(v[i]),
-                                                 float(mu[i]))) for i in range(self.samples_sent, n)]
-        self.samples_sent = n
+        frames = [self.codec.sample(SampleReport(step, base + i, -1 if detected is None else detected, float(v[i]),
+                                                 float(mu[i]))) for i in range(self.samples_sent - base, n)]
+        self.samples_sent = base + n
         return frames
 
     def report(self) -> dict:
@@ -138,7 +153,7 @@ class TcuNode:
                 "sensor_frames": self.sensor_frames, "last_step": self.last_step, "resyncs": self.resyncs,
                 "rejected_frames": dict(self.rejected), "rejected_readings": ident.rejected_readings,
                 "plant_state": None if self.plant_state is None else STATE_NAMES.get(self.plant_state),
-                "confirmed": bool(ident.strategy.confirmed)}
+                "confirmed": bool(ident.strategy.confirmed), "rearms": ident.rearms}
 
 
 def newest_sensor_only(bus: can.BusABC, first: can.Message, node: TcuNode, limit: int = 1000) -> list[tuple]:

@@ -1,4 +1,5 @@
-"""Estimation only: observer, curve model, strategies, evaluation, metrics. No processes, no CAN."""
+"""The TCU: estimation and control (observer, curve model, strategies, control laws, evaluation, metrics).
+No processes, no CAN."""
 from .messages import (IdentificationEvent, ObserverSample, SensorReading, TcuOutput, TcuStatus,
                        TorqueCommand)
 from .settings import IdentifierSettings, VehicleModel

@@ -1,6 +1,6 @@
 """What crosses the TCU's boundary: exactly what the CAN frames carry, as plain data.
 
-The identifier consumes ``SensorReading`` and produces ``TorqueCommand``, ``TcuStatus`` and
+The identifier consumes ``SensorReading`` and ``DriverDemand`` and produces ``TorqueCommand``, ``TcuStatus`` and
 ``IdentificationEvent``; a bus layer (``hil/``) maps these to and from frames.
 """
 from __future__ import annotations
@@ -21,6 +21,12 @@ class SensorReading:
     step: int
     motor_speed_rad_s: float
     train_speed_ms: float
+
+
+@dataclass(frozen=True)
+class DriverDemand:
+    step: int            # the sensor step it goes with (sent right before that PlantSensor)
+    torque_nm: float     # the driver's traction demand as motor torque
 
 
 @dataclass(frozen=True)

@@ -1,8 +1,10 @@
 """The traction control unit's identifier, at frame level: sensor readings in, commands and
 identification results out.  The same object runs in the TCU process, in replay and in benchmarks.
 
-Pipeline per reading: observer -> mu^ and creep speed -> slip detector -> (after the observer
-settles) samples to the strategy.  An observer-aware strategy (``Strategy.observer_aware``) gets
+Pipeline per reading: observer -> mu^ and creep speed -> slip detector -> the control law's torque
+(identifier/control: the driver's demand, or a closed-loop law acting on what was learnt) -> (after the
+observer settles) samples to the strategy.  A closed-loop law may re-arm the identifier (a fresh
+detector and strategy) once the demand passes through again, so each new drop is identified afresh.  An observer-aware strategy (``Strategy.observer_aware``) gets
 every sample from the detected slip start on instead, each with the creep of the same instant and
 the observer's speed innovation (it models the observer's transient rather than waiting it out).
 """
@@ -11,6 +13,8 @@ from __future__ import annotations
 import math
 from collections import deque
 
+from . import curve as curve_model
+from .control import DEFAULT_LAW, ControlInput, make_controller
 from .drill import Drill
 from .excitation import Excitation
 from .messages import (STAGE_CONFIRMED, STAGE_GAVE_UP, STAGE_IDENTIFYING, STAGE_MONITORING, ObserverSample,
@@ -92,10 +96,20 @@ class TractionIdentifier:
     """``on_sensor(reading) -> TcuOutput`` (or its two halves, ``command(reading)`` then ``work(command)``);
     holds the observer, the detector and one strategy."""
 
-    def __init__(self, settings: IdentifierSettings, strategy: str = DEFAULT_STRATEGY, seed: int = 0):
+    def __init__(self, settings: IdentifierSettings, strategy: str = DEFAULT_STRATEGY, seed: int = 0,
+                 control: str = DEFAULT_LAW, control_options: dict | None = None):
         self.settings = settings
+        self.strategy_name = strategy
         self.strategy = make_strategy(strategy, settings, seed)
         self.seed = seed
+        #: the driver's demand (motor torque): the scenario's until a DriverDemand frame says otherwise
+        self.demand_nm = settings.torque_demand_nm
+        nominal_peak_creep_kmh = curve_model.peak(settings.initial_guess)[0]
+        self.control = control
+        self.controller = make_controller(control, settings.vehicle, nominal_peak_creep_kmh, control_options)
+        self._open_loop = control == DEFAULT_LAW
+        self.latest_event = None      # the strategy's last identification event (since the last re-arm)
+        self.rearms = 0
         self.excitation = Excitation.from_dict(settings.excitation)
         v = settings.vehicle
         self.observer = LoadTorqueObserver(v.equivalent_inertia_kgm2, settings.period_s,
@@ -127,11 +141,36 @@ class TractionIdentifier:
         return STAGE_IDENTIFYING if self.detector.detected_step is not None else STAGE_MONITORING
 
     def command_nm(self, step: int) -> float:
-        """The torque commanded after the reading of ``step``: the demand, with the excitation once a
+        """The open-loop torque after the reading of ``step``: the demand, with the excitation once a
         slip has been detected (identifier/excitation.py: a function of the step and seed only)."""
         s = self.settings
-        return self.excitation.command_nm(s.torque_demand_nm, step, self.detector.detected_step, s.period_s,
-                                          self.seed)
+        return self.excitation.command_nm(self.demand_nm, step, self.detector.detected_step, s.period_s, self.seed)
+
+    def control_input(self, step: int, creep: float, load_torque: float, mu_hat: float) -> ControlInput:
+        """What the control law sees now: the reading, the observer, the demand and the latest curve."""
+        e = self.latest_event
+        ci = None
+        peak_creep = math.nan
+        confirmed = False
+        if e is not None:
+            if all(math.isfinite(x) for x in e.peak_creep_ci):
+                ci = tuple(e.peak_creep_ci)
+            confirmed = e.kind in ("confirmed", "unconfirmed")
+            if confirmed and len(e.params) >= 3:
+                peak_creep = curve_model.peak(e.params)[0]
+        s = self.settings
+        return ControlInput(step, step * s.period_s, s.period_s, self.demand_nm, creep, load_torque, mu_hat,
+                            self.detector.detected_step is not None, ci,
+                            tuple(e.peak_mu_ci) if e is not None else None, confirmed, peak_creep)
+
+    def rearm(self) -> None:
+        """A fresh detector and strategy (the observer runs on): the next drop is identified afresh."""
+        s = self.settings
+        self.detector = SlipDetector(s.detection_creep_rise_kmh, s.baseline_samples)
+        self.strategy = make_strategy(self.strategy_name, s, self.seed + self.rearms + 1)
+        self._recent.clear()
+        self.latest_event = None
+        self.rearms += 1
 
     def on_sensor(self, reading: SensorReading) -> TcuOutput:
         """The whole answer to one reading: ``command`` then ``work``."""
@@ -146,7 +185,7 @@ class TractionIdentifier:
             # a reading that cannot be trusted: the planned command, nothing fed downstream
             self.rejected_readings += 1
             self._pending = None
-            return TorqueCommand(reading.step, self.command_nm(reading.step))
+            return TorqueCommand(reading.step, self.command_nm(reading.step) if self._open_loop else self._last_torque)
         v = self.settings.vehicle
         t_s = reading.step * self.settings.period_s
         innovation = reading.motor_speed_rad_s - self.observer.speed_rad_s   # y(k) - omega^(k), before the update
@@ -158,7 +197,13 @@ class TractionIdentifier:
         observer = ObserverSample(reading.step, t_s, creep, mu_hat, load_torque)
         detected_before = self.detector.detected_step is not None
         slipping = self.detector.update(reading.step, creep)
-        torque = self.command_nm(reading.step)           # what is applied from this reading to the next
+        if self._open_loop:
+            torque = self.command_nm(reading.step)       # what is applied from this reading to the next
+        else:
+            torque = self.controller.torque_nm(self.control_input(reading.step, creep, load_torque, mu_hat))
+            if self.controller.wants_rearm:
+                self.rearm()
+                slipping = False
         self._last_torque = torque
         self._pending = (reading, observer, innovation, paired_creep, slipping, detected_before)
         return TorqueCommand(reading.step, torque)
@@ -191,6 +236,8 @@ class TractionIdentifier:
         elif slipping:
             if reading.step - self.detector.detected_step >= self._settle_steps:
                 events = self.strategy.add_sample(Sample(reading.step, t_s, paired_creep, observer.mu_hat))
+        if events:
+            self.latest_event = events[-1]
         return TcuOutput(command, self._status(reading.step), observer, events)
 
     def _status(self, step: int) -> TcuStatus:

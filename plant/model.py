@@ -9,6 +9,9 @@ States: motor angular speed ``omega_m`` (rad/s) and train speed ``v_t`` (m/s).
     J_eq * d(omega_m)/dt = T_e - T_L                        (Appendix A)
     M * dv_t/dt = mu * T_W * g + (n_driven - 1) * mu_req * T_W * g - R(v_t)
 
+With a demand profile (plant/rail.py), the other driven axles hold the driver's demand mu_d(t) in place
+of mu_req (ideal axles: they are not the wheelset under test).
+
 One call of the compiled CasADi ``Function`` advances one *exchange period* with several RK4
 sub-steps, so Python pays its call overhead once per period rather than once per sub-step.
 """
@@ -23,6 +26,7 @@ import numpy as np
 
 from .friction import FrictionCurve, PolachCurve
 from .params import KMH_PER_MS, WheelsetParams
+from .rail import DemandProfile, RailSchedule
 
 
 @dataclass(frozen=True)
@@ -35,6 +39,13 @@ class PlantConfig:
     initial_train_speed_ms: float
     integration_step_s: float            # h, RK4 step
     exchange_period_s: float             # one plant call (= one bus exchange)
+    rail: RailSchedule | None = None     # the rail along the run (replaces normal/fault curves when set)
+    demand: DemandProfile | None = None  # the driver's demand: the other axles hold it (module docstring)
+
+    @property
+    def cleaning_inputs(self) -> int:
+        """How many recovering rail segments feed the period step their cleaned fraction rho."""
+        return len(self.rail.recovery) if self.rail is not None else 0
 
     @property
     def substeps(self) -> int:
@@ -64,25 +75,31 @@ def creep_speed_kmh(p: WheelsetParams, motor_speed_rad_s, train_speed_ms):
 
 
 def build_dynamics(cfg: PlantConfig) -> ca.Function:
-    """f(x, T_e, t) -> (dx/dt, mu, v_s_kmh): the continuous-time model as a CasADi Function."""
+    """f(x, T_e, t[, rho]) -> (dx/dt, mu, v_s_kmh): the continuous-time model as a CasADi Function
+    (``rho``: the cleaned fractions of recovering rail segments, when there are any)."""
     x = ca.SX.sym("x", 2)
     torque = ca.SX.sym("torque_nm")
     t = ca.SX.sym("t_s")
-    return ca.Function("wheelset_dynamics", [x, torque, t], list(dynamics(cfg, x, torque, t)),
-                       ["x", "torque_nm", "t_s"], ["dx", "mu", "creep_speed_kmh"])
+    extra = [ca.SX.sym("rho", cfg.cleaning_inputs)] if cfg.cleaning_inputs else []
+    return ca.Function("wheelset_dynamics", [x, torque, t, *extra], list(dynamics(cfg, x, torque, t, *extra)),
+                       ["x", "torque_nm", "t_s", *(["rho"] if extra else [])], ["dx", "mu", "creep_speed_kmh"])
 
 
-def dynamics(cfg: PlantConfig, x, torque, t):
+def dynamics(cfg: PlantConfig, x, torque, t, cleaned=None):
     """(dx/dt, mu, v_s_kmh) as CasADi expressions.  The numbers in ``cfg`` (params, curves, fault
     time, mu_required) may themselves be CasADi symbols: the FMU export (plant/fmu) builds its
     parameterised model from this same function."""
     p = cfg.params
     omega_m, v_t = x[0], x[1]
     v_s = creep_speed_kmh(p, omega_m, v_t)
-    mu = ca.if_else(t >= cfg.fault_time_s, cfg.fault_curve.mu_casadi(v_s, v_t),
-                    cfg.normal_curve.mu_casadi(v_s, v_t))
+    if cfg.rail is not None:
+        mu = cfg.rail.mu_casadi(v_s, v_t, t, cleaned)
+    else:
+        mu = ca.if_else(t >= cfg.fault_time_s, cfg.fault_curve.mu_casadi(v_s, v_t),
+                        cfg.normal_curve.mu_casadi(v_s, v_t))
     load_torque = mu * p.torque_per_mu_nm
-    other_axles_n = (p.driven_axles - 1) * cfg.mu_required * p.normal_force_n
+    other_mu = cfg.mu_required if cfg.demand is None else cfg.demand.casadi(t)
+    other_axles_n = (p.driven_axles - 1) * other_mu * p.normal_force_n
     d_omega = (torque - load_torque) / p.equivalent_inertia_kgm2
     d_v = (mu * p.normal_force_n + other_axles_n - p.running_resistance_n(v_t)) / p.train_mass_kg
     return ca.vertcat(d_omega, d_v), mu, v_s
@@ -103,18 +120,20 @@ def rk4_step(f, x, torque, t, h):
 
 
 def build_period_step(cfg: PlantConfig) -> ca.Function:
-    """F(x, T_e, t0) -> (x, mu, v_s_kmh) at t0 + exchange_period: ``substeps`` RK4 steps, torque held."""
+    """F(x, T_e, t0[, rho]) -> (x, mu, v_s_kmh) at t0 + exchange_period: ``substeps`` RK4 steps, torque
+    (and the rail's cleaned fractions rho, when it has recovering segments) held."""
     f = build_dynamics(cfg)
     x0 = ca.SX.sym("x", 2)
     torque = ca.SX.sym("torque_nm")
     t0 = ca.SX.sym("t0_s")
+    extra = [ca.SX.sym("rho", cfg.cleaning_inputs)] if cfg.cleaning_inputs else []
     h = cfg.integration_step_s
     x = x0
     for i in range(cfg.substeps):
-        x = rk4_step(lambda x_, u_, t_: f(x_, u_, t_)[0], x, torque, t0 + i * h, h)
-    _, mu, v_s = f(x, torque, t0 + cfg.substeps * h)
-    return ca.Function("wheelset_period_step", [x0, torque, t0], [x, mu, v_s],
-                       ["x0", "torque_nm", "t0_s"], ["x", "mu", "creep_speed_kmh"])
+        x = rk4_step(lambda x_, u_, t_: f(x_, u_, t_, *extra)[0], x, torque, t0 + i * h, h)
+    _, mu, v_s = f(x, torque, t0 + cfg.substeps * h, *extra)
+    return ca.Function("wheelset_period_step", [x0, torque, t0, *extra], [x, mu, v_s],
+                       ["x0", "torque_nm", "t0_s", *(["rho"] if extra else [])], ["x", "mu", "creep_speed_kmh"])
 
 
 def equilibrium(cfg: PlantConfig) -> tuple[np.ndarray, float]:
@@ -124,7 +143,8 @@ def equilibrium(cfg: PlantConfig) -> tuple[np.ndarray, float]:
     speed stays constant until the fault.
     """
     p = cfg.params
-    v_s0_kmh = cfg.normal_curve.creep_for_mu(cfg.mu_required)
+    first = cfg.rail.segments[0].curve if cfg.rail is not None else cfg.normal_curve
+    v_s0_kmh = first.creep_for_mu(cfg.mu_required)
     v_t0 = cfg.initial_train_speed_ms
     omega_m0 = (v_t0 + v_s0_kmh / KMH_PER_MS) * p.gear_ratio / p.wheel_radius_m
     accel0 = (p.driven_axles * cfg.mu_required * p.normal_force_n - p.running_resistance_n(v_t0)) / p.train_mass_kg
@@ -211,17 +231,28 @@ class WheelsetPlant:
         self._x_out = np.zeros(2)
         self._mu_out = np.zeros(1)
         self._creep_out = np.zeros(1)
-        self._buffer, self._eval = bind_buffer(self._step_fn, (self._x_in, self._torque_in, self._t0_in),
-                                               (self._x_out, self._mu_out, self._creep_out))
+        #: recovering rail segments: the energy each has dissipated (J) and its cleaned fraction rho (plant/rail.py)
+        self._cleaned = np.zeros(cfg.cleaning_inputs)
+        self.dissipated_j = np.zeros(cfg.cleaning_inputs)
+        args = (self._x_in, self._torque_in, self._t0_in) + ((self._cleaned,) if cfg.cleaning_inputs else ())
+        self._buffer, self._eval = bind_buffer(self._step_fn, args, (self._x_out, self._mu_out, self._creep_out))
         self.reset()
+
+    @property
+    def cleaned(self) -> tuple[float, ...]:
+        """rho of each recovering rail segment (plant/rail.py), in the schedule's order."""
+        return tuple(float(c) for c in self._cleaned)
 
     def reset(self) -> PlantState:
         self.step_index = 0
         self._x_out[:] = self.x0
+        self._cleaned[:] = 0.0
+        self.dissipated_j[:] = 0.0
         p = self.cfg.params
         v_s = float(creep_speed_kmh(p, self.x0[0], self.x0[1]))
         self._creep_out[0] = v_s
-        self._mu_out[0] = float(self.cfg.normal_curve.mu_at(v_s, self.x0[1]))
+        first = self.cfg.rail.segments[0].curve if self.cfg.rail is not None else self.cfg.normal_curve
+        self._mu_out[0] = float(first.mu_at(v_s, self.x0[1]))
         self.state = self._observe(self.equilibrium_torque_nm)
         return self.state
 
@@ -237,8 +268,21 @@ class WheelsetPlant:
         if not (np.isfinite(self._x_out[0]) and np.isfinite(self._x_out[1])):
             raise FloatingPointError(f"plant diverged at t={self.t_s:.4f} s (torque {torque_nm} N·m)")
         self.step_index += 1
+        if self.cfg.cleaning_inputs:
+            self._clean()
         self.state = self._observe(torque_nm)
         return self.state
+
+    def _clean(self) -> None:
+        """E += mu N w T for the recovering segment the rail is in; rho = 1 - exp(-E / E_clean) (plant/rail.py),
+        held over the next period."""
+        rail, p = self.cfg.rail, self.cfg.params
+        i = rail.index_at(self.t_s)
+        if i in rail.recovery:
+            j = list(rail.recovery).index(i)
+            w_ms = abs(float(self._creep_out[0])) / KMH_PER_MS
+            self.dissipated_j[j] += abs(float(self._mu_out[0])) * p.normal_force_n * w_ms * self.cfg.exchange_period_s
+            self._cleaned[j] = 1.0 - math.exp(-self.dissipated_j[j] / rail.recovery[i].energy_clean_j)
 
     def _observe(self, torque_nm: float) -> PlantState:
         t_s = self.t_s

@@ -15,7 +15,7 @@ are counted by reason (``RejectCounter``) and never reach the identifier.  Every
 authentication trailer (``AuthFreshness``, ``AuthMac``); a codec without an ``Authenticator`` sends it
 zeroed and does not read it.
 
-Frame schedule per exchange period: PlantSensor (plant -> TCU), then TorqueCommand, TcuSample (0..n,
+Frame schedule per exchange period: DriverDemand then PlantSensor (plant -> TCU), then TorqueCommand, TcuSample (0..n,
 one per sample the strategy took), TcuResult (0..n, only on an identification event, each followed by its
 TcuInterval when the strategy says how sure it is) and TcuStatus
 (TCU -> plant, in this order), heartbeats both ways every ``heartbeat_period_s`` of wall time.
@@ -31,15 +31,17 @@ from pathlib import Path
 import can
 import cantools
 
-from identifier.messages import IdentificationEvent, ObserverSample, SensorReading, TcuStatus, TorqueCommand
+from identifier.messages import (DriverDemand, IdentificationEvent, ObserverSample, SensorReading, TcuStatus,
+                                 TorqueCommand)
 
 DBC_NAME = "hil.dbc"
 DBC_PATH = Path(__file__).parent.parent / DBC_NAME
 
 # frame ids (also in the DBC; checked against it at load)
 SENSOR_ID, COMMAND_ID, STATUS_ID, RESULT_ID, INTERVAL_ID, SAMPLE_ID = 0x100, 0x110, 0x120, 0x130, 0x131, 0x140
+DEMAND_ID = 0x108
 PLANT_HEARTBEAT_ID, TCU_HEARTBEAT_ID = 0x701, 0x702
-PLANT_IDS = frozenset({SENSOR_ID, PLANT_HEARTBEAT_ID})
+PLANT_IDS = frozenset({SENSOR_ID, DEMAND_ID, PLANT_HEARTBEAT_ID})
 TCU_IDS = frozenset({COMMAND_ID, STATUS_ID, RESULT_ID, INTERVAL_ID, SAMPLE_ID, TCU_HEARTBEAT_ID})
 
 # heartbeat states
@@ -93,7 +95,7 @@ class SampleReport:
 class Frame:
     """A received frame that passed validation: its DBC name and the decoded object."""
     name: str
-    value: object          # SensorReading | TorqueCommand | (TcuStatus, ObserverSample|None) | IdentificationEvent | IntervalReport | SampleReport | Heartbeat
+    value: object          # SensorReading | DriverDemand | TorqueCommand | (TcuStatus, ObserverSample|None) | IdentificationEvent | IntervalReport | SampleReport | Heartbeat
 
 
 class RejectCounter(Counter):
@@ -156,7 +158,7 @@ class FrameCodec:
         self.db = db or load_dbc()
         self.period_s = period_s
         self._by_id = {m.frame_id: m for m in self.db.messages}
-        expected = {SENSOR_ID: "PlantSensor", COMMAND_ID: "TorqueCommand", STATUS_ID: "TcuStatus",
+        expected = {SENSOR_ID: "PlantSensor", DEMAND_ID: "DriverDemand", COMMAND_ID: "TorqueCommand", STATUS_ID: "TcuStatus",
                     RESULT_ID: "TcuResult", INTERVAL_ID: "TcuInterval", SAMPLE_ID: "TcuSample", PLANT_HEARTBEAT_ID: "PlantHeartbeat", TCU_HEARTBEAT_ID: "TcuHeartbeat"}
         for fid, name in expected.items():
             if fid not in self._by_id or self._by_id[fid].name != name:
@@ -193,6 +195,9 @@ class FrameCodec:
     def sensor(self, r: SensorReading) -> can.Message:
         return self._msg(SENSOR_ID, {"SensorStep": r.step, "MotorSpeed": r.motor_speed_rad_s,
                                      "TrainSpeed": r.train_speed_ms})
+
+    def demand(self, d: DriverDemand) -> can.Message:
+        return self._msg(DEMAND_ID, {"DemandStep": d.step, "DemandTorque": d.torque_nm})
 
     def command(self, c: TorqueCommand) -> can.Message:
         return self._msg(COMMAND_ID, {"CommandStep": c.step, "TorqueCmd": c.torque_nm})
@@ -298,6 +303,8 @@ class FrameCodec:
             return SensorReading(int(v["SensorStep"]), float(v["MotorSpeed"]), float(v["TrainSpeed"]))
         if fid == COMMAND_ID:
             return TorqueCommand(int(v["CommandStep"]), float(v["TorqueCmd"]))
+        if fid == DEMAND_ID:
+            return DriverDemand(int(v["DemandStep"]), float(v["DemandTorque"]))
         if fid == STATUS_ID:
             step = int(v["StatusStep"])
             status = TcuStatus(step, int(v["Stage"]), int(v["Correction"]))

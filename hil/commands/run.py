@@ -37,6 +37,9 @@ def register(sub) -> None:
     p.add_argument("--plant", default=None, metavar="casadi|fmu:PATH",
                    help="plant model: the CasADi model or an FMI 2.0/3.0 Co-Simulation FMU (default: the "
                    "scenario's [plant] table, else casadi). Loading an FMU runs its native code")
+    p.add_argument("--control", default=None, metavar="LAW",
+                   help="the TCU's control law (demand, readhesion, constant_creep, extremum_seeking, identified; "
+                   "default: the scenario's [control] law, else demand: open loop as the paper ran it)")
     p.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
     p.add_argument("--no-rrd", action="store_true", help="do not write the Rerun recording (.rrd) beside the log")
     p.set_defaults(func=cmd_run)
@@ -45,6 +48,11 @@ def register(sub) -> None:
 def cmd_run(args) -> int:
     if args.strategy not in STRATEGIES:
         raise ConfigError(f"unknown strategy {args.strategy!r}; available: {', '.join(sorted(STRATEGIES))}")
+    if args.control is not None:
+        from identifier.control import LAWS
+        if args.control not in LAWS:
+            raise ConfigError(f"--control {args.control!r}: unknown control law (known: {', '.join(LAWS)})")
+        args.set = [*(args.set or []), f"control.law={json.dumps(args.control)}"]
     scenario = load_scenario(args.scenario, parse_set(args.set))
     scenario = apply_reality_args(scenario, args.reality)
     from ..errors import PeerSilent

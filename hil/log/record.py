@@ -478,13 +478,17 @@ def slug(text: str, what: str) -> str:
 
 def log_path(scenario, strategy: str, seed: int, out_dir=None, plant: str | None = None,
              reality: dict | None = None) -> Path:
-    """``<out>/<scenario>-<strategy>-<seed>[-<plant>][-real-<digest>].mcap``, every part slugged so the
-    file stays inside ``out_dir`` (default ``logs``); ``plant`` is None for the CasADi model.
+    """``<out>/<scenario>-<strategy>[-<law>]-<seed>[-<plant>][-real-<digest>].mcap``, every part slugged so
+    the file stays inside ``out_dir`` (default ``logs``); ``plant`` is None for the CasADi model; the control
+    law is named unless it is the open-loop ``demand`` (whose logs keep their old names).
 
     ``reality`` (the ``[reality]`` effects) adds a digest of the effects and their parameters, not
     their names: a "real" run never takes a nominal run's name, and the name does not tell the gap
     diagnosis what it is asked to find."""
     parts = [slug(scenario.name, "scenario name"), slug(strategy, "strategy"), str(int(seed))]
+    law = scenario.control.law
+    if law != "demand":
+        parts.insert(2, slug(law, "control law"))
     if plant:
         parts.append(slug(plant, "plant"))
     if reality:
@@ -537,6 +541,23 @@ def write_plant_state(rec: Recorder, step: int, s, stage: str) -> None:
     rec.write("/plant/state", s.t_s, step=step, t_s=s.t_s, motor_speed_rad_s=s.motor_speed_rad_s,
               train_speed_ms=s.train_speed_ms, creep_speed_kmh=s.creep_speed_kmh, mu=s.mu,
               load_torque_nm=s.load_torque_nm, torque_nm=s.torque_nm, fault_active=s.fault_active, stage=stage)
+
+
+def write_rail_truth(rec: Recorder, step: int, t_s: float, peak_mu: float, peak_creep_kmh: float, demand_mu: float,
+                     segment: int) -> None:
+    rec.write("/plant/rail", t_s, step=step, t_s=t_s, peak_mu=peak_mu, peak_creep_kmh=peak_creep_kmh,
+              demand_mu=demand_mu, segment=segment)
+
+
+def write_control_metrics(rec: Recorder, t_s: float, control: str, m: dict) -> None:
+    """``/control/metrics``: the run's closed-loop figures (hil/traction.py), once, at its end (NaN: none)."""
+    def num(k):
+        x = m.get(k)
+        return float("nan") if x is None else float(x)
+    rec.write("/control/metrics", t_s, t_s=t_s, control=control, adhesion_utilisation=num("adhesion_utilisation"),
+              adhesion_utilisation_low=num("adhesion_utilisation_low"), macro_slip_s=num("macro_slip_s"),
+              macro_slip_count=int(m.get("macro_slip_count") or 0), reaction_ms=num("reaction_ms"),
+              recovery_s=num("recovery_s"), torque_ripple_percent=num("torque_ripple_percent"))
 
 
 def write_sensor(rec: Recorder, t_s: float, step: int, motor_speed_rad_s: float, train_speed_ms: float) -> None:

@@ -25,6 +25,8 @@ TOPICS = {
     "/loop/timing": "LoopTiming",
     "/run/events": "RunEvent",
     "/run/summary": "RunSummary",
+    "/plant/rail": "RailTruth",
+    "/control/metrics": "ControlMetrics",
 }
 
 _T = descriptor_pb2.FieldDescriptorProto
@@ -61,6 +63,14 @@ MESSAGES: dict[str, list[tuple[str, str, bool]]] = {
                    ("t_fault_s", "double", False), ("t_serious_s", "double", False),
                    ("t_identified_s", "double", False), ("r2", "double", False),
                    ("peak_mu_err_percent", "double", False), ("peak_creep_err_percent", "double", False)],
+    # the truth the closed-loop metrics judge by, per step (hil/traction.py); never seen by the TCU
+    "RailTruth": [("step", "int64", False), ("t_s", "double", False), ("peak_mu", "double", False),
+                  ("peak_creep_kmh", "double", False), ("demand_mu", "double", False), ("segment", "int32", False)],
+    "ControlMetrics": [("t_s", "double", False), ("control", "string", False),
+                       ("adhesion_utilisation", "double", False), ("adhesion_utilisation_low", "double", False),
+                       ("macro_slip_s", "double", False), ("macro_slip_count", "int32", False),
+                       ("reaction_ms", "double", False), ("recovery_s", "double", False),
+                       ("torque_ripple_percent", "double", False)],
 }
 
 

@@ -1,0 +1,283 @@
+"""``hil bench control``: every control law side by side on the same drawn rail sequences, with an oracle.
+
+The family (``FAMILY``, seeded; the seed is drawn at run time and printed unless ``--seed``):
+
+- runs of ``--duration-s`` (30 s) on the ffcc_a vehicle, 10 m/s at the start, in-process lockstep, gp;
+- one dry curve per run, the exp form through its peak: peak mu uniform in ``DRY_PEAK_MU`` (0.25-0.35),
+  peak creep log-uniform in ``DRY_PEAK_CREEP_KMH`` (0.8-2 km/h), the wet-rail shape of hil/config.py's
+  ``PEAK_SHAPE_DEFAULTS``;
+- one to three low-adhesion patches drawn from the ``default`` fault family (plant/families.py: peak mu
+  0.05-0.25, peak creep 0.4-3 km/h, exp or Polach), each 0.5-5 s long (uniform), starting at uniform times
+  after ``FIRST_PATCH_S`` and at least ``GAP_S`` after the previous patch ends (a patch that does not fit
+  is left out); every change of rail with a transition uniform in 0-200 ms;
+- the driver's demand constant at 60-100 % (uniform) of the dry peak mu.
+
+Every law of identifier/control runs on every draw, and so does the **oracle**: the creep loop of
+identifier/control/base.py holding the *true* current peak creep (plant/rail.py), the ceiling no TCU can
+reach (it reads the plant's truth; it exists only here, never in a run).  Figures per law: the median and
+5th percentile of eta_low, the median eta, the fraction of runs with macro-slip, the medians of reaction,
+recovery and ripple (hil/traction.py), and each run's figures.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .terminal import columns, wrap
+
+DRY_PEAK_MU = (0.25, 0.35)
+DRY_PEAK_CREEP_KMH = (0.8, 2.0)
+PATCHES = (1, 3)
+PATCH_S = (0.5, 5.0)
+TRANSITION_S = (0.0, 0.2)
+DEMAND_FRACTION = (0.6, 1.0)
+FIRST_PATCH_S = 2.0
+GAP_S = 1.0
+FAMILY = {"duration_s": 30.0, "dry_peak_mu": DRY_PEAK_MU, "dry_peak_creep_kmh": DRY_PEAK_CREEP_KMH,
+          "patches": PATCHES, "patch_s": PATCH_S, "patch_family": "default", "transition_s": TRANSITION_S,
+          "demand_fraction_of_dry_peak": DEMAND_FRACTION, "first_patch_s": FIRST_PATCH_S, "gap_s": GAP_S}
+ORACLE = "oracle"
+BASE = "scenarios/wet_patch.toml"
+
+
+def _value(x) -> str:
+    return json.dumps(x) if isinstance(x, str) else repr(float(x)) if isinstance(x, float) else \
+        "[" + ", ".join(_value(v) for v in x) + "]" if isinstance(x, (list, tuple)) else str(x)
+
+
+def draw_text(base_text: str, seed: int, index: int, duration_s: float) -> tuple[str, dict]:
+    """The scenario text of draw ``index`` of ``seed`` (module docstring) and what was drawn."""
+    import tomllib
+
+    from plant import WheelsetParams, train_speed_before_fault
+    from plant.families import curve_table, draw_rng, sample_curves
+
+    rng = np.random.default_rng([int(seed), int(index), 36])
+    base = tomllib.loads(base_text)
+    vehicle = WheelsetParams(**base.get("vehicle", {}))
+    v0 = float(base["run"]["initial_train_speed_ms"])
+    dry_mu = float(rng.uniform(*DRY_PEAK_MU))
+    dry_creep = float(np.exp(rng.uniform(*np.log(DRY_PEAK_CREEP_KMH))))
+    demand = float(rng.uniform(*DEMAND_FRACTION)) * dry_mu
+    n = int(rng.integers(PATCHES[0], PATCHES[1] + 1))
+    patches, t = [], FIRST_PATCH_S
+    for k in range(n):
+        start = t + float(rng.uniform(0.0, 3.0))
+        length = float(rng.uniform(*PATCH_S))
+        t_in, t_out = (float(rng.uniform(*TRANSITION_S)) for _ in range(2))
+        if start + t_in + length + t_out >= duration_s - GAP_S:
+            break
+        speed = float(train_speed_before_fault(vehicle, demand, v0, start))
+        batch = sample_curves("default", 1, draw_rng("default", seed, index * 8 + k), speed)
+        patches.append({"start_s": start, "length_s": length, "transition_in_s": t_in, "transition_out_s": t_out,
+                        "curve": curve_table(batch.curve(0)), "peak_mu": float(batch.peak_mu[0]),
+                        "peak_creep_kmh": float(batch.peak_creep_kmh[0])})
+        t = start + t_in + length + t_out + GAP_S
+    dry = {"peak_mu": dry_mu, "peak_creep_kmh": dry_creep}
+    segs = [{"label": "dry", "start_s": 0.0, **dry}]
+    for k, p in enumerate(patches):
+        segs.append({"label": f"patch {k + 1}", "start_s": p["start_s"], "transition_s": p["transition_in_s"],
+                     **p["curve"]})
+        segs.append({"label": "dry", "start_s": p["start_s"] + p["transition_in_s"] + p["length_s"],
+                     "transition_s": p["transition_out_s"], **dry})
+    text = _strip_tables(base_text, ("control", "rail"))     # the base without its [control] and [[rail]]
+    text = text.replace("[run]", f"[run]\nduration_s = {duration_s!r}", 1) if "duration_s" not in text else \
+        "\n".join(f"duration_s = {duration_s!r}" if ln.strip().startswith("duration_s") else ln
+                  for ln in text.splitlines())
+    out = [text.rstrip(), "", "[control]", 'law = "demand"', f"demand_mu = [[0.0, {demand!r}]]"]
+    for s in segs:
+        out += ["", "[[rail]]"] + [f"{k} = {_value(v)}" for k, v in s.items()]
+    drawn = {"dry_peak_mu": dry_mu, "dry_peak_creep_kmh": dry_creep, "demand_mu": demand, "patches": patches}
+    return "\n".join(out) + "\n", drawn
+
+
+def _strip_tables(text: str, names) -> str:
+    """``text`` without the tables (and arrays of tables) ``names`` and their sub-tables."""
+    out, skip = [], False
+    for line in text.splitlines():
+        s = line.strip()
+        if s.startswith("["):
+            head = s.strip("[]").split("]")[0].strip()
+            skip = head.split(".")[0] in names
+        if not skip:
+            out.append(line)
+    return "\n".join(out)
+
+
+class Oracle:
+    """The creep loop holding the true current peak creep (module docstring): reads the plant's truth."""
+
+    name = ORACLE
+
+    def __init__(self, rig, vehicle, options=None):
+        from identifier.control import CreepLoop
+        from identifier.control.laws import _LOOP_DEFAULTS
+
+        o = {**_LOOP_DEFAULTS, "hold_fraction": 1.0, **(options or {})}
+        self.rig, self.options = rig, o
+        self.loop = CreepLoop(vehicle, o["bandwidth_rad_s"], o["integral_rad_s"])
+
+    def torque_nm(self, x) -> float:
+        s = self.rig.plant.state
+        _, peak_creep, _ = self.rig.truth.truth(s.t_s, s.train_speed_ms, getattr(self.rig.plant, "cleaned", ()))
+        return self.loop.torque_nm(x, self.options["hold_fraction"] * peak_creep)
+
+    wants_rearm = False
+
+
+def run_point(item: dict) -> dict:
+    """One (draw, law) run in-process, lockstep, no log: its closed-loop figures."""
+    from ..config import parse_scenario
+    from ..exchange import exchange
+    from ..session import Session
+
+    law = item["law"]
+    scenario = parse_scenario(item["text"], f"{BASE} draw {item['index']}",
+                              {"control.law": "demand" if law == ORACLE else law})
+    t0 = time.perf_counter()
+    with Session(scenario, "gp", item["run_seed"], bus="inprocess", mode="lockstep", external_tcu=False,
+                 out_dir=None, record=False, set_args=None, plant=None, plant_label=None,
+                 log=lambda text: None) as session:
+        ident = session.tcu.node.identifier
+        if law == ORACLE:
+            ident.controller = Oracle(session.node.rig, ident.settings.vehicle)
+            ident._open_loop = False
+        timing = exchange(session.node, scenario.steps, "lockstep")
+        summary = session.finish(timing, time.perf_counter() - t0)
+    keys = ("adhesion_utilisation", "adhesion_utilisation_low", "macro_slip_s", "macro_slip_count", "reaction_ms",
+            "recovery_s", "torque_ripple_percent", "drops", "sim_s_per_wall_s", "tcu_rearms")
+    return {"index": item["index"], "law": law, **{k: summary.get(k) for k in keys}}
+
+
+def _stat(xs, q=50):
+    xs = [x for x in xs if x is not None and math.isfinite(x)]
+    return float(np.percentile(xs, q)) if xs else None
+
+
+def summarise(runs: list[dict], laws) -> dict:
+    out = {}
+    for law in laws:
+        rs = [r for r in runs if r["law"] == law]
+        out[law] = {"eta_low_median": _stat([r["adhesion_utilisation_low"] for r in rs]),
+                    "eta_low_p5": _stat([r["adhesion_utilisation_low"] for r in rs], 5),
+                    "eta_median": _stat([r["adhesion_utilisation"] for r in rs]),
+                    "macro_slip_fraction": (sum(1 for r in rs if (r["macro_slip_count"] or 0) > 0) / len(rs)
+                                            if rs else None),
+                    "reaction_median_ms": _stat([r["reaction_ms"] for r in rs]),
+                    "recovery_median_s": _stat([r["recovery_s"] for r in rs]),
+                    "torque_ripple_median_percent": _stat([r["torque_ripple_percent"] for r in rs]),
+                    "speed_median_x_realtime": _stat([r["sim_s_per_wall_s"] for r in rs]),
+                    "runs": sorted(rs, key=lambda r: r["index"])}
+    return out
+
+
+def register(sub) -> None:
+    p = sub.add_parser("control", help="control laws side by side (and an oracle) on drawn rail sequences")
+    p.add_argument("--draws", type=int, default=10, help="rail sequences drawn (default 10)")
+    p.add_argument("--seed", type=int, default=None, help="seed of the draws (default: drawn now, printed)")
+    p.add_argument("--duration-s", type=float, default=FAMILY["duration_s"], help="run length (default 30 s)")
+    p.add_argument("--laws", default=None, help="comma-separated laws (default: all, and the oracle)")
+    p.add_argument("--doc", metavar="DIR", default=None, help="write control.md, control.json and plots into DIR "
+                   "(e.g. docs/benchmarks)")
+    p.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
+    p.add_argument("--scheduler", metavar="ADDRESS", default=None, help="run on this Dask cluster (tcp://HOST:PORT)")
+    p.add_argument("--workers", type=int, default=None, help="run on a local Dask cluster of this many workers "
+                   "(default: serially in this process)")
+    p.set_defaults(func=cmd_control_bench)
+
+
+def cmd_control_bench(args) -> int:
+    import sys
+
+    from identifier.control import LAWS
+
+    from ..errors import ConfigError
+    from ..progress import Progress, compile_kernels
+    from ..sweep.engine import map_in_order
+
+    laws = list(LAWS) + [ORACLE] if args.laws is None else [x.strip() for x in args.laws.split(",") if x.strip()]
+    for law in laws:
+        if law not in LAWS and law != ORACLE:
+            raise ConfigError(f"--laws {law!r}: unknown control law (known: {', '.join([*LAWS, ORACLE])})")
+    if args.draws < 1:
+        raise ConfigError(f"--draws {args.draws}: must be >= 1")
+    if not args.duration_s >= 6.0:
+        raise ConfigError(f"--duration-s {args.duration_s:g}: must be >= 6 (a patch needs room after "
+                          f"{FIRST_PATCH_S:g} s)")
+    seed = int.from_bytes(os.urandom(4), "little") % (1 << 31) if args.seed is None else args.seed
+    print(f"hil bench control: seed {seed} ({'drawn now' if args.seed is None else 'given'}), {args.draws} draws of "
+          f"{args.duration_s:g} s, laws {', '.join(laws)}", file=sys.stderr if args.json else sys.stdout)
+    compile_kernels("hil bench control")
+    base_text = Path(BASE).read_text() if Path(BASE).exists() else \
+        (Path(__file__).resolve().parents[2] / BASE).read_text()
+    draws = [draw_text(base_text, seed, i, args.duration_s) for i in range(args.draws)]
+    items = [{"index": i, "law": law, "text": text, "run_seed": seed % 1000 + i}
+             for i, (text, _) in enumerate(draws) for law in laws]
+    bar = Progress(len(items), "hil bench control", None)
+    t0 = time.perf_counter()
+    try:
+        runs = map_in_order(run_point, items, args.scheduler, args.workers, on_result=lambda done, i: bar.update(done))
+    finally:
+        bar.close()
+    results = summarise(runs, laws)
+    out = {"seed": seed, "draws": args.draws, "family": FAMILY, "wall_s": time.perf_counter() - t0,
+           "drawn": [d for _, d in draws], "results": results}
+    if args.doc:
+        write_report(out, Path(args.doc))
+    if args.json:
+        print(json.dumps(out))
+        return 0
+    head = ["law", "eta_low med", "eta_low p5", "eta med", "macro-slip", "reaction ms", "recovery s", "ripple %",
+            "x real time"]
+    rows = [[law, *(_fmt(r[k], f) for k, f in (("eta_low_median", ".3f"), ("eta_low_p5", ".3f"), ("eta_median", ".3f"),
+                                                ("macro_slip_fraction", ".0%"), ("reaction_median_ms", ".1f"),
+                                                ("recovery_median_s", ".3f"), ("torque_ripple_median_percent", ".2f"),
+                                                ("speed_median_x_realtime", ".1f")))]
+            for law, r in results.items()]
+    print(columns(head, rows, "  "))
+    print(wrap("eta_low: adhesion utilisation where the demand exceeds the true peak and 1 s after each change "
+               "(hil/traction.py); the oracle reads the true curve: the ceiling, never a run's law.", "  "))
+    return 0
+
+
+def _fmt(x, spec):
+    return "-" if x is None else format(x, spec)
+
+
+def write_report(out: dict, doc: Path) -> None:
+    """control.json, control.md and control-eta-low.png into ``doc``."""
+    doc.mkdir(parents=True, exist_ok=True)
+    (doc / "control.json").write_text(json.dumps(out, indent=1) + "\n")
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    laws = list(out["results"])
+    fig, ax = plt.subplots(figsize=(8, 4))
+    for i, law in enumerate(laws):
+        ys = [r["adhesion_utilisation_low"] for r in out["results"][law]["runs"] if r["adhesion_utilisation_low"] is not None]
+        ax.scatter(np.full(len(ys), i) + np.linspace(-0.15, 0.15, len(ys)), ys, s=14)
+    ax.set_xticks(range(len(laws)), laws)
+    ax.set_ylabel("eta_low")
+    ax.set_title(f"hil bench control, seed {out['seed']}, {out['draws']} draws")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(doc / "control-eta-low.png", dpi=110)
+    plt.close(fig)
+    lines = [f"# hil bench control (seed {out['seed']}, {out['draws']} draws)", "",
+             f"Generated by `hil bench control --draws {out['draws']} --seed {out['seed']} --doc {doc}`; the family "
+             "is documented in `hil/benchmarks/control.py`.", "",
+             "| law | eta_low median | eta_low p5 | eta median | runs with macro-slip | reaction median ms | "
+             "recovery median s | ripple median % | x real time |", "|---|---|---|---|---|---|---|---|---|"]
+    for law, r in out["results"].items():
+        lines.append(f"| {law} | " + " | ".join(_fmt(r[k], f) for k, f in (
+            ("eta_low_median", ".3f"), ("eta_low_p5", ".3f"), ("eta_median", ".3f"), ("macro_slip_fraction", ".0%"),
+            ("reaction_median_ms", ".1f"), ("recovery_median_s", ".3f"), ("torque_ripple_median_percent", ".2f"),
+            ("speed_median_x_realtime", ".1f"))) + " |")
+    lines += ["", "![eta_low per law](control-eta-low.png)", ""]
+    (doc / "control.md").write_text("\n".join(lines))
