@@ -33,7 +33,7 @@ from identifier.messages import IdentificationEvent, SensorReading
 
 from .config import load_scenario
 from .errors import LogError
-from .bus.frames import RESULT_ID, SENSOR_ID, FrameCodec
+from .bus.frames import DEMAND_ID, RESULT_ID, SENSOR_ID, FrameCodec
 from .log.read import MAGIC, read_log, scenario_from_log
 from .tcu_node import TcuNode
 from .trace import Trace, clean
@@ -83,7 +83,7 @@ def load_mcap(path, scenario_file=None) -> ReplaySource:
     upgrade = FrameCodec(scenario.run.exchange_period_s).upgrade     # frames of logs before the trailer
     for topic, _, m in log.messages:
         if topic == "/can/frames":
-            if m.direction == "tx" and m.arbitration_id == SENSOR_ID:
+            if m.direction == "tx" and m.arbitration_id in (SENSOR_ID, DEMAND_ID):
                 frames.append(upgrade(_msg_from_record(m)))
         elif topic == "/plant/sensor":
             sensor.append(SensorReading(int(m.step), m.motor_speed_rad_s, m.train_speed_ms))
@@ -124,7 +124,7 @@ def load_can_log(path, scenario_file) -> ReplaySource:
         with can.LogReader(str(path)) as reader:
             for msg in reader:
                 n += 1
-                if msg.arbitration_id == SENSOR_ID and not msg.is_extended_id:
+                if msg.arbitration_id in (SENSOR_ID, DEMAND_ID) and not msg.is_extended_id:
                     frames.append(codec.upgrade(msg))
                 elif msg.arbitration_id == RESULT_ID and not msg.is_extended_id:
                     frame, status = codec.classify(codec.upgrade(msg))
@@ -232,7 +232,12 @@ def replay(src: ReplaySource, strategy: str | None = None, seed: int | None = No
     logged_corr = None if src.logged_events is None else sum(1 for e in src.logged_events if e[1] == "correction")
     logged_conf = None if src.logged_events is None else next(
         (e for e in src.logged_events if e[1] == "confirmed"), None)
-    extra = {"mode": "replay", "source": src.kind, "wall_s": wall,
+    # a closed-loop run's torques came from its own law acting on its own identifier: another strategy
+    # would have commanded other torques, so the plant's readings (replayed as logged) are not what it would have met
+    closed_loop = scenario.control.law != "demand"
+    counterfactual = closed_loop and strategy != src.logged_strategy
+    extra = {"mode": "replay", "source": src.kind, "wall_s": wall, "control": scenario.control.law,
+             "counterfactual": counterfactual,
              "sim_s": (node.last_step + 1) * period if node.last_step >= 0 else 0.0,
              "samples_per_s": readings / wall if wall > 0 else None, "sensor_readings": readings,
              "rejected_frames": dict(node.rejected), "messages_read": src.messages_read,

@@ -36,6 +36,9 @@ def cmd_export(args) -> int:
     if args.terms is not None and args.terms < 1:
         raise ConfigError(f"--terms {args.terms}: must be >= 1")
     scenario = load_scenario(args.scenario, parse_set(args.set))
+    if scenario.rail is not None or scenario.control.demand is not None:
+        raise ConfigError(f"{args.scenario}: [[rail]] segments and a [control] demand profile are not exported to an "
+                          "FMU yet (its parameters are one normal and one fault curve)")
     try:
         path = export_fmu(scenario.plant_config(), args.output, n_terms=args.terms,
                           description=f"railway-hil wheelset-rail plant, start values from {scenario.name}",

@@ -29,6 +29,9 @@ def cmd_gap(args) -> int:
     if args.max_creep_kmh <= 0:
         raise ConfigError(f"--max-creep-kmh {args.max_creep_kmh}: must be > 0")
     scenario = load_scenario(args.model)
+    if scenario.rail is not None:
+        raise ConfigError(f"{args.model}: a model with [[rail]] segments: hil gap does not handle a segmented model "
+                          "yet (give it a scenario with [curves.fault])")
     data = read_real_log(args.real_log, scenario.run.exchange_period_s)
     out, result = diagnose(data, scenario, block=args.block, max_creep_kmh=args.max_creep_kmh,
                        identify=not args.no_identify, progress=True)

@@ -32,6 +32,11 @@ def cmd_replay(args) -> int:
     if warning:
         print(f"hil replay: {warning}", file=sys.stderr)
     summary = replay(src, args.strategy, args.seed)
+    if summary.get("counterfactual"):
+        print(f"hil replay: counterfactual: the log is a closed-loop run (control law {summary['control']}) whose "
+              f"torques came from strategy {summary['logged']['strategy']}; strategy {summary['strategy']} would "
+              "have commanded others, so the readings replayed here are not the ones it would have met",
+              file=sys.stderr)
     if args.json:
         print(json.dumps(summary))
         return 0
