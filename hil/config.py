@@ -379,7 +379,10 @@ def parse_scenario(text: str, path: str = "<scenario>", overrides: dict | None =
             run_table.setdefault("mu_required", demand.demand_mu[0])
         if segmented and isinstance(data["rail"], list) and len(data["rail"]) > 1 \
                 and isinstance(data["rail"][1], dict) and "start_s" in data["rail"][1]:
-            run_table.setdefault("fault_time_s", data["rail"][1]["start_s"])
+            start = _coerce(path, "[[rail]] 1 start_s", data["rail"][1]["start_s"], float)
+            _check(path, "[[rail]] 1 start_s", start > 0.0, "must be > 0 (a segment after the run's end never comes)",
+                   start)
+            run_table.setdefault("fault_time_s", start)
     run = RunConfig(**_table(path, data, "run", RunConfig))
     _check(path, "[run] mu_required", 0 < run.mu_required < 1, "must be in (0, 1)", run.mu_required)
     _check(path, "[run] fault_time_s", run.fault_time_s >= 0, "must be >= 0", run.fault_time_s)
@@ -540,8 +543,9 @@ def _rail(path, data, vehicle, run) -> RailSchedule:
             if "start_s" in t or i == 0 else None
         if start is None:
             raise _fail(path, f"{where} start_s", "missing field")
-        _check(path, f"{where} start_s", (start == 0.0) if i == 0 else (0.0 < start < run.duration_s),
-               "must be 0 for the first segment" if i == 0 else "must be inside the run (0, duration_s)", start)
+        _check(path, f"{where} start_s", (start == 0.0) if i == 0 else (start > 0.0 and math.isfinite(start)),
+               "must be 0 for the first segment" if i == 0 else "must be > 0 (a segment after the run's end never "
+               "comes)", start)
         transition = _coerce(path, f"{where} transition_s", t.get("transition_s", 0.0), float)
         _check(path, f"{where} transition_s", transition >= 0.0 and not (i == 0 and transition > 0.0),
                "must be >= 0 (and 0 for the first segment)", transition)

@@ -134,7 +134,8 @@ def curve_figure_png(data: "LogHead", samples_v, samples_mu, events) -> bytes:
 
 
 #: the topics the recording streams (read in a second pass, never held whole)
-STREAMED_TOPICS = {"/plant/state", "/tcu/observer", "/tcu/status", "/can/frames", "/loop/timing"}
+STREAMED_TOPICS = {"/plant/state", "/tcu/observer", "/tcu/status", "/can/frames", "/loop/timing", "/plant/rail",
+                   "/control/metrics"}
 #: rows a streamed entity holds before they go to the .rrd in one ``rr.send_columns``
 BATCH_ROWS = 20_000
 
@@ -208,7 +209,8 @@ class _Stream:
         self.cols = {e: col(e) for e in (
             "/speed/train_kmh", "/speed/wheel_kmh", "/creep/true_kmh", "/creep/measured_kmh", "/mu/true",
             "/mu/observed", "/tcu/stage", "/tcu/corrections", "/tcu/plant_stage", "/timing/round_trip_us",
-            "/timing/lateness_us", "/timing/missed_deadlines")}
+            "/timing/lateness_us", "/timing/missed_deadlines", "/creep/true_peak_kmh", "/mu/true_peak",
+            "/torque/applied_nm", "/torque/demand_nm")}
         self.t_f, self.t_from, self.t_to = t_f, t_from, t_to
         self.t_range = _Range()
         self.creep, self.creep_meas, self.mu, self.mu_hat = _Range(), _Range(), _Range(), _Range()
@@ -220,6 +222,9 @@ class _Stream:
         self.bins = {k: np.zeros(0) for k in ("frames_tx", "frames_rx", "rejected")}
         self.samples_v: list[float] = []
         self.samples_mu: list[float] = []
+        self.rail = 0                                     # /plant/rail rows (logs before closed loop: none)
+        self.metrics = None                               # /control/metrics
+        self.torque_per_mu_nm = None
 
     def _bin(self, name: str, b: int, w: float) -> None:
         arr = self.bins[name]
@@ -243,6 +248,15 @@ class _Stream:
                 self.mu.add(m.mu)
             if self.t_serious is None and m.stage == "serious":
                 self.t_serious = t
+            c["/torque/applied_nm"].add(t, m.torque_nm)
+        elif topic == "/plant/rail":
+            self.rail += 1
+            c["/creep/true_peak_kmh"].add(m.t_s, m.peak_creep_kmh)
+            c["/mu/true_peak"].add(m.t_s, m.peak_mu)
+            if self.torque_per_mu_nm is not None:
+                c["/torque/demand_nm"].add(m.t_s, m.demand_mu * self.torque_per_mu_nm)
+        elif topic == "/control/metrics":
+            self.metrics = m
         elif topic == "/tcu/observer":
             self.observers += 1
             t = m.t_s
@@ -304,6 +318,11 @@ def build_recording(head: LogHead, rec):
     _line(rr, rec, "/mu/observed", "observed mu^", C_MEAS, 1.0)
     _line(rr, rec, "/tcu/stage", "TCU stage (0 monitor, 1 identify, 2 confirmed, 3 gave up)", (31, 119, 180))
     _line(rr, rec, "/tcu/corrections", "corrections Q", (255, 127, 14))
+    _line(rr, rec, "/creep/true_peak_kmh", "true peak creep of the current rail (km/h)", C_SERIOUS, 1.0)
+    _line(rr, rec, "/mu/true_peak", "true peak mu of the current rail", C_SERIOUS, 1.0)
+    _line(rr, rec, "/torque/applied_nm", "torque applied (N m)", C_TRUE, 2.0)
+    _line(rr, rec, "/torque/demand_nm", "driver's demand (N m)", C_MEAS, 1.0)
+    stream.torque_per_mu_nm = sc.vehicle.torque_per_mu_nm
     log = read_log(head.path, STREAMED_TOPICS, on_message=stream.take)
     stream.flush()
     if not stream.states and not stream.observers:
@@ -337,6 +356,12 @@ def build_recording(head: LogHead, rec):
     if t_serious is not None:
         texts.append((t_serious, "WARN", f"serious stage starts (creep >= {v_peak:.3f} km/h, "
                                          f"T_det = {1e3 * (t_serious - t_f):.1f} ms)"))
+    m = stream.metrics
+    if m is not None:
+        texts.append((m.t_s, "INFO", f"control {m.control}: adhesion utilisation {m.adhesion_utilisation:.3f} "
+                      f"(low {m.adhesion_utilisation_low:.3f}), macro-slip {m.macro_slip_s:.3f} s "
+                      f"({m.macro_slip_count}x), reaction {m.reaction_ms:.1f} ms, recovery {m.recovery_s:.3f} s, "
+                      f"ripple {m.torque_ripple_percent:.2f} %"))
     if not log.complete:
         texts.append((t_hi, "ERROR", f"log incomplete: {log.problem()}"))
     texts.sort(key=lambda x: x[0])
@@ -394,6 +419,8 @@ def build_recording(head: LogHead, rec):
         rrb.TimeSeriesView(origin="/mu", name="True mu and observed mu^"),
         rrb.TimeSeriesView(origin="/tcu", name="TCU stage and corrections"),
     ]
+    if stream.rail:
+        time_views.append(rrb.TimeSeriesView(origin="/torque", name="Torque applied and the driver's demand (N m)"))
     curve_views = [
         rrb.TimeSeriesView(origin="/curve", name=f"mu vs creep speed: select timeline {CREEP_TIMELINE} (m/h)",
                            plot_legend=rrb.PlotLegend(visible=False),

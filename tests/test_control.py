@@ -149,8 +149,10 @@ def test_rail_segments_are_addressed_by_set_and_checked():
     from hil.errors import ConfigError
     with pytest.raises(ConfigError, match=r"rail has segments 0\.\.2"):
         load_scenario(WET, {"rail.7.peak_mu": 0.08})
-    with pytest.raises(ConfigError, match=r"\[\[rail\]\] 2 start_s"):
-        load_scenario(WET, {"rail.2.start_s": 99.0})
+    with pytest.raises(ConfigError, match=r"\[\[rail\]\]: rail segment at 1 s starts before the previous one"):
+        load_scenario(WET, {"rail.2.start_s": 1.0})
+    with pytest.raises(ConfigError, match=r"\[\[rail\]\] 1 start_s: must be > 0"):
+        load_scenario(WET, {"rail.1.start_s": -1.0})
 
 
 def test_only_the_bench_reads_the_truth():
@@ -179,3 +181,20 @@ def test_degraded_adhesion_recovers_with_the_energy_dissipated():
     assert 0.0 < rho < 1.0 and plant.dissipated_j[0] > 0
     assert peaks[3] > peaks[2] > peaks[1] > peaks[0] > 0.12 + 1e-4, peaks      # recovering towards 0.30
     assert math.isclose(rho, 1 - math.exp(-plant.dissipated_j[0] / 2e5), rel_tol=1e-12)
+
+
+def test_the_rerun_view_shows_the_true_peak_and_the_torque_against_the_demand(runs, tmp_path):
+    import subprocess
+
+    from hil import view
+
+    from .test_view import rerun_exe, rrd_rows
+
+    _, summary, log = runs["identified"]
+    rrd, _ = view.write_rrd(summary["mcap"], tmp_path / "w.rrd")
+    rows, _ = rrd_rows(rrd)
+    n = len(log.topic("/plant/rail"))
+    for entity in ("/creep/true_peak_kmh", "/mu/true_peak", "/torque/demand_nm", "/torque/applied_nm"):
+        assert rows.get((entity, "Scalars:scalars")) == n, entity
+    v = subprocess.run([rerun_exe(), "rrd", "verify", str(rrd)], capture_output=True, text=True, timeout=120)
+    assert v.returncode == 0, v.stderr

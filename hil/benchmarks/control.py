@@ -136,21 +136,31 @@ def run_point(item: dict) -> dict:
     from ..exchange import exchange
     from ..session import Session
 
+    from ..errors import PeerSilent
+
     law = item["law"]
+    # a wheel that runs away (open loop on a patch) leaves the sensor frame's range and the TCU rejects it: the
+    # run then ends as a fault after lockstep_progress_s twice, its figures up to there kept (PeerSilent.summary)
     scenario = parse_scenario(item["text"], f"{BASE} draw {item['index']}",
-                              {"control.law": "demand" if law == ORACLE else law})
+                              {"control.law": "demand" if law == ORACLE else law, "bus.lockstep_progress_s": 0.2})
     t0 = time.perf_counter()
-    with Session(scenario, "gp", item["run_seed"], bus="inprocess", mode="lockstep", external_tcu=False,
-                 out_dir=None, record=False, set_args=None, plant=None, plant_label=None,
-                 log=lambda text: None) as session:
-        ident = session.tcu.node.identifier
-        if law == ORACLE:
-            ident.controller = Oracle(session.node.rig, ident.settings.vehicle)
-            ident._open_loop = False
-        timing = exchange(session.node, scenario.steps, "lockstep")
-        summary = session.finish(timing, time.perf_counter() - t0)
+    out_dir = item.get("out_dir")
+    try:
+        with Session(scenario, "gp", item["run_seed"], bus="inprocess", mode="lockstep", external_tcu=False,
+                     out_dir=out_dir, record=out_dir is not None, set_args=None, plant=None, plant_label=None,
+                     log=lambda text: None) as session:
+            ident = session.tcu.node.identifier
+            if law == ORACLE:
+                ident.controller = Oracle(session.node.rig, ident.settings.vehicle)
+                ident._open_loop = False
+            timing = exchange(session.node, scenario.steps, "lockstep")
+            summary = session.finish(timing, time.perf_counter() - t0)
+    except PeerSilent as e:
+        summary = {**(getattr(e, "summary", None) or {}), "fault": str(e)}
+        summary["macro_slip_count"] = max(summary.get("macro_slip_count") or 0, 1)
+        summary["sim_s_per_wall_s"] = (summary.get("sim_s") or 0.0) / (time.perf_counter() - t0)
     keys = ("adhesion_utilisation", "adhesion_utilisation_low", "macro_slip_s", "macro_slip_count", "reaction_ms",
-            "recovery_s", "torque_ripple_percent", "drops", "sim_s_per_wall_s", "tcu_rearms")
+            "recovery_s", "torque_ripple_percent", "drops", "sim_s_per_wall_s", "tcu_rearms", "fault")
     return {"index": item["index"], "law": law, **{k: summary.get(k) for k in keys}}
 
 
@@ -181,6 +191,8 @@ def register(sub) -> None:
     p.add_argument("--draws", type=int, default=10, help="rail sequences drawn (default 10)")
     p.add_argument("--seed", type=int, default=None, help="seed of the draws (default: drawn now, printed)")
     p.add_argument("--duration-s", type=float, default=FAMILY["duration_s"], help="run length (default 30 s)")
+    p.add_argument("--speed-s", type=float, default=60.0, help="then one run of this length with demand and with "
+                   "identified, logged, for their speed (0: none; default 60 s)")
     p.add_argument("--laws", default=None, help="comma-separated laws (default: all, and the oracle)")
     p.add_argument("--doc", metavar="DIR", default=None, help="write control.md, control.json and plots into DIR "
                    "(e.g. docs/benchmarks)")
@@ -226,7 +238,7 @@ def cmd_control_bench(args) -> int:
         bar.close()
     results = summarise(runs, laws)
     out = {"seed": seed, "draws": args.draws, "family": FAMILY, "wall_s": time.perf_counter() - t0,
-           "drawn": [d for _, d in draws], "results": results}
+           "drawn": [d for _, d in draws], "results": results, "speed": speed_pair(base_text, seed, args.speed_s)}
     if args.doc:
         write_report(out, Path(args.doc))
     if args.json:
@@ -240,9 +252,33 @@ def cmd_control_bench(args) -> int:
                                                 ("speed_median_x_realtime", ".1f")))]
             for law, r in results.items()]
     print(columns(head, rows, "  "))
+    sp = out["speed"]
+    if sp:
+        print(f"  speed, {sp['duration_s']:g} s logged in-process lockstep run: demand {_fmt(sp['demand_x_realtime'], '.1f')}"
+              f" x real time{' (ended as a fault: the wheel ran away)' if sp['demand_fault'] else ''}, identified "
+              f"{_fmt(sp['identified_x_realtime'], '.1f')} x ({_fmt(sp['identified_over_demand'], '.2f')} of demand's)")
     print(wrap("eta_low: adhesion utilisation where the demand exceeds the true peak and 1 s after each change "
                "(hil/traction.py); the oracle reads the true curve: the ceiling, never a run's law.", "  "))
     return 0
+
+
+def speed_pair(base_text: str, seed: int, duration_s: float) -> dict | None:
+    """One draw of ``duration_s``, logged, in-process lockstep, with ``demand`` then ``identified``: each one's
+    simulated seconds per wall second (a run that ends as a fault: over what it ran) and their ratio."""
+    import tempfile
+
+    if not duration_s:
+        return None
+    text, _ = draw_text(base_text, seed, 10_000, duration_s)
+    out = {"duration_s": duration_s}
+    with tempfile.TemporaryDirectory(prefix="hil-bench-control-") as tmp:
+        for law in ("demand", "identified"):
+            r = run_point({"index": 10_000, "law": law, "text": text, "run_seed": seed % 1000, "out_dir": tmp})
+            out[f"{law}_x_realtime"] = r["sim_s_per_wall_s"]
+            out[f"{law}_fault"] = r.get("fault")
+    d, i = out["demand_x_realtime"], out["identified_x_realtime"]
+    out["identified_over_demand"] = i / d if d and i else None
+    return out
 
 
 def _fmt(x, spec):
@@ -279,5 +315,11 @@ def write_report(out: dict, doc: Path) -> None:
             ("eta_low_median", ".3f"), ("eta_low_p5", ".3f"), ("eta_median", ".3f"), ("macro_slip_fraction", ".0%"),
             ("reaction_median_ms", ".1f"), ("recovery_median_s", ".3f"), ("torque_ripple_median_percent", ".2f"),
             ("speed_median_x_realtime", ".1f"))) + " |")
+    sp = out.get("speed")
+    if sp:
+        lines += ["", f"Speed, one {sp['duration_s']:g} s logged in-process lockstep run: `demand` "
+                  f"{_fmt(sp['demand_x_realtime'], '.1f')} x real time"
+                  f"{' (ended as a fault: the wheel ran away)' if sp['demand_fault'] else ''}, `identified` "
+                  f"{_fmt(sp['identified_x_realtime'], '.1f')} x ({_fmt(sp['identified_over_demand'], '.2f')} of demand's)."]
     lines += ["", "![eta_low per law](control-eta-low.png)", ""]
     (doc / "control.md").write_text("\n".join(lines))

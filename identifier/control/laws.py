@@ -122,23 +122,27 @@ class ExtremumSeeking(Controller):
 
 
 class Identified(Controller):
-    """Acts on the identifier's curve (module docstring):
+    """Acts on the identifier's curve (module docstring).  While the creep loop (not the demand) limits the
+    torque:
 
-    - confirmed (or given up with a best estimate): v* = ``hold_fraction`` x the lower end of the 90 %
-      peak-creep interval (the curve's peak creep when no interval came);
-    - not confirmed, while the creep loop (not the demand) limits the torque: v* climbs at
-      ``probe_kmh_per_s`` from ``start_fraction`` x the nominal peak creep, never past the latest interval's
-      upper end, and steps back to the best creep seen once mu^ (low-passed over ``filter_s``) has fallen
-      ``drop_mu`` below the best it reached there (the data show the peak passed);
-    - once the demand has passed through for ``rearm_s`` after a slip, the identifier is re-armed (a new
-      drop finds it fresh) and v* returns to its start.
+    - a confirmed curve (or one given up with a best estimate): v* = ``hold_fraction`` x its peak creep, kept
+      inside the 90 % peak-creep interval (its lower end when the curve's own peak lies below it);
+    - nothing confirmed: v* climbs at ``probe_kmh_per_s`` from ``start_fraction`` x the nominal peak creep,
+      never past the latest interval's upper end, and steps back to the best creep seen once mu^ (low-passed
+      over ``filter_s``) has fallen ``drop_mu`` below the best it reached while the creep rose past it by
+      ``creep_step_kmh`` (the data show the peak passed), holding there ``repeek_s`` before it climbs again;
+    - once the demand has passed through for ``rearm_s`` after a slip, or mu^ has left the confirmed curve's
+      peak interval by ``stale_mu`` (above it: the rail got better; below it while holding the peak: the curve
+      does not describe this rail), the identifier is re-armed (a new drop finds it fresh) and v* returns to
+      its start (from a stale curve: probes on from the creep held).
     """
     name = "identified"
-    defaults = {"hold_fraction": 1.0, "probe_kmh_per_s": 1.5, "rearm_s": 0.3, "start_fraction": 0.8,
-                "max_kmh": 12.0, "filter_s": 0.02, "drop_mu": 0.002, **_LOOP_DEFAULTS}
+    defaults = {"hold_fraction": 0.98, "probe_kmh_per_s": 3.0, "rearm_s": 0.3, "start_fraction": 1.0,
+                "max_kmh": 12.0, "filter_s": 0.05, "drop_mu": 0.004, "creep_step_kmh": 0.05, "repeek_s": 2.0,
+                "stale_mu": 0.01, **_LOOP_DEFAULTS}
     ranges = {"hold_fraction": (0.1, 2.0), "probe_kmh_per_s": (0.0, 100.0), "rearm_s": (0.001, 60.0),
               "start_fraction": (0.05, 10.0), "max_kmh": (0.1, 30.0), "filter_s": (0.0, 1.0), "drop_mu": (0.0, 1.0),
-              **_LOOP_RANGES}
+              "creep_step_kmh": (0.0, 10.0), "repeek_s": (0.0, 600.0), "stale_mu": (0.0, 1.0), **_LOOP_RANGES}
 
     def __init__(self, vehicle, nominal_peak_creep_kmh, options=None):
         super().__init__(vehicle, nominal_peak_creep_kmh, options)
@@ -147,37 +151,66 @@ class Identified(Controller):
         self._rearm = False
         self._restart()
 
-    def _restart(self) -> None:
-        self.set_point = self._start
+    def _restart(self, from_kmh: float | None = None) -> None:
+        """Start afresh: v* at its start, or (a stale curve, the loop holding the creep) at ``from_kmh``, the
+        creep it holds, to probe upward from there without a jump."""
+        self.set_point = self._start if from_kmh is None else min(from_kmh, self._start)
         self.passed_peak = False
-        self._best = (-math.inf, self._start)     # (mu^, creep) at the best mu^ seen while probing
+        self._hold_until_s = -math.inf
+        self._best = (-math.inf, self.set_point)  # (mu^, creep) at the best mu^ seen while probing
         self._mu_f = None
         self._passing_s = 0.0
         self.loop.reset()
+
+    def _target_kmh(self, x: ControlInput) -> float | None:
+        """The confirmed curve's set-point (class docstring), or None."""
+        if not x.confirmed:
+            return None
+        peak = x.peak_creep_kmh
+        if x.peak_creep_ci is not None:
+            lo, hi = x.peak_creep_ci
+            peak = min(max(peak, lo), hi) if math.isfinite(peak) else lo
+        return self.options["hold_fraction"] * peak if math.isfinite(peak) else None
+
+    def _climb(self, x: ControlInput) -> None:
+        """Hill-climb while nothing is confirmed (class docstring).  mu^ below its best by ``drop_mu`` after the
+        creep rose past the best's creep: the peak was passed, step back and hold for ``repeek_s``; at a creep
+        that did not rise: the rail changed under it, the best is forgotten."""
+        o = self.options
+        if self.passed_peak:
+            if x.t_s < self._hold_until_s:
+                return
+            self.passed_peak = False
+            self._best = (-math.inf, self.set_point)
+        if self._mu_f > self._best[0]:
+            self._best = (self._mu_f, x.creep_speed_kmh)
+        elif self._mu_f < self._best[0] - o["drop_mu"]:
+            if x.creep_speed_kmh > self._best[1] + o["creep_step_kmh"]:
+                self.passed_peak = True
+                self.set_point = self._best[1]
+                self._hold_until_s = x.t_s + o["repeek_s"]
+                return
+            self._best = (self._mu_f, x.creep_speed_kmh)
+        ceiling = o["max_kmh"] if x.peak_creep_ci is None else min(o["max_kmh"], x.peak_creep_ci[1])
+        self.set_point = min(self.set_point + o["probe_kmh_per_s"] * x.period_s, max(ceiling, self.set_point))
 
     def torque_nm(self, x: ControlInput) -> float:
         o = self.options
         a = x.period_s / (o["filter_s"] + x.period_s)
         self._mu_f = x.mu_hat if self._mu_f is None else self._mu_f + a * (x.mu_hat - self._mu_f)
-        if x.confirmed and (x.peak_creep_ci is not None or math.isfinite(x.peak_creep_kmh)):
-            lo = x.peak_creep_ci[0] if x.peak_creep_ci is not None else x.peak_creep_kmh
-            self.set_point = o["hold_fraction"] * lo
+        target = self._target_kmh(x)
+        if target is not None:
+            self.set_point = target
         elif self.loop.limited:
-            if self._mu_f > self._best[0]:
-                self._best = (self._mu_f, x.creep_speed_kmh)
-            elif self._mu_f < self._best[0] - o["drop_mu"]:
-                self.passed_peak = True
-            if self.passed_peak:
-                self.set_point = min(self.set_point, self._best[1])
-            else:
-                ceiling = o["max_kmh"] if x.peak_creep_ci is None else min(o["max_kmh"], x.peak_creep_ci[1])
-                self.set_point = min(self.set_point + o["probe_kmh_per_s"] * x.period_s,
-                                     max(ceiling, self.set_point))
+            self._climb(x)
         torque = self.loop.torque_nm(x, self.set_point)
         self._passing_s = self._passing_s + x.period_s if x.slipping and not self.loop.limited else 0.0
-        if self._passing_s >= o["rearm_s"]:
+        stale = (x.confirmed and x.peak_mu_ci is not None and math.isfinite(x.peak_mu_ci[0])
+                 and (self._mu_f > x.peak_mu_ci[1] + o["stale_mu"]
+                      or (self.loop.limited and self._mu_f < x.peak_mu_ci[0] - o["stale_mu"])))
+        if self._passing_s >= o["rearm_s"] or stale:
             self._rearm = True
-            self._restart()
+            self._restart(x.creep_speed_kmh if stale else None)
         return torque
 
     @property
