@@ -128,6 +128,7 @@ class Check:
 
     def __init__(self, name: str | None, req: str | None):
         self._name, self.req = name, req or ""
+        self.where = ""                     # where it was written (a checks file and table), for errors
 
     @property
     def name(self) -> str:
