@@ -146,8 +146,9 @@ class Bench:
         command = self.command(scenario, overrides, seed, strategy, reality)
         child = self._start_tcu(scenario, set_args) if external and self.tcu_cmd else None
         try:
-            summary = hil.run(sc, strategy, seed, bus=self.bus, mode=self.mode, external_tcu=external,
-                              out_dir=self.out, progress=False, set_args=set_args)
+            out = self.out / f"run{len(self.cache) + 1:03d}"        # a directory per run: logs are named by
+            summary = hil.run(sc, strategy, seed, bus=self.bus, mode=self.mode,   # scenario, strategy, seed
+                              external_tcu=external, out_dir=out, progress=False, set_args=set_args)
         except BusError as e:
             reason = f"bus not available: {e}"
             if os.environ.get("CI") == "true":

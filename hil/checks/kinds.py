@@ -69,7 +69,8 @@ class Result:
         head = f"{req}{self.name}"
         if self.passed:
             margin = "" if self.margin is None else f", margin {_num(self.margin)}{_u(self.margin_unit or self.unit)}"
-            return f"{head} {self.limit} {self.window}: passed ({self.samples} samples{margin})" + _note(self.note)
+            return (f"{head} {self.limit} {self.window}: passed ({self.samples} sample{'s' * (self.samples != 1)}"
+                    f"{margin})" + _note(self.note))
         if self.reason:
             return f"{head} {self.verb} {self.limit} {self.window}: {self.reason}" + _note(self.note)
         if self.first is not None and self.first[0] is None:          # one value (a summary's)
@@ -86,8 +87,6 @@ class Result:
     def _value(self, v) -> str:
         return _num(v) + ("" if v == math.inf else _u(self.unit))
 
-    def as_dict(self) -> dict:
-        return {k: v for k, v in self.__dict__.items() if k != "plot"}
 
 
 def _num(x) -> str:
@@ -537,6 +536,7 @@ class CheckFailed(AssertionError):
 def require(run, *checks: Check) -> list[Result]:
     """Judge every check over ``run`` (a ``Run`` or a log's path); ``CheckFailed`` (an AssertionError)
     listing every failed one, else the results."""
+    __tracebackhide__ = True                  # pytest: the failure points at the test's line, not here
     run = as_run(run)
     results = [c(run) for c in checks]
     if not all(r.passed for r in results):
