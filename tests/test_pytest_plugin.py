@@ -9,10 +9,11 @@ import re
 import subprocess
 import sys
 import xml.etree.ElementTree as ET
+from pathlib import Path
 
 import pytest
 
-from .conftest import ROOT, SCENARIOS
+from .conftest import ROOT, SCENARIOS, hil_command, subprocess_env
 
 pytest_plugins = ["pytester"]
 
@@ -116,6 +117,11 @@ def test_diverges(hil_run):
     case = next(root.iter("testcase"))
     assert case.find("error") is not None and case.find("failure") is None
     assert root[0].get("errors") == "1" and root[0].get("failures") == "0"
+    # hil check on the log it left: the bench's error code and its line, not a fail
+    log = next((pytester.path / "hil-out").rglob("*.mcap"))
+    r = subprocess.run(hil_command() + ["check", str(log), str(SCENARIOS / "suites" / "test_ffcc_a.toml")],
+                       capture_output=True, text=True, env=subprocess_env(), timeout=120)
+    assert r.returncode == 2 and "the run did not finish" in r.stderr and "Traceback" not in r.stderr, r.stderr
 
 
 @pytest.mark.parametrize("ci", ["", "true"])
@@ -143,3 +149,36 @@ def test_a_malformed_check_table_is_one_line_naming_the_file_and_field(pytester)
     lines = [ln for ln in result.stdout.lines if "test_bad.toml: [[check]] 1 (fast): field 'within_s'" in ln]
     assert lines and "expected a number, got 'soon'" in lines[0], result.stdout.str()
     assert "Traceback" not in result.stdout.str()
+
+
+def test_a_silent_tcu_is_a_failure_and_hil_check_fails_its_log(pytester):
+    """An external TCU that never answers (the command started for the run sleeps): a *fail* of the TCU,
+    JUnit <failure>; the command is stopped after the run; ``hil check`` on the log it left exits 1."""
+    marker = "31.4159"
+    pytester.makepyfile(test_silent=f"""
+def test_answers(hil_run):
+    hil_run({str(FFCC_A)!r}, set={{"run.duration_s": 1.0, "bus.startup_timeout_s": 2.0}})
+""")
+    result = pytester.runpytest("-p", "hil.pytest_plugin", "-p", "no:cacheprovider", "--hil-bus", "local",
+                                "--hil-tcu", "external", "--hil-tcu-cmd", f"sleep {marker}",
+                                "--hil-out", str(pytester.path / "out"), "--junitxml", str(pytester.path / "j.xml"))
+    result.assert_outcomes(failed=1)
+    assert "the TCU fell silent or died: no TCU answered within 2 s" in result.stdout.str()
+    root = _validated(pytester.path / "j.xml")
+    case = next(root.iter("testcase"))
+    assert case.find("failure") is not None and case.find("error") is None
+    assert "--tcu external" in case.findtext("system-out")
+    sleeping = [p for p in Path("/proc").glob("[0-9]*") if _cmdline(p) == f"sleep {marker}"]
+    assert not sleeping, "the TCU command was not stopped after the run"
+    log = next((pytester.path / "out").rglob("*.mcap"))
+    r = subprocess.run(hil_command() + ["check", str(log), str(SCENARIOS / "suites" / "test_ffcc_a.toml")],
+                       capture_output=True, text=True, env=subprocess_env(), timeout=120)
+    assert r.returncode == 1, r.stdout + r.stderr
+    assert r.stdout.startswith("FAIL run: the TCU fell silent or died: no TCU answered within 2 s"), r.stdout
+
+
+def _cmdline(proc_dir) -> str:
+    try:
+        return (proc_dir / "cmdline").read_bytes().replace(b"\0", b" ").decode().strip()
+    except OSError:
+        return ""

@@ -1,7 +1,8 @@
 """Judging a recorded log against a checks file, apart from the run (``hil check LOG CHECKS.toml``).
 
 The log is read once (``Run.open``), its recorded verdict taken first (``outcome.recorded``: a TCU that
-fell silent fails, a run the bench broke is an error), then every check of the file is judged.  With a
+fell silent fails, a run the bench broke is an error and is not judged further), then every check of the
+file is judged.  With a
 JUnit path, the XML is written and each failed check gets its figure beside it (``NAME-figures/``).
 """
 from __future__ import annotations
@@ -10,6 +11,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from ..errors import BenchError
 from .outcome import TcuFailed, recorded
 from .report import figure, junit_xml, properties
 from .run import Run
@@ -37,7 +39,8 @@ def check_log(log_path, checks_path, junitxml=None) -> Judgement:
     t0 = time.perf_counter()
     run = Run.open(log_path)
     verdict = recorded(run)
-    results = judge(suite, run) if not log_ended_early(run) else []
+    # a run the TCU's silence ended is judged on what it recorded; one the bench broke is not judged
+    results = [] if isinstance(verdict, BenchError) else judge(suite, run)
     seconds = time.perf_counter() - t0
     out = Judgement(results, verdict, seconds=seconds)
     if junitxml is not None:
@@ -50,11 +53,6 @@ def check_log(log_path, checks_path, junitxml=None) -> Judgement:
                     out.figures[id(r)] = png
         junit_xml(stem, results, properties(run), junit, verdict, out.figures, seconds)
     return out
-
-
-def log_ended_early(run) -> bool:
-    """A run that did not finish has no summary to judge by (its verdict says why)."""
-    return bool(run.log.ended_early)
 
 
 __all__ = ["Judgement", "TcuFailed", "check_log"]
