@@ -213,3 +213,21 @@ def test_hil_check_exit_codes_lines_and_junit_valid_against_jenkins_xsd(log, tmp
     assert r.stderr.startswith(f"hil check: error: {malformed}: [[check]] 1: field 'lo'"), r.stderr
     r = _hil_check(malformed, good)
     assert r.returncode == 2 and "not an MCAP file" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_timing_checks_use_receive_wall_times_in_a_real_time_run(tmp_path):
+    """In real time cycle_time measures the receive wall times (the frames' wall_time_ns here), not steps."""
+    scenario = hil.load_scenario(SCENARIOS / "ffcc_a.toml", {"run.duration_s": 0.3, "run.fault_time_s": 0.2})
+    summary = hil.run(scenario, bus="inprocess", mode="realtime", out_dir=tmp_path, progress=False)
+    contents = hil.read_log(summary["mcap"])
+    status_id = 0x120
+    wall = sorted(f.wall_time_ns for f in contents.topic("/can/frames")
+                  if f.arbitration_id == status_id and f.status == "ok")
+    gaps_ms = [(b - a) * 1e-6 for a, b in zip(wall, wall[1:])]
+    loose = cycle_time("TcuStatus", nominal_s=1e-3, tolerance_s=1.0)(summary["mcap"])
+    assert loose.passed and loose.note == "receive wall time" and loose.samples == len(gaps_ms)
+    assert loose.margin == pytest.approx((1.0 - max(abs(g - 1.0) for g in gaps_ms) * 1e-3) * 1e3)
+    strict = cycle_time("TcuStatus", nominal_s=1e-3, tolerance_s=0.0)(summary["mcap"])
+    off = [g for g in gaps_ms if abs(g - 1.0) > 1e-6]
+    assert not strict.passed and strict.first[1] == pytest.approx(off[0])
+    assert strict.worst[1] == pytest.approx(max(gaps_ms, key=lambda g: abs(g - 1.0)))

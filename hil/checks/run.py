@@ -42,7 +42,7 @@ _SUFFIX_UNITS = (("_rad_s", "rad/s"), ("_kmh", "km/h"), ("_ms", "m/s"), ("_nm", 
 @dataclass
 class Series:
     """One signal: ``t_s`` and ``values`` (float arrays of the same length), ``unit``, and for a frame's
-    signal ``wall_s`` (receive wall times, seconds since the epoch)."""
+    signal ``wall_s`` (receive wall times, in s since the first frame of the log)."""
     name: str
     t_s: np.ndarray
     values: np.ndarray
@@ -79,6 +79,7 @@ class Run:
     _series: dict = field(default_factory=dict, repr=False)
     _frames: dict | None = field(default=None, repr=False)
     _dbc: object = field(default=None, repr=False)
+    _wall0: int = field(default=0, repr=False)
 
     @classmethod
     def open(cls, path, summary: dict | None = None, **extra) -> "Run":
@@ -137,7 +138,12 @@ class Run:
         """(t_s, wall_s) of every accepted frame named ``frame`` in the DBC."""
         message = self._message(frame)
         rows = self._frame_rows().get(message.frame_id, [])
-        return (np.array([r[0] for r in rows], dtype=float), np.array([r[1] for r in rows], dtype=float))
+        return np.array([r[0] for r in rows], dtype=float), self._wall_s(rows)
+
+    def _wall_s(self, rows) -> np.ndarray:
+        """Receive wall times in s since the log's first frame (from integer ns: seconds since the epoch
+        as doubles would keep only 0.4 us)."""
+        return (np.array([r[1] for r in rows], dtype=np.int64) - self._wall0) * 1e-9
 
     def _topic_field(self, name: str) -> Series:
         topic, _, fname = name.rpartition(".")
@@ -177,7 +183,7 @@ class Run:
                               else f"; frames: {', '.join(names)}")) from None
 
     def _frame_rows(self) -> dict:
-        """frame id -> [(t_s, wall_s, data)] of the frames the receiving node did not reject."""
+        """frame id -> [(t_s, wall_time_ns, data)] of the frames the receiving node did not reject."""
         if self._frames is None:
             from ..bus.verdicts import REJECTED, kind
 
@@ -185,8 +191,9 @@ class Run:
             for f in self.log.topic("/can/frames"):
                 if f.is_error_frame or f.is_remote_frame or kind(f.status or "ok") == REJECTED:
                     continue
-                rows.setdefault(f.arbitration_id, []).append((f.t_s, f.wall_time_ns * 1e-9, f.data))
+                rows.setdefault(f.arbitration_id, []).append((f.t_s, f.wall_time_ns, f.data))
             self._frames = rows
+            self._wall0 = min((r[1] for rr in rows.values() for r in rr), default=0)
         return self._frames
 
     def _dbc_signal(self, name: str) -> Series:
@@ -201,7 +208,7 @@ class Run:
                               + (f" (did you mean {', '.join(close)}?)" if close else f"; signals: {', '.join(names)}"))
         rows = self._frame_rows().get(message.frame_id, [])
         t = np.array([r[0] for r in rows], dtype=float)
-        wall = np.array([r[1] for r in rows], dtype=float)
+        wall = self._wall_s(rows)
         order = np.argsort(t, kind="stable")
         values = {n: np.full(len(rows), np.nan) for n in names}
         for i, (_, _, data) in enumerate(rows):
