@@ -1,4 +1,4 @@
-"""The pytest plugin: test a TCU on the HIL bench with pytest (``[project.entry-points.pytest11] hil``;
+"""The pytest plugin: test a TCU on the HIL bench with pytest (the ``pytest11`` entry point ``hil.pytest_plugin``;
 in a tree not installed, ``pytest -p hil.pytest_plugin``).
 
     def test_identifies_after_the_fault(hil_run):

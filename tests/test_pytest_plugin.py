@@ -49,7 +49,28 @@ def test_the_plugin_module_imports_only_pytest_and_the_standard_library():
             "('hil', 'numpy', 'plant', 'identifier', 'cantools', 'mcap', 'matplotlib')))")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True)
     assert r.stdout.strip() == "['hil', 'hil.pytest_plugin']", r.stdout + r.stderr
-    assert 'hil = "hil.pytest_plugin"' in (ROOT / "pyproject.toml").read_text()
+    assert '"hil.pytest_plugin" = "hil.pytest_plugin"' in (ROOT / "pyproject.toml").read_text()
+
+
+@pytest.mark.parametrize("with_p", [False, True])
+def test_the_entry_point_loads_the_plugin_and_minus_p_does_not_register_it_twice(tmp_path, with_p):
+    """Installed (here: a dist-info with pyproject.toml's pytest11 entry point, on the path), the plugin loads
+    by itself; ``-p hil.pytest_plugin`` as well must not register the module a second time (pluggy's
+    "already registered under a different name" when the entry point's name differs from the module's)."""
+    import tomllib
+
+    eps = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["entry-points"]["pytest11"]
+    site = tmp_path / "site"
+    info = site / "railway_hil_probe-0.0.dist-info"
+    info.mkdir(parents=True)
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: railway-hil-probe\nVersion: 0.0\n")
+    (info / "entry_points.txt").write_text("[pytest11]\n" + "".join(f"{k} = {v}\n" for k, v in eps.items()))
+    (tmp_path / "test_x.py").write_text("def test_x(hil_run):\n    assert callable(hil_run)\n")
+    env = subprocess_env(PYTHONPATH=f"{ROOT}:{site}")
+    r = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *(["-p", "hil.pytest_plugin"]
+                        if with_p else []), "test_x.py"], cwd=tmp_path, env=env, capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 0 and "1 passed" in r.stdout, r.stdout[-2000:] + r.stderr[-2000:]
 
 
 def test_the_example_suite_passes_with_the_builtin_tcu_running_once(pytester):
