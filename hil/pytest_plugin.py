@@ -300,7 +300,8 @@ class CheckItem(pytest.Item):
 # -- what a failure shows, and errors apart from failures -------------------------------------------------
 @pytest.hookimpl(wrapper=True)
 def pytest_runtest_makereport(item, call):
-    if call.excinfo is not None and call.when == "call" and _RUNS in item.stash:
+    if call.excinfo is not None and call.when == "call" and (
+            _RUNS in item.stash or type(call.excinfo.value).__name__ == "CheckFailed"):
         lines = _failure_output(item, call.excinfo.value)
         if lines:
             item.add_report_section("call", "stdout", "\n".join(lines) + "\n")
@@ -333,7 +334,10 @@ def _failure_output(item, error) -> list[str]:
                 png = None
             if png is not None:
                 lines.append(attachment(png))
-    for run in item.stash.get(_RUNS, []):
+    runs = list(item.stash.get(_RUNS, []))
+    if isinstance(error, CheckFailed) and error.run is not None and error.run not in runs:
+        runs.append(error.run)              # require() over a log's path, no hil_run
+    for run in runs:
         log = getattr(run, "path", None) or getattr(run, "log", None)
         command = getattr(run, "command", None)
         if log:
