@@ -60,14 +60,19 @@ def pytest_configure(config):
     config.stash[_BENCH] = Bench(config)
     # the failures' lines, attachments and logs are written to the test's output: keep it in the JUnit XML.
     # pytest reads junit_logging before any plugin loads, so the --junitxml writer is set after it is made
-    # (its stash key is pytest's own; without it the output stays out of the XML and the terminal has it)
+    xml = _junit_writer(config)
+    if xml is not None and getattr(xml, "logging", None) == "no":
+        xml.logging = "system-out"
+
+
+def _junit_writer(config):
+    """pytest's --junitxml writer (LogXML), None without --junitxml.  Its stash key is pytest's own: where
+    it is gone, the output stays out of the XML (the terminal has it) and the suite has no properties."""
     try:
         from _pytest.junitxml import xml_key
     except ImportError:
-        return
-    xml = config.stash.get(xml_key, None)
-    if xml is not None and getattr(xml, "logging", None) == "no":
-        xml.logging = "system-out"
+        return None
+    return config.stash.get(xml_key, None)
 
 
 class Bench:
@@ -214,22 +219,36 @@ def hil_run(request):
             runs.append(e)
             raise
         runs.append(result)
-        _suite_properties(request, bench, result)
         return result
 
     return run
 
 
-def _suite_properties(request, bench, run) -> None:
-    if bench.properties_done:
+def pytest_collection_finish(session):
+    """The suite's properties in the JUnit XML, when a test of the session runs the bench: the SHA-256 of
+    the DBC the bench speaks (the same text each log keeps, which ``hil check`` hashes), the package
+    version, the TCU under test, the bus and mode."""
+    xml = _junit_writer(session.config)
+    if xml is None or not any(isinstance(i, CheckItem) or "hil_run" in getattr(i, "fixturenames", ())
+                              for i in session.items):
         return
-    bench.properties_done = True
-    from hil.checks.report import properties
+    import hashlib
+    from importlib.metadata import PackageNotFoundError, version
 
-    record = request.getfixturevalue("record_testsuite_property")
-    props = properties(run)
-    for name in ("dbc_sha256", "railway_hil_version", "tcu_under_test", "bus"):
-        record(name, props[name])
+    bench = session.config.stash[_BENCH]
+    try:
+        package = version("railway-hil")
+    except PackageNotFoundError:
+        package = "unknown (not installed)"
+    dbc = Path(__file__).resolve().parent / "hil.dbc"
+    if bench.tcu == "external":
+        tcu = f"external: {bench.tcu_cmd}" if bench.tcu_cmd else "external (already on the bus)"
+    else:
+        tcu = "builtin (hil.tcu_node)"
+    for name, value in (("dbc_sha256", hashlib.sha256(dbc.read_bytes()).hexdigest()),
+                        ("railway_hil_version", package), ("tcu_under_test", tcu),
+                        ("bus", f"{bench.bus} {bench.mode}")):
+        xml.add_global_property(name, value)
 
 
 # -- test files as data ---------------------------------------------------------------------------------

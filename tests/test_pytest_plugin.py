@@ -87,7 +87,7 @@ def test_the_example_suite_passes_with_the_builtin_tcu_running_once(pytester):
     root = _validated(pytester.path / "junit.xml")
     props = {p.get("name"): p.get("value") for p in root.iter("property")}
     assert re.fullmatch(r"[0-9a-f]{64}", props["dbc_sha256"]) and props["railway_hil_version"] == "0.1.0"
-    assert props["tcu_under_test"] == "inprocess (gp)"
+    assert props["tcu_under_test"] == "builtin (hil.tcu_node)" and props["bus"] == "inprocess lockstep"
     names = [c.get("name") for c in root.iter("testcase")]
     assert "1-slip detected within 50 ms" in names and "test_the_slip_is_answered_and_the_curve_identified" in names
 
@@ -189,6 +189,8 @@ def test_answers(hil_run):
     case = next(root.iter("testcase"))
     assert case.find("failure") is not None and case.find("error") is None
     assert "--tcu external" in case.findtext("system-out")
+    props = {p.get("name"): p.get("value") for p in root.iter("property")}
+    assert props["tcu_under_test"] == f"external: sleep {marker}"
     sleeping = [p for p in Path("/proc").glob("[0-9]*") if _cmdline(p) == f"sleep {marker}"]
     assert not sleeping, "the TCU command was not stopped after the run"
     log = next((pytester.path / "out").rglob("*.mcap"))

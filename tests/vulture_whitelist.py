@@ -50,6 +50,7 @@ _.selector
 # pytest calls the plugin's hooks and an Item's runtest/reportinfo by name: hil/pytest_plugin.py
 _.pytest_addoption
 _.pytest_collect_file
+_.pytest_collection_finish
 _.pytest_runtest_makereport
 _.runtest
 _.reportinfo
