@@ -85,7 +85,6 @@ class Bench:
         self.bus, self.mode, self.tcu, self.tcu_cmd = opt.hil_bus, opt.hil_mode, opt.hil_tcu, opt.hil_tcu_cmd
         self.out_opt = opt.hil_out
         self.cache: dict = {}
-        self.properties_done = False
         self._out = None
 
     @property
