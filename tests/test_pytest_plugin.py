@@ -140,9 +140,13 @@ def test_diverges(hil_run):
     assert root[0].get("errors") == "1" and root[0].get("failures") == "0"
     # hil check on the log it left: the bench's error code and its line, not a fail
     log = next((pytester.path / "hil-out").rglob("*.mcap"))
-    r = subprocess.run(hil_command() + ["check", str(log), str(SCENARIOS / "suites" / "test_ffcc_a.toml")],
+    r = subprocess.run(hil_command() + ["check", str(log), str(SCENARIOS / "suites" / "test_ffcc_a.toml"),
+                                        "--junitxml", str(pytester.path / "check.xml")],
                        capture_output=True, text=True, env=subprocess_env(), timeout=120)
     assert r.returncode == 2 and "the run did not finish" in r.stderr and "Traceback" not in r.stderr, r.stderr
+    suite = _validated(pytester.path / "check.xml")[0]
+    assert suite.get("errors") == "1" and suite.get("failures") == "0"
+    assert "the run did not finish" in next(suite.iter("error")).get("message")
 
 
 @pytest.mark.parametrize("ci", ["", "true"])
