@@ -139,9 +139,12 @@ class Bench:
         if reality:
             from hil.effects import parse_effect, with_reality
             sc = with_reality(sc, dict(parse_effect(r) for r in reality))
-        if strategy is None:
-            from identifier import DEFAULT_STRATEGY
-            strategy = DEFAULT_STRATEGY
+        from identifier import DEFAULT_STRATEGY, STRATEGIES
+        from hil.errors import ConfigError
+
+        strategy = strategy or DEFAULT_STRATEGY
+        if strategy not in STRATEGIES:
+            raise ConfigError(f"hil_run: unknown strategy {strategy!r}; available: {', '.join(sorted(STRATEGIES))}")
         external = self.tcu == "external"
         if not external:
             from hil.progress import compile_kernels

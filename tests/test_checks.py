@@ -213,6 +213,11 @@ def test_hil_check_exit_codes_lines_and_junit_valid_against_jenkins_xsd(log, tmp
     assert r.stderr.startswith(f"hil check: error: {malformed}: [[check]] 1: field 'lo'"), r.stderr
     r = _hil_check(malformed, good)
     assert r.returncode == 2 and "not an MCAP file" in r.stderr and "Traceback" not in r.stderr
+    cut = tmp_path / "cut.mcap"
+    data = open(log, "rb").read()
+    cut.write_bytes(data[:len(data) // 2])                 # a log cut mid-write: not judged
+    r = _hil_check(cut, good)
+    assert r.returncode == 2 and "cannot judge a damaged log" in r.stderr and "Traceback" not in r.stderr, r.stderr
 
 
 def test_timing_checks_use_receive_wall_times_in_a_real_time_run(tmp_path):
