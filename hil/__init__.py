@@ -40,6 +40,7 @@ _API = {
     "NoProgress": "hil.errors",
     "PlantFault": "hil.errors",
     "DeadlinesMissed": "hil.errors",
+    "BenchError": "hil.errors",
 }
 
 __all__ = sorted(_API)

@@ -13,6 +13,8 @@ message and exits with ``exit_code``.  Nothing here imports anything else of the
         NoProgress          exit 3   (lockstep) the other side lives but the pending step gets no answer
       PlantFault            exit 4   (TCU side) the plant reported a fault
       DeadlinesMissed       exit 5   (real time) more deadlines missed than [bus] max_missed_fraction allows
+      BenchError            exit 2, 3 or 5 (its cause's)   the bench could not judge the unit under test
+                                     (hil check, the pytest plugin: an *error*, never a *fail*)
 """
 from __future__ import annotations
 
@@ -78,6 +80,16 @@ class DeadlinesMissed(HilError, RuntimeError):
     """A real-time run completed (logs written) but missed more deadlines than the scenario's
     ``[bus] max_missed_fraction`` allows; the message gives how many of how many."""
     exit_code = EXIT_DEADLINES
+
+
+class BenchError(HilError, RuntimeError):
+    """The bench, not the unit under test, failed: the plant diverged, the bus or the plant side died, or
+    the plant itself began periods past their deadlines.  A test verdict then is an *error* (the unit
+    could not be judged), never a *fail* (``hil.checks.outcome``).  ``exit_code`` is its cause's."""
+
+    def __init__(self, message: str, exit_code: int = EXIT_USAGE):
+        super().__init__(message)
+        self.exit_code = exit_code
 
 
 def caused_by_interrupt(error: BaseException) -> bool:

@@ -209,3 +209,22 @@ def test_gap_reads_candump_l_of_a_run_like_its_mcap(tmp_path):
     assert b["real_log_source"]["format"] == "can-log"
     assert a["which"]["named_set"] == b["which"]["named_set"] == ["load_transfer"]
     assert abs(a["shrink"]["held_out_gap_shrink_percent"] - b["shrink"]["held_out_gap_shrink_percent"]) <= 3
+
+
+def test_the_example_suite_passes_on_vcan0_in_lockstep(tmp_path):
+    """Issue 37 item 8: the example suite (scenarios/suites) in a real pytest session on vcan0, the
+    built-in TCU as a second process: every test passes, the JUnit XML validates against junit-10.xsd."""
+    import sys
+
+    from lxml import etree
+
+    junit = tmp_path / "junit.xml"
+    r = subprocess.run([sys.executable, "-m", "pytest", "-p", "hil.pytest_plugin", "-p", "no:cacheprovider", "-q",
+                        str(ROOT / "scenarios" / "suites"), "--hil-bus", "socketcan:vcan0", "--hil-mode", "lockstep",
+                        "--hil-out", str(tmp_path / "out"), "--junitxml", str(junit)],
+                       cwd=tmp_path, env=subprocess_env(CI="true"), capture_output=True, text=True, timeout=900)
+    assert r.returncode == 0 and "7 passed" in r.stdout, r.stdout[-3000:] + r.stderr[-3000:]
+    schema = etree.XMLSchema(etree.parse(str(ROOT / "tests" / "data" / "junit-10.xsd")))
+    assert schema.validate(etree.parse(str(junit))), schema.error_log
+    props = {p.get("name"): p.get("value") for p in etree.parse(str(junit)).iter("property")}
+    assert props["bus"] == "socketcan:vcan0 lockstep"

@@ -47,3 +47,13 @@ _.pytestmark
 # a fixture requested by name (tests/test_vcan.py), urllib's request target set by hand (tests/test_bus.py)
 _.vcan0
 _.selector
+# pytest calls the plugin's hooks and an Item's runtest/reportinfo by name: hil/pytest_plugin.py
+_.pytest_addoption
+_.pytest_collect_file
+_.pytest_collection_finish
+_.pytest_runtest_makereport
+_.runtest
+_.reportinfo
+# pytest reads a test module's pytest_plugins, and runs autouse fixtures by themselves: tests/test_pytest_plugin.py
+_.pytest_plugins
+_._loaded

@@ -1,0 +1,211 @@
+"""The pytest plugin in real pytest sessions (``pytester``, the plugin named with ``-p hil.pytest_plugin``
+as in a tree that is not installed): a passing and a failing suite over real 1-second in-process runs,
+their JUnit XML parsed and validated against Jenkins' junit-10.xsd (tests/data/junit-10.xsd, from pytest
+9.2.0's source distribution on PyPI, testing/example_scripts/junit-10.xsd; MIT, Gregory Boissinot),
+attachments, a bench error reported as an error, a missing bus as a skip (an error under CI=true), and a
+malformed ``[[check]]`` table as one line."""
+import importlib
+import re
+import subprocess
+import sys
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import pytest
+
+from .conftest import ROOT, SCENARIOS, hil_command, subprocess_env
+
+pytest_plugins = ["pytester"]
+
+XSD = ROOT / "tests" / "data" / "junit-10.xsd"
+FFCC_A = SCENARIOS / "ffcc_a.toml"
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _loaded():
+    """What the sessions import, imported here first: pytester's in-process sessions remove the modules
+    they imported when they end, and numpy cannot be imported twice in one process."""
+    for name in ("matplotlib.pyplot", "hil.checks.offline", "hil.exchange", "hil.view"):
+        importlib.import_module(name)
+
+
+def _validated(path):
+    from lxml import etree
+
+    schema = etree.XMLSchema(etree.parse(str(XSD)))
+    doc = etree.parse(str(path))
+    assert schema.validate(doc), schema.error_log
+    return ET.parse(str(path)).getroot()
+
+
+def _session(pytester, *args):
+    return pytester.runpytest("-p", "hil.pytest_plugin", "-p", "no:cacheprovider", "--hil-bus", "inprocess",
+                              "--hil-out", str(pytester.path / "hil-out"), "--junitxml",
+                              str(pytester.path / "junit.xml"), *args)
+
+
+def test_the_plugin_module_imports_only_pytest_and_the_standard_library():
+    code = ("import sys, hil.pytest_plugin; print(sorted(m for m in sys.modules if m.split('.')[0] in "
+            "('hil', 'numpy', 'plant', 'identifier', 'cantools', 'mcap', 'matplotlib')))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True)
+    assert r.stdout.strip() == "['hil', 'hil.pytest_plugin']", r.stdout + r.stderr
+    assert '"hil.pytest_plugin" = "hil.pytest_plugin"' in (ROOT / "pyproject.toml").read_text()
+
+
+@pytest.mark.parametrize("with_p", [False, True])
+def test_the_entry_point_loads_the_plugin_and_minus_p_does_not_register_it_twice(tmp_path, with_p):
+    """Installed (here: a dist-info with pyproject.toml's pytest11 entry point, on the path), the plugin loads
+    by itself; ``-p hil.pytest_plugin`` as well must not register the module a second time (pluggy's
+    "already registered under a different name" when the entry point's name differs from the module's)."""
+    import tomllib
+
+    eps = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["entry-points"]["pytest11"]
+    site = tmp_path / "site"
+    info = site / "railway_hil_probe-0.0.dist-info"
+    info.mkdir(parents=True)
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: railway-hil-probe\nVersion: 0.0\n")
+    (info / "entry_points.txt").write_text("[pytest11]\n" + "".join(f"{k} = {v}\n" for k, v in eps.items()))
+    (tmp_path / "test_x.py").write_text("def test_x(hil_run):\n    assert callable(hil_run)\n")
+    env = subprocess_env(PYTHONPATH=f"{ROOT}:{site}")
+    r = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *(["-p", "hil.pytest_plugin"]
+                        if with_p else []), "test_x.py"], cwd=tmp_path, env=env, capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 0 and "1 passed" in r.stdout, r.stdout[-2000:] + r.stderr[-2000:]
+
+
+def test_the_example_suite_passes_with_the_builtin_tcu_running_once(pytester):
+    """scenarios/suites: the Python tests and the test_*.toml checks share one run (cached)."""
+    for f in (SCENARIOS / "suites").iterdir():
+        if f.suffix in (".py", ".toml"):
+            pytester.makefile(f.suffix, **{f.stem: f.read_text().replace('"../ffcc_a.toml"', f'"{FFCC_A}"')
+                                           .replace('Path(__file__).resolve().parent.parent / "ffcc_a.toml"',
+                                                    f'Path({str(FFCC_A)!r})')})
+    result = _session(pytester)
+    result.assert_outcomes(passed=7)
+    logs = list((pytester.path / "hil-out").rglob("*.mcap"))
+    assert len(logs) == 1, logs                                        # one run for seven tests
+    root = _validated(pytester.path / "junit.xml")
+    props = {p.get("name"): p.get("value") for p in root.iter("property")}
+    assert re.fullmatch(r"[0-9a-f]{64}", props["dbc_sha256"]) and props["railway_hil_version"] == "0.1.0"
+    assert props["tcu_under_test"] == "builtin (hil.tcu_node)" and props["bus"] == "inprocess lockstep"
+    names = [c.get("name") for c in root.iter("testcase")]
+    assert "1-slip detected within 50 ms" in names and "test_the_slip_is_answered_and_the_curve_identified" in names
+
+
+FAILING = f"""
+from hil.checks import in_range, limit, require
+
+def test_slip_is_held(hil_run):
+    run = hil_run({str(FFCC_A)!r}, set={{"run.duration_s": 1.0}})
+    require(run, limit("t_identified_s", hi=0.7, req="ID-1"),
+            in_range("/plant/state.creep_speed_kmh", hi=1.0, during="fault", req="ADH-1"),
+            in_range("TcuStatus.MuHat", 0.2, 0.3, during=("fault", 0.0, 0.1), valid="TcuStatus.ObserverValid"))
+
+def test_same_run_again(hil_run):
+    assert hil_run({str(FFCC_A)!r}, set={{"run.duration_s": 1.0}}).summary["identified"]
+"""
+
+
+def test_a_failing_suite_lists_every_failed_check_with_figures_log_and_command(pytester):
+    pytester.makepyfile(test_fails=FAILING)
+    result = _session(pytester)
+    result.assert_outcomes(passed=1, failed=1)
+    out = result.stdout.str()
+    assert "2 of 3 checks failed:" in out
+    assert re.search(r"\[ADH-1\] /plant/state\.creep_speed_kmh outside \[-inf, 1\] from fault\+0 ms on: first "
+                     r"\d\.\d{3} s \(\S+ km/h\), worst \S+ km/h at \d\.\d{3} s, \d+ ms in violation", out), out
+    root = _validated(pytester.path / "junit.xml")
+    case = next(c for c in root.iter("testcase") if c.get("name") == "test_slip_is_held")
+    assert case.find("failure") is not None and case.find("error") is None
+    text = case.findtext("system-out")
+    pngs = re.findall(r"\[\[ATTACHMENT\|(.+?)\]\]", text)
+    assert len(pngs) == 2 and all(open(p, "rb").read(8) == b"\x89PNG\r\n\x1a\n" for p in pngs), text
+    assert re.search(r"^log: .+\.mcap$", text, re.M) and re.search(r"^recording: .+\.rrd$", text, re.M), text
+    command = re.search(r"^reproduce: (hil run .+)$", text, re.M).group(1)
+    assert f"{FFCC_A} --bus inprocess --mode lockstep --strategy gp --set run.duration_s=1.0" in command
+
+
+def test_a_bench_error_is_an_error_not_a_failure(pytester):
+    """A plant that diverges (resistance x 1e300) is the bench's fault: JUnit <error>, never <failure>."""
+    pytester.makepyfile(test_bench=f"""
+def test_diverges(hil_run):
+    hil_run({str(FFCC_A)!r}, set={{"run.duration_s": 1.0}}, reality=["resistance:factor=1e300"])
+""")
+    result = _session(pytester)
+    result.assert_outcomes(errors=1)
+    assert "the bench could not judge: the plant failed" in result.stdout.str()
+    root = _validated(pytester.path / "junit.xml")
+    case = next(root.iter("testcase"))
+    assert case.find("error") is not None and case.find("failure") is None
+    assert root[0].get("errors") == "1" and root[0].get("failures") == "0"
+    # hil check on the log it left: the bench's error code and its line, not a fail
+    log = next((pytester.path / "hil-out").rglob("*.mcap"))
+    r = subprocess.run(hil_command() + ["check", str(log), str(SCENARIOS / "suites" / "test_ffcc_a.toml"),
+                                        "--junitxml", str(pytester.path / "check.xml")],
+                       capture_output=True, text=True, env=subprocess_env(), timeout=120)
+    assert r.returncode == 2 and "the run did not finish" in r.stderr and "Traceback" not in r.stderr, r.stderr
+    suite = _validated(pytester.path / "check.xml")[0]
+    assert suite.get("errors") == "1" and suite.get("failures") == "0"
+    assert "the run did not finish" in next(suite.iter("error")).get("message")
+
+
+@pytest.mark.parametrize("ci", ["", "true"])
+def test_a_missing_bus_skips_and_is_an_error_under_ci(pytester, monkeypatch, ci):
+    monkeypatch.setenv("CI", ci)
+    pytester.makepyfile(test_bus=f"""
+def test_on_a_bus(hil_run):
+    hil_run({str(FFCC_A)!r}, set={{"run.duration_s": 1.0}})
+""")
+    result = pytester.runpytest("-p", "hil.pytest_plugin", "-p", "no:cacheprovider", "--hil-bus",
+                                "socketcan:hilnone0", "--hil-out", str(pytester.path / "out"), "-rs")
+    if ci:
+        result.assert_outcomes(errors=1)
+        assert "CI=true: a missing bus is an error, not a skip" in result.stdout.str()
+    else:
+        result.assert_outcomes(skipped=1)
+        assert "bus not available" in result.stdout.str()
+
+
+def test_a_malformed_check_table_is_one_line_naming_the_file_and_field(pytester):
+    pytester.makefile(".toml", test_bad=f'scenario = "{FFCC_A}"\n\n[[check]]\nname = "fast"\nkind = "responds"\n'
+                                         'trigger = "fault"\ncondition = "TcuStatus.Stage >= 1"\nwithin_s = "soon"\n')
+    result = pytester.runpytest("-p", "hil.pytest_plugin", "-p", "no:cacheprovider")
+    result.assert_outcomes(errors=1)
+    lines = [ln for ln in result.stdout.lines if "test_bad.toml: [[check]] 1 (fast): field 'within_s'" in ln]
+    assert lines and "expected a number, got 'soon'" in lines[0], result.stdout.str()
+    assert "Traceback" not in result.stdout.str()
+
+
+def test_a_silent_tcu_is_a_failure_and_hil_check_fails_its_log(pytester):
+    """An external TCU that never answers (the command started for the run sleeps): a *fail* of the TCU,
+    JUnit <failure>; the command is stopped after the run; ``hil check`` on the log it left exits 1."""
+    marker = "31.4159"
+    pytester.makepyfile(test_silent=f"""
+def test_answers(hil_run):
+    hil_run({str(FFCC_A)!r}, set={{"run.duration_s": 1.0, "bus.startup_timeout_s": 2.0}})
+""")
+    result = pytester.runpytest("-p", "hil.pytest_plugin", "-p", "no:cacheprovider", "--hil-bus", "local",
+                                "--hil-tcu", "external", "--hil-tcu-cmd", f"sleep {marker}",
+                                "--hil-out", str(pytester.path / "out"), "--junitxml", str(pytester.path / "j.xml"))
+    result.assert_outcomes(failed=1)
+    assert "the TCU fell silent or died: no TCU answered within 2 s" in result.stdout.str()
+    root = _validated(pytester.path / "j.xml")
+    case = next(root.iter("testcase"))
+    assert case.find("failure") is not None and case.find("error") is None
+    assert "--tcu external" in case.findtext("system-out")
+    props = {p.get("name"): p.get("value") for p in root.iter("property")}
+    assert props["tcu_under_test"] == f"external: sleep {marker}"
+    sleeping = [p for p in Path("/proc").glob("[0-9]*") if _cmdline(p) == f"sleep {marker}"]
+    assert not sleeping, "the TCU command was not stopped after the run"
+    log = next((pytester.path / "out").rglob("*.mcap"))
+    r = subprocess.run(hil_command() + ["check", str(log), str(SCENARIOS / "suites" / "test_ffcc_a.toml")],
+                       capture_output=True, text=True, env=subprocess_env(), timeout=120)
+    assert r.returncode == 1, r.stdout + r.stderr
+    assert r.stdout.startswith("FAIL run: the TCU fell silent or died: no TCU answered within 2 s"), r.stdout
+
+
+def _cmdline(proc_dir) -> str:
+    try:
+        return (proc_dir / "cmdline").read_bytes().replace(b"\0", b" ").decode().strip()
+    except OSError:
+        return ""
