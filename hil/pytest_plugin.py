@@ -11,7 +11,7 @@ builtin|external``, ``--hil-tcu-cmd CMD`` (with ``external``: the TCU under test
 and stopped after; ``{scenario}``, ``{bus}``, ``{mode}`` in CMD are filled in), ``--hil-out DIR`` (logs and
 figures; default a directory under pytest's temporary base).
 
-``hil_run(scenario, set=None, seed=None, strategy=None, reality=None)`` runs once per whole specification
+``hil_run(scenario, set=None, seed=None, strategy=None, reality=None, control=None)`` runs once per whole specification
 (those and the bus, mode and TCU) within the session and returns a ``hil.checks.Run``.  Files named
 ``test_*.toml`` with ``[[check]]`` tables and a ``scenario`` (``hil.checks.spec``) are collected as tests,
 one per check.
@@ -97,9 +97,12 @@ class Bench:
                 self._out = self.config._tmp_path_factory.mktemp("hil", numbered=True)
         return self._out
 
-    def run(self, scenario, set=None, seed=None, strategy=None, reality=None):
-        """The run of this specification (once per session); raises what it ended with."""
+    def run(self, scenario, set=None, seed=None, strategy=None, reality=None, control=None):
+        """The run of this specification (once per session); raises what it ended with.  ``control``: the
+        TCU's control law (``--set control.law=...``)."""
         overrides = dict(set or {})
+        if control is not None:
+            overrides["control.law"] = control
         reality = tuple(reality or ())
         key = (str(Path(scenario).resolve()), tuple(sorted((k, repr(v)) for k, v in overrides.items())), seed,
                strategy, reality, self.bus, self.mode, self.tcu, self.tcu_cmd)
@@ -208,15 +211,15 @@ def _toml_value(v) -> str:
 
 @pytest.fixture
 def hil_run(request):
-    """``hil_run(scenario, set=None, seed=None, strategy=None, reality=None)``: the run of that specification
+    """``hil_run(scenario, set=None, seed=None, strategy=None, reality=None, control=None)``: the run of that specification
     on the session's bench (once per session), a ``hil.checks.Run``: ``.summary``, ``.path`` (the log),
     ``.signal(name)``, ``.command`` (the ``hil run`` line that repeats it)."""
     bench = request.config.stash[_BENCH]
 
-    def run(scenario, set=None, seed=None, strategy=None, reality=None):
+    def run(scenario, set=None, seed=None, strategy=None, reality=None, control=None):
         runs = request.node.stash.setdefault(_RUNS, [])
         try:
-            result = bench.run(scenario, set, seed, strategy, reality)
+            result = bench.run(scenario, set, seed, strategy, reality, control)
         except Exception as e:
             runs.append(e)
             raise

@@ -84,7 +84,7 @@ def test_limit_judges_any_summary_key_and_fails_on_missing_or_null(log, raw):
     r = limit("t_identified_s", hi=t_id - 0.01, req="ID-1")(log)
     assert not r.passed and r.first == (None, pytest.approx(t_id)) and r.margin == pytest.approx(-0.01)
     assert r.line() == f"[ID-1] t_identified_s = {t_id:.4g} s outside [-inf, {t_id - 0.01:g}] in the run's summary"
-    missing = limit("adhesion_utilisation", lo=0.5)(log)
+    missing = limit("no_such_figure", lo=0.5)(log)
     assert not missing.passed and "not in the run's summary" in missing.reason
     assert limit("identified", lo=1)(log).passed                         # a boolean as 0/1
 

@@ -198,3 +198,18 @@ def test_the_rerun_view_shows_the_true_peak_and_the_torque_against_the_demand(ru
         assert rows.get((entity, "Scalars:scalars")) == n, entity
     v = subprocess.run([rerun_exe(), "rrd", "verify", str(rrd)], capture_output=True, text=True, timeout=120)
     assert v.returncode == 0, v.stderr
+
+
+def test_checks_judge_a_closed_loop_run_with_windows_from_rail_segments(runs):
+    """The control figures are checks (hil.checks.limit) and a rail segment's start is an event; the open-loop
+    run fails the same checks the closed-loop one passes."""
+    from hil.checks import CheckFailed, in_range, limit, require
+
+    checks = (limit("adhesion_utilisation_low", lo=0.9, req="CTL-1"), limit("macro_slip_s", hi=0.0, req="CTL-2"),
+              in_range("/plant/state.creep_speed_kmh", hi=1.8, during=("rail.1", 0.0, 2.0), req="CTL-3"))
+    results = require(runs["identified"][1]["mcap"], *checks)
+    assert all(r.passed for r in results)
+    with pytest.raises(CheckFailed) as e:
+        require(runs["demand"][1]["mcap"], *checks)
+    text = str(e.value)
+    assert "[CTL-1]" in text and "[CTL-2]" in text and "[CTL-3]" in text and "rail.1" in text

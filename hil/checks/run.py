@@ -15,8 +15,9 @@ DBC's, or read from the field name's unit suffix), and for frames the receive wa
 
 Events are times in the run a check's window can start from: ``start`` (0), ``fault``, ``serious``,
 ``detection``, ``identification`` (the summary's ``t_fault_s``, ``t_serious_s``, ``t_detected_s``,
-``t_identified_s``), and any other summary key ``t_NAME_s`` by ``NAME``.  ``None`` when it did not
-happen in this run (no detection, no identification).
+``t_identified_s``), ``rail.N`` (the start of rail segment N, from 0, of a scenario with ``[[rail]]``),
+and any other summary key ``t_NAME_s`` by ``NAME``.  ``None`` when it did not happen in this run (no
+detection, no identification, a segment after the run's end).
 """
 from __future__ import annotations
 
@@ -113,6 +114,8 @@ class Run:
         a name that is no event."""
         if name == "start":
             return 0.0
+        if name.startswith("rail."):
+            return self._rail_start(name)
         key = EVENTS.get(name, name if name in self.summary else f"t_{name}_s")
         if key not in self.summary and key != "t_fault_s":
             known = ["start", *EVENTS] + sorted(k[2:-2] for k in self.summary if k.startswith("t_") and k.endswith("_s"))
@@ -121,6 +124,16 @@ class Run:
         if value is None and key == "t_fault_s":
             value = _scenario_value(self.log, "run", "fault_time_s")
         return None if value is None else float(value)
+
+    def _rail_start(self, name: str) -> float | None:
+        segs = _scenario_table(self.log, "rail") or []
+        n = name.split(".", 1)[1]
+        if not (n.isdigit() and int(n) < len(segs)):
+            raise ConfigError(f"unknown event {name!r}: the run's scenario has "
+                              + (f"rail segments rail.0 .. rail.{len(segs) - 1}" if segs else "no [[rail]] segments"))
+        overrides = _overrides(self.log)
+        start = overrides.get(f"rail.{n}.start_s", segs[int(n)].get("start_s", 0.0))
+        return float(start) if float(start) <= self.duration_s else None
 
     def fault(self) -> str:
         """Why the run ended early (the log's fault or damage), '' for a run that finished."""
@@ -243,6 +256,21 @@ def _summary_of(log) -> dict:
             summary["mode"] = run["mode"]
     summary.setdefault("mcap", log.path)
     return summary
+
+
+def _overrides(log) -> dict:
+    try:
+        return json.loads((log.metadata.get("scenario") or {}).get("overrides") or "{}")
+    except ValueError:
+        return {}
+
+
+def _scenario_table(log, table: str):
+    """A table (or array of tables) of the scenario the log was recorded with, as its TOML text has it."""
+    try:
+        return tomllib.loads((log.metadata.get("scenario") or {}).get("toml", "")).get(table)
+    except (ValueError, AttributeError):
+        return None
 
 
 def _scenario_value(log, table: str, key: str):
