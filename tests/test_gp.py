@@ -266,3 +266,48 @@ def test_below_the_first_bound_the_grown_grid_changes_nothing():
 def test_bad_options_are_refused_by_name(key, value):
     with pytest.raises(ValueError, match=key):
         make_strategy("gp", settings(**{key: value}))
+
+
+def test_a_rail_peaking_just_below_3_kmh_is_confirmed_and_a_held_range_says_open_on_the_bus(tmp_path):
+    """The issue's case, real runs (plant and TCU over the in-process bus): FFCC-a's vehicle with a fault
+    curve peaking at 2.7-2.95 km/h, just below the first bound.  By default ``hil run`` confirms it with
+    a closed 90 % peak-creep interval holding the true peak (before, the interval sat at 3.000 .. 3.000
+    and the run ended unconfirmed).  With the range held at 3 km/h the TCU gives up, and the open flag
+    travels in TcuInterval to ``--json``, into the log's /tcu/identification, and through a replay."""
+    import json
+    import re
+
+    from hil.log.read import read_log
+
+    from .conftest import SCENARIOS, hil
+
+    rng = fresh_rng()
+    peak_creep = rng.uniform(2.7, 2.95)
+    l0, l1, l2, t1, t2 = (float(x) for x in theta_from_phi(np.array([0.15, peak_creep, 0.0, 1.0, 2.0])))
+    text = re.sub(r"\[curves\.fault\].*?\n\n", f"[curves.fault]\nlambda0 = {l0!r}\nlambdas = [{l1!r}, {l2!r}]\n"
+                  f"taus = [{t1!r}, {t2!r}]\n\n", (SCENARIOS / "ffcc_a.toml").read_text(), flags=re.S)
+    scenario = tmp_path / "near3.toml"
+    scenario.write_text(text.replace('name = "ffcc_a"', 'name = "near3"'))
+    runs = {}
+    for name, extra in (("default", []), ("held", ["--set", "identifier.options.gp.peak_creep_cap_kmh=3.0"])):
+        r = hil("run", scenario, "--bus", "inprocess", "--no-rrd", "--json", "--out", tmp_path / name, *extra)
+        assert r.returncode == 0, r.stderr
+        runs[name] = json.loads(r.stdout)
+        s = runs[name]
+        print(f"peak {peak_creep:.3f} km/h, {name}: identified {s['identified']}, peak creep {s['peak_creep_ci']}, "
+              f"open {s['peak_interval_open']}")
+    s = runs["default"]
+    assert s["identified"] and s["peak_interval_open"] is False
+    assert s["peak_creep_ci"][0] <= peak_creep <= s["peak_creep_ci"][1] < 3.75
+    s = runs["held"]
+    assert s["unconfirmed"] and s["peak_interval_open"] is True and s["peak_creep_ci"][1] == 3.0
+    logged = [m for _, _, m in read_log(s["mcap"], topics={"/tcu/identification"}).messages]
+    assert logged[-1].kind == "unconfirmed" and logged[-1].peak_open is True
+    flags = [m.peak_open for m in logged]
+    print("open flags logged:", "".join("o" if f else "c" for f in flags))
+    assert flags[0]        # at the slip's start the rise goes on: the peak lies past the creeps seen
+    assert all(m.peak_creep_ci[1] == 3.0 for m in logged if m.peak_open)      # an open interval ends at the bound
+    rp = hil("replay", s["mcap"], "--json")
+    assert rp.returncode == 0, rp.stderr
+    rs = json.loads(rp.stdout)
+    assert rs["matches_log"] is True and rs["peak_interval_open"] is True and rs["peak_creep_ci"] == s["peak_creep_ci"]
