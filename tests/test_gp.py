@@ -31,6 +31,12 @@ def judged(event, peak_mu, peak_creep_kmh):
     return abs(mu_c / peak_mu - 1) <= 0.03 and abs(creep_c / peak_creep_kmh - 1) <= 0.10
 
 
+def high_peak(rng):
+    """An exponential curve of the paper's form peaking at 3.2-6 km/h (log-uniform), past the first bound."""
+    return np.array([rng.uniform(0.08, 0.2), math.exp(rng.uniform(math.log(3.2), math.log(6.0))), 0.0,
+                     rng.uniform(0.6, 1.0), 2.0])
+
+
 def test_the_filter_equals_the_batch_gaussian_posterior():
     """The curve values' posterior after a few samples, by the strategy's Kalman filter, against the
     same linear-Gaussian model conditioned in one go here: x = (omega_0, w_1..w_K, m), independent
@@ -122,12 +128,19 @@ def test_a_flat_top_of_another_form_is_not_confirmed_wrongly():
     assert covered >= 3
 
 
-def test_compiled_and_numpy_paths_agree():
+@pytest.mark.parametrize("peak", ["below the first bound", "past it"])
+def test_compiled_and_numpy_paths_agree(peak):
     """identifier/kernels.py's gp_update and gp_peak against the strategy's numpy reference on the
-    same slip: the same posterior, the same events and intervals."""
+    same slip: the same posterior, the same events and intervals, open or closed alike, and (a peak
+    past 3 km/h) the same grown range."""
     rng = fresh_rng()
-    phi = np.array([rng.uniform(0.08, 0.2), rng.uniform(0.8, 1.6), 0.0, rng.uniform(0.6, 1.0), 2.0])
-    pre, samples = slip(curve(theta_from_phi(phi)), phi[0] * 1.06, rng, creep0_kmh=0.3 * phi[1])
+    if peak == "past it":
+        phi = high_peak(rng)
+        pre, samples = slip(curve(theta_from_phi(phi)), phi[0] * 1.06, rng, creep0_kmh=0.3 * phi[1],
+                            max_creep_kmh=2.5 * phi[1])
+    else:
+        phi = np.array([rng.uniform(0.08, 0.2), rng.uniform(0.8, 1.6), 0.0, rng.uniform(0.6, 1.0), 2.0])
+        pre, samples = slip(curve(theta_from_phi(phi)), phi[0] * 1.06, rng, creep0_kmh=0.3 * phi[1])
     runs = []
     for compiled in (True, False):
         strat = make_strategy("gp", settings(compiled=compiled), seed=7)
@@ -135,6 +148,8 @@ def test_compiled_and_numpy_paths_agree():
         runs.append((strat, run(strat, pre, samples)))
     (a, ev_a), (b, ev_b) = runs
     assert [e.kind for e in ev_a] == [e.kind for e in ev_b] and ev_a[-1].step == ev_b[-1].step
+    assert [e.peak_open for e in ev_a] == [e.peak_open for e in ev_b] and a.bound_kmh == b.bound_kmh
+    assert (a.bound_kmh > 3.0) == (peak == "past it")
     np.testing.assert_allclose(a.z, b.z, rtol=1e-10, atol=1e-12)
     np.testing.assert_allclose(a.P, b.P, rtol=1e-8, atol=1e-14)
     # rounding (the Cholesky factor's, the sums' order) moves a parabola's vertex by ~1e-8 relative;
@@ -188,12 +203,6 @@ def test_the_process_noise_follows_the_slope():
     creep_noise = 3.6 * RADIUS / GEAR * sigma_y
     expected = (PERIOD_S * TORQUE_PER_MU / INERTIA) ** 2 * (model_mu_std ** 2 + slope ** 2 * creep_noise ** 2 / 2)
     assert abs(strat.q_last / expected - 1) < 1e-6
-
-
-def high_peak(rng):
-    """An exponential curve of the paper's form peaking at 3.2-6 km/h (log-uniform), past the first bound."""
-    return np.array([rng.uniform(0.08, 0.2), math.exp(rng.uniform(math.log(3.2), math.log(6.0))), 0.0,
-                     rng.uniform(0.6, 1.0), 2.0])
 
 
 def test_peaks_past_the_first_bound_are_followed_and_confirmed_right():
