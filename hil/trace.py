@@ -62,7 +62,8 @@ class Trace:
         """Attach an ``IntervalReport`` to its pending result; False when none matches."""
         for i, e in enumerate(self._pending):
             if (e.step, e.correction, e.kind) == (r.step, r.correction, r.kind):
-                self._pending[i] = dataclasses.replace(e, peak_mu_ci=r.peak_mu_ci, peak_creep_ci=r.peak_creep_ci)
+                self._pending[i] = dataclasses.replace(e, peak_mu_ci=r.peak_mu_ci, peak_creep_ci=r.peak_creep_ci,
+                                                       peak_open=r.peak_open)
                 return True
         return False
 
@@ -164,6 +165,8 @@ def summarise(*, scenario, strategy: str, seed: int, bus: str, tracker, events, 
         # the TCU's own 90 % intervals of the peak for that curve ([lo, hi]; null when it gave none)
         "peak_mu_ci": _interval(last.peak_mu_ci) if last else None,
         "peak_creep_ci": _interval(last.peak_creep_ci) if last else None,
+        # true: those intervals are open, their upper ends the TCU's working range (they never count as covering)
+        "peak_interval_open": bool(last.peak_open) if last and _interval(last.peak_creep_ci) else None,
         "unconfirmed": bool(events) and events[-1].kind == "unconfirmed",
         "true_params": list(truth.params) if hasattr(truth, "params") else None,
         "corrections": len(corrections),

@@ -55,6 +55,9 @@ class IdentificationEvent:
     samples: int               # samples used so far
     peak_mu_ci: tuple[float, float] = NAN_INTERVAL        # 90 % interval of the curve's peak mu (NaN: none)
     peak_creep_ci: tuple[float, float] = NAN_INTERVAL     # 90 % interval of its peak creep, km/h
+    # open: the peak may lie past the creeps seen, so both intervals' upper ends are the strategy's working
+    # range, not the data (an open interval never counts as covering the truth)
+    peak_open: bool = False
 
 
 @dataclass(frozen=True)

@@ -95,6 +95,34 @@ def test_intervals_and_samples_round_trip_and_pair_with_their_result(codec, ffcc
     assert trace.events[0].peak_mu_ci == (0.141, 0.163) and trace.events[0].peak_creep_ci == (1.05, 1.52)
 
 
+def test_an_open_interval_crosses_the_bus_flagged(codec, ffcc_a):
+    """IntervalOpen (TcuInterval's byte 40): an interval whose upper ends are the TCU's working range
+    arrives flagged, through the compiled layout and through cantools' decoding of the DBC, with and
+    without authentication, and the trace keeps the flag on the event; a flag other than 0 or 1 is refused."""
+    from hil.bus.frames import INTERVAL_ID
+    from hil.trace import Trace
+
+    key = bytes(range(16))
+    tcu, plant = FrameCodec(PERIOD, auth=key), FrameCodec(PERIOD, auth=key)
+    for open_ in (False, True):
+        e = IdentificationEvent(640, 0.64, "correction", 12, (0.0, 0.6, -0.6, -0.5, -1.1), 0.5, 140,
+                                (0.1483, 0.1502), (2.77, 3.0), peak_open=open_)
+        for sender, receiver in ((codec, codec), (tcu, plant)):
+            msg = sender.interval(e)
+            assert len(msg.data) == 64 and msg.data[40] == int(open_)
+            assert codec.db.decode_message(INTERVAL_ID, bytes(msg.data), decode_choices=False)["IntervalOpen"] == int(open_)
+            frame, status = receiver.classify(msg)
+            assert status == "ok" and frame.value.peak_open is open_
+            assert frame.value.peak_creep_ci == (2.77, 3.0)
+        trace = Trace(ffcc_a)
+        trace.result(codec.classify(codec.result(e))[0].value)
+        assert trace.interval(codec.classify(codec.interval(e))[0].value)
+        assert trace.settle() == [e] and trace.events[0].peak_open is open_
+    data = bytearray(codec.interval(e).data)
+    data[40] = 2
+    assert codec.classify(fd(INTERVAL_ID, data)) == (None, "out_of_range:IntervalOpen")
+
+
 def test_result_frame_carries_inf_and_nan_scores(codec):
     e = IdentificationEvent(9, 9 * PERIOD, "confirmed", 3, (0.1, 0.2, 0.3, -0.4, -0.5), math.nan, 40)
     got = codec.classify(codec.result(e))[0].value

@@ -81,6 +81,22 @@ def test_logs_recorded_before_the_redesign_replay_to_the_same_identification(nam
     assert s["rt_percent"] == pytest.approx(34.667, abs=0.01)
 
 
+def test_a_gp_log_recorded_before_the_range_followed_the_data_replays_the_same():
+    """tests/data/ffcc_a-gp-1-a2f9a38.mcap: ``hil run scenarios/ffcc_a.toml --seed 1 --set
+    run.fault_time_s=0.15 --set run.duration_s=0.3`` by commit a2f9a38, whose ``gp`` gave up at a fixed
+    3 km/h and whose TcuInterval had no IntervalOpen (48 bytes).  FFCC-a peaks at 1.27 km/h, below that
+    bound, so the replay (the range that follows the data, the grid grown past 4 km/h) must give the
+    identification it logged, with closed intervals."""
+    r = hil("replay", ROOT / "tests" / "data" / "ffcc_a-gp-1-a2f9a38.mcap", "--json")
+    assert r.returncode == 0, r.stderr
+    s = json.loads(r.stdout)
+    assert s["strategy"] == "gp" and s["seed"] == 1 and s["matches_log"] is True
+    assert s["identified"] and s["t_identified_s"] == s["logged"]["t_identified_s"] == 0.26
+    assert s["corrections"] == s["logged"]["corrections"] == 21
+    assert s["params"] == pytest.approx(s["logged"]["params"], rel=1e-9)
+    assert s["peak_interval_open"] is False and 1.2 < s["peak_creep_ci"][0] < s["peak_creep_ci"][1] < 1.35
+
+
 def test_bad_strategy_is_one_line(runs):
     _, path = runs["gp"]
     r = hil("replay", str(path), "--strategy", "nope")

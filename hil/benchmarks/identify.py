@@ -373,8 +373,8 @@ def terminal_table(results: dict, cases: list[str], n_seeds: int) -> str:
     notes = terminal.wrap(
         f"Medians over {n_seeds} seeds. correct: confirmed with peak μ err <= {TOL_PEAK_MU_PERCENT:g} % and peak "
         f"creep err <= {TOL_PEAK_CREEP_PERCENT:g} % of the true curve's; wrong: confirmed otherwise; covers: the "
-        "strategy's 90 % intervals hold the true peak. Every column (Table 3, costs) and the notes: --markdown; "
-        "every figure: --json.")
+        "strategy's 90 % intervals hold the true peak (an open one never does). Every column (Table 3, costs) "
+        "and the notes: --markdown; every figure: --json.")
     return terminal.columns(head, rows) + "\n\n" + notes
 
 
@@ -404,7 +404,8 @@ def table(results: dict, cases: list[str], n_seeds: int) -> str:
              f"correct = confirmed with peak μ err <= {TOL_PEAK_MU_PERCENT:g} % and peak creep err <= "
              f"{TOL_PEAK_CREEP_PERCENT:g} % of the true curve's, as % of seeds; wrong confirmations: confirmed but not "
              "correct; 90 % CI covers: the strategy's own intervals at confirmation (else the last before the serious "
-             "stage) hold the true peak, as % of the seeds where it published any. R² obs. model: observer-aware strategies only (*_oa), R² of μ̂ against the "
+             "stage) hold the true peak, as % of the seeds where it published any (an open interval, its upper end the "
+             "strategy's range and not the data's, never does). R² obs. model: observer-aware strategies only (*_oa), R² of μ̂ against the "
              "observer's predicted output μ̂_pred(θ) for the identified θ (and, in brackets, for the true curve). Cost: wall time of TractionIdentifier.on_sensor per reading that fed a "
              "sample to the strategy (median; p99, also as % of the sampling period); 'p99 between windows' leaves "
              "out the readings that closed a window (the NLLS fits and the corrections). Monitoring cost: the same "
@@ -680,7 +681,8 @@ def family_markdown(args, seed: int, results: dict, oracle_summary: dict, load_b
              f"Recommended strategy: `{recommended()}`.  Verdicts per draw (hil/benchmarks/judge.py): *correct* = "
              f"confirmed with peak mu within {TOL_PEAK_MU_PERCENT:g} % and peak creep within "
              f"{TOL_PEAK_CREEP_PERCENT:g} % of the truth; *wrong* = confirmed otherwise; coverage = the truth inside "
-             "the 90 % intervals at the confirmation (else the last published before the serious stage); RT with "
+             "the 90 % intervals at the confirmation (else the last published before the serious stage), an open "
+             "interval never covering; RT with "
              "unconfirmed draws counted as infinite.", "",
              judge_table(results, True, True), "",
              *law_lines(results), "",

@@ -11,7 +11,8 @@ Per draw (``judge``):
   wrong peak;
 - coverage: whether the 90 % intervals the strategy published hold the true peak mu and peak creep —
   those at its confirmation, else the last ones it published before the true serious stage (None
-  when it published none);
+  when it published none); an open interval (``IdentificationEvent.peak_open``: its upper ends are
+  the strategy's working range, not the data's) never covers;
 - ``ci_width_*_percent``: the full width of those intervals, in percent of the truth;
 - RT: (t_confirmed − t_fault) / T_det in percent, infinite when not confirmed.
 
@@ -60,13 +61,15 @@ def judge(summary: dict, events: list, true_peak_mu: float, true_peak_creep_kmh:
            else math.inf,
            "covers_peak_mu": None, "covers_peak_creep": None,
            "ci_width_peak_mu_percent": None, "ci_width_peak_creep_percent": None,
-           "judged_ci_kind": None}
+           "judged_ci_kind": None, "judged_ci_open": None}
     if judged is not None:
         (m0, m1), (c0, c1) = judged.peak_mu_ci, judged.peak_creep_ci
-        out.update(covers_peak_mu=bool(m0 <= true_peak_mu <= m1), covers_peak_creep=bool(c0 <= true_peak_creep_kmh <= c1),
+        closed = not judged.peak_open
+        out.update(covers_peak_mu=bool(closed and m0 <= true_peak_mu <= m1),
+                   covers_peak_creep=bool(closed and c0 <= true_peak_creep_kmh <= c1),
                    ci_width_peak_mu_percent=(m1 - m0) / abs(true_peak_mu) * 100.0,
                    ci_width_peak_creep_percent=(c1 - c0) / abs(true_peak_creep_kmh) * 100.0,
-                   judged_ci_kind=judged.kind)
+                   judged_ci_kind=judged.kind, judged_ci_open=not closed)
     return out
 
 

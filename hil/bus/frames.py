@@ -79,6 +79,7 @@ class IntervalReport:
     level_percent: int
     peak_mu_ci: tuple[float, float]
     peak_creep_ci: tuple[float, float]
+    peak_open: bool = False      # the upper ends are the TCU's working range, not the data's (IdentificationEvent)
 
 
 @dataclass(frozen=True)
@@ -230,7 +231,7 @@ class FrameCodec:
             return None            # beyond the DBC's ranges: sent as no interval rather than as a frame to reject
         return self._msg(INTERVAL_ID, {"IntervalStep": e.step, "IntervalCorrection": e.correction,
                                        "IntervalKind": KINDS.index(e.kind), "IntervalLevel": INTERVAL_LEVEL_PERCENT,
-                                       **signals})
+                                       **signals, "IntervalOpen": int(bool(e.peak_open))})
 
     def sample(self, r: SampleReport) -> can.Message:
         return self._msg(SAMPLE_ID, {"SampleStep": r.step, "SampleIndex": min(r.index, 65535),
@@ -321,7 +322,7 @@ class FrameCodec:
         if fid == INTERVAL_ID:
             return IntervalReport(int(v["IntervalStep"]), int(v["IntervalCorrection"]), KINDS[int(v["IntervalKind"])],
                                   int(v["IntervalLevel"]), (float(v["PeakMuLo"]), float(v["PeakMuHi"])),
-                                  (float(v["PeakCreepLo"]), float(v["PeakCreepHi"])))
+                                  (float(v["PeakCreepLo"]), float(v["PeakCreepHi"])), bool(v["IntervalOpen"]))
         if fid == SAMPLE_ID:
             return SampleReport(int(v["SampleStep"]), int(v["SampleIndex"]), int(v["DetectedStep"]),
                                 float(v["SampleCreep"]), float(v["SampleMu"]))

@@ -134,8 +134,9 @@ def print_summary(s: dict, file=sys.stdout, heading: str | None = None) -> None:
         print("  params (l0, l1, l2, t1, t2): " + ", ".join(f"{x:.5g}" for x in s["params"]), file=file)
         if s.get("peak_mu_ci") and s.get("peak_creep_ci"):
             (m0, m1), (c0, c1) = s["peak_mu_ci"], s["peak_creep_ci"]
-            print(f"  how sure (90 % intervals): peak mu {m0:.4f} .. {m1:.4f}, peak creep {c0:.3f} .. {c1:.3f} km/h",
-                  file=file)
+            print(f"  how sure (90 % intervals): peak mu {m0:.4f} .. {m1:.4f}, peak creep {c0:.3f} .. {c1:.3f} km/h"
+                  + (" (open: the peak may lie past the creeps seen; the upper ends are the TCU's range)"
+                     if s.get("peak_interval_open") else ""), file=file)
         print(f"  fit: MSE {_fmt(s['mse'], '.3e')}  RMSE {_fmt(s['rmse'], '.3e')}  MAE {_fmt(s['mae'], '.3e')}  "
               f"R2 {_fmt(s['r2'], '.5f')}", file=file)
         print(f"  vs true curve: peak mu error {_fmt(s['peak_mu_err_percent'], '.2f')} %, peak creep error "

@@ -4,9 +4,10 @@ recommended strategy: ``bayes``'s exponential form places the peak by its shape,
 another form confirms wrong peaks; docs/design/identification.md measures both).
 
 State z = (omega, m) with m the curve's values at G creeps x_j, log-spaced over [``creep_min_kmh``,
-``creep_max_kmh``]; mu(v) = h(v)^T m, h linear interpolation in log creep (below the first point: the
-first value).  The wheelset (eq. A) and the sensor, with T_e held over the period and the trapezoid
-over the creep's change (as ``bayes``, identifier/speed_likelihood.py):
+``creep_max_kmh``] (``grid_points`` of them) and on at the same step to ``peak_creep_cap_kmh`` (the
+working range's cap, below); mu(v) = h(v)^T m, h linear interpolation in log creep (below the first
+point: the first value).  The wheelset (eq. A) and the sensor, with T_e held over the period and the
+trapezoid over the creep's change (as ``bayes``, identifier/speed_likelihood.py):
 
     omega(k+1) = omega(k) + a (T_e(k) - c g(k)^T m) + w(k),   g(k) = (h(v_s(k)) + h(v_s(k+1))) / 2,
     m(k+1) = m(k),   a = dt / J,   w ~ N(0, q),   y(k) = omega(k) + n(k),   n ~ N(0, sigma_y^2)
@@ -30,14 +31,26 @@ model-error allowance plus the creep's noise carried into mu by the posterior me
 
 Peak: ``draws`` functions from N(m^, P_mm); each one's maximum over the creeps seen so far (a fault
 curve has one peak: a maximum inside the seen range with a fall after it is the peak; a maximum at
-the newest creep says only that the peak lies beyond it, and counts as the prior's highest peak
-creep).  Intervals: quantiles of the draws' peak mu and peak creep.  Confirmation: the interval at
-``confirm_level`` within ``tol_peak_mu`` / ``tol_peak_creep`` of its median (speed_model.within_tolerance),
-checked every ``check_samples`` samples.  ``unconfirmed`` when the creep passes the prior's highest
-peak creep or after ``max_samples``.  The published theta is the exponential curve through the
-median peak whose shape is nearest the posterior mean where the data were (``fit_shape``, on a
-sample that draws no peak): the peak and its intervals are what this strategy states; the rest of
-the curve is a convenience.
+the newest creep says only that the peak lies beyond it, and counts as the working range's bound B).
+Intervals: quantiles of the draws' peak mu and peak creep.  Confirmation: the interval at
+``confirm_level`` within ``tol_peak_mu`` / ``tol_peak_creep`` of its median (speed_model.within_tolerance)
+and below B, checked every ``check_samples`` samples.  The published theta is the exponential curve
+through the median peak whose shape is nearest the posterior mean where the data were (``fit_shape``,
+on a sample that draws no peak): the peak and its intervals are what this strategy states; the rest
+of the curve is a convenience.
+
+The working range follows the data.  B starts at ``upper_peak_creep_kmh``.  When the creep passes B
+while more than (1 - ``confirm_level``) / 2 of the draws still put the peak at the newest creep (the
+rise may go on: the confirmation's own interval cannot close below B), B grows by the factor
+``range_growth`` (as often as the creep needs) up to ``peak_creep_cap_kmh``, and the sample budget
+``max_samples`` with it, times B / ``upper_peak_creep_kmh`` (a slip takes about as long per km/h of
+creep).  ``unconfirmed`` when the creep passes B with the fall seen (the peak is behind it: the serious
+stage), or passes the cap, or after the budget.  Below ``upper_peak_creep_kmh`` this is the fixed bound
+it was: no sample interpolates on the grid's points past ``creep_max_kmh`` there, so the filter's
+values at the first ``grid_points`` creeps and the peak's draws are the same numbers.  An interval is
+*open* (``IdentificationEvent.peak_open``) when more than (1 - ``report_level``) / 2 of the draws put
+the peak at the newest creep: its upper ends (peak creep B, and those draws' peak mu, a value the
+curve passes on its rise) are then the range's, not the data's, and it never counts as covering.
 
 The numpy code here is the reference; ``compiled`` (default) runs the filter step, the peak draws
 with their quantiles and the published curve's shape search by their twins in identifier/kernels.py
@@ -82,7 +95,9 @@ DEFAULTS = {
     "grid_points": 64,                   # G, the creeps the curve is known at
     "creep_min_kmh": 0.02,               # the grid's first and last creep (log-spaced between)
     "creep_max_kmh": 4.0,
-    "upper_peak_creep_kmh": 3.0,         # the highest peak creep the TCU allows (unconfirmed past it)
+    "upper_peak_creep_kmh": 3.0,         # the working range's first bound B on the peak creep
+    "peak_creep_cap_kmh": 10.0,          # the highest B may grow to (the grid continues past creep_max_kmh to it)
+    "range_growth": 1.25,                # B's factor each time the data show the rise continuing past it
     "prior_mu": 0.15,                    # the prior's mean and standard deviation of mu at every creep
     "prior_mu_std": 0.1,
     "length_log": 1.4,                   # the prior's smoothness: a correlation length in ln(creep)
@@ -94,7 +109,7 @@ DEFAULTS = {
     "tol_peak_creep": 0.10,
     "check_samples": 5,                  # the peak is drawn (and an event published) every this many samples
     "min_samples": 5,                    # no confirmation before this many
-    "max_samples": 400,                  # unconfirmed after this many
+    "max_samples": 400,                  # unconfirmed after this many (times B / upper_peak_creep_kmh)
     "baseline_readings": 400,            # readings before the slip for sigma_y and the train-speed line
     "sigma_y_fallback": 0.005,           # rad/s, when there is no baseline
     "compiled": True,                    # the filter step and the peak draws by identifier/kernels.py; False: numpy
@@ -121,8 +136,8 @@ class GpStrategy(SpeedModelStrategy):
         veh = settings.vehicle
         self.inertia = veh.equivalent_inertia_kgm2
         self.c = veh.torque_per_mu_nm
-        g = int(o["grid_points"])
-        self.log_x = np.linspace(math.log(float(o["creep_min_kmh"])), math.log(float(o["creep_max_kmh"])), g)
+        self.log_x = self.grid_log_creeps(o)
+        g = self.log_x.size
         self._log_x_list = self.log_x.tolist()        # for bisect: a scalar search without numpy's overhead
         d = self.log_x[:, None] - self.log_x[None, :]
         self.prior_cov = float(o["prior_mu_std"]) ** 2 * np.exp(-0.5 * (d / float(o["length_log"])) ** 2)
@@ -134,6 +149,9 @@ class GpStrategy(SpeedModelStrategy):
         if self._compiled:
             load_kernels().warm_up()
         conf, rep = float(o["confirm_level"]), float(o["report_level"])
+        self.bound_kmh = float(o["upper_peak_creep_kmh"])     # B, the working range's bound on the peak creep
+        self.open_draws = 0                   # of the last peak draws, those whose maximum is the newest creep
+        self.max_samples = int(o["max_samples"])     # the sample budget (grows with B)
         self._levels = np.array([0.5 * (1 - conf), 0.5 * (1 - rep), 0.5, 0.5 * (1 + rep), 0.5 * (1 + conf)])
         self._row0 = np.empty(g + 1)
         self._scratch = (np.empty((g, g)), np.empty((g, g)), np.empty((g, int(o["draws"]))))  # root, cov, f: gp_peak
@@ -148,6 +166,17 @@ class GpStrategy(SpeedModelStrategy):
         self.seen_lo = self.seen_hi = math.nan
         self.peak_mu_ci = self.peak_creep_ci = (math.nan, math.nan)
 
+    @staticmethod
+    def grid_log_creeps(o: dict) -> np.ndarray:
+        """ln x_j: ``grid_points`` log-spaced over [``creep_min_kmh``, ``creep_max_kmh``], then on at
+        the same step until ``peak_creep_cap_kmh`` is inside (the first ``grid_points`` are the same
+        numbers whatever the cap)."""
+        log_x = np.linspace(math.log(float(o["creep_min_kmh"])), math.log(float(o["creep_max_kmh"])),
+                            int(o["grid_points"]))
+        step = log_x[-1] - log_x[-2]
+        extra = max(0, math.ceil((math.log(float(o["peak_creep_cap_kmh"])) - log_x[-1]) / step - 1e-9))
+        return np.concatenate([log_x, log_x[-1] + step * np.arange(1, extra + 1)])
+
     def _check(self, o: dict) -> None:
         """Bad options are refused by name, before anything is built on them."""
         def need(ok: bool, key: str, what: str) -> None:
@@ -156,8 +185,8 @@ class GpStrategy(SpeedModelStrategy):
         for key, low in (("grid_points", 8), ("draws", 50), ("check_samples", 1), ("min_samples", 1),
                          ("max_samples", 1), ("baseline_readings", 2)):
             need(isinstance(o[key], int) and not isinstance(o[key], bool) and o[key] >= low, key, f"an integer >= {low}")
-        for key in ("creep_min_kmh", "creep_max_kmh", "upper_peak_creep_kmh", "prior_mu_std", "length_log",
-                    "tol_peak_mu", "tol_peak_creep", "sigma_y_fallback"):
+        for key in ("creep_min_kmh", "creep_max_kmh", "upper_peak_creep_kmh", "peak_creep_cap_kmh", "prior_mu_std",
+                    "length_log", "tol_peak_mu", "tol_peak_creep", "sigma_y_fallback"):
             need(isinstance(o[key], (int, float)) and math.isfinite(o[key]) and o[key] > 0, key, "a number > 0")
         for key in ("prior_mu", "model_mu_std"):
             need(isinstance(o[key], (int, float)) and math.isfinite(o[key]) and o[key] >= 0, key, "a number >= 0")
@@ -166,6 +195,10 @@ class GpStrategy(SpeedModelStrategy):
         need(o["creep_max_kmh"] > o["creep_min_kmh"], "creep_max_kmh", f"above creep_min_kmh ({o['creep_min_kmh']})")
         need(o["creep_min_kmh"] < o["upper_peak_creep_kmh"] <= o["creep_max_kmh"], "upper_peak_creep_kmh",
              "within the grid's creeps")
+        need(o["peak_creep_cap_kmh"] >= o["upper_peak_creep_kmh"], "peak_creep_cap_kmh",
+             f"at least upper_peak_creep_kmh ({o['upper_peak_creep_kmh']})")
+        need(isinstance(o["range_growth"], (int, float)) and math.isfinite(o["range_growth"]) and o["range_growth"] > 1,
+             "range_growth", "a number > 1")
 
     def _warm_up(self) -> None:
         """Run the peak's and the published curve's code once on the prior, before the fault: their
@@ -306,24 +339,39 @@ class GpStrategy(SpeedModelStrategy):
                 off = np.clip(np.where((j == jj) & (denom < 0), 0.5 * (fl - fr) / denom, 0.0), -0.5, 0.5)
         step = x[1] - x[0] if x.size > 1 else 0.0
         creep = np.exp(x[j] + off * step)
-        creep[j == last_pos] = float(self.opts["upper_peak_creep_kmh"])     # the peak lies further on
+        creep[j == last_pos] = self.bound_kmh     # the peak lies further on
         return peak_mu, creep
 
     def peak_quantiles(self, qs: np.ndarray) -> np.ndarray:
-        """(len(qs), 2): the quantiles ``qs`` of the draws' peak mu and peak creep."""
+        """(len(qs), 2): the quantiles ``qs`` of the draws' peak mu and peak creep; ``open_draws`` <-
+        how many draws put the peak at the newest creep (their peak creep is B)."""
         if not self._compiled:
-            return np.quantile(np.vstack(self.peak_draws()), qs, axis=1)
+            draws = np.vstack(self.peak_draws())
+            self.open_draws = int(np.count_nonzero(draws[1] == self.bound_kmh))
+            return np.quantile(draws, qs, axis=1)
         out = np.empty((qs.size, 2))
         load_kernels().gp_peak(self.z, self.P, *self._seen(), PLAUSIBLE_SIGMAS, self.normals, self.log_x,
-                               float(self.opts["upper_peak_creep_kmh"]), qs, *self._scratch, self._draw_mu,
-                               self._draw_creep, out)
+                               self.bound_kmh, qs, *self._scratch, self._draw_mu, self._draw_creep, out)
+        self.open_draws = int(np.count_nonzero(self._draw_creep == self.bound_kmh))
         return out
+
+    def _open_beyond(self, level: float) -> bool:
+        """The last draws' interval at ``level`` reaches past the creeps seen: more than (1 - level) / 2
+        of them put the peak at the newest creep."""
+        return self.open_draws > 0.5 * (1.0 - level) * self._draw_creep.size
 
     def _evaluate(self, s: Sample) -> list[IdentificationEvent]:
         o = self.opts
         n = len(self._v)
         check = n % int(o["check_samples"]) == 0
-        ends = s.creep_speed_kmh > float(o["upper_peak_creep_kmh"]) or n >= int(o["max_samples"])
+        cap = float(o["peak_creep_cap_kmh"])
+        if s.creep_speed_kmh > self.bound_kmh and self.bound_kmh < cap:
+            self.peak_quantiles(self._levels)          # does the rise continue past B? (open_draws)
+            if self._open_beyond(float(o["confirm_level"])):
+                while s.creep_speed_kmh > self.bound_kmh and self.bound_kmh < cap:
+                    self.bound_kmh = min(self.bound_kmh * float(o["range_growth"]), cap)
+                self.max_samples = round(int(o["max_samples"]) * self.bound_kmh / float(o["upper_peak_creep_kmh"]))
+        ends = s.creep_speed_kmh > self.bound_kmh or n >= self.max_samples
         if n % int(o["check_samples"]) == SHAPE_SAMPLE and self.theta_peak is not None and not ends:
             self._shape = self.fit_shape(*self.theta_peak)     # on a sample that draws no peak
         if not (check or ends):
@@ -333,7 +381,7 @@ class GpStrategy(SpeedModelStrategy):
         (mu_lo, creep_lo), _, (mu_mid, creep_mid), _, (mu_hi, creep_hi) = q
         if (check and n >= int(o["min_samples"]) and within_tolerance(mu_lo, mu_mid, mu_hi, float(o["tol_peak_mu"]))
                 and within_tolerance(creep_lo, creep_mid, creep_hi, float(o["tol_peak_creep"]))
-                and creep_hi < float(o["upper_peak_creep_kmh"])):
+                and creep_hi < self.bound_kmh):
             return [self._publish(s, "confirmed", q)]
         return [self._publish(s, "unconfirmed" if ends else "correction", q)]
 
@@ -344,7 +392,8 @@ class GpStrategy(SpeedModelStrategy):
         self.theta_peak = (float(mu_mid), float(creep_mid))
         mu0, a, r = self._shape
         theta = theta_from_phi_floats((float(mu_mid), float(creep_mid), min(mu0, 0.5 * float(mu_mid)), a, r))
-        return self.event(s, kind, theta, (float(mu_lo), float(mu_hi)), (float(creep_lo), float(creep_hi)))
+        return self.event(s, kind, theta, (float(mu_lo), float(mu_hi)), (float(creep_lo), float(creep_hi)),
+                          peak_open=self._open_beyond(float(self.opts["report_level"])))
 
     def fit_shape(self, peak_mu: float, peak_creep_kmh: float) -> tuple[float, float, float]:
         """(mu(0), a, r) of identifier/prior.py's form, on SHAPE_GRID, whose curve through the peak

@@ -96,9 +96,11 @@ class SpeedModelStrategy(Strategy):
             raise ValueError(f"{self.name}: unknown option(s) {', '.join(sorted(unknown))}")
         return {**self.defaults, **self.options}
 
-    def event(self, s: Sample, kind: str, theta, peak_mu_ci, peak_creep_ci) -> IdentificationEvent:
-        """The event of ``kind`` (correction, confirmed, unconfirmed) with the curve and its intervals;
-        the strategy's state follows it (``confirmed``, ``gave_up``, ``corrections``)."""
+    def event(self, s: Sample, kind: str, theta, peak_mu_ci, peak_creep_ci, peak_open: bool = False
+              ) -> IdentificationEvent:
+        """The event of ``kind`` (correction, confirmed, unconfirmed) with the curve and its intervals
+        (``peak_open``: their upper ends are the working range's, not the data's); the strategy's state
+        follows it (``confirmed``, ``gave_up``, ``corrections``)."""
         self.theta, self.peak_mu_ci, self.peak_creep_ci = np.asarray(theta, float), peak_mu_ci, peak_creep_ci
         if kind == "confirmed":
             self.confirmed = True
@@ -107,7 +109,7 @@ class SpeedModelStrategy(Strategy):
         else:
             self.corrections += 1
         return IdentificationEvent(s.step, s.t_s, kind, self.corrections, tuple(float(x) for x in self.theta),
-                                   math.nan, len(self._v), self.peak_mu_ci, self.peak_creep_ci)
+                                   math.nan, len(self._v), self.peak_mu_ci, self.peak_creep_ci, bool(peak_open))
 
     def on_reading(self, step: int, motor_speed_rad_s: float, train_speed_ms: float) -> None:
         """Every reading before the slip: the baseline of the noise and of the train speed."""
