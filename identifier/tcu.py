@@ -154,7 +154,8 @@ class TractionIdentifier:
         confirmed = False
         if e is not None:
             if all(math.isfinite(x) for x in e.peak_creep_ci):
-                ci = tuple(e.peak_creep_ci)
+                # an open interval's upper end is the strategy's range, not the data's: no ceiling
+                ci = (e.peak_creep_ci[0], math.inf if getattr(e, "peak_open", False) else e.peak_creep_ci[1])
             confirmed = e.kind in ("confirmed", "unconfirmed")
             if confirmed and len(e.params) >= 3:
                 peak_creep = curve_model.peak(e.params)[0]
