@@ -515,12 +515,7 @@ def _control(path, table, demand, segmented: bool) -> ControlSettings:
     options = table.get("options", {})
     if not isinstance(options, dict):
         raise _fail(path, "[control.options]", "must be a table of tables, one per law")
-    for name, opts in options.items():
-        where = f"[control.options.{name}]"
-        if name not in LAWS:
-            raise _fail(path, where, f"unknown control law (known: {', '.join(LAWS)})")
-        if not isinstance(opts, dict):
-            raise _fail(path, where, "must be a table")
+    for name, opts, where in _named_tables(path, "control.options", options, LAWS, "control law"):
         try:
             check_options(name, opts)
         except ValueError as e:
@@ -700,17 +695,24 @@ def parse_set(items) -> dict:
     return out
 
 
+def _named_tables(path, table: str, tables: dict, known, what: str):
+    """(name, its table, where) for each ``[TABLE.NAME]`` of ``tables``; one line when a name is not among
+    ``known`` or its value is no table."""
+    for name, opts in tables.items():
+        where = f"[{table}.{name}]"
+        if name not in known:
+            raise _fail(path, where, f"unknown {what} (known: {', '.join(known)})")
+        if not isinstance(opts, dict):
+            raise _fail(path, where, "must be a table")
+        yield name, opts, where
+
+
 def _check_strategy_options(path, scenario) -> None:
     """Build each strategy named in [identifier.options.NAME] once, so a bad option fails at load."""
     from identifier import STRATEGIES
 
     options = scenario.identifier.get("options", {})
-    for name, opts in options.items():
-        where = f"[identifier.options.{name}]"
-        if name not in STRATEGIES:
-            raise _fail(path, where, f"unknown strategy (known: {', '.join(STRATEGIES)})")
-        if not isinstance(opts, dict):
-            raise _fail(path, where, "must be a table")
+    for name, opts, where in _named_tables(path, "identifier.options", options, STRATEGIES, "strategy"):
         known = strategy_option_keys(STRATEGIES[name])
         for key, value in opts.items():
             if key not in known:
