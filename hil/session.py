@@ -407,7 +407,7 @@ class Session:
                    **(node.counters() if node else {}),
                    **(timing.summary(node.late_commands) if timing else {}),
                    "control": "external" if tcu.transport == "external" else self.scenario.control.law,
-                   **(node.rig.truth.metrics() if node else {}), **extra}))
+                   **(node.rig.truth.metrics(self.trace.events) if node else {}), **extra}))
 
     def finish(self, timing, wall_s: float, verdict: dict | None = None) -> dict:
         """After the loop (its ``Timing`` and wall seconds): the TCU told the run is over and its last

@@ -17,6 +17,10 @@ turns such arrays (from a run, or read back from a log's ``/plant/state`` and ``
     ripple: std / mean of the applied torque in each steady stretch (a rail segment, from ``AFTER_CHANGE_S``
         after its change, where the demand does not move), in percent; the largest over stretches
     traction energy = sum(F_x v_t T), distance = sum(v_t T)
+    per drop (``drop_figures``): the identification the TCU confirmed after it (its first confirmed event
+        between the drop and the next change), RT = (t_identified - t_drop) / T_det with T_det the time from the
+        drop to the first step the creep crossed the current peak creep (none: no RT, the controller kept the
+        wheel on the stable side), and the confirmed curve's peak errors against the rail's true peak then
 
 Why per step and from the plant's truth: the figures must hold for any TCU on the bus (the built-in one,
 an external one), so they are computed from what the plant did, never from what a TCU reports.
@@ -87,9 +91,43 @@ class TruthTrack:
         """Where the rail changes: each segment's start after the first (the paper's runs: the fault)."""
         return self.rail.transitions_s if self.rail is not None else (self.scenario.run.fault_time_s,)
 
-    def metrics(self) -> dict:
+    def metrics(self, events=()) -> dict:
+        """The run's figures (module docstring); ``events``: the TCU's identification events, for the per-drop
+        identification figures (``drop_identification``)."""
         c = {k: np.asarray(v, float) for k, v in self.cols.items()}
-        return metrics(c, self.changes_s(), self.period_s, self.normal_force_n, self.torque_per_mu_nm)
+        out = metrics(c, self.changes_s(), self.period_s, self.normal_force_n, self.torque_per_mu_nm)
+        out["drop_identification"] = drop_figures(c, self.changes_s(), events)
+        return out
+
+
+def drop_figures(c: dict, changes_s, events) -> list[dict]:
+    """Per drop (module docstring): the identification figures, from per-step arrays ``c`` and the TCU's
+    identification ``events`` (each with ``t_s``, ``kind``, ``params``)."""
+    from identifier.curve import peak
+    from identifier.metrics import rt_percent
+
+    t, creep, p_mu, p_creep, d_mu = c["t_s"], c["creep_speed_kmh"], c["peak_mu"], c["peak_creep_kmh"], c["demand_mu"]
+    out = []
+    changes = [float(x) for x in changes_s if t.size and t[0] <= x <= t[-1]]
+    for x, end in zip(changes, changes[1:] + [math.inf]):
+        seg = np.flatnonzero((t >= x) & (t < end))
+        if seg.size == 0 or not (p_mu[seg[-1]] < p_mu[max(seg[0] - 1, 0)] and d_mu[seg[-1]] > p_mu[seg[-1]]):
+            continue
+        crossed = seg[creep[seg] > p_creep[seg]]
+        t_det = float(t[crossed[0]] - x) if crossed.size else math.nan
+        conf = next((e for e in events if e.kind == "confirmed" and x <= e.t_s < end), None)
+        row = {"t_s": x, "t_det_ms": t_det * 1e3 if math.isfinite(t_det) else None,
+               "t_identified_s": None, "rt_percent": None, "peak_mu_err_percent": None,
+               "peak_creep_err_percent": None}
+        if conf is not None and len(conf.params) >= 3:
+            i = int(np.clip(np.searchsorted(t, conf.t_s), 0, t.size - 1))
+            v_hat, mu_hat = peak(np.asarray(conf.params, float))
+            rt = rt_percent(conf.t_s, x, t_det)
+            row.update({"t_identified_s": conf.t_s, "rt_percent": rt if math.isfinite(rt) else None,
+                        "peak_mu_err_percent": 100.0 * abs(mu_hat - p_mu[i]) / p_mu[i],
+                        "peak_creep_err_percent": 100.0 * abs(v_hat - p_creep[i]) / p_creep[i]})
+        out.append(row)
+    return out
 
 
 def _runs(mask: np.ndarray) -> list[tuple[int, int]]:

@@ -213,3 +213,21 @@ def test_checks_judge_a_closed_loop_run_with_windows_from_rail_segments(runs):
         require(runs["demand"][1]["mcap"], *checks)
     text = str(e.value)
     assert "[CTL-1]" in text and "[CTL-2]" in text and "[CTL-3]" in text and "rail.1" in text
+
+
+def test_identification_is_reported_per_drop_against_the_rail_then(runs):
+    _, summary, log = runs["identified"]
+    rows = summary["drop_identification"]
+    assert [r["t_s"] for r in rows] == [2.0]                     # one drop: dry -> wet at 2 s ("dry again" is none)
+    conf = next(e for e in log.topic("/tcu/identification") if e.kind == "confirmed" and 2.0 <= e.t_s < 4.0)
+    assert rows[0]["t_identified_s"] == pytest.approx(conf.t_s)
+    grid = np.linspace(0.0, 10.0, 200_001)
+    p = np.asarray(conf.params)
+    mu = p[0] + p[1] * np.exp(p[3] * grid) + p[2] * np.exp(p[4] * grid)
+    i = int(np.argmax(mu))
+    a = _arrays(log)
+    j = int(np.searchsorted(a["t"], conf.t_s))
+    assert rows[0]["peak_mu_err_percent"] == pytest.approx(100 * abs(mu[i] - a["peak_mu"][j]) / a["peak_mu"][j],
+                                                           rel=1e-3)
+    assert rows[0]["peak_creep_err_percent"] == pytest.approx(
+        100 * abs(grid[i] - a["peak_creep"][j]) / a["peak_creep"][j], rel=1e-3, abs=0.01)
