@@ -12,9 +12,11 @@ The family (``FAMILY``, seeded; the seed is drawn at run time and printed unless
   is left out); every change of rail with a transition uniform in 0-200 ms;
 - the driver's demand constant at 60-100 % (uniform) of the dry peak mu.
 
-Every law of identifier/control runs on every draw, and so does the **oracle**: the creep loop of
-identifier/control/base.py holding the *true* current peak creep (plant/rail.py), the ceiling no TCU can
-reach (it reads the plant's truth; it exists only here, never in a run).  Figures per law: the median and
+Every law of identifier/control runs on every draw, and so do two bench-only laws that show where a target
+lies: the **oracle**, the creep loop of identifier/control/base.py holding the *true* current peak creep
+(plant/rail.py), the ceiling no TCU can reach (it reads the plant's truth; it exists only here, never in a
+run); and **prior**, the same loop at one fixed creep, the one that maximises the mean mu / mu_peak over
+``PRIOR_CURVES`` curves of the patch family (it knows the family, not the draw).  Figures per law: the median and
 5th percentile of eta_low, the median eta, the fraction of runs with macro-slip, the medians of reaction,
 recovery and ripple (hil/traction.py), and each run's figures.
 """
@@ -42,7 +44,10 @@ FAMILY = {"duration_s": 30.0, "dry_peak_mu": DRY_PEAK_MU, "dry_peak_creep_kmh": 
           "patches": PATCHES, "patch_s": PATCH_S, "patch_family": "default", "transition_s": TRANSITION_S,
           "demand_fraction_of_dry_peak": DEMAND_FRACTION, "first_patch_s": FIRST_PATCH_S, "gap_s": GAP_S}
 ORACLE = "oracle"
+PRIOR = "prior"
 BASE = "scenarios/wet_patch.toml"
+#: curves the prior law's set-point is chosen on (drawn from the patch family with a fixed stream)
+PRIOR_CURVES = 4000
 
 
 def _value(x) -> str:
@@ -130,6 +135,33 @@ class Oracle:
     wants_rearm = False
 
 
+class FixedCreep:
+    """The creep loop at a fixed set-point (the ``prior`` law)."""
+
+    name = PRIOR
+    wants_rearm = False
+
+    def __init__(self, vehicle, set_point_kmh: float):
+        from identifier.control import CreepLoop
+        from identifier.control.laws import _LOOP_DEFAULTS
+
+        self.set_point_kmh = set_point_kmh
+        self.loop = CreepLoop(vehicle, _LOOP_DEFAULTS["bandwidth_rad_s"], _LOOP_DEFAULTS["integral_rad_s"])
+
+    def torque_nm(self, x) -> float:
+        return self.loop.torque_nm(x, self.set_point_kmh)
+
+
+def prior_set_point_kmh(train_speed_ms: float = 10.0) -> float:
+    """The creep (km/h) maximising the mean of mu / mu_peak over ``PRIOR_CURVES`` curves of the patch family."""
+    from plant.families import sample_curves
+
+    batch = sample_curves("default", PRIOR_CURVES, np.random.default_rng([36, 1]), train_speed_ms)
+    grid = np.linspace(0.05, 6.0, 600)
+    ratio = batch.mu(grid) / batch.peak_mu[:, None]
+    return float(grid[int(np.argmax(ratio.mean(axis=0)))])
+
+
 def run_point(item: dict) -> dict:
     """One (draw, law) run in-process, lockstep, no log: its closed-loop figures."""
     from ..config import parse_scenario
@@ -142,7 +174,8 @@ def run_point(item: dict) -> dict:
     # a wheel that runs away (open loop on a patch) leaves the sensor frame's range and the TCU rejects it: the
     # run then ends as a fault after lockstep_progress_s twice, its figures up to there kept (PeerSilent.summary)
     scenario = parse_scenario(item["text"], f"{BASE} draw {item['index']}",
-                              {"control.law": "demand" if law == ORACLE else law, "bus.lockstep_progress_s": 0.2})
+                              {"control.law": "demand" if law in (ORACLE, PRIOR) else law,
+                               "bus.lockstep_progress_s": 0.2})
     t0 = time.perf_counter()
     out_dir = item.get("out_dir")
     try:
@@ -150,8 +183,9 @@ def run_point(item: dict) -> dict:
                      out_dir=out_dir, record=out_dir is not None, set_args=None, plant=None, plant_label=None,
                      log=lambda text: None) as session:
             ident = session.tcu.node.identifier
-            if law == ORACLE:
-                ident.controller = Oracle(session.node.rig, ident.settings.vehicle)
+            if law in (ORACLE, PRIOR):
+                ident.controller = (Oracle(session.node.rig, ident.settings.vehicle) if law == ORACLE else
+                                    FixedCreep(ident.settings.vehicle, item["prior_kmh"]))
                 ident._open_loop = False
             timing = exchange(session.node, scenario.steps, "lockstep")
             summary = session.finish(timing, time.perf_counter() - t0)
@@ -212,10 +246,11 @@ def cmd_control_bench(args) -> int:
     from ..progress import Progress, compile_kernels
     from ..sweep.engine import map_in_order
 
-    laws = list(LAWS) + [ORACLE] if args.laws is None else [x.strip() for x in args.laws.split(",") if x.strip()]
+    laws = list(LAWS) + [PRIOR, ORACLE] if args.laws is None else \
+        [x.strip() for x in args.laws.split(",") if x.strip()]
     for law in laws:
-        if law not in LAWS and law != ORACLE:
-            raise ConfigError(f"--laws {law!r}: unknown control law (known: {', '.join([*LAWS, ORACLE])})")
+        if law not in LAWS and law not in (ORACLE, PRIOR):
+            raise ConfigError(f"--laws {law!r}: unknown control law (known: {', '.join([*LAWS, PRIOR, ORACLE])})")
     if args.draws < 1:
         raise ConfigError(f"--draws {args.draws}: must be >= 1")
     if not args.duration_s >= 6.0:
@@ -229,7 +264,8 @@ def cmd_control_bench(args) -> int:
     base_text = Path(BASE).read_text() if Path(BASE).exists() else \
         (Path(__file__).resolve().parents[2] / BASE).read_text()
     draws = [draw_text(base_text, seed, i, args.duration_s) for i in range(args.draws)]
-    items = [{"index": i, "law": law, "text": text, "run_seed": seed % 1000 + i}
+    prior_kmh = prior_set_point_kmh() if PRIOR in laws else None
+    items = [{"index": i, "law": law, "text": text, "run_seed": seed % 1000 + i, "prior_kmh": prior_kmh}
              for i, (text, _) in enumerate(draws) for law in laws]
     bar = Progress(len(items), "hil bench control", None)
     t0 = time.perf_counter()
@@ -239,10 +275,11 @@ def cmd_control_bench(args) -> int:
         bar.close()
     results = summarise(runs, laws)
     out = {"seed": seed, "draws": args.draws, "family": FAMILY, "wall_s": time.perf_counter() - t0,
+           "prior_set_point_kmh": prior_kmh,
            "drawn": [d for _, d in draws], "results": results, "speed": speed_pair(base_text, seed, args.speed_s)}
     out["written"] = provenance(args, seed, load_before)
     if args.doc:
-        write_report(out, Path(args.doc))
+        write_report(out, Path(args.doc), draws)
     if args.json:
         print(json.dumps(out))
         return 0
@@ -260,7 +297,8 @@ def cmd_control_bench(args) -> int:
               f" x real time{' (ended as a fault: the wheel ran away)' if sp['demand_fault'] else ''}, identified "
               f"{_fmt(sp['identified_x_realtime'], '.1f')} x ({_fmt(sp['identified_over_demand'], '.2f')} of demand's)")
     print(wrap("eta_low: adhesion utilisation where the demand exceeds the true peak and 1 s after each change "
-               "(hil/traction.py); the oracle reads the true curve: the ceiling, never a run's law.", "  "))
+               "(hil/traction.py); the oracle reads the true curve: the ceiling, never a run's law; prior holds "
+               "the one creep best over the family's curves.", "  "))
     return 0
 
 
@@ -334,8 +372,51 @@ def _fmt(x, spec):
     return "-" if x is None else format(x, spec)
 
 
-def write_report(out: dict, doc: Path) -> None:
-    """control.json, control.md and control-eta-low.png into ``doc``."""
+def worst_case_traces(out: dict, draws, doc: Path) -> str | None:
+    """The draw where ``identified`` scored its lowest eta_low, run again logged with ``identified`` and the
+    oracle: creep and torque against the true peak creep and the demand, in control-worst.png."""
+    import tempfile
+
+    import matplotlib.pyplot as plt
+
+    from ..log.read import read_log
+
+    runs = [r for r in out["results"].get("identified", {}).get("runs", []) if r["adhesion_utilisation_low"] is not None]
+    if not runs:
+        return None
+    worst = min(runs, key=lambda r: r["adhesion_utilisation_low"])
+    text = draws[worst["index"]][0]
+    fig, axes = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
+    with tempfile.TemporaryDirectory(prefix="hil-bench-control-") as tmp:
+        for law, style in (("identified", "-"), (ORACLE, ":")):
+            sub = Path(tmp) / law
+            sub.mkdir()
+            run_point({"index": worst["index"], "law": law, "text": text, "run_seed": out["seed"] % 1000 + worst["index"],
+                       "out_dir": str(sub), "prior_kmh": out.get("prior_set_point_kmh")})
+            log = read_log(next(sub.glob("*.mcap")), {"/plant/state", "/plant/rail"})
+            st, rail = log.topic("/plant/state"), log.topic("/plant/rail")
+            t = np.array([m.t_s for m in st])
+            axes[0].plot(t, [m.creep_speed_kmh for m in st], style, lw=1, label=f"creep, {law}")
+            axes[1].plot(t, [m.torque_nm for m in st], style, lw=1, label=f"torque, {law}")
+            if law == ORACLE:
+                axes[0].plot(t, [m.peak_creep_kmh for m in rail], color="grey", lw=1, label="true peak creep")
+    axes[0].set_ylabel("creep (km/h)")
+    axes[0].set_ylim(0, None)
+    axes[1].set_ylabel("torque (N m)")
+    axes[1].set_xlabel("t (s)")
+    for ax in axes:
+        ax.legend(fontsize=8)
+        ax.grid(alpha=0.3)
+    fig.suptitle(f"identified's worst draw ({worst['index']}, eta_low {worst['adhesion_utilisation_low']:.3f}) "
+                 "against the oracle")
+    fig.tight_layout()
+    fig.savefig(doc / "control-worst.png", dpi=110)
+    plt.close(fig)
+    return "control-worst.png"
+
+
+def write_report(out: dict, doc: Path, draws=None) -> None:
+    """control.json, control.md and control-eta-low.png (and, given the draws, control-worst.png) into ``doc``."""
     doc.mkdir(parents=True, exist_ok=True)
     (doc / "control.json").write_text(json.dumps(out, indent=1) + "\n")
     import matplotlib
@@ -376,4 +457,9 @@ def write_report(out: dict, doc: Path) -> None:
                   f"{' (ended as a fault: the wheel ran away)' if sp['demand_fault'] else ''}, `identified` "
                   f"{_fmt(sp['identified_x_realtime'], '.1f')} x ({_fmt(sp['identified_over_demand'], '.2f')} of demand's)."]
     lines += ["", "![eta_low per law](control-eta-low.png)", ""]
+    if out.get("prior_set_point_kmh") is not None:
+        lines[-1:-1] = [f"The prior law held {out['prior_set_point_kmh']:.2f} km/h.", ""]
+    worst = worst_case_traces(out, draws, doc) if draws else None
+    if worst:
+        lines += [f"![identified's worst draw against the oracle]({worst})", ""]
     (doc / "control.md").write_text("\n".join(lines))
