@@ -280,6 +280,8 @@ def add_arguments(p) -> None:
     p.add_argument("--mode", choices=("lockstep", "realtime"), default="lockstep",
                    help="sets the plant-silence limit and heartbeat period (realtime: [bus] silence_periods x "
                    "heartbeat_period_s, default 25 x 2 ms; lockstep: [bus] lockstep_silence_s, default 1 s)")
+    p.add_argument("--control", default=None, metavar="LAW", help="the control law (default: the scenario's "
+                   "[control] law, else demand)")
     p.add_argument("--set", action="append", metavar="TABLE.KEY=VALUE", help="override a scenario field")
     p.add_argument("--wait", type=float, default=None, help="seconds to wait for the plant's first frame "
                    "(default: [bus] startup_timeout_s)")
@@ -307,7 +309,10 @@ def run_tcu(args) -> int:
 
     if args.strategy not in STRATEGIES:
         raise ConfigError(f"unknown strategy {args.strategy!r}; available: {', '.join(sorted(STRATEGIES))}")
-    scenario = load_scenario(args.scenario, parse_set(args.set))
+    overrides = parse_set(args.set)
+    if getattr(args, "control", None) is not None:
+        overrides["control.law"] = args.control        # checked by the loader: an unknown law is one line
+    scenario = load_scenario(args.scenario, overrides)
     settings = scenario.bus
     seed = scenario.run.seed if args.seed is None else args.seed
     bus = resolve(args.bus)

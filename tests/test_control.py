@@ -231,3 +231,34 @@ def test_identification_is_reported_per_drop_against_the_rail_then(runs):
                                                            rel=1e-3)
     assert rows[0]["peak_creep_err_percent"] == pytest.approx(
         100 * abs(grid[i] - a["peak_creep"][j]) / a["peak_creep"][j], rel=1e-3, abs=0.01)
+
+
+def test_an_external_tcu_gets_the_demand_frame_and_is_judged_the_same(runs, tmp_path):
+    """``hil tcu --control constant_creep`` on a bus, ``hil run --tcu external`` on it: the plant judges the
+    external TCU from its own truth, with the figures of the built-in one (lockstep is deterministic)."""
+    import json
+    import subprocess
+
+    from hil.bus.link import Hub
+    from hil.testing import hil_command, subprocess_env
+
+    hub = Hub()
+    url = f"remote:ws://127.0.0.1:{hub.port}/"
+    tcu = None
+    try:
+        tcu = subprocess.Popen(hil_command() + ["tcu", str(WET), "--bus", url, "--control", "constant_creep", "--json"],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=subprocess_env(), cwd=ROOT)
+        r = run_hil("run", str(WET), "--bus", url, "--tcu", "external", "--out", str(tmp_path), "--json", "--no-rrd",
+                    "--control", "constant_creep")
+        out, err = tcu.communicate(timeout=120)
+    finally:
+        if tcu is not None and tcu.poll() is None:
+            tcu.kill()
+        hub.stop()
+    assert r.returncode == 0, r.stderr
+    assert tcu.returncode == 0, err
+    s, ref = json.loads(r.stdout), runs["constant_creep"][1]
+    assert s["control"] == "external"
+    for key in ("adhesion_utilisation", "adhesion_utilisation_low", "macro_slip_s", "recovery_s", "reaction_ms"):
+        assert s[key] == ref[key], key
+    assert json.loads(out)["rejected_frames"] == {}
