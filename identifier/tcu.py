@@ -109,6 +109,7 @@ class TractionIdentifier:
         self.controller = make_controller(control, settings.vehicle, nominal_peak_creep_kmh, control_options)
         self._open_loop = control == DEFAULT_LAW
         self.latest_event = None      # the strategy's last identification event (since the last re-arm)
+        self._peak_of = (None, math.nan)   # (event, its curve's peak creep)
         self.rearms = 0
         self.excitation = Excitation.from_dict(settings.excitation)
         v = settings.vehicle
@@ -158,7 +159,9 @@ class TractionIdentifier:
                 ci = (e.peak_creep_ci[0], math.inf if getattr(e, "peak_open", False) else e.peak_creep_ci[1])
             confirmed = e.kind in ("confirmed", "unconfirmed")
             if confirmed and len(e.params) >= 3:
-                peak_creep = curve_model.peak(e.params)[0]
+                if self._peak_of[0] is not e:        # once per event: a grid search costs tens of us
+                    self._peak_of = (e, curve_model.peak(e.params)[0])
+                peak_creep = self._peak_of[1]
         s = self.settings
         return ControlInput(step, step * s.period_s, s.period_s, self.demand_nm, creep, load_torque, mu_hat,
                             self.detector.detected_step is not None, ci,

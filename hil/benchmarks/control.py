@@ -456,9 +456,9 @@ def write_report(out: dict, doc: Path, draws=None) -> None:
                   f"{_fmt(sp['demand_x_realtime'], '.1f')} x real time"
                   f"{' (ended as a fault: the wheel ran away)' if sp['demand_fault'] else ''}, `identified` "
                   f"{_fmt(sp['identified_x_realtime'], '.1f')} x ({_fmt(sp['identified_over_demand'], '.2f')} of demand's)."]
-    lines += ["", "![eta_low per law](control-eta-low.png)", ""]
     if out.get("prior_set_point_kmh") is not None:
-        lines[-1:-1] = [f"The prior law held {out['prior_set_point_kmh']:.2f} km/h.", ""]
+        lines += ["", f"The prior law held {out['prior_set_point_kmh']:.2f} km/h."]
+    lines += ["", "![eta_low per law](control-eta-low.png)", ""]
     worst = worst_case_traces(out, draws, doc) if draws else None
     if worst:
         lines += [f"![identified's worst draw against the oracle]({worst})", ""]

@@ -21,6 +21,8 @@ FIGURES = {
     "peak_creep_err_percent": ("peak creep error %", "number"),
     "identified": ("identified (fraction)", "fraction"),
     "correct": ("correct (fraction)", "fraction"),
+    "adhesion_utilisation_low": ("adhesion utilisation where it matters", "number"),
+    "macro_slip_s": ("macro-slip s", "number"),
     "bus_load_percent": ("bus load %", "number"),
     "point_wall_s": ("wall time per point s", "number"),
 }

@@ -38,7 +38,9 @@ OUTPUT_COLUMNS = {
     "peak_creep_err_percent": "float64", "curve_rmse_vs_truth": "float64", "r2_vs_truth": "float64",
     "r2_vs_truth_to_peak": "float64", "observer_lag_ms": "float64", "corrections": "int64", "samples": "int64",
     "bus_load_percent": "float64", "frames_tx": "int64", "frames_rx": "int64", "sim_s": "float64",
-    "wall_s": "float64", "fault": "string", "mcap": "string",
+    "wall_s": "float64", "fault": "string", "mcap": "string", "control": "string",
+    "adhesion_utilisation": "float64", "adhesion_utilisation_low": "float64", "macro_slip_s": "float64",
+    "macro_slip_count": "int64",
 }
 META_COLUMNS = {"point": "int64", "key": "string", "error": "string", "worker": "string", "point_wall_s": "float64",
                 "point_cpu_s": "float64", "t_start": "float64", "t_end": "float64", "finished_utc": "string"}
