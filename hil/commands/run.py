@@ -144,6 +144,12 @@ def print_summary(s: dict, file=sys.stdout, heading: str | None = None) -> None:
               f"(on 0..2x its peak creep)", file=file)
     print(f"  observer lag {_fmt(s.get('observer_lag_ms'), '.1f')} ms; "
           f"{_fmt(s.get('sim_s'), '.2f')} s simulated in {_fmt(s.get('wall_s'), '.2f')} s", file=file)
+    if s.get("adhesion_utilisation") is not None:
+        print(f"  traction ({s.get('control')}): adhesion utilisation {_fmt(s['adhesion_utilisation'], '.3f')}, "
+              f"where it matters {_fmt(s.get('adhesion_utilisation_low'), '.3f')}; macro-slip "
+              f"{_fmt(s.get('macro_slip_s'), '.3f')} s ({s.get('macro_slip_count')}x); reaction "
+              f"{_fmt(s.get('reaction_ms'), '.1f')} ms, recovery {_fmt(s.get('recovery_s'), '.3f')} s, ripple "
+              f"{_fmt(s.get('torque_ripple_percent'), '.2f')} %", file=file)
     if s.get("mode") in ("lockstep", "realtime"):
         line = f"  {s['mode']} over {s['bus']}: round trip p50 {_fmt(s.get('round_trip_p50_us'), '.0f')} us"
         if s["mode"] == "realtime":
