@@ -28,7 +28,7 @@ from .log.record import (Recorder, write_command, write_frame, write_identificat
                          write_rail_truth, write_sensor, write_status)
 from .traction import TruthTrack
 from .trace import Trace
-from .bus.verdicts import ANSWERED_TWICE, BAD_SEQUENCE, DUPLICATE, FOREIGN, FRESH, LATE, NOT_REJECTED
+from .bus.verdicts import ANSWERED_TWICE, BAD_SEQUENCE, DUPLICATE, FOREIGN, FRESH, LATE, NOT_REJECTED, PROBE
 
 
 #: the longest the plant node writes log rows in line before it looks at the bus again
@@ -279,7 +279,7 @@ class PlantNode:
         frames to its deadline) it answers that period, the newest one counting; after the deadline it is
         late; before the run (the start-up probes' answers) it is taken as a sign of life only."""
         if not self._started:
-            return FRESH
+            return PROBE
         if not self._waiting:
             self.late_commands += 1
             return LATE
