@@ -90,7 +90,7 @@ def test_the_built_in_tcu_identifies_over_their_classical_can_dbc(tmp_path):
     """ffcc_a, 1 s, lockstep, the built-in TCU over their.dbc, in this process and as a TCU process: the same
     figures (the readings count from the plant's 'running' heartbeat, so the steps agree); the fault is
     detected and identified as on the native DBC (bounds from the paper's own error scale), the log
-    keeps their DBC and the checks decode its signals."""
+    keeps their DBC, the checks decode its signals and ``hil replay`` repeats the identification."""
     from hil.checks import Run
 
     inproc = _summary(["--bus", "inprocess"], tmp_path, "a")
@@ -104,6 +104,10 @@ def test_the_built_in_tcu_identifies_over_their_classical_can_dbc(tmp_path):
     assert run.log.metadata["dbc"]["name"] == "their.dbc"
     torque = run.signal("TcuCmd.TorqueRequest")
     assert len(torque.values) == 1000 and torque.unit == "N.m"
+    from hil.replay import replay_log
+
+    again = replay_log(proc["mcap"])          # the frames on their DBC, decoded as the TCU did: the same events
+    assert again["source"] == "mcap-frames" and again["matches_log"] is True and again["sensor_readings"] == 1000
 
 
 @pytest.fixture(scope="module")

@@ -115,12 +115,14 @@ class Mapping:
         return self.where["torque_command_nm"][0]
 
 
-def load_mapping(scenario_path, dbc: str, table: dict, period_s: float, needs: dict[str, Need] | None = None) -> Mapping:
+def load_mapping(scenario_path, dbc: str, table: dict, period_s: float, needs: dict[str, Need] | None = None,
+                 text: str | None = None) -> Mapping:
     """Their DBC (``dbc``, a path relative to the scenario file's directory unless absolute) and the
     ``[bus.mapping]`` table, checked: each quantity named once as ``Message.Signal`` of that DBC,
     no multiplexed message, the command in a message the plant does not send, no id of the HIL frames
     that still travel (``RESERVED_IDS``), cycle times matching ``period_s``, and each signal able to
-    carry ``needs``.  ``ConfigError`` (one line naming the file and the key) otherwise."""
+    carry ``needs``.  ``text``: the DBC's text itself (a log keeps it), not read from ``dbc``.
+    ``ConfigError`` (one line naming the file and the key) otherwise."""
     import cantools
 
     path = Path(dbc)
@@ -131,7 +133,10 @@ def load_mapping(scenario_path, dbc: str, table: dict, period_s: float, needs: d
         return ConfigError(f"{scenario_path}: {key}: {msg}")
 
     try:
-        db = cantools.database.load_file(str(path), database_format="dbc", strict=True)
+        if text is not None:
+            db = cantools.database.load_string(text, database_format="dbc", strict=True)
+        else:
+            db = cantools.database.load_file(str(path), database_format="dbc", strict=True)
     except FileNotFoundError:
         raise fail("[bus] dbc", f"no such file {str(path)!r}") from None
     except (OSError, UnicodeDecodeError) as e:
@@ -213,6 +218,7 @@ class MappedCodec:
         self._by_id = {m.frame_id: m for m in [*self._sent, mapping.command_message]}
         self._by_key = {(bool(m.is_extended_frame), m.frame_id): m for m in self._by_id.values()}
         self.command_id = mapping.command_message.frame_id
+        self.plant_ids = frozenset(m.frame_id for m in self._sent)
         self._fill = {m.frame_id: {s.name: _clip(s, s.initial if s.initial is not None else 0.0) for s in m.signals}
                       for m in self._by_id.values()}
         self._values: dict[str, float] = {}
@@ -293,14 +299,15 @@ class MappedCodec:
         return Frame("PlantSensor", reading, demand), "ok"
 
 
-def codec_for(scenario, period_s: float | None = None, auth=None):
+def codec_for(scenario, period_s: float | None = None, auth=None, dbc_text: str | None = None):
     """The codec of a scenario's bus: ``FrameCodec`` over ``hil/hil.dbc``, or ``MappedCodec`` when its
-    ``[bus]`` names a DBC of its own (never authenticated)."""
+    ``[bus]`` names a DBC of its own (never authenticated; ``dbc_text``: that DBC's text, as a log keeps it)."""
     period = scenario.run.exchange_period_s if period_s is None else period_s
     settings = scenario.bus
     if not settings.dbc:
         return FrameCodec(period, auth=auth)
-    return MappedCodec(period, load_mapping(scenario.path, settings.dbc, dict(settings.mapping), period))
+    return MappedCodec(period, load_mapping(scenario.path, settings.dbc, dict(settings.mapping), period,
+                                            text=dbc_text))
 
 
 def classic_frame_time_s(data_len: int, bitrate: int) -> float:
