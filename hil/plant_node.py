@@ -379,7 +379,7 @@ class PlantNode:
         noise; *probes*) every ``PROBE_PERIOD_S`` until a command frame answers; the built-in TCU
         ignores probes (it starts counting readings at the 'running' heartbeat sent here before step 0)."""
         t0 = time.monotonic()
-        next_probe = 0.0
+        next_probe = time.perf_counter() + PROBE_PERIOD_S    # a TCU already there answers the heartbeat first
         while self.last_tcu_rx is None:
             if time.monotonic() - t0 > self.settings.startup_timeout_s:
                 raise PeerSilent(f"no TCU answered within {self.settings.startup_timeout_s:g} s")

@@ -86,17 +86,45 @@ def _summary(args, tmp_path, name):
     return json.loads(r.stdout)
 
 
+def _external(tmp_path):
+    """``hil tcu`` with the same ``--set`` items on a local bus, and ``hil run --tcu external`` on it: the run's
+    summary and the TCU's report."""
+    import subprocess
+
+    from hil.testing import hil_command, subprocess_env
+
+    sets = [a for k, v in THEIR.items() for a in ("--set", f'{k}="{v}"')]
+    bus = tempfile.mkdtemp(prefix="hil-bus-test-")
+    tcu = subprocess.Popen(hil_command() + ["tcu", str(SCENARIOS / "ffcc_a.toml"), "--bus", f"localbus:{bus}",
+                                            "--set", "run.duration_s=1.0", *sets, "--json"],
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=subprocess_env(), cwd=ROOT)
+    try:
+        summary = _summary(["--bus", f"localbus:{bus}", "--tcu", "external"], tmp_path, "ext")
+        out, err = tcu.communicate(timeout=120)
+    finally:
+        if tcu.poll() is None:
+            tcu.kill()
+            tcu.wait()
+        os.rmdir(bus)
+    assert tcu.returncode == 0, err
+    return summary, json.loads(out)
+
+
 def test_the_built_in_tcu_identifies_over_their_classical_can_dbc(tmp_path):
-    """ffcc_a, 1 s, lockstep, the built-in TCU over their.dbc, in this process and as a TCU process: the same
-    figures (the readings count from the plant's 'running' heartbeat, so the steps agree); the fault is
+    """ffcc_a, 1 s, lockstep, the built-in TCU over their.dbc, in this process, as a TCU process and as
+    ``hil tcu`` on the bus (external): the same figures (the readings count from the plant's 'running'
+    heartbeat, so the steps agree; the built-in TCU answers no probe: 1000 readings); the fault is
     detected and identified as on the native DBC (bounds from the paper's own error scale), the log
     keeps their DBC, the checks decode its signals and ``hil replay`` repeats the identification."""
     from hil.checks import Run
 
     inproc = _summary(["--bus", "inprocess"], tmp_path, "a")
     proc = _summary([], tmp_path, "b")
+    external, report = _external(tmp_path)
     for key in ("t_detected_s", "t_identified_s", "peak_mu", "peak_creep_kmh", "macro_slip_s", "samples"):
-        assert inproc[key] == proc[key], key
+        assert inproc[key] == proc[key] == external[key], key
+    assert external["transport"] == "external" and external["rejected_frames"] == {}
+    assert report["rejected_frames"] == {} and report["sensor_frames"] == 1000
     assert proc["frame_auth"] == "off" and proc["rejected_frames"] == {} and proc["tcu_rejected_frames"] == {}
     assert 0.5 <= proc["t_detected_s"] <= 0.55 and proc["t_identified_s"] <= 0.7
     assert proc["peak_mu_err_percent"] < 2.0 and proc["peak_creep_err_percent"] < 5.0
