@@ -30,7 +30,7 @@ from identifier import DEFAULT_STRATEGY, STRATEGIES, TractionIdentifier
 
 from .errors import (EXIT_INTERRUPTED, EXIT_OK, BusError, ConfigError, HilError, PeerSilent, PlantFault,
                      caused_by_interrupt)
-from .bus.frames import (PLANT_IDS, SENSOR_ID, STATE_FAULT, STATE_FINISHED, STATE_NAMES, STATE_RUNNING, STATE_STARTING,
+from .bus.frames import (PLANT_IDS, STATE_FAULT, STATE_FINISHED, STATE_NAMES, STATE_RUNNING, STATE_STARTING,
                      FrameCodec, RejectCounter, SampleReport)
 from .bus.mapping import codec_for
 from .bus.link import GuardedBus, Sender, heartbeat_period_s, poll_until, silence_limit_s
@@ -184,7 +184,7 @@ def newest_sensor_only(bus: can.BusABC, first: can.Message, node: TcuNode, limit
         batch.append(msg)
     classified = [node.codec.classify(m) for m in batch]
     steps = {i: frame.value.step for i, (m, (frame, _)) in enumerate(zip(batch, classified))
-             if m.arbitration_id == SENSOR_ID and not m.is_extended_id and frame is not None
+             if frame is not None and frame.name == "PlantSensor"
              and sensor_sequence(frame.value.step, node.last_step, MAX_STEP_GAP) == FRESH}
     stale = newest(steps)
     node.stale_skipped += len(stale)

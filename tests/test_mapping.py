@@ -175,3 +175,13 @@ def test_each_faulty_tcu_fails_exactly_its_checks_and_the_built_in_one_passes(py
     assert not errors, result.stdout.str()
     assert failed == fails, result.stdout.str()
     assert passed == CHECKS - fails, result.stdout.str()
+
+
+def test_hil_run_says_a_mapping_problem_in_one_line_with_exit_2(tmp_path):
+    from hil.testing import run_hil
+
+    sets = [a for k, v in {**THEIR, "bus.mapping.motor_speed_rad_s": "Sensors.Motor"}.items()
+            for a in ("--set", f'{k}="{v}"')]
+    r = run_hil("run", str(SCENARIOS / "ffcc_a.toml"), "--bus", "inprocess", *sets, "--out", str(tmp_path))
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "[bus.mapping] motor_speed_rad_s: message Sensors of their.dbc has no signal 'Motor'" in r.stderr

@@ -2,7 +2,7 @@
 and runs the built-in TCU's identifier and control law (``identifier.TractionIdentifier``), but sends
 each torque command ``LATE_S`` (two exchange periods) after the reading it answers.  The plant in
 lockstep waits for it, so it controls the wheel as the built-in TCU does: it fails TIM-1 (answers
-within a period) and no other; in real time its commands miss their deadlines (TIM-2 fails too).
+within a period) and no other; in real time each command comes after its period's deadline.
 
     python scenarios/suites/faulty_tcus/answers_late.py scenarios/wet_patch.toml --bus localbus:DIR
 """
