@@ -8,6 +8,8 @@ heartbeats, and every received frame goes through ``FrameCodec.classify`` and a 
 before it counts.  Valid TCU frames are recorded decoded (``/tcu/*``) and fed to the ``Trace``
 (events, samples, observer); every frame, valid or not, is recorded raw on ``/can/frames`` with its
 status.  Rejected frames are counted by reason.  The loop that paces all this is ``hil.exchange``.
+On a mapped bus (a TCU's own DBC, ``hil/bus/mapping.py``) the sensor, demand and command travel in
+their messages, without step counters: the first command frame after the period's frames answers it.
 """
 from __future__ import annotations
 
@@ -108,10 +110,10 @@ class PlantNode:
         self.period_s = scenario.run.exchange_period_s
         self.codec = codec_for(scenario, self.period_s, auth=node_key(scenario.bus))
         self._plain_codec = FrameCodec(self.period_s, self.codec.db)     # checks own frames, no freshness
-        #: a TCU's own DBC (hil/bus/mapping.py): no step counters, the newest command of the period counts
+        #: a TCU's own DBC (hil/bus/mapping.py): no step counters, the first command after the period's frames counts
         self.mapped = getattr(self.codec, "mapped", False)
         self.tcu_ids = TCU_IDS | ({self.codec.command_id} if self.mapped else set())
-        self._new_command: TorqueCommand | None = None    # mapped: the newest command since the period's frames
+        self._new_command: TorqueCommand | None = None    # mapped: the command that answers the period
         self._waiting = False                              # mapped: between the period's frames and its deadline
         self._started = False                              # mapped: step 0's frames went out (probes before)
         self.bus = bus
@@ -275,17 +277,15 @@ class PlantNode:
         return FOREIGN        # plant frames from another node on the bus
 
     def _accept_mapped_command(self, v: TorqueCommand) -> str:
-        """A command frame of a mapped bus (no step counter): while the plant waits in a period (from its
-        frames to its deadline) it answers that period, the newest one counting; after the deadline it is
-        late; before the run (the start-up probes' answers) it is taken as a sign of life only."""
+        """A command frame of a mapped bus (no step counter): the first one while the plant waits in a period
+        (from its frames to the command or the deadline) answers that period; any other is late (after the
+        deadline, or a second one that period); before the run (the start-up probes' answers) it is a sign
+        of life only."""
         if not self._started:
             return PROBE
-        if not self._waiting:
+        if not self._waiting or self._new_command is not None:
             self.late_commands += 1
             return LATE
-        if self._new_command is not None:
-            self.notice("duplicate_command", f"a second command frame in the period of step {self.awaited}; the "
-                        "newest counts")
         self._new_command = TorqueCommand(self.awaited, v.torque_nm)
         if self.rec:
             write_command(self.rec, self._new_command, self.period_s)

@@ -19,8 +19,8 @@ Per exchange period the plant sends each of its mapped messages once, the messag
 the demand first and the one that carries the motor speed last (the *trigger*: its arrival is a new
 reading for the TCU).  A message whose DBC cycle time (``GenMsgCycleTime``) differs from the
 exchange period is refused.  Without step counters the steps are counted: the TCU side numbers the
-trigger frames it receives, the plant side takes a command frame as the answer of the period it
-waits in (``hil.plant_node``).
+trigger frames it receives, the plant side takes the first command frame after its frames of a period
+as that period's answer (``hil.plant_node``).
 
 The HIL's own frames (heartbeats both ways and the built-in TCU's identification frames TcuStatus,
 TcuResult, TcuInterval, TcuSample: CAN FD, ``hil/hil.dbc``) still travel beside the mapped ones; a
