@@ -56,7 +56,8 @@ def test_a_mapping_without_its_dbc_and_a_missing_quantity_are_refused():
 
 def test_the_mapped_codec_quantises_to_their_scale_and_saturates():
     """Values come back within half their signal's scale; a speed beyond the signal's range is sent as
-    its end; the frames are classical CAN of 8 bytes, the trigger (the motor speed's message) last."""
+    its end; the frames are classical CAN of 8 bytes, the trigger (the motor speed's message) last; a
+    received value outside their DBC's range, or a frame of another length, is rejected by reason."""
     from identifier.messages import DriverDemand, SensorReading, TorqueCommand
     from hil.bus.mapping import codec_for
 
@@ -74,6 +75,11 @@ def test_the_mapped_codec_quantises_to_their_scale_and_saturates():
     assert fast.motor_speed_rad_s == 1300.0 and fast.step == 1
     cmd, status = plant.classify(tcu.command(TorqueCommand(1, 4000.26)))
     assert status == "ok" and abs(cmd.value.torque_nm - 4000.26) <= 0.25
+    import can
+
+    beyond = can.Message(arbitration_id=0x200, data=b"\xff\xff" + bytes(6), is_extended_id=False)   # 32767.5 N.m
+    assert plant.classify(beyond) == (None, "out_of_range:TorqueRequest")       # their DBC says at most 32000
+    assert plant.classify(can.Message(arbitration_id=0x200, data=bytes(7), is_extended_id=False)) == (None, "bad_length")
 
 
 def _summary(args, tmp_path, name):

@@ -221,6 +221,8 @@ class MappedCodec:
         self.plant_ids = frozenset(m.frame_id for m in self._sent)
         self._fill = {m.frame_id: {s.name: _clip(s, s.initial if s.initial is not None else 0.0) for s in m.signals}
                       for m in self._by_id.values()}
+        #: the mapped signals of each message (checked against their DBC range on receipt)
+        self._mapped = {fid: [sname for mm, sname in mapping.where.values() if mm.frame_id == fid] for fid in self._by_id}
         self._values: dict[str, float] = {}
         self._step = 0
 
@@ -281,6 +283,10 @@ class MappedCodec:
             v = m.decode(data, decode_choices=False, scaling=True)
         except Exception as e:  # noqa: BLE001 - a frame must never crash a node
             return None, f"undecodable:{type(e).__name__}"
+        for sname in self._mapped[m.frame_id]:
+            sig = m.get_signal_by_name(sname)
+            if (sig.minimum is not None and v[sname] < sig.minimum) or (sig.maximum is not None and v[sname] > sig.maximum):
+                return None, f"out_of_range:{sname}"
         if m is self.mapping.command_message:
             return Frame("TorqueCommand", TorqueCommand(-1, float(v[self.mapping.where["torque_command_nm"][1]]))), "ok"
         for q in SENT:

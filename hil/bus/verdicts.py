@@ -54,6 +54,8 @@ VERDICTS: dict[str, tuple[str, str]] = {
     "undecodable": (REJECTED, "cantools could not decode it"),
     "non_finite": (REJECTED, "a signal that must be finite is not"),
     "out_of_range": (REJECTED, "a signal outside the DBC's range"),
+    "incomplete_reading": (REJECTED, "a mapped bus (hil/bus/mapping.py): the motor speed's message before any "
+                                     "with the train speed"),
 }
 
 
