@@ -67,6 +67,9 @@ class BusSettings:
                                           # for the embedded buses (local, localbus), off otherwise (also
                                           # inprocess: no other node can put a frame on it)
     auth_key_file: str = ""               # the key (32 hex digits); "": a new key per run, made by the run
+    dbc: str = ""                         # a TCU's own DBC (path relative to the scenario file); "": hil/hil.dbc
+    mapping: tuple = ()                   # [bus.mapping]: (quantity, "Message.Signal") pairs on that DBC
+                                          # (hil/bus/mapping.py)
 
 
 @dataclass(frozen=True)
@@ -332,7 +335,10 @@ def _polach_curve(path, t, key, where, polach_speed) -> PolachCurve:
     return PolachCurve(**v, name=key)
 
 
-def parse_scenario(text: str, path: str = "<scenario>", overrides: dict | None = None) -> Scenario:
+def parse_scenario(text: str, path: str = "<scenario>", overrides: dict | None = None, *,
+                   check_dbc: bool = True) -> Scenario:
+    """The scenario in ``text`` (read from ``path``), checked; ``check_dbc`` False: a ``[bus] dbc`` is not
+    opened (a log's scenario: the run is over, the log keeps the DBC it ran with)."""
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
@@ -472,7 +478,25 @@ def parse_scenario(text: str, path: str = "<scenario>", overrides: dict | None =
     except (ValueError, ArithmeticError) as e:
         raise _fail(path, "[identifier]", e) from None
     _check_strategy_options(path, scenario)
+    if check_dbc:
+        _check_mapping(path, scenario)
     return scenario
+
+
+def _check_mapping(path, scenario) -> None:
+    """``[bus] dbc`` and ``[bus.mapping]`` together, checked against their DBC and this scenario's ranges
+    (``hil.bus.mapping.load_mapping``); a mapped bus runs unauthenticated."""
+    bus = scenario.bus
+    if not bus.dbc and not bus.mapping:
+        return
+    if not bus.dbc:
+        raise _fail(path, "[bus.mapping]", "needs [bus] dbc, the DBC whose messages it names")
+    if bus.auth == "on":
+        raise _fail(path, "[bus] auth", "\"on\" is not possible with [bus] dbc: a TCU's own DBC has no "
+                    "authentication trailer (a mapped bus runs unauthenticated)")
+    from .bus.mapping import load_mapping, needed_ranges
+
+    load_mapping(path, bus.dbc, dict(bus.mapping), scenario.run.exchange_period_s, needed_ranges(scenario))
 
 
 #: [[rail]] segment keys besides a curve's (``model`` and its keys, or ``peak_mu`` and ``peak_creep_kmh`` with
@@ -621,6 +645,16 @@ def _bus(path, data) -> BusSettings:
             if value not in IDLE_SPIN_MODES:
                 raise _fail(path, "[bus] idle_spin", f"must be one of {', '.join(IDLE_SPIN_MODES)}, got {value!r}")
             values[key] = value
+            continue
+        if key == "dbc":
+            if not isinstance(value, str) or not value:
+                raise _fail(path, "[bus] dbc", f"must be the path of a DBC file (a string), got {value!r}")
+            values[key] = value
+            continue
+        if key == "mapping":
+            if not isinstance(value, dict):
+                raise _fail(path, "[bus.mapping]", "must be a table of QUANTITY = \"Message.Signal\"")
+            values[key] = tuple(sorted(value.items()))
             continue
         if key == "auth_key_file":
             if not isinstance(value, str):

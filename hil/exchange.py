@@ -8,6 +8,9 @@ Per exchange period k the plant node senses, sends ``PlantSensor(k)`` and waits 
   before ``deadline_fraction`` of the period, otherwise the deadline is missed and the torque being
   applied is held.  Period jitter, lateness, round trip and misses go to ``/loop/timing``.
 
+On a bus with a TCU's own DBC (``[bus] dbc``, ``hil/bus/mapping.py``) there are no step counters: the
+first command frame after the period's frames is the period's command, waited for the same way.
+
 The TCU on the other end is reached through one of three transports (``hil.session.Tcu``):
 
 - ``inprocess`` (``bus="inprocess"``): a ``TcuNode`` answers in this thread, through the same DBC

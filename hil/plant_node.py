@@ -8,6 +8,8 @@ heartbeats, and every received frame goes through ``FrameCodec.classify`` and a 
 before it counts.  Valid TCU frames are recorded decoded (``/tcu/*``) and fed to the ``Trace``
 (events, samples, observer); every frame, valid or not, is recorded raw on ``/can/frames`` with its
 status.  Rejected frames are counted by reason.  The loop that paces all this is ``hil.exchange``.
+On a mapped bus (a TCU's own DBC, ``hil/bus/mapping.py``) the sensor, demand and command travel in
+their messages, without step counters: the first command frame after the period's frames answers it.
 """
 from __future__ import annotations
 
@@ -22,12 +24,13 @@ from .effects import Reality
 from .errors import NoProgress, PeerSilent
 from .bus.frames import STATE_FAULT, STATE_RUNNING, STATE_STARTING, TCU_IDS, FrameCodec, RejectCounter
 from .bus.link import Sender, heartbeat_period_s, poll_until, silence_limit_s
+from .bus.mapping import codec_for
 from .bus.secoc import node_key
 from .log.record import (Recorder, write_command, write_frame, write_identification, write_plant_state,
                          write_rail_truth, write_sensor, write_status)
 from .traction import TruthTrack
 from .trace import Trace
-from .bus.verdicts import ANSWERED_TWICE, BAD_SEQUENCE, DUPLICATE, FOREIGN, FRESH, LATE, NOT_REJECTED
+from .bus.verdicts import ANSWERED_TWICE, BAD_SEQUENCE, DUPLICATE, FOREIGN, FRESH, LATE, NOT_REJECTED, PROBE
 
 
 #: the longest the plant node writes log rows in line before it looks at the bus again
@@ -39,6 +42,8 @@ POLL_SLICE_S = 50e-6
 #: ... and the last SPIN_S are polled without sleeping (a sleeper wakes tens of us late: the period's
 #: start would jitter by that; at most this much of each period is spent polling)
 SPIN_S = 150e-6
+#: a mapped bus's start-up probes (``PlantNode.wait_for_tcu``) go out this often
+PROBE_PERIOD_S = 0.05
 #: how often the TCU child process is asked whether it still runs (a waitpid at every poll is a
 #: syscall on the loop's path; its end is noticed within this, well inside any silence limit)
 WATCH_PERIOD_S = 2e-3
@@ -103,8 +108,14 @@ class PlantNode:
         self.trace = rig.trace
         self.rec = rig.recorder
         self.period_s = scenario.run.exchange_period_s
-        self.codec = FrameCodec(self.period_s, auth=node_key(scenario.bus))
+        self.codec = codec_for(scenario, self.period_s, auth=node_key(scenario.bus))
         self._plain_codec = FrameCodec(self.period_s, self.codec.db)     # checks own frames, no freshness
+        #: a TCU's own DBC (hil/bus/mapping.py): no step counters, the first command after the period's frames counts
+        self.mapped = getattr(self.codec, "mapped", False)
+        self.tcu_ids = TCU_IDS | ({self.codec.command_id} if self.mapped else set())
+        self._new_command: TorqueCommand | None = None    # mapped: the command that answers the period
+        self._waiting = False                              # mapped: between the period's frames and its deadline
+        self._started = False                              # mapped: step 0's frames went out (probes before)
         self.bus = bus
         self.sender = Sender(bus)
         self.mode = mode
@@ -152,6 +163,13 @@ class PlantNode:
         """Send the driver's demand, sense the plant at its current step and send the reading; that step's
         command is awaited."""
         self.awaited = self.rig.step
+        if self.mapped:
+            demand = self.rig.demand()
+            self._sensor_reading = self.rig.sense()
+            self._new_command, self._waiting, self._started = None, True, True
+            for msg in self.codec.sensor_frames(demand, self._sensor_reading):
+                self.send(msg)
+            return
         self.send(self.codec.demand(self.rig.demand()))
         self._sensor_reading = self.rig.sense()
         self._sensor_msg = self.codec.sensor(self._sensor_reading)
@@ -191,7 +209,7 @@ class PlantNode:
             status = self._accept(frame)
         if status not in NOT_REJECTED:
             self.rejected[status] += 1
-        elif msg.arbitration_id in TCU_IDS:
+        elif msg.arbitration_id in self.tcu_ids:
             self.last_tcu_rx = time.monotonic()
         if self.rec:
             write_frame(self.rec, self.t_s, msg, "rx", status, wall_ns)
@@ -199,6 +217,8 @@ class PlantNode:
     def _accept(self, frame) -> str:
         """Sequence checks of a decoded frame (its verdict, ``hil/bus/verdicts.py``); FRESH records and traces it."""
         name, v, rec, current = frame.name, frame.value, self.rec, self.awaited
+        if name == "TorqueCommand" and self.mapped:
+            return self._accept_mapped_command(v)
         if name == "TorqueCommand":
             if v.step < current:
                 if v.step < len(self.answered) and self.answered[v.step]:
@@ -255,6 +275,21 @@ class PlantNode:
         if name in ("PlantSensor", "DriverDemand"):
             self.notice("sensor_from_another_node", f"a {name} frame for step {v.step} this plant did not send")
         return FOREIGN        # plant frames from another node on the bus
+
+    def _accept_mapped_command(self, v: TorqueCommand) -> str:
+        """A command frame of a mapped bus (no step counter): the first one while the plant waits in a period
+        (from its frames to the command or the deadline) answers that period; any other is late (after the
+        deadline, or a second one that period); before the run (the start-up probes' answers) it is a sign
+        of life only."""
+        if not self._started:
+            return PROBE
+        if not self._waiting or self._new_command is not None:
+            self.late_commands += 1
+            return LATE
+        self._new_command = TorqueCommand(self.awaited, v.torque_nm)
+        if self.rec:
+            write_command(self.rec, self._new_command, self.period_s)
+        return FRESH
 
     def notice(self, what: str, text: str) -> None:
         """Count something the stream shows to be wrong (a third node on the bus, a replay); the first of
@@ -339,8 +374,12 @@ class PlantNode:
                              f"{self.awaited}, t = {self.t_s:.4f} s")
 
     def wait_for_tcu(self) -> None:
-        """Heartbeats 'starting' until the TCU shows up."""
+        """Heartbeats 'starting' until the TCU shows up.  On a mapped bus a TCU of another make sends no
+        heartbeat and waits for readings: the plant also sends its frames of the state at the start (no
+        noise; *probes*) every ``PROBE_PERIOD_S`` until a command frame answers; the built-in TCU
+        ignores probes (it starts counting readings at the 'running' heartbeat sent here before step 0)."""
         t0 = time.monotonic()
+        next_probe = time.perf_counter() + PROBE_PERIOD_S    # a TCU already there answers the heartbeat first
         while self.last_tcu_rx is None:
             if time.monotonic() - t0 > self.settings.startup_timeout_s:
                 raise PeerSilent(f"no TCU answered within {self.settings.startup_timeout_s:g} s")
@@ -348,10 +387,23 @@ class PlantNode:
             if now >= self.next_hb:
                 self.heartbeat(STATE_STARTING)
                 self.next_hb = now + min(self.heartbeat_s, 0.05)
+            if self.mapped and now >= next_probe:
+                s = self.rig.plant.state
+                for msg in self.codec.sensor_frames(self.rig.demand(), SensorReading(0, s.motor_speed_rad_s,
+                                                                                     s.train_speed_ms)):
+                    self.send(msg)
+                next_probe = now + PROBE_PERIOD_S
             msg = self.bus.recv(timeout=min(self.heartbeat_s, 0.05))
             if msg is not None:
                 self.on_rx(msg)
             self.check_alive()
+
+    def begin(self) -> None:
+        """Right before step 0: on a mapped bus a 'running' heartbeat, from which the built-in TCU counts
+        readings (without step counters, its steps are the plant's only when both start together)."""
+        if self.mapped:
+            self.heartbeat(STATE_RUNNING)
+            self.next_hb = time.perf_counter() + self.heartbeat_s
 
     def await_command(self, k: int, deadline: float | None) -> TorqueCommand | None:
         """The TCU's command for step ``k``, or None when ``deadline`` (perf_counter) passes first.
@@ -359,6 +411,8 @@ class PlantNode:
         Lockstep (no deadline): when ``progress_s`` wall seconds pass without the command while the TCU
         lives, the sensor frame is sent once more; after ``progress_s`` more, ``NoProgress`` (exit 3)
         names the step and the likely cause."""
+        if self.mapped:
+            return self._await_mapped(k, deadline)
         give_up = resent = None
         if deadline is None and self.progress_s is not None:
             give_up, resent = time.monotonic() + self.progress_s, False
@@ -375,6 +429,25 @@ class PlantNode:
                 self.resend_sensor()
                 give_up, resent = time.monotonic() + self.progress_s, True
         return self.commands.pop(k)
+
+    def _await_mapped(self, k: int, deadline: float | None) -> TorqueCommand | None:
+        """``await_command`` on a mapped bus: the first command frame after the period's frames, or None at
+        the deadline (real time).  Lockstep waits for it as long as the TCU needs; a frame cannot be sent
+        again there (without step counters it would be a new reading), so after twice
+        ``lockstep_progress_s`` ``NoProgress`` ends the run."""
+        give_up = time.monotonic() + 2 * self.progress_s if deadline is None and self.progress_s is not None else None
+        try:
+            while self._new_command is None:
+                if deadline is not None and time.perf_counter() >= deadline:
+                    return None
+                self.poll(deadline, log_work=deadline is None)
+                if give_up is not None and self._new_command is None and time.monotonic() > give_up:
+                    raise NoProgress(f"no command frame ({self.codec.mapping.command_message.name}) for step {k} "
+                                     f"within {2 * self.progress_s:g} s although the TCU is alive")
+            return self._new_command
+        finally:
+            self._waiting = False
+            self._new_command = None
 
     def _no_progress_cause(self, k: int, rejected_before: dict) -> str:
         """The likely reason step ``k`` got no command: the sensor frame itself (the TCU validates it

@@ -8,6 +8,9 @@ machine allows.  Sources, in order of preference:
   frames); a log with no frames (older in-process runs) falls back to ``/plant/sensor``, encoded to
   frames by the DBC (64-bit floats, so exactly the readings).  The scenario comes from the log's
   ``scenario`` metadata (or ``--scenario``), strategy and seed from its ``run`` metadata;
+- a mapped run's log (``[bus] dbc``, ``hil/bus/mapping.py``): the plant's frames on its DBC, which the log
+  keeps, decoded by the same ``MappedCodec``, and its heartbeats (the built-in TCU counts readings from
+  the 'running' one, so the start-up probes are passed over as in the run);
 - a CAN log of another tool (``.log`` candump, ``.asc``, ``.blf``, ... anything ``can.LogReader``
   reads) with ``--scenario``.
 
@@ -33,7 +36,8 @@ from identifier.messages import IdentificationEvent, SensorReading
 
 from .config import load_scenario
 from .errors import LogError
-from .bus.frames import DEMAND_ID, RESULT_ID, SENSOR_ID, FrameCodec
+from .bus.frames import DEMAND_ID, PLANT_HEARTBEAT_ID, RESULT_ID, SENSOR_ID, FrameCodec
+from .bus.mapping import codec_for
 from .log.read import MAGIC, read_log, scenario_from_log
 from .tcu_node import TcuNode
 from .trace import Trace, clean
@@ -58,6 +62,7 @@ class ReplaySource:
     truth: list = field(default_factory=list)   # (t_s, creep_speed_kmh, mu) of the true plant state
     messages_read: int = 0
     complete: bool = True
+    codec: object = None                        # a mapped run's codec (hil/bus/mapping.py); None: hil/hil.dbc
     damage: str = ""
     ended_early: str = ""                       # a log closed properly whose run did not finish: why
 
@@ -81,9 +86,13 @@ def load_mcap(path, scenario_file=None) -> ReplaySource:
     frames, sensor, truth, events, status_steps = [], [], [], [], []
     has_ident_topic = False
     upgrade = FrameCodec(scenario.run.exchange_period_s).upgrade     # frames of logs before the trailer
+    codec, ids = None, (SENSOR_ID, DEMAND_ID)
+    if scenario.bus.dbc:      # a TCU's own DBC: its frames (the log keeps the DBC) and the plant's heartbeats,
+        codec = codec_for(scenario, dbc_text=(log.metadata.get("dbc") or {}).get("text"))   # whose 'running'
+        ids = codec.plant_ids | {PLANT_HEARTBEAT_ID}                                      # starts the count
     for topic, _, m in log.messages:
         if topic == "/can/frames":
-            if m.direction == "tx" and m.arbitration_id in (SENSOR_ID, DEMAND_ID):
+            if m.direction == "tx" and m.arbitration_id in ids and not m.is_extended_id:
                 frames.append(upgrade(_msg_from_record(m)))
         elif topic == "/plant/sensor":
             sensor.append(SensorReading(int(m.step), m.motor_speed_rad_s, m.train_speed_ms))
@@ -95,7 +104,7 @@ def load_mcap(path, scenario_file=None) -> ReplaySource:
         elif topic == "/tcu/status":
             status_steps.append(int(m.step))
     kind = "mcap-frames"
-    if not frames:
+    if not frames and codec is None:
         if not sensor:
             what = f"damaged ({log.damage}) before any" if log.damage else "no"
             raise LogError(f"{path}: {what} sensor data (no PlantSensor frames on /can/frames, no /plant/sensor)")
@@ -106,7 +115,7 @@ def load_mcap(path, scenario_file=None) -> ReplaySource:
     src = ReplaySource(str(path), kind, scenario, frames, logged_strategy=run.get("strategy"), logged_seed=seed,
                        logged_events=events if compare else None, truth=truth,
                        messages_read=log.message_count, complete=log.complete, damage=log.damage,
-                       ended_early=log.ended_early)
+                       ended_early=log.ended_early, codec=codec)
     if not log.complete:
         # a cut log: results and status of the last steps may be missing; compare up to the last status - 1
         src.logged_last_step = (max(status_steps) - 1) if status_steps else -1
@@ -192,7 +201,7 @@ def replay(src: ReplaySource, strategy: str | None = None, seed: int | None = No
     seed = seed if seed is not None else (src.logged_seed if src.logged_seed is not None else scenario.run.seed)
     period = scenario.run.exchange_period_s
     # the logged frames' MACs are of the run's key and freshness: a replay reads them unauthenticated
-    node = TcuNode(scenario, strategy, seed, codec=FrameCodec(period))
+    node = TcuNode(scenario, strategy, seed, codec=src.codec or FrameCodec(period))
     trace = Trace(scenario)
     for t_s, creep, mu in src.truth:
         trace.plant(int(round(t_s / period)), t_s, creep, mu)

@@ -38,6 +38,7 @@ import tempfile
 from pathlib import Path
 
 from .bus.frames import DBC_PATH, STATE_FAULT, STATE_FINISHED, FrameCodec, bus_load, format_bus_load
+from .bus.mapping import codec_for, mapped_bus_load
 from .bus.link import MODES, GuardedBus, die_with_parent, open_bus, resolve
 from .bus.secoc import AUTO_AUTH_BUSES, node_key, write_key
 from .effects import TRUTH_KEY
@@ -93,6 +94,8 @@ def authenticate(scenario, bus: str, transport: str, key_dir, log) -> tuple[obje
     key file both sides read."""
     settings = scenario.bus
     mode = settings.auth
+    if settings.dbc:         # a TCU's own DBC has no authentication trailer ("on" is refused at load)
+        mode = "off"
     if mode == "auto":
         if transport == "external" and not settings.auth_key_file:
             log("warning: frames are not authenticated (an external TCU: give both sides [bus] auth_key_file "
@@ -305,6 +308,7 @@ class Session:
         self.latency: CpuLatencyRequest | None = None
         self.spinners: IdleSpinners | None = None
         self.idle: str | None = None
+        self.mapping = None
         self.load: dict | None = None
         self.rec = self.node = self.timing = self.summary = None
         self.wall_s = 0.0
@@ -326,6 +330,9 @@ class Session:
         period = scenario.run.exchange_period_s
         self.load = bus_load(FrameCodec(period).db, period, settings.heartbeat_period_s, settings.bitrate,
                              settings.data_bitrate)
+        self.mapping = codec_for(scenario).mapping if settings.dbc else None
+        if self.mapping is not None:      # the mapped frames on a classical bus; the HIL frames beside them
+            self.load["mapped_load_percent"] = mapped_bus_load(self.mapping, period, settings.bitrate)
         if self.record:
             self.path = _log_path(scenario, self.strategy, self.seed, self.out_dir, self.plant_label)
         stack.enter_context(interrupts_between_writes())   # SIGTERM ends a run like Ctrl-C, never mid-write
@@ -363,10 +370,15 @@ class Session:
                               strategy=self.strategy, watch=tcu.child, watch_silence=tcu.node is None)
         if tcu.node is None:
             self.node.wait_for_tcu()
+        self.node.begin()
 
     def _start_log(self) -> None:
         """The bus's load and warnings said; the log started (``record``), its rows deferred."""
         scenario, settings, load, handle, log = self.scenario, self.scenario.bus, self.load, self.tcu.handle, self.log
+        if self.mapping is not None:
+            log(f"mapped bus ({Path(self.mapping.dbc_path).name}): its frames load a classical bus at "
+                f"{settings.bitrate / 1e3:g} kbit/s to {load['mapped_load_percent']:.1f} %; no step counters, "
+                "not authenticated")
         log(format_bus_load(load) + f" on {handle.name}")
         if handle.hub is not None:
             log(f"warning: bus hub: any process of any user on this machine can join it ({handle.hub.url}); "
@@ -381,11 +393,13 @@ class Session:
             log(f"warning: replacing {self.path} (a log of an earlier run with the same scenario, strategy, seed, "
                 "plant and effects)")
         plant = self.plant
+        dbc_path = Path(self.mapping.dbc_path) if self.mapping is not None else DBC_PATH
+        dbc = {"name": dbc_path.name, "text": dbc_path.read_text()}     # the checks decode frames with it
         self.rec = start_recording(
             scenario, self.strategy, self.seed, handle.name, self.mode, self.path,
             plant_meta=plant.metadata() if hasattr(plant, "metadata") else None,
-            dbc={"name": DBC_PATH.name, "text": DBC_PATH.read_text()},
-            bus_meta={"spec": self.bus, "name": handle.name, "dbc": DBC_PATH.name, "transport": self.transport,
+            dbc=dbc,
+            bus_meta={"spec": self.bus, "name": handle.name, "dbc": dbc["name"], "transport": self.transport,
                       **{k: repr(v) for k, v in dataclasses.asdict(settings).items()},
                       "load_percent": f"{load['load_percent']:.2f}"})
         # rows are written while the plant waits for the TCU (Recorder.defer)

@@ -30,8 +30,9 @@ from identifier import DEFAULT_STRATEGY, STRATEGIES, TractionIdentifier
 
 from .errors import (EXIT_INTERRUPTED, EXIT_OK, BusError, ConfigError, HilError, PeerSilent, PlantFault,
                      caused_by_interrupt)
-from .bus.frames import (PLANT_IDS, SENSOR_ID, STATE_FAULT, STATE_FINISHED, STATE_NAMES, STATE_RUNNING, STATE_STARTING,
+from .bus.frames import (PLANT_IDS, STATE_FAULT, STATE_FINISHED, STATE_NAMES, STATE_RUNNING, STATE_STARTING,
                      FrameCodec, RejectCounter, SampleReport)
+from .bus.mapping import codec_for
 from .bus.link import GuardedBus, Sender, heartbeat_period_s, poll_until, silence_limit_s
 from .bus.secoc import node_key
 from .bus.verdicts import BAD_SEQUENCE, FRESH, RESENT, newest, sensor_sequence
@@ -53,7 +54,10 @@ class TcuNode:
         if not realtime:     # the drill keeps code warm for deadlines (identifier/drill.py): none to keep here
             settings = dataclasses.replace(settings, drill_particles=0)
         self.settings = settings
-        self.codec = codec or FrameCodec(scenario.run.exchange_period_s, auth=node_key(scenario.bus))
+        self.codec = codec or codec_for(scenario, auth=node_key(scenario.bus))
+        #: a TCU's own DBC (hil/bus/mapping.py): readings count from the plant's 'running' heartbeat on
+        self.mapped = getattr(self.codec, "mapped", False)
+        self.probes = 0              # mapped: the plant's start-up probes, not answered
         law = scenario.control.law
         self.identifier = TractionIdentifier(self.settings, strategy, seed, law, scenario.control.options.get(law))
         self.last_demand_step = -1
@@ -82,8 +86,14 @@ class TcuNode:
         if frame is None:
             self.rejected[reason] += 1
             return []
+        if self.mapped and frame.name in ("PlantSensor", "DriverDemand", "MappedPart") \
+                and self.plant_state != STATE_RUNNING:
+            self.probes += frame.name == "PlantSensor"      # the plant's start-up probes: not the run yet
+            return []
         if frame.name == "PlantSensor":
             reading = frame.value
+            if frame.demand is not None:
+                self.identifier.demand_nm = frame.demand.torque_nm
             verdict = sensor_sequence(reading.step, self.last_step, MAX_STEP_GAP)    # a run starts at step 0
             if verdict == RESENT:       # the plant's lockstep resend: its command was lost; the same again
                 self.resent += 1
@@ -125,6 +135,8 @@ class TcuNode:
             self.identifier.demand_nm = frame.value.torque_nm
             return []
         if frame.name == "PlantHeartbeat":
+            if self.mapped and frame.value.state == STATE_RUNNING and self.plant_state != STATE_RUNNING:
+                self.codec.restart()       # the run's first reading is the next trigger frame
             self.plant_state = frame.value.state
             if frame.value.state in (STATE_FINISHED, STATE_FAULT):
                 self.finished = True
@@ -150,7 +162,7 @@ class TcuNode:
         ident = self.identifier
         return {"detected_step": ident.detector.detected_step, "events": self.events, "samples": self.samples_sent,
                 "stale_skipped": self.stale_skipped, "resent": self.resent,
-                "sensor_frames": self.sensor_frames, "last_step": self.last_step, "resyncs": self.resyncs,
+                "sensor_frames": self.sensor_frames, "probes": self.probes, "last_step": self.last_step, "resyncs": self.resyncs,
                 "rejected_frames": dict(self.rejected), "rejected_readings": ident.rejected_readings,
                 "plant_state": None if self.plant_state is None else STATE_NAMES.get(self.plant_state),
                 "confirmed": bool(ident.strategy.confirmed), "rearms": ident.rearms}
@@ -172,7 +184,7 @@ def newest_sensor_only(bus: can.BusABC, first: can.Message, node: TcuNode, limit
         batch.append(msg)
     classified = [node.codec.classify(m) for m in batch]
     steps = {i: frame.value.step for i, (m, (frame, _)) in enumerate(zip(batch, classified))
-             if m.arbitration_id == SENSOR_ID and not m.is_extended_id and frame is not None
+             if frame is not None and frame.name == "PlantSensor"
              and sensor_sequence(frame.value.step, node.last_step, MAX_STEP_GAP) == FRESH}
     stale = newest(steps)
     node.stale_skipped += len(stale)

@@ -94,9 +94,11 @@ class SampleReport:
 
 @dataclass(frozen=True)
 class Frame:
-    """A received frame that passed validation: its DBC name and the decoded object."""
+    """A received frame that passed validation: its DBC name and the decoded object (``demand``: the
+    driver's demand a mapped sensor frame carries too, ``hil.bus.mapping``)."""
     name: str
     value: object          # SensorReading | DriverDemand | TorqueCommand | (TcuStatus, ObserverSample|None) | IdentificationEvent | IntervalReport | SampleReport | Heartbeat
+    demand: DriverDemand | None = None
 
 
 class RejectCounter(Counter):

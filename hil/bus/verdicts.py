@@ -29,6 +29,7 @@ BAD_SEQUENCE = "bad_sequence"
 FOREIGN = "foreign"
 FORGED = "forged"
 REPLAYED = "replayed"
+PROBE = "probe_answer"
 
 VERDICTS: dict[str, tuple[str, str]] = {
     FRESH: (ACTED, "decoded, authentic when authenticated, and next in its stream"),
@@ -36,6 +37,8 @@ VERDICTS: dict[str, tuple[str, str]] = {
                     "after its command was lost): answered again with the same command"),
     LATE: (PASSED, "the plant, real time: a command for a step whose deadline passed (the held torque was "
                    "applied)"),
+    PROBE: (PASSED, "the plant, a mapped bus (hil/bus/mapping.py): a command frame answering a start-up probe, "
+                    "before step 0: a sign of life, not part of the run"),
     STALE: (PASSED, "the TCU, real time: a reading passed over because a newer one was queued behind it "
                     "(backpressure after a stall)"),
     DUPLICATE: (REJECTED, "the plant: a second command for the pending step (the first one stays)"),
@@ -51,6 +54,8 @@ VERDICTS: dict[str, tuple[str, str]] = {
     "undecodable": (REJECTED, "cantools could not decode it"),
     "non_finite": (REJECTED, "a signal that must be finite is not"),
     "out_of_range": (REJECTED, "a signal outside the DBC's range"),
+    "incomplete_reading": (REJECTED, "a mapped bus (hil/bus/mapping.py): the motor speed's message before any "
+                                     "with the train speed"),
 }
 
 

@@ -7,7 +7,8 @@ signal is decoded on first use and kept.  Signals are named two ways:
   ``TorqueCommand.TorqueCmd``): decoded from the ``/can/frames`` topic (every frame on the bus, with
   the simulated time of its exchange step and its receive wall time) with the DBC the run used (the
   log's ``dbc`` metadata; ``hil/hil.dbc`` when the log has none).  Frames the receiving node rejected
-  (``hil.bus.verdicts``) are left out: they never reached the plant or the TCU.
+  (``hil.bus.verdicts``) are left out: they never reached the plant or the TCU; so are a mapped bus's
+  answers to the plant's start-up probes (before step 0, not part of the run).
 - as log topic and field, ``/topic.field`` (``/plant/state.creep_speed_kmh``, ``/tcu/observer.mu_hat``).
 
 A signal is a ``Series``: times ``t_s`` (simulated seconds since the run's start), values, unit (the
@@ -198,11 +199,11 @@ class Run:
     def _frame_rows(self) -> dict:
         """frame id -> [(t_s, wall_time_ns, data)] of the frames the receiving node did not reject."""
         if self._frames is None:
-            from ..bus.verdicts import REJECTED, kind
+            from ..bus.verdicts import PROBE, REJECTED, kind
 
             rows: dict[int, list] = {}
             for f in self.log.topic("/can/frames"):
-                if f.is_error_frame or f.is_remote_frame or kind(f.status or "ok") == REJECTED:
+                if f.is_error_frame or f.is_remote_frame or kind(f.status or "ok") == REJECTED or f.status == PROBE:
                     continue
                 rows.setdefault(f.arbitration_id, []).append((f.t_s, f.wall_time_ns, f.data))
             self._frames = rows

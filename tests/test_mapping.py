@@ -1,0 +1,193 @@
+"""A TCU's own DBC (``[bus] dbc`` and ``[bus.mapping]``, hil/bus/mapping.py): each mapping problem as one
+line naming the file and the key; the mapped codec's quantisation and saturation; the built-in TCU end
+to end over ``scenarios/suites/their.dbc`` (classical CAN, scaled integers); and the example suite
+``scenarios/suites/test_their_tcu.toml`` in real pytest sessions, where the built-in TCU passes every
+check and each faulty example TCU fails exactly its own."""
+import importlib
+import json
+import os
+import sys
+import tempfile
+import xml.etree.ElementTree as ET
+
+import pytest
+
+from hil.config import load_scenario
+from hil.errors import ConfigError
+
+from .conftest import ROOT, SCENARIOS
+
+pytest_plugins = ["pytester"]
+
+THEIR = {"bus.dbc": "suites/their.dbc", "bus.mapping.motor_speed_rad_s": "Sensors.MotorSpeed",
+         "bus.mapping.train_speed_ms": "Sensors.TrainSpeed", "bus.mapping.demand_torque_nm": "Notch.DemandTorque",
+         "bus.mapping.torque_command_nm": "TcuCmd.TorqueRequest"}
+SUITE = SCENARIOS / "suites" / "test_their_tcu.toml"
+FAULTY = SCENARIOS / "suites" / "faulty_tcus"
+CHECKS = {"answers within a period", "commands every period", "no macro-slip", "uses the wet patch's adhesion"}
+
+
+@pytest.mark.parametrize("change, key, words", [
+    ({"bus.mapping.train_speed_ms": "Speeds.TrainSpeed"}, "[bus.mapping] train_speed_ms", "no message 'Speeds'"),
+    ({"bus.mapping.train_speed_ms": "Sensors.Speed"}, "[bus.mapping] train_speed_ms", "has no signal 'Speed'"),
+    ({"bus.mapping.train_speed_ms": "Notch.NotchPosition"}, "[bus.mapping] train_speed_ms", "too narrow"),
+    ({"bus.mapping.torque_command_nm": "Notch.DemandTorque"}, "[bus.mapping] torque_command_nm", "of its own"),
+    ({"bus.mapping.creep_kmh": "Sensors.MotorSpeed"}, "[bus.mapping] creep_kmh", "unknown quantity"),
+    ({"bus.mapping.train_speed_ms": 3}, "[bus.mapping] train_speed_ms", "Message.Signal"),
+    ({"bus.dbc": "suites/nowhere.dbc"}, "[bus] dbc", "no such file"),
+    ({"bus.auth": "on"}, "[bus] auth", "unauthenticated"),
+    ({"run.exchange_period_s": 2e-3}, "[bus.mapping] ", "cycle time of 1 ms"),
+])
+def test_each_mapping_problem_is_one_line_naming_the_file_and_the_key(change, key, words):
+    with pytest.raises(ConfigError) as e:
+        load_scenario(SCENARIOS / "ffcc_a.toml", {**THEIR, **change})
+    text = str(e.value)
+    assert "\n" not in text and text.startswith(f"{SCENARIOS / 'ffcc_a.toml'}: {key}") and words in text, text
+
+
+def test_a_mapping_without_its_dbc_and_a_missing_quantity_are_refused():
+    without = {k: v for k, v in THEIR.items() if k != "bus.dbc"}
+    with pytest.raises(ConfigError, match=r"\[bus.mapping\]: needs \[bus\] dbc"):
+        load_scenario(SCENARIOS / "ffcc_a.toml", without)
+    partial = {k: v for k, v in THEIR.items() if k != "bus.mapping.demand_torque_nm"}
+    with pytest.raises(ConfigError, match=r"\[bus.mapping\] demand_torque_nm: missing"):
+        load_scenario(SCENARIOS / "ffcc_a.toml", partial)
+
+
+def test_the_mapped_codec_quantises_to_their_scale_and_saturates():
+    """Values come back within half their signal's scale; a speed beyond the signal's range is sent as
+    its end; the frames are classical CAN of 8 bytes, the trigger (the motor speed's message) last; a
+    received value outside their DBC's range, or a frame of another length, is rejected by reason."""
+    from identifier.messages import DriverDemand, SensorReading, TorqueCommand
+    from hil.bus.mapping import codec_for
+
+    sc = load_scenario(SCENARIOS / "ffcc_a.toml", THEIR)
+    plant, tcu = codec_for(sc), codec_for(sc)
+    frames = plant.sensor_frames(DriverDemand(0, 5432.1), SensorReading(0, 63.7491, 10.0013))
+    assert [f.arbitration_id for f in frames] == [0x180, 0x181]
+    assert all(not f.is_fd and len(f.data) == 8 for f in frames)
+    got = [tcu.classify(f) for f in frames]
+    assert [g[0].name for g in got] == ["DriverDemand", "PlantSensor"]
+    demand, reading = got[0][0].value, got[1][0].value
+    assert abs(demand.torque_nm - 5432.1) <= 0.25 and abs(reading.motor_speed_rad_s - 63.7491) <= 0.01
+    assert abs(reading.train_speed_ms - 10.0013) <= 0.001 and reading.step == 0
+    fast = tcu.classify(plant.sensor_frames(DriverDemand(1, 0.0), SensorReading(1, 5000.0, 10.0))[1])[0].value
+    assert fast.motor_speed_rad_s == 1300.0 and fast.step == 1
+    cmd, status = plant.classify(tcu.command(TorqueCommand(1, 4000.26)))
+    assert status == "ok" and abs(cmd.value.torque_nm - 4000.26) <= 0.25
+    import can
+
+    beyond = can.Message(arbitration_id=0x200, data=b"\xff\xff" + bytes(6), is_extended_id=False)   # 32767.5 N.m
+    assert plant.classify(beyond) == (None, "out_of_range:TorqueRequest")       # their DBC says at most 32000
+    assert plant.classify(can.Message(arbitration_id=0x200, data=bytes(7), is_extended_id=False)) == (None, "bad_length")
+
+
+def _summary(args, tmp_path, name):
+    from hil.testing import run_hil
+
+    sets = [a for k, v in THEIR.items() for a in ("--set", f'{k}="{v}"')]
+    r = run_hil("run", str(SCENARIOS / "ffcc_a.toml"), "--set", "run.duration_s=1.0", *sets, "--json", "--no-rrd",
+                "--out", str(tmp_path / name), *args)
+    assert r.returncode == 0, r.stderr
+    return json.loads(r.stdout)
+
+
+def _external(tmp_path):
+    """``hil tcu`` with the same ``--set`` items on a local bus, and ``hil run --tcu external`` on it: the run's
+    summary and the TCU's report."""
+    import subprocess
+
+    from hil.testing import hil_command, subprocess_env
+
+    sets = [a for k, v in THEIR.items() for a in ("--set", f'{k}="{v}"')]
+    bus = tempfile.mkdtemp(prefix="hil-bus-test-")
+    tcu = subprocess.Popen(hil_command() + ["tcu", str(SCENARIOS / "ffcc_a.toml"), "--bus", f"localbus:{bus}",
+                                            "--set", "run.duration_s=1.0", *sets, "--json"],
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=subprocess_env(), cwd=ROOT)
+    try:
+        summary = _summary(["--bus", f"localbus:{bus}", "--tcu", "external"], tmp_path, "ext")
+        out, err = tcu.communicate(timeout=120)
+    finally:
+        if tcu.poll() is None:
+            tcu.kill()
+            tcu.wait()
+        os.rmdir(bus)
+    assert tcu.returncode == 0, err
+    return summary, json.loads(out)
+
+
+def test_the_built_in_tcu_identifies_over_their_classical_can_dbc(tmp_path):
+    """ffcc_a, 1 s, lockstep, the built-in TCU over their.dbc, in this process, as a TCU process and as
+    ``hil tcu`` on the bus (external): the same figures (the readings count from the plant's 'running'
+    heartbeat, so the steps agree; the built-in TCU answers no probe: 1000 readings); the fault is
+    detected and identified as on the native DBC (bounds from the paper's own error scale), the log
+    keeps their DBC, the checks decode its signals and ``hil replay`` repeats the identification."""
+    from hil.checks import Run
+
+    inproc = _summary(["--bus", "inprocess"], tmp_path, "a")
+    proc = _summary([], tmp_path, "b")
+    external, report = _external(tmp_path)
+    for key in ("t_detected_s", "t_identified_s", "peak_mu", "peak_creep_kmh", "macro_slip_s", "samples"):
+        assert inproc[key] == proc[key] == external[key], key
+    assert external["transport"] == "external" and external["rejected_frames"] == {}
+    assert report["rejected_frames"] == {} and report["sensor_frames"] == 1000
+    assert proc["frame_auth"] == "off" and proc["rejected_frames"] == {} and proc["tcu_rejected_frames"] == {}
+    assert 0.5 <= proc["t_detected_s"] <= 0.55 and proc["t_identified_s"] <= 0.7
+    assert proc["peak_mu_err_percent"] < 2.0 and proc["peak_creep_err_percent"] < 5.0
+    run = Run.open(proc["mcap"])
+    assert run.log.metadata["dbc"]["name"] == "their.dbc"
+    torque = run.signal("TcuCmd.TorqueRequest")
+    assert len(torque.values) == 1000 and torque.unit == "N.m"
+    from hil.replay import replay_log
+
+    again = replay_log(proc["mcap"])          # the frames on their DBC, decoded as the TCU did: the same events
+    assert again["source"] == "mcap-frames" and again["matches_log"] is True and again["sensor_readings"] == 1000
+
+
+@pytest.fixture(scope="module")
+def _loaded():
+    """What the sessions import, imported here first: pytester's in-process sessions remove the modules
+    they imported when they end, and numpy cannot be imported twice in one process."""
+    for name in ("matplotlib.pyplot", "hil.checks.offline", "hil.exchange", "hil.view", "hil.config", "identifier"):
+        importlib.import_module(name)
+
+
+def _suite(pytester, tmp, tcu_args):
+    out = pytester.path / "junit.xml"
+    result = pytester.runpytest("-p", "hil.pytest_plugin", "-p", "no:cacheprovider", "--hil-bus", f"localbus:{tmp}",
+                                "--hil-out", str(pytester.path / "hil-out"), "--junitxml", str(out), *tcu_args,
+                                str(SUITE))
+    root = ET.parse(str(out)).getroot()
+    cases = {c.get("name").split("-", 1)[1]: {x.tag for x in c} for c in root.iter("testcase")}   # "N-name"
+    failed = {n for n, tags in cases.items() if "failure" in tags}
+    errors = [n for n, tags in cases.items() if "error" in tags or "skipped" in tags]
+    passed = {n for n, tags in cases.items() if not tags & {"failure", "error", "skipped"}}
+    return result, failed, errors, passed
+
+
+@pytest.mark.parametrize("tcu, fails", [
+    (None, set()),
+    ("keeps_demand.py --bus {bus}", {"no macro-slip", "uses the wet patch's adhesion"}),
+    ("answers_late.py {scenario} --bus {bus}", {"answers within a period"}),
+])
+def test_each_faulty_tcu_fails_exactly_its_checks_and_the_built_in_one_passes(pytester, _loaded, tcu, fails):
+    """The example suite on wet_patch (6 s, lockstep) over their.dbc on a local bus: the built-in TCU passes all
+    four checks; the TCU that keeps the demand through the slip fails the two adhesion checks and no other;
+    the one that answers two periods late fails the round-trip check and no other.  The JUnit file says so."""
+    os.environ.setdefault("PYTHONPATH", str(ROOT))
+    with tempfile.TemporaryDirectory(prefix="hil-bus-test-") as tmp:
+        args = [] if tcu is None else ["--hil-tcu", "external", "--hil-tcu-cmd", f"{sys.executable} {FAULTY}/{tcu}"]
+        result, failed, errors, passed = _suite(pytester, tmp, args)
+    assert not errors, result.stdout.str()
+    assert failed == fails, result.stdout.str()
+    assert passed == CHECKS - fails, result.stdout.str()
+
+
+def test_hil_run_says_a_mapping_problem_in_one_line_with_exit_2(tmp_path):
+    from hil.testing import run_hil
+
+    sets = [a for k, v in {**THEIR, "bus.mapping.motor_speed_rad_s": "Sensors.Motor"}.items()
+            for a in ("--set", f'{k}="{v}"')]
+    r = run_hil("run", str(SCENARIOS / "ffcc_a.toml"), "--bus", "inprocess", *sets, "--out", str(tmp_path))
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "[bus.mapping] motor_speed_rad_s: message Sensors of their.dbc has no signal 'Motor'" in r.stderr
