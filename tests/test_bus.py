@@ -168,7 +168,7 @@ def test_inprocess_and_hub_give_identical_frames_and_identification(inprocess_ru
     assert identification(s_hub) == identification(s_in)
     tx_in, rx_in = data_streams(path_in)
     tx_hub, rx_hub = data_streams(path_hub)
-    assert len(tx_in) == 1000 and len(rx_in) >= 2000
+    assert len(tx_in) == 2000 and len(rx_in) >= 2000       # DriverDemand and PlantSensor each period of 1 s
     assert tx_hub == tx_in and rx_hub == rx_in
 
 
