@@ -236,3 +236,38 @@ def test_timing_checks_use_receive_wall_times_in_a_real_time_run(tmp_path):
     off = [g for g in gaps_ms if abs(g - 1.0) > 1e-6]
     assert not strict.passed and strict.first[1] == pytest.approx(off[0])
     assert strict.worst[1] == pytest.approx(max(gaps_ms, key=lambda g: abs(g - 1.0)))
+
+
+@pytest.mark.parametrize("suffix", [".asc", ".blf"])
+def test_hil_check_judges_a_rigs_can_log_with_its_dbc(log, raw, tmp_path, suffix):
+    """A rig's CAN log (written here by python-can from the run's frames, as a rig's logger would) judged by
+    the same checks with --dbc: signals decoded by their DBC names, timing from the frames' timestamps; a
+    summary figure has nothing to judge in a CAN log and fails saying so; a DBC that is not one is one line."""
+    import can
+
+    contents = hil.read_log(log)
+    dbc = tmp_path / "hil.dbc"
+    dbc.write_text(contents.metadata["dbc"]["text"])
+    path = tmp_path / f"rig{suffix}"
+    t0 = 1_700_000_000.0
+    with can.Logger(str(path)) as logger:
+        for f in contents.topic("/can/frames"):
+            if f.direction == "rx" and f.status == "ok":
+                logger(can.Message(timestamp=t0 + f.t_s, arbitration_id=f.arbitration_id, data=f.data,
+                                   is_extended_id=False, is_fd=f.is_fd, bitrate_switch=f.bitrate_switch))
+    checks = tmp_path / "rig.toml"
+    checks.write_text('[[check]]\nname = "mu"\nreq = "OBS-1"\nkind = "in_range"\nsignal = "TcuStatus.MuHat"\n'
+                      'lo = -0.01\nhi = 0.35\n\n'
+                      '[[check]]\nname = "no figure"\nreq = "SUM-1"\nkind = "limit"\nkey = "t_identified_s"\nhi = 1.0\n')
+    r = subprocess.run(hil_command() + ["check", str(path), str(checks), "--dbc", str(dbc)], capture_output=True,
+                       text=True, env=subprocess_env(), cwd=ROOT, timeout=120)
+    assert r.returncode == 1, r.stderr
+    lines = r.stdout.splitlines()
+    mu_hat = [v["MuHat"] for _, v in raw["status"]]
+    assert "PASS [OBS-1]" in lines[0] and len(mu_hat) > 900 and -0.01 <= min(mu_hat) and max(mu_hat) <= 0.35
+    assert lines[1].startswith("FAIL [SUM-1]") and "summary" in lines[1]
+    bad = tmp_path / "bad.dbc"
+    bad.write_text("not a dbc at all {")
+    r = subprocess.run(hil_command() + ["check", str(path), str(checks), "--dbc", str(bad)], capture_output=True,
+                       text=True, env=subprocess_env(), cwd=ROOT, timeout=120)
+    assert r.returncode == 2 and r.stderr.strip().count("\n") == 0 and "--dbc" in r.stderr

@@ -11,10 +11,10 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..errors import BenchError
+from ..errors import BenchError, ConfigError
 from .outcome import TcuFailed, recorded
 from .report import figure, junit_xml, properties
-from .run import Run
+from .run import Run, open_can_log
 from .spec import judge, load_checks
 
 
@@ -32,12 +32,20 @@ class Judgement:
         return self.verdict is None and all(r.passed for r in self.results)
 
 
-def check_log(log_path, checks_path, junitxml=None) -> Judgement:
+def check_log(log_path, checks_path, junitxml=None, dbc=None) -> Judgement:
     """Judge the log at ``log_path`` by the checks file ``checks_path``; ConfigError for a bad checks
-    file, LogError for a log that cannot be read."""
+    file, LogError for a log that cannot be read.  A rig's CAN log (a python-can format, by its suffix) is
+    decoded with ``dbc`` (default: the HIL's own ``hil/hil.dbc``)."""
+    from ..replay import CAN_LOG_SUFFIXES
+
     suite = load_checks(checks_path)          # a bad file is reported before the log is read
     t0 = time.perf_counter()
-    run = Run.open(log_path)
+    if Path(log_path).suffix.lower() in CAN_LOG_SUFFIXES:
+        run = open_can_log(log_path, dbc or Path(__file__).resolve().parents[1] / "hil.dbc")
+    else:
+        run = Run.open(log_path)
+        if dbc is not None:
+            raise ConfigError(f"--dbc {dbc}: only for a rig's CAN log; an MCAP log of hil run keeps its own DBC")
     verdict = recorded(run)
     # a run the TCU's silence ended is judged on what it recorded; one the bench broke is not judged
     results = [] if isinstance(verdict, BenchError) else judge(suite, run)

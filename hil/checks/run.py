@@ -239,6 +239,71 @@ class Run:
         return self._series[name]
 
 
+@dataclass
+class CanLogContents:
+    """A rig's CAN log (any format python-can reads) as far as checks need it: its frames as ``/can/frames``
+    rows (simulated time = seconds since its first frame; receive wall time = the frame's timestamp), the
+    DBC to decode them with as the log's ``dbc`` metadata.  No summary, no plant topics: a rig records
+    frames only, so ``limit`` checks and plant signals have nothing to judge there (and fail saying so)."""
+    rows: list
+    metadata: dict
+    damage: str = ""
+    ended_early: str = ""
+
+    @property
+    def message_count(self) -> int:
+        return len(self.rows)
+
+    def topic(self, name: str) -> list:
+        return self.rows if name == "/can/frames" else []
+
+    def problem(self) -> str:
+        return self.damage
+
+
+@dataclass
+class _CanRow:
+    t_s: float
+    wall_time_ns: int
+    arbitration_id: int
+    data: bytes
+    is_error_frame: bool
+    is_remote_frame: bool
+    status: str = "ok"
+
+
+def open_can_log(path, dbc_path) -> Run:
+    """A ``Run`` of a rig's CAN log at ``path`` whose frames ``dbc_path`` describes; LogError / ConfigError
+    (one line) for a log python-can cannot read or a DBC cantools cannot."""
+    import can
+    import cantools
+
+    try:
+        text = Path(dbc_path).read_text()
+        cantools.database.load_string(text, database_format="dbc")
+    except (OSError, UnicodeDecodeError) as e:
+        raise ConfigError(f"--dbc {dbc_path}: cannot read: {getattr(e, 'strerror', None) or e}") from None
+    except Exception as e:  # noqa: BLE001 - cantools raises many kinds for a bad file
+        raise ConfigError(f"--dbc {dbc_path}: not a DBC cantools reads: {str(e).splitlines()[0][:200]}") from None
+    rows, damage, t0 = [], "", None
+    try:
+        with can.LogReader(str(path)) as reader:
+            for msg in reader:
+                t0 = msg.timestamp if t0 is None else t0
+                rows.append(_CanRow(msg.timestamp - t0, int(round(msg.timestamp * 1e9)), msg.arbitration_id,
+                                    bytes(msg.data), bool(msg.is_error_frame), bool(msg.is_remote_frame)))
+    except FileNotFoundError:
+        raise LogError(f"{path}: no such file") from None
+    except Exception as e:  # noqa: BLE001 - a cut or foreign file: judge what was read, say so
+        if not rows:
+            raise LogError(f"{path}: not a CAN log python-can reads: {str(e).splitlines()[0][:200]}") from None
+        damage = f"read up to frame {len(rows)}: {type(e).__name__}"
+    if not rows:
+        raise LogError(f"{path}: no frames")
+    log = CanLogContents(rows, {"dbc": {"name": Path(dbc_path).name, "text": text}}, damage)
+    return Run(str(path), {"mode": "realtime", "sim_s": rows[-1].t_s}, log)
+
+
 def _summary_of(log) -> dict:
     text = (log.metadata.get("summary") or {}).get("json")
     if text is None:
