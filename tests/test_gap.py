@@ -82,6 +82,7 @@ def test_blind_cases_with_a_seed_chosen_now(tmp_path):
     the rail (``rail_is_the_nuisance``); and its JSON and --doc files hold what they promise
     (``bench_json_keys``).  One bench run for the three checks (a diagnosis per case is what costs)."""
     seed = bench_seed(fresh_seed())
+    print(f"bench: hil bench gap {FFCC_A} --cases {BENCH_CASES} --seed {seed} --mix {BENCH_MIX} --workers 2")
     r = hil("bench", "gap", FFCC_A, "--cases", BENCH_CASES, "--seed", seed, "--json", "--doc", tmp_path / "doc",
             "--mix", BENCH_MIX, "--workers", 2, timeout=1200, cwd=tmp_path)
     assert r.returncode == 0, r.stderr
