@@ -10,6 +10,7 @@ import signal
 import socket
 import subprocess
 import time
+from pathlib import Path
 
 import can
 import pytest
@@ -22,7 +23,7 @@ from hil.bus.frames import PLANT_HEARTBEAT_ID, TCU_HEARTBEAT_ID, FrameCodec, loa
 from hil.log.read import read_log
 from identifier.messages import SensorReading
 
-from .conftest import ROOT, hil, hil_command, subprocess_env
+from .conftest import ROOT, hil, hil_command, once_per_session, subprocess_env
 
 HEARTBEATS = {PLANT_HEARTBEAT_ID, TCU_HEARTBEAT_ID}
 #: where each frame's authentication trailer starts, from the DBC
@@ -77,16 +78,24 @@ FFCC_A = ["scenarios/ffcc_a.toml", "--seed", "1"]
 
 @pytest.fixture(scope="module")
 def inprocess_run(tmp_path_factory):
-    out = tmp_path_factory.mktemp("inprocess")
-    s, _ = run_json(FFCC_A, "inprocess", out)
-    return s, out / "ffcc_a-gp-1.mcap"
+    """(hil run --json summary, log) of ffcc_a on the in-process bus, made once per test session."""
+    def make(out):
+        s, _ = run_json(FFCC_A, "inprocess", out)
+        return s, str(out / "ffcc_a-gp-1.mcap")
+
+    s, path = once_per_session(tmp_path_factory, "bus_inprocess_run", make)
+    return s, Path(path)
 
 
 @pytest.fixture(scope="module")
 def hub_run(tmp_path_factory):
-    out = tmp_path_factory.mktemp("hub")
-    s, err = run_json(FFCC_A, "hub", out)
-    return s, out / "ffcc_a-gp-1.mcap", err
+    """(hil run --json summary, log, stderr) of ffcc_a over the hub, made once per test session."""
+    def make(out):
+        s, err = run_json(FFCC_A, "hub", out)
+        return s, str(out / "ffcc_a-gp-1.mcap"), err
+
+    s, path, err = once_per_session(tmp_path_factory, "bus_hub_run", make)
+    return s, Path(path), err
 
 
 # -- the bus factory ------------------------------------------------------------------------------

@@ -1,26 +1,29 @@
 """``hil replay``: real ``hil run`` logs (two processes over the default bus) re-identified offline."""
 import json
+from pathlib import Path
 
 import pytest
 
 
-from .conftest import ROOT, SCENARIOS, hil, kill_run_when_log_reaches
+from .conftest import ROOT, SCENARIOS, hil, kill_run_when_log_reaches, once_per_session
 
 PF_STRATEGY = "proposed"     # a particle-filter strategy (identifier/strategies/proposed.py)
 
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
-    """strategy -> (hil run --json summary, log path), both from `hil run` on its default bus."""
-    out = tmp_path_factory.mktemp("runs")
-    res = {}
-    for strategy in ("gp", PF_STRATEGY):
-        r = hil("run", str(SCENARIOS / "ffcc_a.toml"), "--strategy", strategy, "--seed", "4", "--out", str(out),
-                "--json")
-        assert r.returncode == 0, r.stderr
-        s = json.loads(r.stdout)
-        res[strategy] = (s, out / f"ffcc_a-{strategy}-4.mcap")
-    return res
+    """strategy -> (hil run --json summary, log path), both from `hil run` on its default bus (made once
+    per test session, ``once_per_session``)."""
+    def make(out):
+        res = {}
+        for strategy in ("gp", PF_STRATEGY):
+            r = hil("run", str(SCENARIOS / "ffcc_a.toml"), "--strategy", strategy, "--seed", "4", "--out", str(out),
+                    "--json")
+            assert r.returncode == 0, r.stderr
+            res[strategy] = (json.loads(r.stdout), str(out / f"ffcc_a-{strategy}-4.mcap"))
+        return res
+
+    return {k: (s, Path(path)) for k, (s, path) in once_per_session(tmp_path_factory, "replay_runs", make).items()}
 
 
 @pytest.mark.parametrize("strategy", ["gp", PF_STRATEGY])
