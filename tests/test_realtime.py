@@ -177,7 +177,7 @@ def test_local_and_inprocess_buses_give_the_same_frames_in_lockstep(tmp_path):
     assert identification(s_local) == identification(s_in)
     tx_in, rx_in = data_streams(tmp_path / "in" / "ffcc_a-gp-1.mcap")
     tx_local, rx_local = data_streams(tmp_path / "local" / "ffcc_a-gp-1.mcap")
-    assert len(tx_in) == 500 and tx_local == tx_in and rx_local == rx_in
+    assert len(tx_in) == 1000 and tx_local == tx_in and rx_local == rx_in      # DriverDemand + PlantSensor, 0.5 s
 
 
 def test_cpu_affinity_settings_are_lists_of_cpu_numbers():

@@ -1,8 +1,8 @@
 """A faulty TCU for the example suite (``scenarios/suites/test_their_tcu.toml``): it speaks ``their.dbc``
 and runs the built-in TCU's identifier and control law (``identifier.TractionIdentifier``), but sends
-each torque command ``LATE_S`` (two exchange periods) after the reading it answers.  The plant in
+each torque command ``LATE_S`` (five exchange periods) after the reading it answers.  The plant in
 lockstep waits for it, so it controls the wheel as the built-in TCU does: it fails TIM-1 (answers
-within a period) and no other; in real time each command comes after its period's deadline.
+within three periods) and no other; in real time each command comes after its period's deadline.
 
     python scenarios/suites/faulty_tcus/answers_late.py scenarios/wet_patch.toml --bus localbus:DIR
 """
@@ -21,7 +21,7 @@ from identifier import DEFAULT_STRATEGY, TractionIdentifier
 from identifier.messages import SensorReading
 
 DBC = Path(__file__).resolve().parent.parent / "their.dbc"
-LATE_S = 0.002
+LATE_S = 0.005
 
 
 def main() -> int:
