@@ -209,3 +209,36 @@ def _cmdline(proc_dir) -> str:
         return (proc_dir / "cmdline").read_bytes().replace(b"\0", b" ").decode().strip()
     except OSError:
         return ""
+
+
+def test_twenty_checks_over_five_one_second_scenarios_run_each_scenario_once_and_judge_in_under_a_second(pytester):
+    """Issue 37's target: a suite of 20 checks (as data, 4 per file) over 5 one-second scenarios (FFCC-a and
+    FFCC-b at different seeds and demands) runs each scenario once; judging each run's log by its 4 checks,
+    in this process, costs under 1 s."""
+    import time
+
+    from hil.checks.run import Run
+    from hil.checks.spec import judge, load_checks
+
+    specs = [("ffcc_a", 1, 0.16), ("ffcc_a", 2, 0.158), ("ffcc_b", 1, None), ("ffcc_b", 3, None), ("ffcc_a", 4, 0.162)]
+    for i, (name, seed, mu) in enumerate(specs):
+        sets = f'"run.duration_s" = 1.0\n"run.seed" = {seed}\n' + (f'"run.mu_required" = {mu}\n' if mu else "")
+        pytester.makefile(".toml", **{f"test_s{i}": f'scenario = "{SCENARIOS / (name + ".toml")}"\n[set]\n{sets}\n'
+                                     '[[check]]\nname = "detected"\nkind = "responds"\ntrigger = "fault"\n'
+                                     'condition = "TcuStatus.Stage >= 1"\nwithin_s = 0.05\n\n'
+                                     '[[check]]\nname = "mu plausible"\nkind = "in_range"\nsignal = "TcuStatus.MuHat"\n'
+                                     'lo = 0.0\nhi = 0.35\nduring = ["fault", 0.0, 0.2]\nvalid = "TcuStatus.ObserverValid"\n\n'
+                                     '[[check]]\nname = "status each period"\nkind = "cycle_time"\nframe = "TcuStatus"\n'
+                                     'nominal_s = 0.001\ntolerance_s = 0.0005\n\n'
+                                     '[[check]]\nname = "observer lag"\nkind = "limit"\nkey = "observer_lag_ms"\nhi = 10.0\n'})
+    result = _session(pytester)
+    result.assert_outcomes(passed=20)
+    logs = sorted((pytester.path / "hil-out").rglob("*.mcap"))
+    assert len(logs) == 5, logs                                        # one run per scenario, 20 checks
+    suite = load_checks(pytester.path / "test_s0.toml")                # the same 4 checks in every file
+    for log in logs:
+        t0 = time.perf_counter()
+        results = judge(suite, Run.open(log))
+        took = time.perf_counter() - t0
+        print(f"{log.name}: {len(results)} checks judged in {took * 1e3:.0f} ms")
+        assert len(results) == 4 and all(r.passed for r in results) and took < 1.0

@@ -141,10 +141,11 @@ GARBAGE = [
 
 
 def test_cansend_garbage_during_a_run_is_counted_and_the_run_still_identifies(tmp_path):
-    # a 20 s run (fault at 19.5 s): long enough for 30 cansend calls while both nodes are on the bus (2 s:
-    # the TCU once finished before the last frame came; 4 s: once the frame codec was compiled from the
-    # DBC, a run in UML ended before the last cansend; 10 s: once, with the host at load 15, too)
-    args = [*FFCC_A, "--set", "run.duration_s=20.0", "--set", "run.fault_time_s=19.5"]
+    # a 10 s run (fault at 9.5 s) and each garbage frame sent once: ten cansend calls while both nodes are on
+    # the bus (2 s: the TCU once finished before the last frame came; 4 s: once the frame codec was compiled
+    # from the DBC, a run in UML ended before the last cansend; 30 calls into a 10 s or a 20 s run: the run
+    # ended first in a full CI run, a cansend process start under UML taking seconds with the host busy)
+    args = [*FFCC_A, "--set", "run.duration_s=10.0", "--set", "run.fault_time_s=9.5"]
     ref, _ = run_json(args, "inprocess", tmp_path / "ref")
     watch = open_bus("socketcan:vcan0")
     proc = subprocess.Popen(hil_command() + ["run", *args, "--bus", "socketcan:vcan0", "--out", str(tmp_path),
@@ -158,25 +159,24 @@ def test_cansend_garbage_during_a_run_is_counted_and_the_run_still_identifies(tm
                 break
             assert time.monotonic() < end and proc.poll() is None, "the run never started"
         sent = 0
-        for _ in range(3):
-            for frame in GARBAGE:
-                subprocess.run(["cansend", "vcan0", frame], check=True, timeout=30)
-                sent += 1
+        for frame in GARBAGE:
+            subprocess.run(["cansend", "vcan0", frame], check=True, timeout=30)
+            sent += 1
         still_running = proc.poll() is None
         out, err = proc.communicate(timeout=600)
     finally:
         watch.close()
         if proc.poll() is None:
             proc.kill()
-    assert still_running, "the run ended before all garbage was sent: the test proves nothing"
+    assert still_running, f"the run ended before all garbage was sent: the test proves nothing (exit {proc.returncode}, sent {sent}): {err[-800:]}"
     assert proc.returncode == 0, err
     s = json.loads(out)
     assert s["identified"]
     assert identification(s) == identification(ref)
-    assert sum(s["rejected_frames"].values()) == sent == 3 * len(GARBAGE)
+    assert sum(s["rejected_frames"].values()) == sent == len(GARBAGE)
     assert sum(s["tcu_rejected_frames"].values()) == sent
     assert s["tcu_rejected_readings"] == 0
-    assert s["rejected_frames"]["non_finite:MotorSpeed"] == 3 and s["rejected_frames"]["remote_frame"] == 3
+    assert s["rejected_frames"]["non_finite:MotorSpeed"] == 1 and s["rejected_frames"]["remote_frame"] == 1
     rejected = [f for f in read_log(tmp_path / "ffcc_a-gp-1.mcap", {"/can/frames"}).topic("/can/frames")
                 if f.status not in ("ok", "late")]
     assert len(rejected) == sent
