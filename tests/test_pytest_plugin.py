@@ -227,7 +227,7 @@ def test_twenty_checks_over_five_one_second_scenarios_run_each_scenario_once_and
                                      '[[check]]\nname = "detected"\nkind = "responds"\ntrigger = "fault"\n'
                                      'condition = "TcuStatus.Stage >= 1"\nwithin_s = 0.05\n\n'
                                      '[[check]]\nname = "mu plausible"\nkind = "in_range"\nsignal = "TcuStatus.MuHat"\n'
-                                     'lo = 0.0\nhi = 0.35\nduring = ["fault", 0.0, 0.2]\nvalid = "TcuStatus.ObserverValid"\n\n'
+                                     'lo = -0.05\nhi = 0.35\nduring = ["fault", 0.0, 0.2]\nvalid = "TcuStatus.ObserverValid"\n\n'
                                      '[[check]]\nname = "status each period"\nkind = "cycle_time"\nframe = "TcuStatus"\n'
                                      'nominal_s = 0.001\ntolerance_s = 0.0005\n\n'
                                      '[[check]]\nname = "observer lag"\nkind = "limit"\nkey = "observer_lag_ms"\nhi = 10.0\n'})
