@@ -167,6 +167,12 @@ class TractionIdentifier:
                             self.detector.detected_step is not None, ci,
                             tuple(e.peak_mu_ci) if e is not None else None, confirmed, peak_creep)
 
+    def use_controller(self, controller) -> None:
+        """Act through ``controller`` (anything with ``torque_nm(ControlInput)`` and ``wants_rearm``) instead
+        of the law named at construction: the benchmark's oracle and prior laws, never a run's."""
+        self.controller = controller
+        self._open_loop = False
+
     def rearm(self) -> None:
         """A fresh detector and strategy (the observer runs on): the next drop is identified afresh."""
         s = self.settings

@@ -184,9 +184,8 @@ def run_point(item: dict) -> dict:
                      log=lambda text: None) as session:
             ident = session.tcu.node.identifier
             if law in (ORACLE, PRIOR):
-                ident.controller = (Oracle(session.node.rig, ident.settings.vehicle) if law == ORACLE else
-                                    FixedCreep(ident.settings.vehicle, item["prior_kmh"]))
-                ident._open_loop = False
+                ident.use_controller(Oracle(session.node.rig, ident.settings.vehicle) if law == ORACLE else
+                                     FixedCreep(ident.settings.vehicle, item["prior_kmh"]))
             timing = exchange(session.node, scenario.steps, "lockstep")
             summary = session.finish(timing, time.perf_counter() - t0)
     except PeerSilent as e:
