@@ -277,8 +277,12 @@ def test_draws_parse_and_slip_within_the_band(family, draws):
         t_det = tracker.deterioration_time_s
         figures.append(f"{index}: {d.law} pred {d.t_det_predicted_s * 1e3:.1f} sim {t_det * 1e3:.1f} ms")
         assert 0.015 <= t_det <= 0.170, figures[-1]
-        # the plant's tracker sees the crossing at the first exchange period after it
-        assert d.t_det_predicted_s <= t_det + 1e-9 <= d.t_det_predicted_s + sc.run.exchange_period_s + 1e-6, figures[-1]
+        # the plant's tracker sees the crossing at the first exchange period after it; the prediction
+        # (RK4 at 0.25 ms from the ideal state) differs from the plant's crossing (0.1 ms steps, a held creep
+        # that drifts) by tens of microseconds on slow approaches: -28.5 us was seen (HIL_TEST_SEED=1587076047),
+        # 300 draws gave -1.8..+997 us, so one prediction step is allowed either side
+        tol = families.PREDICT_STEP_S
+        assert d.t_det_predicted_s - tol <= t_det <= d.t_det_predicted_s + sc.run.exchange_period_s + tol, figures[-1]
         assert abs(d.t_det_predicted_s - t_det) <= 0.1 * t_det
     print("; ".join(figures))
 
