@@ -9,9 +9,9 @@
 ``extremum_seeking``  perturbation-based peak tracking: a sine dither on the creep set-point, the observer's
                       mu^ demodulated by it gives the slope d mu / d v_s, the set-point climbs it (Ariyur and
                       Krstic's scheme; J. Adv. Transp. 2019, 6270515 for its use on a locomotive).
-``identified``        acts on the identifier's live curve: holds the creep at the lower end of the 90 %
-                      peak-creep interval once the curve is confirmed, probes upward only as far as the
-                      interval's upper end while it is not, and starts from the nominal peak creep.
+``identified``        extremum seeking placed by the identifier: at each confirmed curve the set-point jumps
+                      to its peak creep (kept inside the 90 % peak-creep interval); the dither corrects it
+                      and carries on alone while nothing is confirmed.
 """
 from __future__ import annotations
 
@@ -121,96 +121,48 @@ class ExtremumSeeking(Controller):
         return self.loop.torque_nm(x, self.v_hat + o["dither_kmh"] * math.sin(phase))
 
 
-class Identified(Controller):
-    """Acts on the identifier's curve (module docstring).  While the creep loop (not the demand) limits the
-    torque:
+class Identified(ExtremumSeeking):
+    """Extremum seeking placed by the identifier (module docstring).  The set-point v^ is extremum seeking's
+    (the fallback while nothing is confirmed, and the correction of a confirmed curve that is off), except
+    that at each confirmation it jumps to
 
-    - a confirmed curve (or one given up with a best estimate): v* = ``hold_fraction`` x its peak creep, kept
-      inside the 90 % peak-creep interval (its lower end when the curve's own peak lies below it);
-    - nothing confirmed: v* climbs at ``probe_kmh_per_s`` from ``start_fraction`` x the nominal peak creep,
-      never past the latest interval's upper end, and steps back to the best creep seen once mu^ (low-passed
-      over ``filter_s``) has fallen ``drop_mu`` below the best it reached while the creep rose past it by
-      ``creep_step_kmh`` (the data show the peak passed), holding there ``repeek_s`` before it climbs again;
-    - once the demand has passed through for ``rearm_s`` after a slip, or mu^ has left the confirmed curve's
-      peak interval by ``stale_mu`` (above it: the rail got better; below it while holding the peak: the curve
-      does not describe this rail), the identifier is re-armed (a new drop finds it fresh) and v* returns to
-      its start (from a stale curve: probes on from the creep held).
-    """
+        v^ = hold_fraction x clip(v_p, lower, upper)        v_p the confirmed curve's peak creep,
+                                                            [lower, upper] its 90 % peak-creep interval
+
+    so the creep reaches the new rail's peak within the identification time instead of the tens of seconds
+    a dither-driven climb takes across a whole curve.  Only the peak *creep* is used: in closed loop the
+    drop's samples mix two rails and the observer's lag, and the curve's peak mu is the least reliable part
+    of it.  Once the demand has passed through for ``rearm_s`` after a slip (the rail carries it again),
+    the identifier is re-armed, so the next drop is identified afresh and no curve outlives its rail."""
     name = "identified"
-    defaults = {"hold_fraction": 0.98, "probe_kmh_per_s": 3.0, "rearm_s": 0.3, "start_fraction": 1.0,
-                "max_kmh": 12.0, "filter_s": 0.05, "drop_mu": 0.004, "creep_step_kmh": 0.05, "repeek_s": 2.0,
-                "stale_mu": 0.01, **_LOOP_DEFAULTS}
-    ranges = {"hold_fraction": (0.1, 2.0), "probe_kmh_per_s": (0.0, 100.0), "rearm_s": (0.001, 60.0),
-              "start_fraction": (0.05, 10.0), "max_kmh": (0.1, 30.0), "filter_s": (0.0, 1.0), "drop_mu": (0.0, 1.0),
-              "creep_step_kmh": (0.0, 10.0), "repeek_s": (0.0, 600.0), "stale_mu": (0.0, 1.0), **_LOOP_RANGES}
+    defaults = {"hold_fraction": 0.98, "rearm_s": 0.3, **ExtremumSeeking.defaults}
+    ranges = {"hold_fraction": (0.1, 2.0), "rearm_s": (0.001, 60.0), **ExtremumSeeking.ranges}
 
     def __init__(self, vehicle, nominal_peak_creep_kmh, options=None):
         super().__init__(vehicle, nominal_peak_creep_kmh, options)
-        self.loop = CreepLoop(vehicle, self.options["bandwidth_rad_s"], self.options["integral_rad_s"])
-        self._start = self.options["start_fraction"] * nominal_peak_creep_kmh
-        self._rearm = False
-        self._restart()
-
-    def _restart(self, from_kmh: float | None = None) -> None:
-        """Start afresh: v* at its start, or (a stale curve, the loop holding the creep) at ``from_kmh``, the
-        creep it holds, to probe upward from there without a jump."""
-        self.set_point = self._start if from_kmh is None else min(from_kmh, self._start)
-        self.passed_peak = False
-        self._hold_until_s = -math.inf
-        self._best = (-math.inf, self.set_point)  # (mu^, creep) at the best mu^ seen while probing
-        self._mu_f = None
+        self._was_confirmed = False
         self._passing_s = 0.0
-        self.loop.reset()
+        self._rearm = False
 
     def _target_kmh(self, x: ControlInput) -> float | None:
-        """The confirmed curve's set-point (class docstring), or None."""
-        if not x.confirmed:
-            return None
+        """hold_fraction x the confirmed peak creep, clipped to its interval (class docstring), or None."""
         peak = x.peak_creep_kmh
         if x.peak_creep_ci is not None:
             lo, hi = x.peak_creep_ci
             peak = min(max(peak, lo), hi) if math.isfinite(peak) else lo
         return self.options["hold_fraction"] * peak if math.isfinite(peak) else None
 
-    def _climb(self, x: ControlInput) -> None:
-        """Hill-climb while nothing is confirmed (class docstring).  mu^ below its best by ``drop_mu`` after the
-        creep rose past the best's creep: the peak was passed, step back and hold for ``repeek_s``; at a creep
-        that did not rise: the rail changed under it, the best is forgotten."""
-        o = self.options
-        if self.passed_peak:
-            if x.t_s < self._hold_until_s:
-                return
-            self.passed_peak = False
-            self._best = (-math.inf, self.set_point)
-        if self._mu_f > self._best[0]:
-            self._best = (self._mu_f, x.creep_speed_kmh)
-        elif self._mu_f < self._best[0] - o["drop_mu"]:
-            if x.creep_speed_kmh > self._best[1] + o["creep_step_kmh"]:
-                self.passed_peak = True
-                self.set_point = self._best[1]
-                self._hold_until_s = x.t_s + o["repeek_s"]
-                return
-            self._best = (self._mu_f, x.creep_speed_kmh)
-        ceiling = o["max_kmh"] if x.peak_creep_ci is None else min(o["max_kmh"], x.peak_creep_ci[1])
-        self.set_point = min(self.set_point + o["probe_kmh_per_s"] * x.period_s, max(ceiling, self.set_point))
-
     def torque_nm(self, x: ControlInput) -> float:
         o = self.options
-        a = x.period_s / (o["filter_s"] + x.period_s)
-        self._mu_f = x.mu_hat if self._mu_f is None else self._mu_f + a * (x.mu_hat - self._mu_f)
-        target = self._target_kmh(x)
-        if target is not None:
-            self.set_point = target
-        elif self.loop.limited:
-            self._climb(x)
-        torque = self.loop.torque_nm(x, self.set_point)
+        if x.confirmed and not self._was_confirmed:
+            target = self._target_kmh(x)
+            if target is not None:
+                self.v_hat = min(max(target, o["min_kmh"]), o["max_kmh"])
+        self._was_confirmed = x.confirmed
+        torque = super().torque_nm(x)
         self._passing_s = self._passing_s + x.period_s if x.slipping and not self.loop.limited else 0.0
-        stale = (x.confirmed and x.peak_mu_ci is not None and math.isfinite(x.peak_mu_ci[0])
-                 and (self._mu_f > x.peak_mu_ci[1] + o["stale_mu"]
-                      or (self.loop.limited and self._mu_f < x.peak_mu_ci[0] - o["stale_mu"])))
-        if self._passing_s >= o["rearm_s"] or stale:
-            self._rearm = True
-            self._restart(x.creep_speed_kmh if stale else None)
+        if self._passing_s >= o["rearm_s"]:
+            self._rearm, self._passing_s, self._was_confirmed = True, 0.0, False
         return torque
 
     @property
