@@ -107,9 +107,10 @@ def test_identified_acts_on_the_identified_curve_and_rearms(runs):
     assert summary["adhesion_utilisation_low"] > runs["demand"][1]["adhesion_utilisation_low"] + 0.3
 
 
-def test_identified_jumps_to_each_confirmed_peak_creep_once_and_extremum_seeking_carries_on():
-    """The law alone, fed readings: at a confirmation the set-point becomes 0.98 x the curve's peak creep
-    clipped to its interval, once; afterwards (and before) extremum seeking moves it."""
+def test_identified_jumps_to_a_confirmed_peak_creep_the_creep_passed_well_beyond_once():
+    """The law alone, fed readings: at a confirmation whose peak creep the creep exceeds 1.5-fold, the
+    set-point becomes 0.98 x that peak creep clipped to its interval, once; a claimed peak just below the
+    creep reached (what a change of rail looks like) moves nothing; extremum seeking does the rest."""
     from identifier.control import make_controller
     from identifier.control.base import ControlInput
     from identifier.settings import VehicleModel
@@ -117,17 +118,21 @@ def test_identified_jumps_to_each_confirmed_peak_creep_once_and_extremum_seeking
     law = make_controller("identified", VehicleModel(120.0, 9000.0, 4.0, 0.5), 1.2)
     assert law.v_hat == 1.2                                     # extremum seeking's start: the nominal peak creep
 
-    def x(step, confirmed=False, peak=math.nan, ci=None):
-        return ControlInput(step, step * 1e-3, 1e-3, 5000.0, 0.9, 5200.0, 0.05, True, ci, None, confirmed, peak)
+    def x(step, creep, confirmed=False, peak=math.nan, ci=None):
+        return ControlInput(step, step * 1e-3, 1e-3, 20000.0, creep, 5200.0, 0.05, True, ci, None, confirmed, peak)
 
-    law.torque_nm(x(0))
-    law.torque_nm(x(1, True, 0.70, (0.60, 0.80)))
-    assert law.v_hat == pytest.approx(0.98 * 0.70, abs=1e-3)   # one ES step (gain x slope x 1 ms) at most
-    law.v_hat = 0.5                                           # as if extremum seeking had moved it
-    law.torque_nm(x(3, True, 0.70, (0.60, 0.80)))
-    assert law.v_hat == pytest.approx(0.5, abs=1e-3)          # the same confirmation: no second jump
-    law.torque_nm(x(4))                                       # re-armed: nothing confirmed
-    law.torque_nm(x(5, True, 1.50, (0.60, 0.90)))             # a peak outside its interval is clipped to it
+    law.torque_nm(x(0, 0.9))
+    before = law.v_hat                                          # ES's, 0.9 + 2 dithers while not yet limited
+    law.torque_nm(x(1, 0.9, True, 0.70, (0.60, 0.80)))          # 0.9 < 1.5 x 0.686: not acted on
+    assert law.v_hat == pytest.approx(before, abs=1e-3) and before > 0.9   # one ES step at most
+    law.torque_nm(x(2, 1.3))                                    # re-armed: nothing confirmed
+    law.torque_nm(x(3, 1.3, True, 0.70, (0.60, 0.80)))
+    assert law.v_hat == pytest.approx(0.98 * 0.70, abs=1e-3)
+    law.v_hat = 0.5                                             # as if extremum seeking had moved it
+    law.torque_nm(x(4, 1.3, True, 0.70, (0.60, 0.80)))
+    assert law.v_hat == pytest.approx(0.5, abs=1e-3)            # the same confirmation: no second jump
+    law.torque_nm(x(5, 1.6))
+    law.torque_nm(x(6, 1.6, True, 0.95, (0.60, 0.90)))          # a peak outside its interval is clipped to it
     assert law.v_hat == pytest.approx(0.98 * 0.90, abs=1e-3)
 
 

@@ -9,9 +9,9 @@
 ``extremum_seeking``  perturbation-based peak tracking: a sine dither on the creep set-point, the observer's
                       mu^ demodulated by it gives the slope d mu / d v_s, the set-point climbs it (Ariyur and
                       Krstic's scheme; J. Adv. Transp. 2019, 6270515 for its use on a locomotive).
-``identified``        extremum seeking placed by the identifier: at each confirmed curve the set-point jumps
-                      to its peak creep (kept inside the 90 % peak-creep interval); the dither corrects it
-                      and carries on alone while nothing is confirmed.
+``identified``        extremum seeking placed by the identifier: a confirmed curve whose peak creep the creep
+                      has passed well beyond moves the set-point to it at once (kept inside the 90 %
+                      peak-creep interval); the dither corrects it and carries on alone otherwise.
 """
 from __future__ import annotations
 
@@ -129,14 +129,21 @@ class Identified(ExtremumSeeking):
         v^ = hold_fraction x clip(v_p, lower, upper)        v_p the confirmed curve's peak creep,
                                                             [lower, upper] its 90 % peak-creep interval
 
-    so the creep reaches the new rail's peak within the identification time instead of the tens of seconds
-    a dither-driven climb takes across a whole curve.  Only the peak *creep* is used: in closed loop the
-    drop's samples mix two rails and the observer's lag, and the curve's peak mu is the least reliable part
-    of it.  Once the demand has passed through for ``rearm_s`` after a slip (the rail carries it again),
-    the identifier is re-armed, so the next drop is identified afresh and no curve outlives its rail."""
+    when the creep then is at least ``jump_ratio`` x v^ (the data have passed the claimed peak well beyond
+    it), so the creep comes back from the new rail's macro-slip within the identification time instead of
+    the hundreds of milliseconds a dither-driven descent takes.  Why the condition: in closed loop a drop's
+    samples straddle the change of rail while the loop holds the creep, and a fall of mu that the rail
+    made looks, to an identifier of one static curve, like the fall past a peak at the newest creeps: such
+    confirmations claim a peak just below the creep reached (docs/design/control.md measures them) and
+    acting on them would pull the creep below the new rail's peak.  A claimed peak far below the creep
+    reached is one the data themselves swept past.  Only the peak *creep* is used: the peak mu of a curve
+    fitted across two rails is the least reliable part of it.  Once the demand has passed through for
+    ``rearm_s`` after a slip (the rail carries it again), the identifier is re-armed, so the next drop is
+    identified afresh and no curve outlives its rail."""
     name = "identified"
-    defaults = {"hold_fraction": 0.98, "rearm_s": 0.3, **ExtremumSeeking.defaults}
-    ranges = {"hold_fraction": (0.1, 2.0), "rearm_s": (0.001, 60.0), **ExtremumSeeking.ranges}
+    defaults = {"hold_fraction": 0.98, "jump_ratio": 1.5, "rearm_s": 0.3, **ExtremumSeeking.defaults}
+    ranges = {"hold_fraction": (0.1, 2.0), "jump_ratio": (0.0, 100.0), "rearm_s": (0.001, 60.0),
+              **ExtremumSeeking.ranges}
 
     def __init__(self, vehicle, nominal_peak_creep_kmh, options=None):
         super().__init__(vehicle, nominal_peak_creep_kmh, options)
@@ -156,7 +163,7 @@ class Identified(ExtremumSeeking):
         o = self.options
         if x.confirmed and not self._was_confirmed:
             target = self._target_kmh(x)
-            if target is not None:
+            if target is not None and x.creep_speed_kmh >= o["jump_ratio"] * target:
                 self.v_hat = min(max(target, o["min_kmh"]), o["max_kmh"])
         self._was_confirmed = x.confirmed
         torque = super().torque_nm(x)
