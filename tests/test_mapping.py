@@ -191,3 +191,30 @@ def test_hil_run_says_a_mapping_problem_in_one_line_with_exit_2(tmp_path):
     r = run_hil("run", str(SCENARIOS / "ffcc_a.toml"), "--bus", "inprocess", *sets, "--out", str(tmp_path))
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert "[bus.mapping] motor_speed_rad_s: message Sensors of their.dbc has no signal 'Motor'" in r.stderr
+
+
+def test_the_junit_file_names_each_dbc_the_runs_spoke_with_its_digest(pytester, _loaded):
+    """A session of two runs, one over their.dbc (a mapped scenario) and one over the HIL's own DBC: the suite's
+    properties hold a ``dbc`` / ``dbc_sha256`` pair for each, in the order the runs used them, the digest that
+    of the file itself (computed here from its bytes)."""
+    import hashlib
+
+    sets = "".join(f'"{k}" = "{v}"\n' for k, v in THEIR.items())
+    check = '[[check]]\nname = "ran"\nkind = "limit"\nkey = "sim_s"\nlo = 0.1\n'
+    pytester.makefile(".toml", test_a_ours=f'scenario = "{SCENARIOS / "ffcc_a.toml"}"\n[set]\n"run.duration_s" = 0.3\n"run.fault_time_s" = 0.2\n'
+                      + check,
+                      test_b_theirs=f'scenario = "{SCENARIOS / "ffcc_a.toml"}"\n[set]\n"run.duration_s" = 0.3\n"run.fault_time_s" = 0.2\n{sets}'
+                      + check)
+    out = pytester.path / "junit.xml"
+    result = pytester.runpytest("-p", "hil.pytest_plugin", "-p", "no:cacheprovider", "--hil-bus", "inprocess",
+                                "--hil-out", str(pytester.path / "hil-out"), "--junitxml", str(out))
+    result.assert_outcomes(passed=2)
+    from lxml import etree
+
+    schema = etree.XMLSchema(etree.parse(str(ROOT / "tests" / "data" / "junit-10.xsd")))
+    assert schema.validate(etree.parse(str(out))), schema.error_log
+    props = [(p.get("name"), p.get("value")) for p in ET.parse(str(out)).getroot().iter("property")]
+    dbcs = [(name, digest) for (k1, name), (k2, digest) in zip(props, props[1:]) if (k1, k2) == ("dbc", "dbc_sha256")]
+    sha = {p: hashlib.sha256(p.read_bytes()).hexdigest() for p in (ROOT / "hil" / "hil.dbc", SCENARIOS / "suites" / "their.dbc")}
+    assert dbcs == [("hil.dbc", sha[ROOT / "hil" / "hil.dbc"]), ("their.dbc", sha[SCENARIOS / "suites" / "their.dbc"])], props
+    assert sum(k == "dbc_sha256" for k, _ in props) == 2, props
