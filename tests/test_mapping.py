@@ -1,8 +1,9 @@
 """A TCU's own DBC (``[bus] dbc`` and ``[bus.mapping]``, hil/bus/mapping.py): each mapping problem as one
 line naming the file and the key; the mapped codec's quantisation and saturation; the built-in TCU end
 to end over ``scenarios/suites/their.dbc`` (classical CAN, scaled integers); and the example suite
-``scenarios/suites/test_their_tcu.toml`` in real pytest sessions, where the built-in TCU passes every
-check and each faulty example TCU fails exactly its own."""
+``scenarios/suites/test_their_tcu.toml`` in real pytest sessions, in lockstep and (marked realtime, where
+SCHED_FIFO is granted) in real time, where the built-in TCU passes every check and each faulty example TCU
+fails exactly its own; and the JUnit file's properties naming the DBCs the runs spoke."""
 import importlib
 import json
 import os
