@@ -22,7 +22,9 @@ plugin marks the report as pytest marks a broken fixture's); a bus not available
 an error under ``CI=true``.  A failure's output holds one line per failed check, ``[[ATTACHMENT|png]]``
 lines (a figure per failed check), the log, the recording and the command that reproduces the run;
 the plugin sets ``junit_logging = system-out`` (unless the project sets another value than ``no``) so
-that the JUnit XML keeps them.  Suite properties (``--junitxml``): the DBC's digest, the package version, the TCU under test.
+that the JUnit XML keeps them.  Suite properties (``--junitxml``): the package version, the TCU under test,
+the bus and mode, and for each DBC the session's runs spoke (the scenario's ``[bus] dbc`` or ``hil/hil.dbc``)
+its file name (``dbc``) and digest (``dbc_sha256``), a pair per DBC in the order the runs first used them.
 
 This module imports only pytest and the standard library when it loads: a pytest session that never
 asks for a HIL run pays nothing for it.
@@ -85,6 +87,7 @@ class Bench:
         self.bus, self.mode, self.tcu, self.tcu_cmd = opt.hil_bus, opt.hil_mode, opt.hil_tcu, opt.hil_tcu_cmd
         self.out_opt = opt.hil_out
         self.cache: dict = {}
+        self.dbcs: dict = {}           # DBC path -> (file name, SHA-256 of its text) of the runs asked for
         self._out = None
 
     @property
@@ -139,6 +142,7 @@ class Bench:
         from hil.errors import BenchError, BusError
 
         sc = hil.load_scenario(scenario, overrides)
+        self._speaks(sc)
         if reality:
             from hil.effects import parse_effect, with_reality
             sc = with_reality(sc, dict(parse_effect(r) for r in reality))
@@ -178,6 +182,17 @@ class Bench:
             verdict.command, verdict.log = command, run.path
             raise verdict
         return run
+
+    def _speaks(self, sc) -> None:
+        """Keep the digest of the DBC this run speaks: the SHA-256 of its text, as the log keeps it (what
+        ``hil check`` hashes)."""
+        import hashlib
+
+        from hil.bus.mapping import scenario_dbc
+
+        path = scenario_dbc(sc)
+        if str(path) not in self.dbcs:
+            self.dbcs[str(path)] = (path.name, hashlib.sha256(path.read_text().encode()).hexdigest())
 
     def _start_tcu(self, scenario, set_args):
         cmd = self.tcu_cmd.format(scenario=shlex.quote(str(scenario)), bus=shlex.quote(self.bus), mode=self.mode)
@@ -230,14 +245,12 @@ def hil_run(request):
 
 
 def pytest_collection_finish(session):
-    """The suite's properties in the JUnit XML, when a test of the session runs the bench: the SHA-256 of
-    the DBC the bench speaks (the same text each log keeps, which ``hil check`` hashes), the package
-    version, the TCU under test, the bus and mode."""
+    """The suite's properties in the JUnit XML, when a test of the session runs the bench: the package
+    version, the TCU under test, the bus and mode (the DBCs come at the session's end, from its runs)."""
     xml = _junit_writer(session.config)
     if xml is None or not any(isinstance(i, CheckItem) or "hil_run" in getattr(i, "fixturenames", ())
                               for i in session.items):
         return
-    import hashlib
     from importlib.metadata import PackageNotFoundError, version
 
     bench = session.config.stash[_BENCH]
@@ -245,15 +258,26 @@ def pytest_collection_finish(session):
         package = version("railway-hil")
     except PackageNotFoundError:
         package = "unknown (not installed)"
-    dbc = Path(__file__).resolve().parent / "hil.dbc"
     if bench.tcu == "external":
         tcu = f"external: {bench.tcu_cmd}" if bench.tcu_cmd else "external (already on the bus)"
     else:
         tcu = "builtin (hil.tcu_node)"
-    for name, value in (("dbc_sha256", hashlib.sha256(dbc.read_bytes()).hexdigest()),
-                        ("railway_hil_version", package), ("tcu_under_test", tcu),
-                        ("bus", f"{bench.bus} {bench.mode}")):
+    for name, value in (("railway_hil_version", package), ("tcu_under_test", tcu), ("bus", f"{bench.bus} {bench.mode}")):
         xml.add_global_property(name, value)
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_sessionfinish(session):
+    """The DBCs the session's runs spoke, as suite properties: for each, ``dbc`` (its file name) and
+    ``dbc_sha256`` (the SHA-256 of its text, as each log keeps it and ``hil check`` hashes), in the order
+    the runs first used them; before pytest's JUnit writer writes the file (tryfirst)."""
+    xml = _junit_writer(session.config)
+    bench = session.config.stash.get(_BENCH, None)
+    if xml is None or bench is None:
+        return
+    for name, digest in bench.dbcs.values():
+        xml.add_global_property("dbc", name)
+        xml.add_global_property("dbc_sha256", digest)
 
 
 # -- test files as data ---------------------------------------------------------------------------------

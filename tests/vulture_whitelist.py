@@ -51,6 +51,7 @@ _.selector
 _.pytest_addoption
 _.pytest_collect_file
 _.pytest_collection_finish
+_.pytest_sessionfinish
 _.pytest_runtest_makereport
 _.runtest
 _.reportinfo

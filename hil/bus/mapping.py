@@ -40,8 +40,8 @@ import can
 from identifier.messages import DriverDemand, SensorReading, TorqueCommand
 
 from ..errors import ConfigError
-from .frames import (COMMAND_ID, DEMAND_ID, INTERVAL_ID, PLANT_HEARTBEAT_ID, RESULT_ID, SAMPLE_ID, SENSOR_ID,
-                     STATUS_ID, TCU_HEARTBEAT_ID, Frame, FrameCodec)
+from .frames import (COMMAND_ID, DBC_PATH, DEMAND_ID, INTERVAL_ID, PLANT_HEARTBEAT_ID, RESULT_ID, SAMPLE_ID,
+                     SENSOR_ID, STATUS_ID, TCU_HEARTBEAT_ID, Frame, FrameCodec)
 
 #: the quantities the plant sends, and the one it receives
 SENT = ("motor_speed_rad_s", "train_speed_ms", "demand_torque_nm")
@@ -115,6 +115,17 @@ class Mapping:
         return self.where["torque_command_nm"][0]
 
 
+def resolve_dbc(scenario_path, dbc: str) -> Path:
+    """The file ``[bus] dbc`` names: relative to the scenario file's directory unless absolute."""
+    path = Path(dbc)
+    return path if path.is_absolute() else Path(scenario_path).resolve().parent / path
+
+
+def scenario_dbc(scenario) -> Path:
+    """The DBC a scenario's bus speaks: its ``[bus] dbc`` (``resolve_dbc``), or the HIL's own ``hil/hil.dbc``."""
+    return resolve_dbc(scenario.path, scenario.bus.dbc) if scenario.bus.dbc else DBC_PATH
+
+
 def load_mapping(scenario_path, dbc: str, table: dict, period_s: float, needs: dict[str, Need] | None = None,
                  text: str | None = None) -> Mapping:
     """Their DBC (``dbc``, a path relative to the scenario file's directory unless absolute) and the
@@ -125,9 +136,7 @@ def load_mapping(scenario_path, dbc: str, table: dict, period_s: float, needs: d
     ``ConfigError`` (one line naming the file and the key) otherwise."""
     import cantools
 
-    path = Path(dbc)
-    if not path.is_absolute():
-        path = Path(scenario_path).resolve().parent / path
+    path = resolve_dbc(scenario_path, dbc)
 
     def fail(key, msg):
         return ConfigError(f"{scenario_path}: {key}: {msg}")

@@ -17,17 +17,20 @@ from pathlib import Path
 
 
 def properties(run) -> dict:
-    """The suite's properties: the DBC's digest (SHA-256 of the text the run used), the package version
-    that ran and the one that judged, the TCU under test, the log."""
+    """The suite's properties: the DBC's file name and digest (SHA-256 of the text the run used, as the
+    pytest plugin hashes it), the package version that ran and the one that judged, the TCU under test,
+    the log."""
     from importlib.metadata import PackageNotFoundError, version
 
-    dbc = (run.log.metadata.get("dbc") or {}).get("text", "")
+    meta = run.log.metadata.get("dbc") or {}
+    dbc = meta.get("text", "")
     try:
         judged_by = version("railway-hil")
     except PackageNotFoundError:
         judged_by = "unknown"
     s = run.summary
-    return {"dbc_sha256": hashlib.sha256(dbc.encode()).hexdigest() if dbc else "none recorded",
+    return {"dbc": meta.get("name", "none recorded"),
+            "dbc_sha256": hashlib.sha256(dbc.encode()).hexdigest() if dbc else "none recorded",
             "railway_hil_version": (run.log.metadata.get("versions") or {}).get("railway-hil", "unknown"),
             "judged_by_version": judged_by,
             "tcu_under_test": f"{s.get('transport', '?')} ({s.get('strategy', '?')})"

@@ -37,7 +37,7 @@ FIELDS: dict[str, tuple] = {
     "responds": (responds, {"trigger": (_STR, True), "condition": (_STR, True), "within_s": (_NUM, True),
                             "during": (_WINDOW, False)}),
     "cycle_time": (cycle_time, {"frame": (_STR, True), "nominal_s": (_NUM, True), "tolerance_s": (_NUM, True),
-                                "during": (_WINDOW, False)}),
+                                "during": (_WINDOW, False), "max_outside_fraction": (_NUM, False)}),
     "settles": (settles, {"signal": (_STR, True), "band": (_PAIR, True), "within_s": (_NUM, True),
                           "hold_s": (_NUM, True), "after": (_WINDOW, False), "valid": (_STR, False)}),
 }

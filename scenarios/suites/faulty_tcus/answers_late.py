@@ -1,8 +1,15 @@
 """A faulty TCU for the example suite (``scenarios/suites/test_their_tcu.toml``): it speaks ``their.dbc``
 and runs the built-in TCU's identifier and control law (``identifier.TractionIdentifier``), but sends
-each torque command ``LATE_S`` (five exchange periods) after the reading it answers.  The plant in
-lockstep waits for it, so it controls the wheel as the built-in TCU does: it fails TIM-1 (answers
-within three periods) and no other; in real time each command comes after its period's deadline.
+each torque command ``LATE_S`` (five exchange periods) after the reading it answers, and answers the
+newest reading then (the readings that came meanwhile are passed over), as a TCU whose control task
+takes five periods would.
+
+- Lockstep: the plant waits for each command, so it controls the wheel as the built-in TCU does: it
+  fails TIM-1 (answers within three periods) and no other.
+- Real time: its commands come after their periods' deadlines (four periods in five go unanswered):
+  the run misses more deadlines than ``[bus] max_missed_fraction`` allows in periods the plant began
+  on time, so the run fails as a whole, "the TCU's commands came late", every check with it
+  (docs/guide/verdicts.md).
 
     python scenarios/suites/faulty_tcus/answers_late.py scenarios/wet_patch.toml --bus localbus:DIR
 """
@@ -47,6 +54,14 @@ def main() -> int:
                 tcu.demand_nm = notch.decode(bytes(msg.data))["DemandTorque"]
             elif msg.arbitration_id == sensors.frame_id:
                 v = sensors.decode(bytes(msg.data))
+                while (newer := handle.bus.recv(timeout=0.0)) is not None:    # real time: readings came meanwhile
+                    if newer.is_extended_id:
+                        continue
+                    if newer.arbitration_id == notch.frame_id:
+                        tcu.demand_nm = notch.decode(bytes(newer.data))["DemandTorque"]
+                    elif newer.arbitration_id == sensors.frame_id:
+                        v = sensors.decode(bytes(newer.data))
+                        step += 1
                 command = tcu.command(SensorReading(step, v["MotorSpeed"], v["TrainSpeed"]))
                 step += 1
                 time.sleep(LATE_S)                              # the fault: the answer comes late
