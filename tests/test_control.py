@@ -291,3 +291,34 @@ def test_an_external_tcu_gets_the_demand_frame_and_is_judged_the_same(runs, tmp_
     for key in ("adhesion_utilisation", "adhesion_utilisation_low", "macro_slip_s", "recovery_s", "reaction_ms"):
         assert s[key] == ref[key], key
     assert json.loads(out)["rejected_frames"] == {}
+
+
+def test_the_control_bench_reports_every_law_with_the_oracle_on_top_and_says_whether_identified_acted(tmp_path):
+    """`hil bench control` as a user runs it, on one short draw (seed drawn now, printed): the keys scripts read,
+    the report written, the oracle's ceiling, and whether `identified` differed from its fallback."""
+    import json
+
+    from .conftest import case_seed
+
+    seed = case_seed("control bench")
+    r = run_hil("bench", "control", "--draws", "1", "--duration-s", "12", "--speed-s", "0", "--seed", str(seed),
+                "--laws", "extremum_seeking,identified,oracle", "--json", "--doc", str(tmp_path), timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    out = json.loads(r.stdout)
+    assert out["seed"] == seed and out["draws"] == 1
+    for law in ("extremum_seeking", "identified", "oracle"):
+        res = out["results"][law]
+        for key in ("eta_low_median", "eta_low_p5", "eta_median", "macro_slip_fraction", "reaction_median_ms",
+                    "recovery_median_s", "torque_ripple_median_percent", "runs"):
+            assert key in res, (law, key)
+        assert len(res["runs"]) == 1
+    oracle = out["results"]["oracle"]
+    assert oracle["macro_slip_fraction"] == 0.0 and oracle["eta_low_median"] > 0.9, oracle
+    # acted or not, computed here from the two laws' runs
+    a, b = out["results"]["identified"]["runs"][0], out["results"]["extremum_seeking"]["runs"][0]
+    differs = any(a[k] != b[k] for k in ("adhesion_utilisation", "adhesion_utilisation_low", "macro_slip_s",
+                                         "torque_ripple_percent"))
+    assert out["identified_acted_draws"] == int(differs)
+    report = (tmp_path / "control.md").read_text()
+    assert f"seed {seed}" in report and "acted on the identifier in" in report
+    assert (tmp_path / "control-eta-low.png").stat().st_size > 1000

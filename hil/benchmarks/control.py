@@ -197,6 +197,23 @@ def run_point(item: dict) -> dict:
     return {"index": item["index"], "law": law, **{k: summary.get(k) for k in keys}}
 
 
+def acted_draws(results: dict) -> int | None:
+    """In how many draws ``identified`` acted on the identifier: it is extremum seeking until it does
+    (identifier/control/laws.py), so a draw whose figures equal ``extremum_seeking``'s is one it did not
+    act in.  None unless both laws ran."""
+    if "identified" not in results or "extremum_seeking" not in results:
+        return None
+    keys = ("adhesion_utilisation", "adhesion_utilisation_low", "macro_slip_s", "torque_ripple_percent")
+    es = {r["index"]: r for r in results["extremum_seeking"]["runs"]}
+    return sum(any(r[k] != es[r["index"]][k] for k in keys) for r in results["identified"]["runs"])
+
+
+def _acted_line(out: dict) -> str | None:
+    n = out.get("identified_acted_draws")
+    return None if n is None else (f"`identified` acted on the identifier in {n} of {out['draws']} draws; in the "
+                                   f"others its figures are extremum seeking's (its fallback) to the last digit.")
+
+
 def _stat(xs, q=50):
     xs = [x for x in xs if x is not None and math.isfinite(x)]
     return float(np.percentile(xs, q)) if xs else None
@@ -274,7 +291,7 @@ def cmd_control_bench(args) -> int:
         bar.close()
     results = summarise(runs, laws)
     out = {"seed": seed, "draws": args.draws, "family": FAMILY, "wall_s": time.perf_counter() - t0,
-           "prior_set_point_kmh": prior_kmh,
+           "prior_set_point_kmh": prior_kmh, "identified_acted_draws": acted_draws(results),
            "drawn": [d for _, d in draws], "results": results, "speed": speed_pair(base_text, seed, args.speed_s)}
     out["written"] = provenance(args, seed, load_before)
     if args.doc:
@@ -295,6 +312,8 @@ def cmd_control_bench(args) -> int:
         print(f"  speed, {sp['duration_s']:g} s logged in-process lockstep run: demand {_fmt(sp['demand_x_realtime'], '.1f')}"
               f" x real time{' (ended as a fault: the wheel ran away)' if sp['demand_fault'] else ''}, identified "
               f"{_fmt(sp['identified_x_realtime'], '.1f')} x ({_fmt(sp['identified_over_demand'], '.2f')} of demand's)")
+    if _acted_line(out):
+        print(wrap(_acted_line(out).replace("`", ""), "  "))
     print(wrap("eta_low: adhesion utilisation where the demand exceeds the true peak and 1 s after each change "
                "(hil/traction.py); the oracle reads the true curve: the ceiling, never a run's law; prior holds "
                "the one creep best over the family's curves.", "  "))
@@ -455,6 +474,8 @@ def write_report(out: dict, doc: Path, draws=None) -> None:
                   f"{_fmt(sp['demand_x_realtime'], '.1f')} x real time"
                   f"{' (ended as a fault: the wheel ran away)' if sp['demand_fault'] else ''}, `identified` "
                   f"{_fmt(sp['identified_x_realtime'], '.1f')} x ({_fmt(sp['identified_over_demand'], '.2f')} of demand's)."]
+    if _acted_line(out):
+        lines += ["", _acted_line(out)]
     if out.get("prior_set_point_kmh") is not None:
         lines += ["", f"The prior law held {out['prior_set_point_kmh']:.2f} km/h."]
     lines += ["", "![eta_low per law](control-eta-low.png)", ""]
