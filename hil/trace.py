@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 
-from identifier.metrics import against_truth, fit_metrics, rt_percent
+from identifier.metrics import against_truth, fit_metrics, intervals_hold_truth, rt_percent
 from plant import StageTracker
 
 #: how long after the fault the true mu and mu^ are kept for the observer-lag figure
@@ -177,6 +177,8 @@ def summarise(*, scenario, strategy: str, seed: int, bus: str, tracker, events, 
         theta = np.asarray(last.params)
         out.update(fit_metrics(samples_v, samples_mu, theta))
         out.update(against_truth(theta, truth))
+        out["peak_ci_holds_truth"] = intervals_hold_truth(out["peak_mu_ci"], out["peak_creep_ci"],
+                                                          bool(out["peak_interval_open"]), truth)
     else:
         out.update({k: None for k in ("mse", "rmse", "mae", "r2", *TRUTH_KEYS)})
     out.update(extra or {})
@@ -188,6 +190,6 @@ def _interval(ci) -> list[float] | None:
 
 
 TRUTH_KEYS = ("peak_mu", "peak_creep_kmh", "peak_mu_err_percent", "peak_creep_err_percent", "curve_rmse_vs_truth",
-              "r2_vs_truth", "r2_vs_truth_to_peak")
+              "r2_vs_truth", "r2_vs_truth_to_peak", "peak_ci_holds_truth")
 
 

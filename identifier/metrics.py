@@ -76,6 +76,16 @@ def against_truth(theta, truth) -> dict:
             "r2_vs_truth_to_peak": r2_vs_truth(theta, truth, v_true)}
 
 
+def intervals_hold_truth(peak_mu_ci, peak_creep_ci, peak_open: bool, truth) -> bool | None:
+    """Whether a curve's 90 % peak intervals hold the true peak, both of them; an open interval (its upper
+    end the TCU's working range, not the data's) never does.  None without intervals."""
+    if peak_mu_ci is None or peak_creep_ci is None:
+        return None
+    v_true, mu_true = _true_curve(truth)[1]
+    return bool(not peak_open and peak_mu_ci[0] <= mu_true <= peak_mu_ci[1]
+                and peak_creep_ci[0] <= v_true <= peak_creep_ci[1])
+
+
 def rt_percent(t_identified_s: float, t_fault_s: float, deterioration_time_s: float) -> float:
     """RT = (t_identified - t_f) / T_det, percent (Table 3)."""
     if t_identified_s is None or not math.isfinite(deterioration_time_s) or deterioration_time_s <= 0:

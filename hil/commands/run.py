@@ -141,7 +141,8 @@ def print_summary(s: dict, file=sys.stdout, heading: str | None = None) -> None:
               f"R2 {_fmt(s['r2'], '.5f')}", file=file)
         print(f"  vs true curve: peak mu error {_fmt(s['peak_mu_err_percent'], '.2f')} %, peak creep error "
               f"{_fmt(s['peak_creep_err_percent'], '.2f')} %, R2 {_fmt(s.get('r2_vs_truth'), '.5f')} "
-              f"(on 0..2x its peak creep)", file=file)
+              f"(on 0..2x its peak creep)"
+              + ("; its 90 % intervals MISS the true peak" if s.get("peak_ci_holds_truth") is False else ""), file=file)
     print(f"  observer lag {_fmt(s.get('observer_lag_ms'), '.1f')} ms; "
           f"{_fmt(s.get('sim_s'), '.2f')} s simulated in {_fmt(s.get('wall_s'), '.2f')} s", file=file)
     if s.get("adhesion_utilisation") is not None:
