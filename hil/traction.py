@@ -118,7 +118,7 @@ def drop_figures(c: dict, changes_s, events) -> list[dict]:
         conf = next((e for e in events if e.kind == "confirmed" and x <= e.t_s < end), None)
         row = {"t_s": x, "t_det_ms": t_det * 1e3 if math.isfinite(t_det) else None,
                "t_identified_s": None, "rt_percent": None, "peak_mu_err_percent": None,
-               "peak_creep_err_percent": None}
+               "peak_creep_err_percent": None, "interval_holds_truth": None}
         if conf is not None and len(conf.params) >= 3:
             i = int(np.clip(np.searchsorted(t, conf.t_s), 0, t.size - 1))
             v_hat, mu_hat = peak(np.asarray(conf.params, float))
@@ -126,6 +126,12 @@ def drop_figures(c: dict, changes_s, events) -> list[dict]:
             row.update({"t_identified_s": conf.t_s, "rt_percent": rt if math.isfinite(rt) else None,
                         "peak_mu_err_percent": 100.0 * abs(mu_hat - p_mu[i]) / p_mu[i],
                         "peak_creep_err_percent": 100.0 * abs(v_hat - p_creep[i]) / p_creep[i]})
+            mu_ci, creep_ci = getattr(conf, "peak_mu_ci", None), getattr(conf, "peak_creep_ci", None)
+            if mu_ci is not None and creep_ci is not None and all(map(math.isfinite, (*mu_ci, *creep_ci))):
+                # an open interval never holds the truth (its upper end is the TCU's range)
+                row["interval_holds_truth"] = bool(not getattr(conf, "peak_open", False)
+                                                   and mu_ci[0] <= p_mu[i] <= mu_ci[1]
+                                                   and creep_ci[0] <= p_creep[i] <= creep_ci[1])
         out.append(row)
     return out
 

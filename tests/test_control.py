@@ -260,6 +260,9 @@ def test_identification_is_reported_per_drop_against_the_rail_then(runs):
                                                            rel=1e-3)
     assert rows[0]["peak_creep_err_percent"] == pytest.approx(
         100 * abs(grid[i] - a["peak_creep"][j]) / a["peak_creep"][j], rel=1e-3, abs=0.01)
+    (m0, m1), (c0, c1) = conf.peak_mu_ci, conf.peak_creep_ci
+    holds = not conf.peak_open and m0 <= a["peak_mu"][j] <= m1 and c0 <= a["peak_creep"][j] <= c1
+    assert rows[0]["interval_holds_truth"] is bool(holds)
 
 
 def test_an_external_tcu_gets_the_demand_frame_and_is_judged_the_same(runs, tmp_path):
