@@ -6,8 +6,11 @@ attachments, a bench error reported as an error, a missing bus as a skip (an err
 malformed ``[[check]]`` table as one line."""
 import importlib
 import re
+import shutil
 import subprocess
 import sys
+import tempfile
+import time
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -184,9 +187,11 @@ def test_a_silent_tcu_is_a_failure_and_hil_check_fails_its_log(pytester):
 def test_answers(hil_run):
     hil_run({str(FFCC_A)!r}, set={{"run.duration_s": 1.0, "bus.startup_timeout_s": 2.0}})
 """)
-    result = pytester.runpytest("-p", "hil.pytest_plugin", "-p", "no:cacheprovider", "--hil-bus", "local",
+    # a local bus both sides open: a directory of this user's, mode 700, with a path short enough for AF_UNIX
+    bus = Path(tempfile.mkdtemp(prefix="hil-bus-"))
+    result = pytester.runpytest("-p", "hil.pytest_plugin", "-p", "no:cacheprovider", "--hil-bus", f"localbus:{bus}",
                                 "--hil-tcu", "external", "--hil-tcu-cmd", f"sleep {marker}",
-                                "--hil-out", str(pytester.path / "out"), "--junitxml", str(pytester.path / "j.xml"))
+                                "--hil-out", str(pytester.path / "out"), "--junitxml", str(pytester.path / "j.xml"), "-rs")
     result.assert_outcomes(failed=1)
     assert "the TCU fell silent or died: no TCU answered within 2 s" in result.stdout.str()
     root = _validated(pytester.path / "j.xml")
@@ -202,6 +207,25 @@ def test_answers(hil_run):
                        capture_output=True, text=True, env=subprocess_env(), timeout=120)
     assert r.returncode == 1, r.stdout + r.stderr
     assert r.stdout.startswith("FAIL run: the TCU fell silent or died: no TCU answered within 2 s"), r.stdout
+    shutil.rmtree(bus, ignore_errors=True)
+
+
+def test_a_tcu_command_on_a_bus_it_cannot_join_is_one_line_before_any_run(pytester):
+    """``local`` is a new private bus per run: a TCU started by --hil-tcu-cmd could never join it (it would
+    open its own), so the session says so at once instead of waiting out the start-up timeout."""
+    pytester.makepyfile(test_join=f"""
+def test_answers(hil_run):
+    hil_run({str(FFCC_A)!r}, set={{"run.duration_s": 1.0}})
+""")
+    t0 = time.monotonic()
+    result = pytester.runpytest("-p", "hil.pytest_plugin", "-p", "no:cacheprovider", "--hil-bus", "local",
+                                "--hil-tcu", "external", "--hil-tcu-cmd", "sleep 27.18",
+                                "--hil-out", str(pytester.path / "out"))
+    result.assert_outcomes(errors=1)
+    assert "--hil-tcu-cmd with --hil-bus local: that bus is opened anew by each run" in result.stdout.str()
+    assert "Traceback" not in result.stdout.str()
+    assert not list((pytester.path / "out").rglob("*.mcap"))          # refused before any run
+    print(f"refused after {time.monotonic() - t0:.1f} s")
 
 
 def _cmdline(proc_dir) -> str:
