@@ -45,6 +45,13 @@ class Fit:
     extra: dict = field(default_factory=dict)   # sensor/can delays for replays (periods)
 
 
+def periods_read(mask, n: int) -> int:
+    """The number of leading periods ``mask`` reads (up to its last True, at least two; ``n`` when it
+    reads none)."""
+    hit = np.flatnonzero(mask)
+    return max(int(hit[-1]) + 1, 2) if hit.size else n
+
+
 class Context:
     """Everything a fit needs: the data, the scenario's model, noise floors, the block split."""
 
@@ -56,9 +63,9 @@ class Context:
         self.observer = observer
         self.x0 = x0
         self.window = window
-        #: the periods a fit reads: every mask it is judged on lies in the analysis window, so the
-        #: simulations inside a fit stop at the window's last period (the final fit covers the whole run)
-        self.n_read = int(np.flatnonzero(window)[-1]) + 1 if np.any(window) else data.n
+        #: the periods a fit reads (its residuals are on the training blocks, in the analysis window):
+        #: the simulations inside a fit stop at the last of them (the fitted model covers the whole run)
+        self.n_read = periods_read(train_mask, data.n)
         self.train = train_mask
         self.held = held_mask
         self.sigma_nom = sigma_nom
@@ -174,9 +181,10 @@ def fit_nominal(ctx: Context, mask=None) -> Fit:
     sim = ctx.simulator(None, (), {})
     torque = ctx.data.torque_cmd_nm
     mask = ctx.train if mask is None else mask
+    n_read = periods_read(mask, ctx.data.n)
 
     def resid(u):
-        motor, train = sim.run([], ctx.x0 + u, torque, n=ctx.n_read)
+        motor, train = sim.run([], ctx.x0 + u, torque, n=n_read)
         return ctx.residuals(ctx.predict(motor, train), ctx.sigma_nom, mask)
 
     r = _fit_ls(resid, np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0), [np.zeros(2)], ctx.sigma_nom)
