@@ -3,7 +3,7 @@
 * ``Simulator``: the CasADi period step of ``plant.reality.RealityModel`` rolled over the whole run
   with ``mapaccum`` (one call simulates every period, so a least-squares fit can afford hundreds of
   whole-run simulations), the fitted effect parameters as a vector input; a fit that reads only the
-  first periods (the analysis window) simulates only those.
+  first periods (the training blocks of the analysis window) simulates only those.
 * ``observer_mu_hat``: the TCU's load-torque observer (identifier/observer.py, eq. 4-5) as a linear
   filter over whole arrays (scipy ``lfilter``), so the model's mu^ is computed exactly the way the
   TCU computes it, without a Python loop per sample.
