@@ -471,6 +471,31 @@ def test_a_quantiser_is_named_beside_the_effect_that_explains_the_mean(tmp_path,
     assert "sensor_quantisation" not in {r["effect"] for r in which["ranking"]}    # judged apart, not ranked
 
 
+def test_a_fits_short_simulation_is_the_whole_runs_first_periods(scenario):
+    """A fit simulates only the periods its residuals read (``Context.n_read``): the model rolled over
+    those periods gives exactly the whole run's first values, with an effect's extra states too; a mask
+    reads up to its last period."""
+    from hil.gap.candidates import periods_read
+    from hil.gap.model import Simulator
+    from plant.reality import fill_defaults
+    g = np.random.default_rng(fresh_seed())
+    cfg = scenario.plant_config()
+    n = 400
+    torque = 2000.0 + 200.0 * g.standard_normal(n)
+    x0 = np.array([260.0, 13.0]) * (1 + 0.01 * g.standard_normal(2))
+    for effect, names, theta in ((None, (), []), ("compliance", ("stiffness_nm_rad", "damping_ratio"),
+                                                  [float(g.uniform(1e5, 1e6)), float(g.uniform(0.05, 0.5))])):
+        fixed = fill_defaults({effect: dict(EFFECTS[effect].params)}, cfg)[effect] if effect else {}
+        sim = Simulator(cfg, effect, names, fixed, n)
+        whole = sim.run(theta, x0, torque)
+        k = int(g.integers(50, n))
+        for a, b in zip(sim.run(theta, x0, torque, n=k), whole):
+            assert len(a) == k and np.array_equal(a, b[:k]), (effect, k)
+    mask = np.zeros(n, bool)
+    mask[[3, 17, 250]] = True
+    assert periods_read(mask, n) == 251 and periods_read(np.zeros(n, bool), n) == n
+
+
 def test_sparse_description_of_known_residuals():
     """hil/gap/sparse.py on residuals made here: a gain on the motor speed is described by the motor
     speed with its coefficient; a creep-proportional term by the creep; noise is not described; a sine

@@ -45,6 +45,13 @@ class Fit:
     extra: dict = field(default_factory=dict)   # sensor/can delays for replays (periods)
 
 
+def periods_read(mask, n: int) -> int:
+    """The number of leading periods ``mask`` reads (up to its last True, at least two; ``n`` when it
+    reads none)."""
+    hit = np.flatnonzero(mask)
+    return max(int(hit[-1]) + 1, 2) if hit.size else n
+
+
 class Context:
     """Everything a fit needs: the data, the scenario's model, noise floors, the block split."""
 
@@ -56,6 +63,9 @@ class Context:
         self.observer = observer
         self.x0 = x0
         self.window = window
+        #: the periods a fit reads (its residuals are on the training blocks, in the analysis window):
+        #: the simulations inside a fit stop at the last of them (the fitted model covers the whole run)
+        self.n_read = periods_read(train_mask, data.n)
         self.train = train_mask
         self.held = held_mask
         self.sigma_nom = sigma_nom
@@ -112,13 +122,20 @@ class Context:
         m_s, t_s = shift(motor, sensor_delay), shift(train, sensor_delay)
         m_s = shift(m_s, motor_delay + b["motor_delay"])
         m_tcu = shift(m_s, can_delay + b["can_delay"])
-        return {"motor": m_s, "train": t_s, "mu_hat": self.observer.mu_hat(m_tcu, self.data.torque_cmd_nm)}
+        torque = self.data.torque_cmd_nm[:len(motor)]        # a trajectory of the first periods only
+        return {"motor": m_s, "train": t_s, "mu_hat": self.observer.mu_hat(m_tcu, torque)}
 
     def residuals(self, pred: dict, sigma: dict, mask) -> np.ndarray:
+        """(measured - predicted) / sigma on ``mask``, signal after signal; ``pred`` may cover only the
+        first periods (a fit's simulation up to ``n_read``), never fewer than ``mask`` reads."""
+        n = len(pred[SIGNALS[0]])
+        if np.any(mask[n:]):
+            raise ValueError(f"a prediction of {n} periods cannot be judged on a mask reading period "
+                             f"{int(np.flatnonzero(mask)[-1])}")
         out = []
         for s in SIGNALS:
-            sel = mask & self.valid[s]
-            out.append((self.meas[s][sel] - pred[s][sel]) / sigma[s])
+            sel = (mask & self.valid[s])[:n]
+            out.append((self.meas[s][:n][sel] - pred[s][sel]) / sigma[s])
         return np.concatenate(out)
 
 
@@ -164,9 +181,10 @@ def fit_nominal(ctx: Context, mask=None) -> Fit:
     sim = ctx.simulator(None, (), {})
     torque = ctx.data.torque_cmd_nm
     mask = ctx.train if mask is None else mask
+    n_read = periods_read(mask, ctx.data.n)
 
     def resid(u):
-        motor, train = sim.run([], ctx.x0 + u, torque)
+        motor, train = sim.run([], ctx.x0 + u, torque, n=n_read)
         return ctx.residuals(ctx.predict(motor, train), ctx.sigma_nom, mask)
 
     r = _fit_ls(resid, np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0), [np.zeros(2)], ctx.sigma_nom)
@@ -203,7 +221,7 @@ class PlantCandidate:
         def resid(u):
             x0 = x0_nom + (u[np_:] if len(u) > np_ else 0.0)
             try:
-                motor, train = sim.run(theta_of(u), x0, torque)
+                motor, train = sim.run(theta_of(u), x0, torque, n=ctx.n_read)
             except (FloatingPointError, RuntimeError):
                 return np.full(n_res, 1e3)
             return ctx.residuals(ctx.predict(motor, train), ctx.sigma_nom, ctx.train)
@@ -260,12 +278,12 @@ class SensorDelayCandidate:
         # which initial-state components the delay moves (the motor alone for a per-signal delay)
         lagged = np.array([1.0, 0.0]) if self.form == "per_signal" else np.ones(2)
 
-        def pred_of(u):
-            motor, train = sim.run([], x0_nom + lagged * ctx.x0_slope * u[0] * T + u[1:], torque)
+        def pred_of(u, n=None):
+            motor, train = sim.run([], x0_nom + lagged * ctx.x0_slope * u[0] * T + u[1:], torque, n=n)
             return ctx.predict(motor, train, **{arg: u[0]}), (motor, train)
 
         def resid(u):
-            return ctx.residuals(pred_of(u)[0], ctx.sigma_nom, ctx.train)
+            return ctx.residuals(pred_of(u, ctx.n_read)[0], ctx.sigma_nom, ctx.train)
 
         grid = np.arange(0.0, self.max_periods + 1e-9, 0.5)
         costs = [float(np.sum(resid(np.array([d, 0.0, 0.0])) ** 2)) for d in grid]
@@ -309,7 +327,7 @@ def fit_pair(ctx: Context, plant: PlantCandidate, sensor: SensorDelayCandidate, 
 
     def resid(u):
         try:
-            motor, train = sim.run(theta_of(u), start_of(u), torque)
+            motor, train = sim.run(theta_of(u), start_of(u), torque, n=ctx.n_read)
         except (FloatingPointError, RuntimeError):
             return np.full(n_res, 1e3)
         return ctx.residuals(ctx.predict(motor, train, **{arg: u[np_]}), ctx.sigma_nom, ctx.train)
@@ -450,16 +468,17 @@ class QuantisationCandidate:
             sim = ctx.simulator(None, (), {})
             torque = ctx.data.torque_cmd_nm
 
-            def stair(u):
-                motor, train = sim.run([], ctx.x0 + u, torque)
+            def stair(u, n=None):
+                motor, train = sim.run([], ctx.x0 + u, torque, n=n)
                 out = {"motor": motor, "train": train}
                 for sg, q in quanta.items():
                     out[sg] = quantised_expectation(out[sg], q, ctx.sigma_nom[sg])[0]
                 return out, (motor, train)
 
             def resid(u):
-                out = stair(u)[0]
-                return np.concatenate([(ctx.meas[sg] - out[sg])[ctx.train] / ctx.sigma_nom[sg]
+                out = stair(u, ctx.n_read)[0]
+                n = ctx.n_read
+                return np.concatenate([(ctx.meas[sg][:n] - out[sg])[ctx.train[:n]] / ctx.sigma_nom[sg]
                                        for sg in ("motor", "train")])
 
             r = _fit_ls(resid, None, np.zeros(0), np.zeros(0), np.zeros(0), [np.array(nominal.extra["x0"]) - ctx.x0],

@@ -2,7 +2,8 @@
 
 * ``Simulator``: the CasADi period step of ``plant.reality.RealityModel`` rolled over the whole run
   with ``mapaccum`` (one call simulates every period, so a least-squares fit can afford hundreds of
-  whole-run simulations), the fitted effect parameters as a vector input.
+  whole-run simulations), the fitted effect parameters as a vector input; a fit that reads only the
+  first periods (the training blocks of the analysis window) simulates only those.
 * ``observer_mu_hat``: the TCU's load-torque observer (identifier/observer.py, eq. 4-5) as a linear
   filter over whole arrays (scipy ``lfilter``), so the model's mu^ is computed exactly the way the
   TCU computes it, without a Python loop per sample.
@@ -55,7 +56,12 @@ class Simulator:
         self.model = RealityModel(cfg, effects)
         self._fixed_effects = effects
         step = self.model.period_step(self.theta)
-        self._sim = step.mapaccum("gap_sim", n - 1)
+        # the same expressions with their repeats computed once (CasADi's common-subexpression
+        # elimination merges nodes of one operation on the same operands: the same values, fewer
+        # instructions for the SX virtual machine to run every period)
+        xs = step.sx_in()
+        self._step = ca.Function("gap_step", xs, step.call(xs, True, False), {"cse": True})
+        self._sims = {n: self._step.mapaccum("gap_sim", n - 1)}     # periods simulated -> the rolled step
         self.fit_params = fit_params
         self.effect = effect
 
@@ -69,12 +75,17 @@ class Simulator:
                                     for k, v in self._fixed_effects[self.effect].items()}
         return RealityModel(self.cfg, effects).initial_state(x0, torque0)
 
-    def run(self, theta, x0, torque, t0: float = 0.0):
+    def run(self, theta, x0, torque, t0: float = 0.0, n: int | None = None):
+        """The states at the first ``n`` steps (default: every step of the run).  A fit that reads only
+        the first n periods simulates only those: the same step rolled fewer times, so the same values."""
+        n = self.n if n is None else min(int(n), self.n)
+        if n not in self._sims:
+            self._sims[n] = self._step.mapaccum("gap_sim", n - 1)
         theta = np.atleast_1d(np.asarray(theta, float)) if len(self.fit_params) else np.zeros(1)
         xi = self.initial(theta, x0, float(torque[0]))
         period = self.cfg.exchange_period_s
-        times = t0 + np.arange(self.n - 1) * period
-        x = np.asarray(self._sim(xi, torque[None, :self.n - 1], times[None, :], theta)[0])
+        times = t0 + np.arange(n - 1) * period
+        x = np.asarray(self._sims[n](xi, torque[None, :n - 1], times[None, :], theta)[0])
         motor = np.concatenate([[xi[0]], x[0]])
         train = np.concatenate([[xi[1]], x[1]])
         if not (np.all(np.isfinite(motor)) and np.all(np.isfinite(train))):
