@@ -31,7 +31,7 @@ fi
 if have_native_vcan; then
   echo "== vcan tests on this kernel's vcan0" >&2
   command -v candump >/dev/null || echo "note: can-utils missing: the candump/cansend tests will fail" >&2
-  exec "$PY" -m pytest -m vcan "$@"
+  exec "$PY" -m pytest -m vcan --durations=5 "$@"
 fi
 
 # -- User-Mode Linux ----------------------------------------------------------------------------
@@ -72,7 +72,7 @@ for a in "$@"; do args="$args '$(printf %s "$a" | sed "s/'/'\\\\''/g")'"; done
 if [ -n "${HIL_UML_JOB:-}" ]; then      # debugging: run this shell script inside UML instead of pytest
   cp "$HIL_UML_JOB" "$DIR/job.sh"
 else
-  echo "exec '$PY' -m pytest -m vcan -p no:cacheprovider $args" > "$DIR/job.sh"
+  echo "exec '$PY' -m pytest -m vcan -p no:cacheprovider --durations=5 $args" > "$DIR/job.sh"
 fi
 
 boot_uml() {   # $1: UML kernel, $2: its modules directory; the job's exit code lands in $DIR/job.rc
