@@ -85,7 +85,8 @@ The state at the fault: v_t from plant.model.train_speed_before_fault, v_s at NF
 mu_required (the plant holds it; it drifts by ~1e-5 km/h as the resistance grows).  RK4 at 0.25 ms
 (the plant uses 0.1 ms); the plant's tracker sees the crossing at the first exchange period after it,
 so the simulated T_det is the predicted one rounded up to the period (1 ms), give or take the
-prediction's own error (tens of microseconds on the slowest approaches, under one 0.25 ms step).
+prediction's own error (under one 0.25 ms prediction step: the plant steps at 0.1 ms and its held creep
+drifts).
 
 The base scenario (vehicle, NFCC-0, initial train speed, fault time) enters mu_required and the
 Polach stiffness only; ``draw`` defaults to ffcc_a's (``DEFAULT_BASE``), ``draw_scenario_text`` uses

@@ -312,8 +312,9 @@ def cmd_control_bench(args) -> int:
         print(f"  speed, {sp['duration_s']:g} s logged in-process lockstep run: demand {_fmt(sp['demand_x_realtime'], '.1f')}"
               f" x real time{' (ended as a fault: the wheel ran away)' if sp['demand_fault'] else ''}, identified "
               f"{_fmt(sp['identified_x_realtime'], '.1f')} x ({_fmt(sp['identified_over_demand'], '.2f')} of demand's)")
-    if _acted_line(out):
-        print(wrap(_acted_line(out).replace("`", ""), "  "))
+    acted = _acted_line(out)
+    if acted:
+        print(wrap(acted.replace("`", ""), "  "))
     print(wrap("eta_low: adhesion utilisation where the demand exceeds the true peak and 1 s after each change "
                "(hil/traction.py); the oracle reads the true curve: the ceiling, never a run's law; prior holds "
                "the one creep best over the family's curves.", "  "))
@@ -474,8 +475,9 @@ def write_report(out: dict, doc: Path, draws=None) -> None:
                   f"{_fmt(sp['demand_x_realtime'], '.1f')} x real time"
                   f"{' (ended as a fault: the wheel ran away)' if sp['demand_fault'] else ''}, `identified` "
                   f"{_fmt(sp['identified_x_realtime'], '.1f')} x ({_fmt(sp['identified_over_demand'], '.2f')} of demand's)."]
-    if _acted_line(out):
-        lines += ["", _acted_line(out)]
+    acted = _acted_line(out)
+    if acted:
+        lines += ["", acted]
     if out.get("prior_set_point_kmh") is not None:
         lines += ["", f"The prior law held {out['prior_set_point_kmh']:.2f} km/h."]
     lines += ["", "![eta_low per law](control-eta-low.png)", ""]
