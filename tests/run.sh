@@ -10,6 +10,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ROOT=$(pwd)
+say() { echo "== [${SECONDS} s] $*" >&2; }     # progress, with the seconds since the start
 PY=${PYTHON:-python3}
 
 FAST=0
@@ -22,34 +23,13 @@ set -- ${ARGS[@]+"${ARGS[@]}"}
 if [ "${CI:-}" = "true" ] && [ -z "${HIL_TEST_SEED:-}" ]; then HIL_TEST_SEED=random; fi
 if [ "${HIL_TEST_SEED:-}" = "random" ]; then   # one base seed for the host, vcan and real-time sessions
   HIL_TEST_SEED=$(( $(od -An -N4 -tu4 /dev/urandom | tr -d ' ') % 2147483648 ))
-  echo "== test seeds drawn at random: HIL_TEST_SEED=$HIL_TEST_SEED reproduces them" >&2
+  say "test seeds drawn at random: HIL_TEST_SEED=$HIL_TEST_SEED reproduces them"
 fi
 [ -n "${HIL_TEST_SEED:-}" ] && export HIL_TEST_SEED
 
-if [ ! -x .venv/bin/python ]; then
-  echo "== creating .venv" >&2
-  "$PY" -m venv .venv
-fi
-# The installs are skipped when the stamp says they were done for this pyproject.toml and this list, and
-# the package still imports from this tree (a warm tree: seconds, not a minute of pip).
-GEMSEO_FMU="gemseo-fmu==3.1.1"
-STAMP=.venv/.hil-tests-installed
-WANT="$(sha256sum pyproject.toml | cut -d' ' -f1) .[test,docs] $GEMSEO_FMU $ROOT"
-if [ -f "$STAMP" ] && [ "$(cat "$STAMP")" = "$WANT" ] \
-   && (cd / && "$ROOT/.venv/bin/python" -I -c "import hil, sys; sys.exit(not hil.__file__.startswith('$ROOT/'))") 2>/dev/null; then
-  echo "== package and test dependencies installed for this pyproject.toml ($STAMP): no pip" >&2
-else
-  echo "== installing the package and test dependencies" >&2
-  rm -f "$STAMP"
-  .venv/bin/python -m pip install -q --disable-pip-version-check --upgrade pip >/dev/null
-  .venv/bin/python -m pip install -q --disable-pip-version-check -e ".[test,docs]"
-  # third-party FMUs for tests/test_fmu.py; --no-deps: gemseo-fmu pins fmpy<=0.3.19 and pulls gemseo[all]
-  .venv/bin/python -m pip install -q --disable-pip-version-check --no-deps "$GEMSEO_FMU"
-  echo "$WANT" > "$STAMP"
-fi
-
 # Debian packages: UML + can-utils for the vcan tests, Vulkan for Rerun's headless viewer (neither in the
-# fast tier).
+# fast tier), gcc for our FMU.  apt-get runs in the background while pip installs; both are waited for
+# before any test starts.
 NEED_DEB=()
 command -v gcc >/dev/null 2>&1 || NEED_DEB+=(gcc)          # building our FMU
 if [ "$FAST" = 0 ]; then
@@ -59,20 +39,55 @@ if [ "$FAST" = 0 ]; then
   dpkg -s mesa-vulkan-drivers >/dev/null 2>&1 || NEED_DEB+=(mesa-vulkan-drivers)
   dpkg -s libvulkan1 >/dev/null 2>&1 || NEED_DEB+=(libvulkan1)
 fi
+apt_pid=""
+APT_LOG=""
 if [ ${#NEED_DEB[@]} -gt 0 ]; then
   if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
-    echo "== apt-get install ${NEED_DEB[*]}" >&2
-    export DEBIAN_FRONTEND=noninteractive
-    apt-get update -qq >/dev/null
-    apt-get install -y -qq --no-install-recommends "${NEED_DEB[@]}" >/dev/null
+    say "apt-get install ${NEED_DEB[*]} (in the background)"
+    APT_LOG=$(mktemp /tmp/hil-apt-log.XXXXXX)
+    ( export DEBIAN_FRONTEND=noninteractive
+      apt-get update -qq && apt-get install -y -qq --no-install-recommends "${NEED_DEB[@]}" ) \
+      > "$APT_LOG" 2>&1 < /dev/null &
+    apt_pid=$!
   else
-    echo "== not root: cannot install ${NEED_DEB[*]}; the tests that need them will say so" >&2
+    say "not root: cannot install ${NEED_DEB[*]}; the tests that need them will say so"
   fi
+fi
+
+if [ ! -x .venv/bin/python ]; then
+  say "creating .venv"
+  "$PY" -m venv .venv
+fi
+# The installs are skipped when the stamp says they were done for this pyproject.toml and this list, and
+# the package still imports from this tree (a warm tree: seconds, not a minute of pip).
+GEMSEO_FMU="gemseo-fmu==3.1.1"
+STAMP=.venv/.hil-tests-installed
+WANT="$(sha256sum pyproject.toml | cut -d' ' -f1) .[test,docs] $GEMSEO_FMU $ROOT"
+if [ -f "$STAMP" ] && [ "$(cat "$STAMP")" = "$WANT" ] \
+   && (cd / && "$ROOT/.venv/bin/python" -I -c "import hil, sys; sys.exit(not hil.__file__.startswith('$ROOT/'))") 2>/dev/null; then
+  say "package and test dependencies installed for this pyproject.toml ($STAMP): no pip"
+else
+  say "installing the package and test dependencies"
+  rm -f "$STAMP"
+  .venv/bin/python -m pip install -q --disable-pip-version-check --upgrade pip >/dev/null
+  .venv/bin/python -m pip install -q --disable-pip-version-check -e ".[test,docs]"
+  # third-party FMUs for tests/test_fmu.py; --no-deps: gemseo-fmu pins fmpy<=0.3.19 and pulls gemseo[all]
+  .venv/bin/python -m pip install -q --disable-pip-version-check --no-deps "$GEMSEO_FMU"
+  echo "$WANT" > "$STAMP"
 fi
 
 # The identifier's kernels compiled before any test runs hil: a first run says so on stderr, which the tests
 # that read a run's stderr do not expect (numba caches them beside the source; later runs load them).
 .venv/bin/python -c "from hil.progress import compile_kernels; compile_kernels('tests/run.sh')"
+
+if [ -n "$apt_pid" ]; then
+  apt_rc=0
+  wait "$apt_pid" || apt_rc=$?
+  apt_pid=""
+  if [ "$apt_rc" = 0 ]; then say "apt-get install: done"
+  else say "apt-get install ${NEED_DEB[*]}: exit $apt_rc"; tail -n 20 "$APT_LOG" >&2; fi
+  rm -f "$APT_LOG"
+fi
 
 mkdir -p tests/artefacts
 PYTEST=(.venv/bin/python -m pytest)
@@ -81,11 +96,11 @@ PYTEST=(.venv/bin/python -m pytest)
 # at most once per worker); the tests marked serial or realtime time the machine and run alone.
 PARALLEL=(-n 2 --dist worksteal)
 if [ "$FAST" = 1 ]; then
-  echo "== pytest --fast (all but the slow, vcan and real-time tests; two workers)" >&2
+  say "pytest --fast (all but the slow, vcan and real-time tests; two workers)"
   status=0
   "${PYTEST[@]}" "${PARALLEL[@]}" -m "not slow and not vcan and not realtime and not serial" --durations=10 "$@" \
     || status=$?
-  echo "== pytest --fast: the tests that time the machine, alone" >&2
+  say "pytest --fast: the tests that time the machine, alone"
   rt_rc=0
   "${PYTEST[@]}" -m "serial and not slow and not vcan and not realtime" "$@" || rt_rc=$?
   [ "$rt_rc" = 0 ] || [ "$rt_rc" = 5 ] || status=$rt_rc      # 5: arguments that select none of them
@@ -109,33 +124,34 @@ trap cleanup EXIT
 trap 'exit 130' INT
 trap 'exit 143' TERM
 if [ -n "$VCAN_RUNNER" ]; then
-  echo "== pytest -m vcan (SocketCAN vcan0, $VCAN_RUNNER) started beside the host tests; its output follows them" >&2
+  say "pytest -m vcan (SocketCAN vcan0, $VCAN_RUNNER) started beside the host tests; its output follows them"
   bash "$VCAN_RUNNER" > "$VCAN_LOG" 2>&1 < /dev/null &
   vcan_pid=$!
 elif [ "${CI:-}" = "true" ]; then
-  echo "== vcan tests: no runner in tests/uml/, and under CI=true they must run" >&2
+  say "vcan tests: no runner in tests/uml/, and under CI=true they must run"
   status=1
 fi
 
-echo "== pytest (host, all but the vcan tests and those that time the machine; two workers)" >&2
+say "pytest (host, all but the vcan tests and those that time the machine; two workers)"
 "${PYTEST[@]}" "${PARALLEL[@]}" -m "not vcan and not realtime and not serial" --durations=15 "$@" || status=$?
 
 if [ -n "$vcan_pid" ]; then
   waited=0
   while kill -0 "$vcan_pid" 2>/dev/null; do
     sleep 5; waited=$((waited + 5))
-    [ $((waited % 30)) = 0 ] && echo "== waiting for the vcan tests ($waited s)" >&2
+    [ $((waited % 30)) = 0 ] && say "waiting for the vcan tests ($waited s)"
   done
   vcan_rc=0
   wait "$vcan_pid" || vcan_rc=$?
-  echo "== pytest -m vcan (SocketCAN vcan0, $VCAN_RUNNER): exit $vcan_rc" >&2
+  say "pytest -m vcan (SocketCAN vcan0, $VCAN_RUNNER): exit $vcan_rc"
   cat "$VCAN_LOG"
   [ "$vcan_rc" = 0 ] || status=$vcan_rc
   vcan_pid=""
 fi
 
-echo "== pytest (host, the tests that time the machine: real-time runs, pacing, CPU shares; alone)" >&2
+say "pytest (host, the tests that time the machine: real-time runs, pacing, CPU shares; alone)"
 rt_rc=0
 "${PYTEST[@]}" -m "(realtime or serial) and not vcan" --durations=5 "$@" || rt_rc=$?
 [ "$rt_rc" = 0 ] || [ "$rt_rc" = 5 ] || status=$rt_rc      # 5: arguments that select none of them
+say "tests/run.sh: exit $status"
 exit $status

@@ -57,26 +57,6 @@ def parse_candump(text):
     return out
 
 
-def test_inprocess_hub_and_vcan_give_identical_frames_and_identification(tmp_path):
-    runs = {}
-    for bus in ("inprocess", "hub", "auto"):
-        out = tmp_path / bus
-        s, err = run_json(FFCC_A, bus, out)
-        runs[bus] = (s, out / "ffcc_a-gp-1.mcap")
-    s_vcan, _ = runs["auto"]
-    assert s_vcan["bus"] == "socketcan:vcan0"           # auto picks vcan0 where the kernel has it
-    s_in, path_in = runs["inprocess"]
-    assert s_in["identified"]
-    streams = data_streams(path_in)
-    assert len(streams[0]) == 2000          # DriverDemand and PlantSensor each period of 1 s
-    for bus in ("hub", "auto"):
-        s, path = runs[bus]
-        assert identification(s) == identification(s_in), bus
-        assert data_streams(path) == streams, bus
-    print("\nlockstep FFCC-a, sim s per wall s: " + ", ".join(
-        f"{runs[b][0]['bus']} {runs[b][0]['sim_s'] / runs[b][0]['wall_s']:.2f}" for b in runs))
-
-
 def test_candump_records_the_run_and_the_dbc_decodes_it_to_the_mcap_values(tmp_path):
     # candump writes to a file: a pipe nobody reads would block it and the socket would drop frames
     with open(tmp_path / "candump.log", "w") as f:
@@ -140,17 +120,32 @@ GARBAGE = [
 ]
 
 
-def test_cansend_garbage_during_a_run_is_counted_and_the_run_still_identifies(tmp_path):
-    # a 10 s run (fault at 9.5 s) and each garbage frame sent once: ten cansend calls while both nodes are on
-    # the bus (2 s: the TCU once finished before the last frame came; 4 s: once the frame codec was compiled
-    # from the DBC, a run in UML ended before the last cansend; 30 calls into a 10 s or a 20 s run: the run
-    # ended first in a full CI run, a cansend process start under UML taking seconds with the host busy)
-    args = [*FFCC_A, "--set", "run.duration_s=10.0", "--set", "run.fault_time_s=9.5"]
+def _message(frame: str):
+    """A python-can message from cansend's syntax (``ID#DATA``, ``ID##FLAGS DATA`` for CAN FD, ``ID#R``)."""
+    import can
+
+    ident, rest = frame.split("#", 1)
+    extended = len(ident) == 8
+    if rest.startswith("#"):
+        return can.Message(arbitration_id=int(ident, 16), is_extended_id=extended, is_fd=True,
+                           bitrate_switch=bool(int(rest[1], 16) & 1), data=bytes.fromhex(rest[2:]))
+    if rest.startswith("R"):
+        return can.Message(arbitration_id=int(ident, 16), is_extended_id=extended, is_remote_frame=True)
+    return can.Message(arbitration_id=int(ident, 16), is_extended_id=extended, data=bytes.fromhex(rest))
+
+
+def test_vcan_carries_the_inprocess_frames_with_garbage_from_third_nodes_counted(tmp_path):
+    """A run on vcan0 (picked by ``auto``) sends and accepts exactly the frames of the same run on the
+    in-process bus and identifies the same, while third nodes put garbage on vcan0: can-utils' cansend one
+    frame, a python-can socket of this process the others (a cansend process start takes seconds in the
+    guest).  Each garbage frame is counted by reason on both sides and logged.  (The hub's equality with the
+    in-process bus is tests/test_bus.py's, on the host, where a run costs less than in the guest.)"""
+    # a 3 s run (fault at 2.5 s): the garbage is all sent within the first second of simulated time
+    args = [*FFCC_A, "--set", "run.duration_s=3.0", "--set", "run.fault_time_s=2.5"]
     ref, _ = run_json(args, "inprocess", tmp_path / "ref")
     watch = open_bus("socketcan:vcan0")
-    proc = subprocess.Popen(hil_command() + ["run", *args, "--bus", "socketcan:vcan0", "--out", str(tmp_path),
-                                             "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env=subprocess_env(), cwd=ROOT)
+    proc = subprocess.Popen(hil_command() + ["run", *args, "--bus", "auto", "--out", str(tmp_path), "--json"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=subprocess_env(), cwd=ROOT)
     try:
         end = time.monotonic() + 120
         while True:                 # the first sensor frame: plant and TCU are both on the bus
@@ -159,9 +154,11 @@ def test_cansend_garbage_during_a_run_is_counted_and_the_run_still_identifies(tm
                 break
             assert time.monotonic() < end and proc.poll() is None, "the run never started"
         sent = 0
-        for frame in GARBAGE:
-            subprocess.run(["cansend", "vcan0", frame], check=True, timeout=30)
+        for frame in GARBAGE[:-1]:
+            watch.bus.send(_message(frame))
             sent += 1
+        subprocess.run(["cansend", "vcan0", GARBAGE[-1]], check=True, timeout=30)
+        sent += 1
         still_running = proc.poll() is None
         out, err = proc.communicate(timeout=600)
     finally:
@@ -171,8 +168,12 @@ def test_cansend_garbage_during_a_run_is_counted_and_the_run_still_identifies(tm
     assert still_running, f"the run ended before all garbage was sent: the test proves nothing (exit {proc.returncode}, sent {sent}): {err[-800:]}"
     assert proc.returncode == 0, err
     s = json.loads(out)
-    assert s["identified"]
+    assert s["bus"] == "socketcan:vcan0"           # auto picks vcan0 where the kernel has it
+    assert s["identified"] and ref["identified"]
     assert identification(s) == identification(ref)
+    streams = data_streams(tmp_path / "ref" / "ffcc_a-gp-1.mcap")
+    assert len(streams[0]) == 6000          # DriverDemand and PlantSensor each period of 3 s
+    assert data_streams(tmp_path / "ffcc_a-gp-1.mcap") == streams
     assert sum(s["rejected_frames"].values()) == sent == len(GARBAGE)
     assert sum(s["tcu_rejected_frames"].values()) == sent
     assert s["tcu_rejected_readings"] == 0
@@ -180,14 +181,21 @@ def test_cansend_garbage_during_a_run_is_counted_and_the_run_still_identifies(tm
     rejected = [f for f in read_log(tmp_path / "ffcc_a-gp-1.mcap", {"/can/frames"}).topic("/can/frames")
                 if f.status not in ("ok", "late")]
     assert len(rejected) == sent
-    print(f"\ncansend garbage: {sent} frames sent, plant counted {sum(s['rejected_frames'].values())}, "
-          f"TCU counted {sum(s['tcu_rejected_frames'].values())}, exit {proc.returncode}")
+    print(f"\ngarbage: {sent} frames sent, plant counted {sum(s['rejected_frames'].values())}, "
+          f"TCU counted {sum(s['tcu_rejected_frames'].values())}; lockstep sim s per wall s: "
+          f"inprocess {ref['sim_s'] / ref['wall_s']:.2f}, vcan0 {s['sim_s'] / s['wall_s']:.2f}")
 
 
 def test_gap_reads_candump_l_of_a_run_like_its_mcap(tmp_path):
     """Issue 18 item 7: ``candump -l`` (can-utils' own log format) of a run on vcan0 with a hidden
-    load transfer; ``hil gap`` on that file names the same set and shrinks the gap like the MCAP."""
-    from .conftest import hil
+    load transfer; the reader ``hil gap`` uses gives the same readings, commands, TCU outputs and events
+    from that file as from the run's MCAP, hence the same diagnosis (a diagnosis is a function of them; tests/test_gap.py diagnoses a CAN log
+    beside its MCAP twin on the host, where a diagnosis costs a fraction of what it costs the guest)."""
+    import numpy as np
+
+    from hil.gap.data import read_real_log
+    from hil.config import load_scenario
+
     dump = subprocess.Popen(["candump", "-l", "vcan0"], cwd=tmp_path, stdout=subprocess.DEVNULL)
     try:
         time.sleep(0.3)
@@ -198,17 +206,15 @@ def test_gap_reads_candump_l_of_a_run_like_its_mcap(tmp_path):
         dump.wait(timeout=10)
     logs = sorted(tmp_path.glob("candump-*.log"))
     assert len(logs) == 1, logs
-    mcap = next(tmp_path.glob("*.mcap"))
-    outs = []
-    for path in (mcap, logs[0]):
-        r = hil("gap", path, "--model", ROOT / "scenarios" / "ffcc_a.toml", "--json", "--no-identify", timeout=600)
-        assert r.returncode == 0, r.stderr
-        outs.append(json.loads(r.stdout))
-    a, b = outs
-    print(a["which"]["verdict"], "|", b["which"]["verdict"], "|", b["real_log_source"])
-    assert b["real_log_source"]["format"] == "can-log"
-    assert a["which"]["named_set"] == b["which"]["named_set"] == ["load_transfer"]
-    assert abs(a["shrink"]["held_out_gap_shrink_percent"] - b["shrink"]["held_out_gap_shrink_percent"]) <= 3
+    period_s = load_scenario(ROOT / "scenarios" / "ffcc_a.toml").run.exchange_period_s
+    dumped = read_real_log(logs[0], period_s)
+    mcap = read_real_log(next(tmp_path.glob("*.mcap")))
+    print(dumped.source, dumped.n, mcap.n)
+    assert dumped.source["format"] == "can-log" and dumped.source["damage"] == ""
+    assert dumped.n == mcap.n > 0
+    for name in ("step", "motor_speed_rad_s", "train_speed_ms", "torque_cmd_nm", "tcu_creep_kmh", "tcu_mu_hat"):
+        np.testing.assert_allclose(getattr(dumped, name), getattr(mcap, name), rtol=1e-6, err_msg=name)
+    assert len(dumped.identification) == len(mcap.identification) >= 1
 
 
 def test_the_example_suite_passes_on_vcan0_in_lockstep(tmp_path):
