@@ -108,7 +108,7 @@ if [ "$FAST" = 1 ]; then
 fi
 
 status=0
-# The vcan tests (inside User-Mode Linux: ~6 min, mostly the guest's Python start-ups) run beside the
+# The vcan tests (inside User-Mode Linux: minutes, mostly the guest's Python start-ups) run beside the
 # host tests; the tests that time the machine (serial, realtime) run alone once both are done.
 VCAN_RUNNER=$(ls tests/uml/run_vcan_tests.sh tests/uml/run_in_uml.sh 2>/dev/null | head -n 1 || true)
 VCAN_LOG=$(mktemp /tmp/hil-vcan-log.XXXXXX)
