@@ -108,6 +108,7 @@ class TractionIdentifier:
         self.control = control
         self.controller = make_controller(control, settings.vehicle, nominal_peak_creep_kmh, control_options)
         self._open_loop = control == DEFAULT_LAW
+        self.strategy.closed_loop = not self._open_loop
         self.latest_event = None      # the strategy's last identification event (since the last re-arm)
         self._peak_of = (None, math.nan)   # (event, its curve's peak creep)
         self.rearms = 0
@@ -172,12 +173,14 @@ class TractionIdentifier:
         of the law named at construction: the benchmark's oracle and prior laws, never a run's."""
         self.controller = controller
         self._open_loop = False
+        self.strategy.closed_loop = True
 
     def rearm(self) -> None:
         """A fresh detector and strategy (the observer runs on): the next drop is identified afresh."""
         s = self.settings
         self.detector = SlipDetector(s.detection_creep_rise_kmh, s.baseline_samples)
         self.strategy = make_strategy(self.strategy_name, s, self.seed + self.rearms + 1)
+        self.strategy.closed_loop = not self._open_loop
         self._recent.clear()
         self.latest_event = None
         self.rearms += 1
