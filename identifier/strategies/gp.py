@@ -63,15 +63,20 @@ v the creep ``lag`` samples earlier (the observer's lag 2 / p: the creep mu^ bel
     a change of rail when  d_mu < -(``change_min_mu`` + s_f max(d_v, 0) + s_r max(-d_v, 0))
 
 s_f = ``change_fall_slope``: no curve falls faster past its peak (mu per km/h); s_r =
-``change_rise_slope``: none rises faster, so a creep that falls may take back at most s_r |d_v|.  At a
-change the posterior starts again from the prior at that sample (the baseline's noise and train-speed
-line are kept; the sample budget and ``min_samples`` count from there): the test fires through the
-transition, so the last restart dates its end and the posterior holds only the new rail.  No
-confirmation before the test has seen 2W + lag samples.  And a maximum at the lowest creep seen since
-the restart is the data's edge, not a peak (the fall may have begun below): while more than
+``change_rise_slope``: none rises faster, so a creep that falls may take back at most s_r |d_v|
+(docs/design/control.md gives the default family's steepest; a NaN mu^ never flags).  At a change,
+and once ``change_settle_s`` after the slip's start (a change slow enough to keep mu^ level while the
+creep rises under it escapes the test; a change of rail is taken to last no longer), the posterior
+starts again from the prior at that sample: the sample budget and ``min_samples`` count from there,
+the baseline's noise is kept, and the train-speed line is fitted again to the latest
+``baseline_readings`` readings (in closed loop they go on into the buffer during the slip: a line
+extrapolated from before the slip drifts over the tenths of a second a closed loop holds one).  The
+test fires through a transition, so the last restart dates its end and the posterior holds the new
+rail only.  Nothing is confirmed before the settling restart.  And a maximum at the lowest creep seen
+since the restart is the data's edge, not a peak (the fall may have begun below): while more than
 (1 - ``confirm_level``) / 2 of the draws put it there, nothing is confirmed (as B bounds the rise
-above).  So a closed-loop confirmation needs the new rail's samples to span creeps on both sides of the
-claimed peak.  In open loop none of this applies: the slip starts from the stable side on one rail.
+above).  So a closed-loop confirmation needs the new rail's samples to span creeps on both sides of
+the claimed peak.  In open loop none of this applies: the slip starts from the stable side on one rail.
 
 The numpy code here is the reference; ``compiled`` (default) runs the filter step, the peak draws
 with their quantiles and the published curve's shape search by their twins in identifier/kernels.py
@@ -296,8 +301,16 @@ class GpStrategy(SpeedModelStrategy):
             self._settle_until_s = s.t_s + float(o["change_settle_s"])
         self._restart(s)
 
+    def on_reading(self, step: int, motor_speed_rad_s: float, train_speed_ms: float) -> None:
+        """Every reading before the slip (the baseline); in closed loop every reading, so a restart
+        takes the train-speed line from the readings just before it (module docstring)."""
+        if self._prev is None or self._dates_changes:
+            self.baseline.add(step, motor_speed_rad_s, train_speed_ms)
+
     def _restart(self, s: Sample) -> None:
         """The posterior from the prior at sample ``s`` (the slip's first, or a change of rail's)."""
+        if self._prev is not None:        # a change of rail's: the train-speed line from the latest readings
+            self._line = self.baseline.stats(self._compiled)[1]
         self.z = self._z0.copy()
         self.z[0] = s.motor_speed_rad_s
         self.P = self._P0.copy()
@@ -444,9 +457,10 @@ class GpStrategy(SpeedModelStrategy):
         of them put the peak at the newest creep."""
         return self.open_draws > 0.5 * (1.0 - level) * self._draw_creep.size
 
-    def _edge_below(self) -> bool:
-        """Closed loop (module docstring): the rail-change test has not yet seen its windows, or more than
-        (1 - confirm_level) / 2 of the last draws put the peak at the lowest creep seen since the restart."""
+    def _held_back(self) -> bool:
+        """Closed loop (module docstring): no confirmation while the settling restart is still ahead (or
+        the rail-change test has not filled its windows), nor while more than (1 - confirm_level) / 2 of
+        the last draws put the peak at the lowest creep seen since the restart."""
         return (len(self._test_v) < self._test_v.maxlen or math.isfinite(self._settle_until_s)
                 or self.below_draws > 0.5 * (1.0 - float(self.opts["confirm_level"])) * self._draw_creep.size)
 
@@ -471,7 +485,7 @@ class GpStrategy(SpeedModelStrategy):
         (mu_lo, creep_lo), _, (mu_mid, creep_mid), _, (mu_hi, creep_hi) = q
         if (check and n >= int(o["min_samples"]) and within_tolerance(mu_lo, mu_mid, mu_hi, float(o["tol_peak_mu"]))
                 and within_tolerance(creep_lo, creep_mid, creep_hi, float(o["tol_peak_creep"]))
-                and creep_hi < self.bound_kmh and not (self._dates_changes and self._edge_below())):
+                and creep_hi < self.bound_kmh and not (self._dates_changes and self._held_back())):
             return [self._publish(s, "confirmed", q)]
         return [self._publish(s, "unconfirmed" if ends else "correction", q)]
 
