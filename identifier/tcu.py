@@ -4,7 +4,9 @@ identification results out.  The same object runs in the TCU process, in replay 
 Pipeline per reading: observer -> mu^ and creep speed -> slip detector -> the control law's torque
 (identifier/control: the driver's demand, or a closed-loop law acting on what was learnt) -> (after the
 observer settles) samples to the strategy.  A closed-loop law may re-arm the identifier (a fresh
-detector and strategy) once the demand passes through again, so each new drop is identified afresh.  An observer-aware strategy (``Strategy.observer_aware``) gets
+detector and strategy) once the demand passes through again, so each new drop is identified afresh;
+the strategy is told the loop is closed (``Strategy.closed_loop``: the rail may change under a slip's
+samples, and ``gp`` then dates the change).  An observer-aware strategy (``Strategy.observer_aware``) gets
 every sample from the detected slip start on instead, each with the creep of the same instant and
 the observer's speed innovation (it models the observer's transient rather than waiting it out).
 """
