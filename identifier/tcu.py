@@ -4,7 +4,9 @@ identification results out.  The same object runs in the TCU process, in replay 
 Pipeline per reading: observer -> mu^ and creep speed -> slip detector -> the control law's torque
 (identifier/control: the driver's demand, or a closed-loop law acting on what was learnt) -> (after the
 observer settles) samples to the strategy.  A closed-loop law may re-arm the identifier (a fresh
-detector and strategy) once the demand passes through again, so each new drop is identified afresh.  An observer-aware strategy (``Strategy.observer_aware``) gets
+detector and strategy) once the demand passes through again, so each new drop is identified afresh;
+the strategy is told the loop is closed (``Strategy.closed_loop``: the rail may change under a slip's
+samples, and ``gp`` then dates the change).  An observer-aware strategy (``Strategy.observer_aware``) gets
 every sample from the detected slip start on instead, each with the creep of the same instant and
 the observer's speed innovation (it models the observer's transient rather than waiting it out).
 """
@@ -108,6 +110,7 @@ class TractionIdentifier:
         self.control = control
         self.controller = make_controller(control, settings.vehicle, nominal_peak_creep_kmh, control_options)
         self._open_loop = control == DEFAULT_LAW
+        self.strategy.closed_loop = not self._open_loop
         self.latest_event = None      # the strategy's last identification event (since the last re-arm)
         self._peak_of = (None, math.nan)   # (event, its curve's peak creep)
         self.rearms = 0
@@ -172,12 +175,14 @@ class TractionIdentifier:
         of the law named at construction: the benchmark's oracle and prior laws, never a run's."""
         self.controller = controller
         self._open_loop = False
+        self.strategy.closed_loop = True
 
     def rearm(self) -> None:
         """A fresh detector and strategy (the observer runs on): the next drop is identified afresh."""
         s = self.settings
         self.detector = SlipDetector(s.detection_creep_rise_kmh, s.baseline_samples)
         self.strategy = make_strategy(self.strategy_name, s, self.seed + self.rearms + 1)
+        self.strategy.closed_loop = not self._open_loop
         self._recent.clear()
         self.latest_event = None
         self.rearms += 1

@@ -271,7 +271,9 @@ def test_below_the_first_bound_the_grown_grid_changes_nothing():
 @pytest.mark.parametrize("key, value", [("grid_points", 3), ("length_log", 0.0), ("draws", 2.5),
                                         ("confirm_level", 1.0), ("creep_max_kmh", 0.01),
                                         ("upper_peak_creep_kmh", 9.0), ("peak_creep_cap_kmh", 2.0),
-                                        ("range_growth", 1.0), ("model_mu_std", math.nan), ("bogus", 1)])
+                                        ("range_growth", 1.0), ("model_mu_std", math.nan), ("bogus", 1),
+                                        ("rail_changes", 1), ("change_window", 1), ("change_settle_s", -0.1),
+                                        ("change_fall_slope", math.inf)])
 def test_bad_options_are_refused_by_name(key, value):
     with pytest.raises(ValueError, match=key):
         make_strategy("gp", settings(**{key: value}))
@@ -320,3 +322,59 @@ def test_a_rail_peaking_just_below_3_kmh_is_confirmed_and_a_held_range_says_open
     assert rp.returncode == 0, rp.stderr
     rs = json.loads(rp.stdout)
     assert rs["matches_log"] is True and rs["peak_interval_open"] is True and rs["peak_creep_ci"] == s["peak_creep_ci"]
+
+
+def held_creep_rail_change(rng, dry_phi, wet_phi, change_s=0.1, hold_s=0.25, sweep_to_kmh=2.0, sweep_s=0.35):
+    """(readings before, samples) of a closed loop on a rail that changes under it: the creep held at
+    0.5 km/h on the dry curve, then (from t = 0) the rail blends linearly to the wet curve over
+    ``change_s`` while the creep is held near 0.6 km/h (a loop catching the slip, with a 8 Hz dither of
+    0.05 km/h), then swept to ``sweep_to_kmh`` over ``sweep_s``.  The torque is what makes the wheelset
+    (J dw/dt = T - c mu) follow that creep; the observer's mu^ is the true mu with noise."""
+    dry, wet = curve(theta_from_phi(dry_phi)), curve(theta_from_phi(wet_phi))
+    to_kmh, train_ms = 3.6 * RADIUS / GEAR, 10.0
+    omega_of = lambda v: (v / 3.6 + train_ms) / (RADIUS / GEAR)  # noqa: E731
+    pre = [(k, omega_of(0.5) + 0.005 * rng.standard_normal(), train_ms + 0.002 * rng.standard_normal())
+           for k in range(200)]
+
+    def creep(t):
+        v = 0.5 + 0.1 * min(max(t, 0.0) / 0.03, 1.0) + 0.05 * math.sin(2 * math.pi * 8.0 * t)
+        return v + (sweep_to_kmh - 0.6) * min(max(t - hold_s, 0.0) / sweep_s, 1.0)
+
+    samples = []
+    for k in range(200, 200 + round((hold_s + sweep_s) / PERIOD_S)):
+        t = (k - 200) * PERIOD_S
+        w = min(max(t / change_s, 0.0), 1.0)
+        v, v_next = creep(t), creep(t + PERIOD_S)
+        mu = (1 - w) * dry(v) + w * wet(v)
+        torque = TORQUE_PER_MU * mu + INERTIA * (omega_of(v_next) - omega_of(v)) / PERIOD_S
+        y, v_t = omega_of(v) + 0.005 * rng.standard_normal(), train_ms + 0.002 * rng.standard_normal()
+        samples.append(Sample(k, k * PERIOD_S, to_kmh * y - 3.6 * v_t, mu + 0.001 * rng.standard_normal(),
+                              math.nan, y, v_t, torque))
+    return pre, samples
+
+
+def test_in_closed_loop_a_change_of_rail_is_dated_and_no_wrong_peak_is_confirmed():
+    """A rail that changes under a held creep (``held_creep_rail_change``): as an open-loop identifier
+    the strategy reads the fall of mu the change makes as the fall past a peak and confirms a peak
+    creep far below the wet rail's; told it is in closed loop (``Strategy.closed_loop``, as the TCU
+    does), it drops the samples of the change and confirms only once the creep has swept the wet
+    rail's peak, within 10 % of it."""
+    rng = fresh_rng()
+    wet = np.array([rng.uniform(0.08, 0.15), rng.uniform(1.0, 1.4), 0.0, rng.uniform(0.6, 1.0), 2.0])
+    dry = np.array([0.3, 1.5, 0.0, 0.8, 2.0])
+    pre, samples = held_creep_rail_change(rng, dry, wet)
+    open_loop = run(make_strategy("gp", settings(), seed=3), pre, samples)
+    closed = make_strategy("gp", settings(), seed=3)
+    closed.closed_loop = True
+    events = run(closed, pre, samples)
+    first, last = open_loop[-1], events[-1]
+    print(wet[:2], "open loop:", first.kind, first.t_s, first.peak_creep_ci, "closed loop:", last.kind, last.t_s,
+          last.peak_creep_ci, closed.restarts, "restarts")
+    assert first.kind == "confirmed" and first.peak_creep_ci[1] < 0.8 * wet[1]
+    assert closed.restarts >= 1
+    assert [e.kind for e in events].count("confirmed") == 1 and last.kind == "confirmed"
+    assert abs(0.5 * sum(last.peak_creep_ci) / wet[1] - 1) <= 0.10
+    # the option off, the closed loop identifies as the open one did
+    off = make_strategy("gp", settings(rail_changes=False), seed=3)
+    off.closed_loop = True
+    assert [(e.step, e.peak_creep_ci) for e in run(off, pre, samples)] == [(e.step, e.peak_creep_ci) for e in open_loop]

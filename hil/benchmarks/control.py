@@ -18,7 +18,8 @@ lies: the **oracle**, the creep loop of identifier/control/base.py holding the *
 run); and **prior**, the same loop at one fixed creep, the one that maximises the mean mu / mu_peak over
 ``PRIOR_CURVES`` curves of the patch family (it knows the family, not the draw).  Figures per law: the median and
 5th percentile of eta_low, the median eta, the fraction of runs with macro-slip, the medians of reaction,
-recovery and ripple (hil/traction.py), and each run's figures.
+recovery and ripple (hil/traction.py), how many drops the identifier confirmed and how many of those
+confirmations hold the true peak (``identification``), and each run's figures.
 """
 from __future__ import annotations
 
@@ -194,7 +195,21 @@ def run_point(item: dict) -> dict:
         summary["sim_s_per_wall_s"] = (summary.get("sim_s") or 0.0) / (time.perf_counter() - t0)
     keys = ("adhesion_utilisation", "adhesion_utilisation_low", "macro_slip_s", "macro_slip_count", "reaction_ms",
             "recovery_s", "torque_ripple_percent", "drops", "sim_s_per_wall_s", "tcu_rearms", "fault")
-    return {"index": item["index"], "law": law, **{k: summary.get(k) for k in keys}}
+    ident = [{k: d.get(k) for k in ("t_s", "t_identified_s", "peak_creep_err_percent", "interval_holds_truth")}
+             for d in summary.get("drop_identification") or []]
+    return {"index": item["index"], "law": law, **{k: summary.get(k) for k in keys}, "drop_identification": ident}
+
+
+def identification_counts(runs: list[dict]) -> dict:
+    """Over ``runs``' drops (hil/traction.py's ``drop_identification``): how many the TCU's identifier
+    confirmed, how many of those confirmations' 90 % intervals hold the rail's true peak, and how many
+    claimed a peak creep within 10 % of the true one."""
+    drops = [d for r in runs for d in r.get("drop_identification") or []]
+    confirmed = [d for d in drops if d["t_identified_s"] is not None]
+    return {"drops": len(drops), "confirmed": len(confirmed),
+            "holding_truth": sum(1 for d in confirmed if d["interval_holds_truth"]),
+            "peak_creep_within_10_percent": sum(1 for d in confirmed if d["peak_creep_err_percent"] is not None
+                                                and d["peak_creep_err_percent"] <= 10.0)}
 
 
 def acted_draws(results: dict) -> int | None:
@@ -212,6 +227,16 @@ def _acted_line(out: dict) -> str | None:
     n = out.get("identified_acted_draws")
     return None if n is None else (f"`identified` acted on the identifier in {n} of {out['draws']} draws; in the "
                                    f"others its figures are extremum seeking's (its fallback) to the last digit.")
+
+
+def _identification_line(out: dict) -> str | None:
+    r = out["results"].get("identified")
+    if r is None:
+        return None
+    c = r["identification"]
+    return (f"With `identified`, the identifier confirmed {c['confirmed']} of {c['drops']} drops; "
+            f"{c['holding_truth']} of those 90 % intervals hold the rail's true peak, {c['peak_creep_within_10_percent']} "
+            f"claimed a peak creep within 10 % of the true one.")
 
 
 def _stat(xs, q=50):
@@ -232,6 +257,7 @@ def summarise(runs: list[dict], laws) -> dict:
                     "recovery_median_s": _stat([r["recovery_s"] for r in rs]),
                     "torque_ripple_median_percent": _stat([r["torque_ripple_percent"] for r in rs]),
                     "speed_median_x_realtime": _stat([r["sim_s_per_wall_s"] for r in rs]),
+                    "identification": identification_counts(rs),
                     "runs": sorted(rs, key=lambda r: r["index"])}
     return out
 
@@ -312,9 +338,9 @@ def cmd_control_bench(args) -> int:
         print(f"  speed, {sp['duration_s']:g} s logged in-process lockstep run: demand {_fmt(sp['demand_x_realtime'], '.1f')}"
               f" x real time{' (ended as a fault: the wheel ran away)' if sp['demand_fault'] else ''}, identified "
               f"{_fmt(sp['identified_x_realtime'], '.1f')} x ({_fmt(sp['identified_over_demand'], '.2f')} of demand's)")
-    acted = _acted_line(out)
-    if acted:
-        print(wrap(acted.replace("`", ""), "  "))
+    for line in (_acted_line(out), _identification_line(out)):
+        if line:
+            print(wrap(line.replace("`", ""), "  "))
     print(wrap("eta_low: adhesion utilisation where the demand exceeds the true peak and 1 s after each change "
                "(hil/traction.py); the oracle reads the true curve: the ceiling, never a run's law; prior holds "
                "the one creep best over the family's curves.", "  "))
@@ -475,9 +501,9 @@ def write_report(out: dict, doc: Path, draws=None) -> None:
                   f"{_fmt(sp['demand_x_realtime'], '.1f')} x real time"
                   f"{' (ended as a fault: the wheel ran away)' if sp['demand_fault'] else ''}, `identified` "
                   f"{_fmt(sp['identified_x_realtime'], '.1f')} x ({_fmt(sp['identified_over_demand'], '.2f')} of demand's)."]
-    acted = _acted_line(out)
-    if acted:
-        lines += ["", acted]
+    for line in (_acted_line(out), _identification_line(out)):
+        if line:
+            lines += ["", line]
     if out.get("prior_set_point_kmh") is not None:
         lines += ["", f"The prior law held {out['prior_set_point_kmh']:.2f} km/h."]
     lines += ["", "![eta_low per law](control-eta-low.png)", ""]

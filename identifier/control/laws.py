@@ -133,11 +133,13 @@ class Identified(ExtremumSeeking):
     it), so the creep comes back from the new rail's macro-slip within the identification time instead of
     the hundreds of milliseconds a dither-driven descent takes.  Why the condition: in closed loop a drop's
     samples straddle the change of rail while the loop holds the creep, and a fall of mu that the rail
-    made looks, to an identifier of one static curve, like the fall past a peak at the newest creeps: such
-    confirmations claim a peak just below the creep reached (docs/design/control.md measures them) and
-    acting on them would pull the creep below the new rail's peak.  A claimed peak far below the creep
-    reached is one the data themselves swept past.  Only the peak *creep* is used: the peak mu of a curve
-    fitted across two rails is the least reliable part of it.  Once the demand has passed through for
+    made looks, to an identifier of one static curve, like the fall past a peak at the newest creeps.
+    ``gp`` now dates the change and drops the samples before it (identifier/strategies/gp.py), but a
+    strategy that does not would claim a peak just below the creep reached, and an ``unconfirmed`` best
+    estimate may be the working range's bound; acting on either would pull the creep off the new rail's
+    peak (docs/design/control.md measures both).  A claimed peak far below the creep reached is one the
+    data themselves swept past.  Only the peak *creep* is used: the peak mu of a curve fitted across two
+    rails is the least reliable part of it.  Once the demand has passed through for
     ``rearm_s`` after a slip (the rail carries it again), the identifier is re-armed, so the next drop is
     identified afresh and no curve outlives its rail."""
     name = "identified"

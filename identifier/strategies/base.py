@@ -55,6 +55,9 @@ class Strategy(ABC):
     #: the option the drill sets to ``drill_particles`` (at least ``drill_size_min``) to make its copy small
     drill_size_option: str = "particles"
     drill_size_min: int = 2
+    #: set by the TCU: True when a control law (not the open-loop demand) acts on the wheel, so the
+    #: rail may change under a slip's samples (``gp`` then dates the change; the others ignore it)
+    closed_loop: bool = False
 
     def __init__(self, settings: IdentifierSettings, seed: int = 0):
         self.settings = settings

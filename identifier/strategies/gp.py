@@ -52,6 +52,32 @@ values at the first ``grid_points`` creeps and the peak's draws are the same num
 the peak at the newest creep: its upper ends (peak creep B, and those draws' peak mu, a value the
 curve passes on its rise) are then the range's, not the data's, and it never counts as covering.
 
+In closed loop (``Strategy.closed_loop``: the TCU's control law acts on the wheel) the rail may change
+under a slip's samples: the law holds the creep while the new rail's mu falls, and an identifier of one
+static curve explains a fall of mu at a held creep only as the fall past a peak, just below the creep
+reached.  So there (``rail_changes``) the change is dated and the samples before it are dropped.  At
+every sample, over the last 2W samples (W = ``change_window``), with mu^ the observer's estimate and
+v the creep ``lag`` samples earlier (the observer's lag 2 / p: the creep mu^ belongs to):
+
+    d_mu = mean(mu^, newest W) - mean(mu^, the W before),   d_v = the same of v
+    a change of rail when  d_mu < -(``change_min_mu`` + s_f max(d_v, 0) + s_r max(-d_v, 0))
+
+s_f = ``change_fall_slope``: no curve falls faster past its peak (mu per km/h); s_r =
+``change_rise_slope``: none rises faster, so a creep that falls may take back at most s_r |d_v|
+(docs/design/control.md gives the default family's steepest; a NaN mu^ never flags).  At a change,
+and once ``change_settle_s`` after the slip's start (a change slow enough to keep mu^ level while the
+creep rises under it escapes the test; a change of rail is taken to last no longer), the posterior
+starts again from the prior at that sample: the sample budget and ``min_samples`` count from there,
+the baseline's noise is kept, and the train-speed line is fitted again to the latest
+``baseline_readings`` readings (in closed loop they go on into the buffer during the slip: a line
+extrapolated from before the slip drifts over the tenths of a second a closed loop holds one).  The
+test fires through a transition, so the last restart dates its end and the posterior holds the new
+rail only.  Nothing is confirmed before the settling restart.  And a maximum at the lowest creep seen
+since the restart is the data's edge, not a peak (the fall may have begun below): while more than
+(1 - ``confirm_level``) / 2 of the draws put it there, nothing is confirmed (as B bounds the rise
+above).  So a closed-loop confirmation needs the new rail's samples to span creeps on both sides of
+the claimed peak.  In open loop none of this applies: the slip starts from the stable side on one rail.
+
 The numpy code here is the reference; ``compiled`` (default) runs the filter step, the peak draws
 with their quantiles and the published curve's shape search by their twins in identifier/kernels.py
 (``gp_update``, ``gp_peak``, ``exp_shape_fit``): the numpy calls' overhead, not their arithmetic,
@@ -65,6 +91,7 @@ from __future__ import annotations
 
 import bisect
 import math
+from collections import deque
 
 import numpy as np
 
@@ -113,6 +140,12 @@ DEFAULTS = {
     "baseline_readings": 400,            # readings before the slip for sigma_y and the train-speed line
     "sigma_y_fallback": 0.005,           # rad/s, when there is no baseline
     "compiled": True,                    # the filter step and the peak draws by identifier/kernels.py; False: numpy
+    "rail_changes": True,                # in closed loop: date changes of rail and drop the samples before them
+    "change_settle_s": 0.2,              # closed loop: the samples of this long from the slip's start are dropped
+    "change_window": 20,                 # W, samples per window of the rail-change test
+    "change_min_mu": 0.003,              # the fall of mean mu^ beyond the curve's allowance that flags a change
+    "change_fall_slope": 0.15,           # s_f, the steepest fall of a curve past its peak, mu per km/h
+    "change_rise_slope": 3.5,            # s_r, the steepest rise of a curve, mu per km/h
 }
 
 
@@ -165,6 +198,19 @@ class GpStrategy(SpeedModelStrategy):
         self._b_idx, self._b_w = np.zeros(4, np.intp), np.zeros(4)     # b's non-zeros for kernels.gp_update
         self.seen_lo = self.seen_hi = math.nan
         self.peak_mu_ci = self.peak_creep_ci = (math.nan, math.nan)
+        # the rail-change test (module docstring): its windows run over every sample, across restarts
+        w = int(o["change_window"])
+        self._lag = max(round(2.0 / settings.observer_pole_rad_s / settings.period_s), 0)
+        self._test_v: deque[float] = deque(maxlen=2 * w + self._lag)
+        self._test_mu: deque[float] = deque(maxlen=2 * w)
+        self._n0 = 0                          # samples before the last restart (none in open loop)
+        self._settle_until_s = math.inf       # closed loop: the restart that ends the slip's first stretch
+        self.restarts = 0
+        self.below_draws = 0                  # of the last peak draws, those whose maximum is the lowest seen creep
+
+    @property
+    def _dates_changes(self) -> bool:
+        return self.closed_loop and bool(self.opts["rail_changes"])
 
     @staticmethod
     def grid_log_creeps(o: dict) -> np.ndarray:
@@ -189,6 +235,11 @@ class GpStrategy(SpeedModelStrategy):
                     "length_log", "tol_peak_mu", "tol_peak_creep", "sigma_y_fallback"):
             need(isinstance(o[key], (int, float)) and math.isfinite(o[key]) and o[key] > 0, key, "a number > 0")
         for key in ("prior_mu", "model_mu_std"):
+            need(isinstance(o[key], (int, float)) and math.isfinite(o[key]) and o[key] >= 0, key, "a number >= 0")
+        need(isinstance(o["change_window"], int) and not isinstance(o["change_window"], bool) and o["change_window"] >= 2,
+             "change_window", "an integer >= 2")
+        need(isinstance(o["rail_changes"], bool), "rail_changes", "true or false")
+        for key in ("change_settle_s", "change_min_mu", "change_fall_slope", "change_rise_slope"):
             need(isinstance(o[key], (int, float)) and math.isfinite(o[key]) and o[key] >= 0, key, "a number >= 0")
         for key in ("confirm_level", "report_level"):
             need(isinstance(o[key], (int, float)) and 0.5 < o[key] < 1.0, key, "in (0.5, 1)")
@@ -245,6 +296,21 @@ class GpStrategy(SpeedModelStrategy):
         # q: the model error, and the creep's noise carried into mu by the curve's slope there
         self._creep_var_kmh2 = 0.5 * (self.creep_per_motor_speed * self.sigma_y) ** 2      # halved by the trapezoid
         self._model_var = float(o["model_mu_std"]) ** 2
+        if self._dates_changes:
+            self._rail_changed(s, self.creep_for_likelihood(s))
+            self._settle_until_s = s.t_s + float(o["change_settle_s"])
+        self._restart(s)
+
+    def on_reading(self, step: int, motor_speed_rad_s: float, train_speed_ms: float) -> None:
+        """Every reading before the slip (the baseline); in closed loop every reading, so a restart
+        takes the train-speed line from the readings just before it (module docstring)."""
+        if self._prev is None or self._dates_changes:
+            self.baseline.add(step, motor_speed_rad_s, train_speed_ms)
+
+    def _restart(self, s: Sample) -> None:
+        """The posterior from the prior at sample ``s`` (the slip's first, or a change of rail's)."""
+        if self._prev is not None:        # a change of rail's: the train-speed line from the latest readings
+            self._line = self.baseline.stats(self._compiled)[1]
         self.z = self._z0.copy()
         self.z[0] = s.motor_speed_rad_s
         self.P = self._P0.copy()
@@ -252,10 +318,32 @@ class GpStrategy(SpeedModelStrategy):
         v = self.creep_for_likelihood(s)
         self._ix_prev = self._interp(v)
         self.seen_lo = self.seen_hi = v
+        self._n0 = len(self._v) - 1
+
+    def _rail_changed(self, s: Sample, v: float) -> bool:
+        """The rail-change test of the module docstring on the windows that end at sample ``s``."""
+        tv, tm = self._test_v, self._test_mu
+        tv.append(v)
+        tm.append(s.mu_hat)
+        if len(tv) < tv.maxlen:
+            return False
+        o, w = self.opts, tm.maxlen // 2
+        mus, vs = list(tm), list(tv)[:2 * w]          # v: the creeps ``lag`` samples before the mu^
+        d_mu = (sum(mus[w:]) - sum(mus[:w])) / w
+        d_v = (sum(vs[w:]) - sum(vs[:w])) / w
+        allowed = (float(o["change_min_mu"]) + float(o["change_fall_slope"]) * max(d_v, 0.0)
+                   + float(o["change_rise_slope"]) * max(-d_v, 0.0))
+        return d_mu < -allowed
 
     def _step(self, s: Sample) -> None:
         periods = max(s.step - self._prev.step, 1)
         v = self.creep_for_likelihood(s)
+        if self._dates_changes and (self._rail_changed(s, v) or s.t_s >= self._settle_until_s):
+            if s.t_s >= self._settle_until_s:
+                self._settle_until_s = math.inf
+            self._restart(s)
+            self.restarts += 1
+            return
         ix_new = self._interp(v)
         a = periods * self.period_s / self.inertia
         z, P = self.z, self.P
@@ -348,21 +436,37 @@ class GpStrategy(SpeedModelStrategy):
         if not self._compiled:
             draws = np.vstack(self.peak_draws())
             self.open_draws = int(np.count_nonzero(draws[1] == self.bound_kmh))
+            if self._dates_changes:
+                self.below_draws = int(np.count_nonzero(draws[1] <= self._lowest_seen_kmh()))
             return np.quantile(draws, qs, axis=1)
         out = np.empty((qs.size, 2))
         load_kernels().gp_peak(self.z, self.P, *self._seen(), PLAUSIBLE_SIGMAS, self.normals, self.log_x,
                                self.bound_kmh, qs, *self._scratch, self._draw_mu, self._draw_creep, out)
         self.open_draws = int(np.count_nonzero(self._draw_creep == self.bound_kmh))
+        if self._dates_changes:
+            self.below_draws = int(np.count_nonzero(self._draw_creep <= self._lowest_seen_kmh()))
         return out
+
+    def _lowest_seen_kmh(self) -> float:
+        """The lowest seen grid creep, a hair above: a draw's maximum there has that creep (no parabola at a
+        region's end), any other lies at least half a grid step above it."""
+        return math.exp(self._log_x_list[self._seen()[0]]) * (1.0 + 1e-9)
 
     def _open_beyond(self, level: float) -> bool:
         """The last draws' interval at ``level`` reaches past the creeps seen: more than (1 - level) / 2
         of them put the peak at the newest creep."""
         return self.open_draws > 0.5 * (1.0 - level) * self._draw_creep.size
 
+    def _held_back(self) -> bool:
+        """Closed loop (module docstring): no confirmation while the settling restart is still ahead (or
+        the rail-change test has not filled its windows), nor while more than (1 - confirm_level) / 2 of
+        the last draws put the peak at the lowest creep seen since the restart."""
+        return (len(self._test_v) < self._test_v.maxlen or math.isfinite(self._settle_until_s)
+                or self.below_draws > 0.5 * (1.0 - float(self.opts["confirm_level"])) * self._draw_creep.size)
+
     def _evaluate(self, s: Sample) -> list[IdentificationEvent]:
         o = self.opts
-        n = len(self._v)
+        n = len(self._v) - self._n0           # samples since the slip began (closed loop: since the last restart)
         check = n % int(o["check_samples"]) == 0
         cap = float(o["peak_creep_cap_kmh"])
         if s.creep_speed_kmh > self.bound_kmh and self.bound_kmh < cap:
@@ -381,7 +485,7 @@ class GpStrategy(SpeedModelStrategy):
         (mu_lo, creep_lo), _, (mu_mid, creep_mid), _, (mu_hi, creep_hi) = q
         if (check and n >= int(o["min_samples"]) and within_tolerance(mu_lo, mu_mid, mu_hi, float(o["tol_peak_mu"]))
                 and within_tolerance(creep_lo, creep_mid, creep_hi, float(o["tol_peak_creep"]))
-                and creep_hi < self.bound_kmh):
+                and creep_hi < self.bound_kmh and not (self._dates_changes and self._held_back())):
             return [self._publish(s, "confirmed", q)]
         return [self._publish(s, "unconfirmed" if ends else "correction", q)]
 
