@@ -44,6 +44,8 @@ from .trace import Trace, clean
 
 #: file suffixes read with ``can.LogReader`` (python-can's writers/readers)
 CAN_LOG_SUFFIXES = (".log", ".asc", ".blf", ".csv", ".trc", ".mf4")
+#: the option a closed-loop log recorded before gp dated changes of rail is replayed with (``load_mcap``)
+GP_RAIL_CHANGES_OFF = "identifier.options.gp.rail_changes"
 #: topics a replay reads from an MCAP log
 REPLAY_TOPICS = {"/can/frames", "/plant/sensor", "/plant/state", "/tcu/identification", "/tcu/status"}
 
@@ -79,6 +81,10 @@ def load_mcap(path, scenario_file=None) -> ReplaySource:
     scenario = (load_scenario(scenario_file) if scenario_file is not None
                 else scenario_from_log(log, "; give the scenario with --scenario FILE"))
     run = log.metadata.get("run") or {}
+    if scenario.control.law != "demand" and run and "gp_rail_changes" not in run:
+        # a closed-loop log recorded before gp dated changes of rail: replayed as it was recorded
+        scenario = scenario_from_log(log, overrides={GP_RAIL_CHANGES_OFF: False}) if scenario_file is None else \
+            load_scenario(scenario_file, {GP_RAIL_CHANGES_OFF: False})
     try:
         seed = int(run["seed"]) if "seed" in run else None
     except ValueError:

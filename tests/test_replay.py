@@ -100,6 +100,22 @@ def test_a_gp_log_recorded_before_the_range_followed_the_data_replays_the_same()
     assert s["peak_interval_open"] is False and 1.2 < s["peak_creep_ci"][0] < s["peak_creep_ci"][1] < 1.35
 
 
+def test_a_closed_loop_gp_log_recorded_before_gp_dated_rail_changes_replays_the_same():
+    """tests/data/wet_patch-gp-identified-1-f7678e9.mcap: ``hil run scenarios/wet_patch.toml --set
+    rail.1.start_s=0.4 --set rail.2.start_s=1.5 --set run.duration_s=0.5`` by commit f7678e9, before
+    ``gp`` dated a change of rail in closed loop: it confirmed at 0.418 s a peak creep 0.744 km/h, a point,
+    on a wet rail peaking at 0.9 km/h.  Its run metadata has no ``gp_rail_changes``, so the replay runs
+    gp as it ran then and gives what it logged (today's gp, dating the change, confirms nothing there)."""
+    r = hil("replay", ROOT / "tests" / "data" / "wet_patch-gp-identified-1-f7678e9.mcap", "--json")
+    assert r.returncode == 0, r.stderr
+    s = json.loads(r.stdout)
+    assert s["control"] == "identified" and s["strategy"] == "gp" and s["counterfactual"] is False
+    assert s["matches_log"] is True
+    assert s["t_identified_s"] == s["logged"]["t_identified_s"] == 0.418
+    assert s["params"] == pytest.approx(s["logged"]["params"], rel=1e-9)
+    assert s["peak_creep_ci"] == pytest.approx([0.744, 0.744], abs=1e-3)
+
+
 def test_bad_strategy_is_one_line(runs):
     _, path = runs["gp"]
     r = hil("replay", str(path), "--strategy", "nope")

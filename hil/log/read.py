@@ -70,9 +70,10 @@ class LogContents:
         return f"the run did not finish ({self.ended_early}); the log was closed properly" if self.ended_early else ""
 
 
-def scenario_from_log(log: LogContents, hint: str = ""):
+def scenario_from_log(log: LogContents, hint: str = "", overrides: dict | None = None):
     """The scenario a ``hil run`` log was recorded with (its TOML text and ``--set`` overrides, from
-    the metadata), or one LogError line; ``hint`` ends the line that says the log has none."""
+    the metadata), or one LogError line; ``hint`` ends the line that says the log has none;
+    ``overrides``: more ``--set`` keys on top of the logged ones."""
     import json
 
     from ..config import ScenarioError, parse_scenario
@@ -85,12 +86,13 @@ def scenario_from_log(log: LogContents, hint: str = ""):
             raise LogError(f"{log.path}: its scenario metadata is lost to the damage ({log.damage}){hint}")
         raise LogError(f"{log.path}: no scenario metadata: not a 'hil run' log (another tool's MCAP?){hint}")
     try:
-        overrides = json.loads(sc["overrides"]) if sc.get("overrides") else None
+        logged = json.loads(sc["overrides"]) if sc.get("overrides") else None
     except ValueError:
-        overrides = None
+        logged = None
+    logged = logged if isinstance(logged, dict) else {}
     try:
-        return parse_scenario(sc["toml"], f"{log.path}: scenario metadata",
-                              overrides if isinstance(overrides, dict) else None, check_dbc=False)
+        return parse_scenario(sc["toml"], f"{log.path}: scenario metadata", {**logged, **(overrides or {})} or None,
+                              check_dbc=False)
     except ScenarioError as e:
         raise LogError(str(e)) from None
 
