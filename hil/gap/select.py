@@ -36,7 +36,7 @@ on a lattice coarser than the scenario's own name it beside whatever explains th
 (q^2 / 12) joins every model's noise floor.  No noise-floor test: an effect written with other
 equations than its candidate leaves a remainder above the noise and is still the right answer when it
 beats every alternative.  Two effects: ``forward`` (a second effect on top of the first, pairs fitted
-together) and ``rejudge``.
+together; the pair must also win on data held out in time, ``time_veto``) and ``rejudge``.
 
 A candidate whose fit fails is never dropped silently: each failure (a least-squares start the model
 cannot be evaluated at, a model that diverges, a CasADi evaluation error: ``FIT_ERRORS``) is appended
@@ -301,8 +301,9 @@ def forward(ctx: Context, nom_fit: Fit, base: dict, first: Fit, first_row: dict,
     best second effect of another class by the margin (``beats_on_top``) and its fit is not pinned at
     its bounds; and, as a single effect must (issue 35), the pair beats every class's best single
     candidate by the margin (``beats``), no parameter of it sits at a bound of its range but a zero
-    floor (``implausible``), and the pair or the rail curve with the same second effect beats the rail
-    curve alone.  ``rejected_because`` says which test failed.  The pair is then compared with the rail
+    floor (``implausible``), the pair or the rail curve with the same second effect beats the rail
+    curve alone, and, last (it costs fits), the pair wins on data held out in time (``time_veto``:
+    fitted without the serious stage, judged on it).  ``rejected_because`` says which test failed.  The pair is then compared with the rail
     curve plus the same second effect.  ``exclude``: candidates not to offer; a fit that fails at any
     step is appended to ``failed`` (a second effect whose fit on top fails is not ranked; a failed joint
     fit or refit keeps the fit it would replace)."""
@@ -501,9 +502,10 @@ def time_veto(ctx: Context, first_name: str, pair: tuple, rail: bool, failed: li
     names) fitted again on the analysis window before its last stage (``time_split``: greedy, the second
     on top of the first; a plant effect and a sensor form then fitted together, the better on training
     kept), and judged on that stage against the first effect alone (``first_name``) and the rail curve
-    alone (``rail``), fitted the same way.  The pair wins when it gains ``MIN_MARGIN`` in held-out score
-    over each and leaves less of the gap: a second effect fitted into a misspecified first's remainder
-    follows the training span, not what comes after it.  None when the window holds too little after
+    alone (``rail``), fitted the same way.  The pair wins when it beats each there on both counts
+    (``beats_strictly``: ``MIN_MARGIN`` in score and at most ``MARGIN_GAP_RATIO`` of its gap left, so the
+    second removes at least half of what the single leaves): a second effect fitted into a misspecified
+    first's remainder follows the training span, not what comes after it.  None when the window holds too little after
     the fault (no veto); a pair whose fit fails there does not win."""
     split = time_split(ctx)
     if split is None:
@@ -541,11 +543,11 @@ def time_veto(ctx: Context, first_name: str, pair: tuple, rail: bool, failed: li
             continue
         row = entry(ct, f, base)
         rows.append(dict(_brief(row), explanation=name))
-        if not (pair_row["score_gain"] - row["score_gain"] >= MIN_MARGIN and pair_row["held_out_gap"] < row["held_out_gap"]):
+        if not beats_strictly(pair_row, row):
             lost.append(name)
     return {"held_out": what, "periods": int(held.sum()), "pair_wins": not lost, "rows": rows,
             "why": (f"on data held out in time ({what}, fitted on the window before it) the pair does not beat "
-                    f"{', '.join(lost)} alone by {MIN_MARGIN:g} in score with less of the gap left") if lost else ""}
+                    f"{', '.join(lost)} alone by the margin (score and half its gap)") if lost else ""}
 
 
 def _brief(row: dict) -> dict:
