@@ -60,7 +60,8 @@ from .params import KMH_PER_MS
 
 
 #: the plant-level effects this module integrates, in the order they act on the torque path
-PLANT_ORDER = ("torque_lag", "power_limit", "torque_map", "torque_ripple", "drivetrain_damping", "gear_efficiency", "compliance", "wheel_radius", "rail_curve",
+PLANT_ORDER = ("torque_lag", "power_limit", "torque_map", "torque_ripple", "drivetrain_damping", "gear_efficiency",
+               "compliance", "wheel_radius", "rail_curve",
                "adhesion_lag", "creep_relaxation", "bristle", "load_transfer", "load_transfer_pitch", "resistance")
 #: the bristle model's relaxation rate (1/s) is capped here (time constant >= 0.25 ms, 2.5 RK4
 #: sub-steps, a quarter period): the cap slows only transients faster than a sample, never the steady state

@@ -301,12 +301,12 @@ def forward(ctx: Context, nom_fit: Fit, base: dict, first: Fit, first_row: dict,
     best second effect of another class by the margin (``beats_on_top``) and its fit is not pinned at
     its bounds; and, as a single effect must (issue 35), the pair beats every class's best single
     candidate by the margin (``beats``), no parameter of it sits at a bound of its range but a zero
-    floor (``implausible``), the pair or the rail curve with the same second effect beats the rail
-    curve alone, and, last (it costs fits), the pair wins on data held out in time (``time_veto``:
-    fitted without the serious stage, judged on it).  ``rejected_because`` says which test failed.  The pair is then compared with the rail
-    curve plus the same second effect.  ``exclude``: candidates not to offer; a fit that fails at any
-    step is appended to ``failed`` (a second effect whose fit on top fails is not ranked; a failed joint
-    fit or refit keeps the fit it would replace)."""
+    floor (``implausible``), and the pair or the rail curve with the same second effect beats the rail
+    curve alone.  The pair is then compared with the rail curve plus the same second effect, and, last
+    (it costs fits), the pair named must win on data held out in time (``time_veto``: fitted without the
+    serious stage, judged on it).  ``rejected_because`` says which test failed.  ``exclude``: candidates
+    not to offer; a fit that fails at any step is appended to ``failed`` (a second effect whose fit on
+    top fails is not ranked; a failed joint fit or refit keeps the fit it would replace)."""
     if first.name == "sensor_quantisation":
         return None
     sensor_first = "plant" not in first.extra
@@ -469,9 +469,10 @@ def forward(ctx: Context, nom_fit: Fit, base: dict, first: Fit, first_row: dict,
     else:
         out["pair_vs_rail"] = "pair"
     if out["accepted"]:
-        # and the pair must win on data held out in time: fitted without the last stage, judged on it
-        veto = time_veto(ctx, first.name, (out["first_candidate"], out["second_candidate"]), rail_fit is not None,
-                         failed, say)
+        # and the pair must win on data held out in time: fitted without the last stage, judged on it (the
+        # pair named: the rail curve with the second when that explains it better than the first with it)
+        pair = ("rail_curve" if out["pair_vs_rail"] == "rail" else out["first_candidate"], out["second_candidate"])
+        veto = time_veto(ctx, first.name, pair, rail_fit is not None, failed, say)
         out["held_out_in_time"] = veto
         if veto is not None and not veto["pair_wins"]:
             out["accepted"] = False
@@ -505,7 +506,8 @@ def time_veto(ctx: Context, first_name: str, pair: tuple, rail: bool, failed: li
     alone (``rail``), fitted the same way.  The pair wins when it beats each there on both counts
     (``beats_strictly``: ``MIN_MARGIN`` in score and at most ``MARGIN_GAP_RATIO`` of its gap left, so the
     second removes at least half of what the single leaves): a second effect fitted into a misspecified
-    first's remainder follows the training span, not what comes after it.  None when the window holds too little after
+    first's remainder follows the training span, not what comes after it.  ``pair[0]`` may be
+    "rail_curve" (the rail curve with the second effect).  None when the window holds too little after
     the fault (no veto); a pair whose fit fails there does not win."""
     split = time_split(ctx)
     if split is None:
@@ -513,6 +515,7 @@ def time_veto(ctx: Context, first_name: str, pair: tuple, rail: bool, failed: li
     train, held, what = split
     ct = ctx.split(train, held)
     by_name = {c.name: c for c in candidates(ctx.scenario)}
+    by_name[RAIL.name] = RAIL
     step = f"held out in time ({what})"
     say(f"forward selection: the pair {' and '.join(pair)} fitted without {what}, judged on it")
     nom = fit_nominal(ct)
