@@ -263,7 +263,10 @@ def run_case(scenario, kind: str, effects: dict, run_seed: int, out_dir: Path, i
            "oracle": limit, "excluded": held_out, "ranked_candidates": [r["candidate"] for r in which["ranking"]],
            "failed_candidates": which["failed_candidates"], "gap_present": which["gap_present"],
            "member": member_of(kind, effects),
-           "not_separable": [a["effect"] for a in which.get("not_separable") or []]}
+           "not_separable": [a["effect"] for a in which.get("not_separable") or []],
+           "forward": {k: (which["forward"] or {}).get(k) for k in ("first", "second", "accepted", "rejected_because")}
+           if which["forward"] else None,
+           "veto_in_time": ((which["forward"] or {}).get("held_out_in_time") or {}).get("pair_wins")}
     rec["member_class"] = FAMILY[rec["member"]][0] if rec["member"] else None
     if kind == "outside" or rec["member_class"] == "outside":
         right = set().union(*(OUTSIDE_VARIABLES[n] for n in effects))
