@@ -97,6 +97,10 @@ EFFECTS: dict[str, EffectSpec] = {s.name: s for s in [
                "constant-power region of the drive: the motor torque capped at power_kw / omega_m (above the base "
                "speed power_kw / torque); power_kw None: power_ratio x the scenario's equilibrium power",
                {"power_kw": "kW", "power_ratio": "-"}, candidate=False),
+    EffectSpec("torque_map", "plant", {"droop": 1.0, "omega0_rad_s": None},
+               "the drive's torque gain falling with motor speed: T = T_cmd x max(1 - droop (omega_m / omega0 - 1), "
+               "0); omega0_rad_s None: the scenario's equilibrium motor speed",
+               {"droop": "-", "omega0_rad_s": "rad/s"}, candidate=False),
     EffectSpec("wheel_radius", "plant", {"error_percent": 0.2}, "true wheel radius = nominal x (1 + error)",
                {"error_percent": "%"}, candidate=False),
     EffectSpec("sensor_delay", "sensor", {"delay_ms": 3.0}, "speed sensors report values delay_ms old",
@@ -107,6 +111,9 @@ EFFECTS: dict[str, EffectSpec] = {s.name: s for s in [
                {"delay_ms": "ms"}, cls="sensor_delay", form="per_signal"),
     EffectSpec("tachometer_gain", "sensor", {"error_percent": 1.0},
                "the motor encoder reads speed x (1 + error_percent / 100)", {"error_percent": "%"}, candidate=False),
+    EffectSpec("sensor_stick", "sensor", {"start_s": 0.55, "hold_ms": 10.0},
+               "the motor encoder sticks: from start_s on it repeats its last reading for hold_ms",
+               {"start_s": "s", "hold_ms": "ms"}, candidate=False),
     EffectSpec("sensor_quantisation", "sensor", {"motor_quantum_rad_s": 0.05, "train_quantum_ms": 0.0},
                "speed sensors quantised (on top of their noise)",
                {"motor_quantum_rad_s": "rad/s", "train_quantum_ms": "m/s"}, form="quantiser"),
@@ -155,6 +162,8 @@ def check_effect(name: str, params: dict, where: str = "reality") -> dict:
         raise ValueError(f"{where} gear_efficiency.efficiency: must be in (0, 1], got {out['efficiency']}")
     if name == "power_limit" and out["power_kw"] is not None and not out["power_kw"] > 0:
         raise ValueError(f"{where} power_limit.power_kw: must be > 0, got {out['power_kw']}")
+    if name == "torque_map" and out["omega0_rad_s"] is not None and not out["omega0_rad_s"] > 0:
+        raise ValueError(f"{where} torque_map.omega0_rad_s: must be > 0, got {out['omega0_rad_s']}")
     if name == "can" and not out["loss"] < 1:
         raise ValueError(f"{where} can.loss: must be < 1, got {out['loss']}")
     return out

@@ -28,10 +28,19 @@ A "real" run is the nominal plant plus one or more of these effects.  Three leve
     capped at P_max / omega_m, so above the base speed P_max / T the torque falls as the motor speeds up
         T = min(T_cmd, P_max / omega_m),   P_max = power_kw * 1e3
     (power_kw None: power_ratio x the equilibrium power T0 omega0, binding from power_ratio x omega0).
+  - ``torque_map``     (not a diagnosis candidate) the drive's torque gain falling with motor speed,
+    linearly about the equilibrium speed omega0 (a torque-speed map of the inverter's control, acting
+    from the start as the train speeds up, not from a knee as the power limit):
+        T = T_cmd * max(1 - droop * (omega_m / omega0 - 1), 0)
+    (omega0_rad_s None: the scenario's equilibrium motor speed; ``droop``: the fraction of torque lost
+    per fraction of speed gained).
   - ``wheel_radius``   (not a diagnosis candidate) true wheel radius off the nominal one.
 
 * **sensor** effects (``RealitySensors`` wraps ``plant.SensorModel``): ``sensor_delay`` (delay_ms,
-  fractional periods by linear interpolation) and ``sensor_quantisation`` (quanta on top of noise).
+  fractional periods by linear interpolation) and ``sensor_quantisation`` (quanta on top of noise);
+  not diagnosis candidates: ``tachometer_gain`` and ``sensor_stick`` (the motor encoder's reading
+  stuck: from reading ``start_s`` / period on, it repeats the last reading it made before, noise
+  included, for ``hold_ms``).
 
 * **bus** effects (``can``: delay, jitter, loss of sensor frames) are not physics of the plant: they
   live with the registry of every effect (names, parameters, defaults, which the diagnosis may offer
@@ -51,13 +60,15 @@ from .params import KMH_PER_MS
 
 
 #: the plant-level effects this module integrates, in the order they act on the torque path
-PLANT_ORDER = ("torque_lag", "power_limit", "torque_ripple", "drivetrain_damping", "gear_efficiency", "compliance", "wheel_radius", "rail_curve",
+PLANT_ORDER = ("torque_lag", "power_limit", "torque_map", "torque_ripple", "drivetrain_damping", "gear_efficiency",
+               "compliance", "wheel_radius", "rail_curve",
                "adhesion_lag", "creep_relaxation", "bristle", "load_transfer", "load_transfer_pitch", "resistance")
 #: the bristle model's relaxation rate (1/s) is capped here (time constant >= 0.25 ms, 2.5 RK4
 #: sub-steps, a quarter period): the cap slows only transients faster than a sample, never the steady state
 BRISTLE_MAX_RATE_1_S = 4000.0
 #: the sensor-level effects ``RealitySensors`` applies
-SENSOR_EFFECTS = ("sensor_delay", "sensor_lowpass", "motor_delay", "tachometer_gain", "sensor_quantisation")
+SENSOR_EFFECTS = ("sensor_delay", "sensor_lowpass", "motor_delay", "tachometer_gain", "sensor_stick",
+                  "sensor_quantisation")
 
 
 def fill_defaults(effects: dict, cfg: PlantConfig) -> dict:
@@ -73,6 +84,8 @@ def fill_defaults(effects: dict, cfg: PlantConfig) -> dict:
         if name == "power_limit" and q.get("power_kw") is None:
             x0, torque0 = equilibrium(cfg)
             q["power_kw"] = float(q.get("power_ratio", 1.0) * torque0 * x0[0] * 1e-3)
+        if name == "torque_map" and q.get("omega0_rad_s") is None:
+            q["omega0_rad_s"] = float(equilibrium(cfg)[0][0])
         out[name] = q
     return out
 
@@ -130,6 +143,9 @@ class RealityModel:
             dx[self._i("torque_actual")] = (torque_cmd - torque) / e["torque_lag"]["tau_s"]
         if "power_limit" in e:
             torque = ca.fmin(torque, e["power_limit"]["power_kw"] * 1e3 / ca.fmax(omega_m, 1.0))
+        if "torque_map" in e:
+            tm = e["torque_map"]
+            torque = torque * ca.fmax(1 - tm["droop"] * (omega_m / tm["omega0_rad_s"] - 1), 0)
         if "torque_ripple" in e:
             r = e["torque_ripple"]
             torque = torque * (1 + r["amplitude"] * ca.sin(2 * math.pi * r["frequency_hz"] * t + r["phase_rad"]))
@@ -340,6 +356,10 @@ class RealitySensors:
         q = effects.get("sensor_quantisation", {})
         self.q_motor = q.get("motor_quantum_rad_s", 0.0)
         self.q_train = q.get("train_quantum_ms", 0.0)
+        st = effects.get("sensor_stick")
+        self.stick = (round(st["start_s"] / period_s), round((st["start_s"] + st["hold_ms"] * 1e-3) / period_s)) \
+            if st else None
+        self._stuck = None
         self._hist: list[tuple[float, float]] = []
 
     def measure(self, motor_speed_rad_s: float, train_speed_ms: float) -> tuple[float, float]:
@@ -371,4 +391,10 @@ class RealitySensors:
             omega = float(np.round(omega / self.q_motor) * self.q_motor)
         if self.q_train > 0:
             v = float(np.round(v / self.q_train) * self.q_train)
+        if self.stick is not None:
+            k = len(self._hist) - 1                   # this reading's period
+            if k < self.stick[0]:
+                self._stuck = omega                   # the last reading before the encoder sticks
+            elif k < self.stick[1] and self._stuck is not None:
+                omega = self._stuck
         return omega, v

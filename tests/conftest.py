@@ -134,7 +134,7 @@ SLOW = {
     "tests/test_fmu.py::test_a_zip_bomb_is_refused_before_unpacking",
     "tests/test_fmu.py::test_an_archive_member_outside_the_fmu_is_refused_before_unpacking",
     "tests/test_fmu.py::test_identification_identical_with_fmu_and_casadi_plant",
-    "tests/test_gap.py::test_a_constant_power_limit_is_not_separable_and_lists_both",
+    "tests/test_gap.py::test_a_constant_power_limit_is_never_the_rail_nor_a_name",
     "tests/test_gap.py::test_a_creep_stretched_rail_is_the_nuisance_and_nothing_more_is_named",
     "tests/test_gap.py::test_a_held_out_bristle_is_not_named_as_another_class",
     "tests/test_gap.py::test_a_quantiser_is_named_beside_the_effect_that_explains_the_mean",

@@ -107,6 +107,27 @@ def test_a_power_limit_caps_the_torque_at_power_over_speed(scenario):
     assert got[-1] < trajectory(WheelsetPlant(cfg), t0, 300)[-1, 0] - 0.01   # and the cap slows the motor
 
 
+def test_a_torque_map_takes_torque_off_in_proportion_to_the_speed_rise(scenario):
+    """The drive's torque map: T = T_cmd max(1 - droop (omega_m / omega0 - 1), 0), omega0 the equilibrium
+    speed by default.  The plant follows the nominal plant commanded that torque from each period's
+    start (to the order a period moves omega_m), and a drooping map slows the motor."""
+    from plant.model import equilibrium
+    cfg = scenario.plant_config()
+    x0, t0 = equilibrium(cfg)
+    _, params = parse_effect("torque_map:droop=2.5")
+    mapped = RealityPlant(cfg, {"torque_map": params})
+    assert mapped.effects["torque_map"]["omega0_rad_s"] == pytest.approx(x0[0], rel=1e-12)
+    nom = WheelsetPlant(cfg)
+    by_hand, w = [], x0[0]
+    for _ in range(700):                          # past the fault at 0.5 s, where the motor speeds up
+        s = nom.step(t0 * max(1 - 2.5 * (w / x0[0] - 1), 0))
+        w = s.motor_speed_rad_s
+        by_hand.append(w)
+    got = trajectory(mapped, t0, 700)[:, 0]
+    assert np.max(np.abs(got - np.array(by_hand))) < 1e-3 * np.max(np.abs(np.array(by_hand) - x0[0]))
+    assert got[-1] < trajectory(WheelsetPlant(cfg), t0, 700)[-1, 0] - 0.01
+
+
 def test_compliance_rings_after_the_fault_only(scenario):
     cfg = scenario.plant_config()
     nom = WheelsetPlant(cfg)
@@ -171,6 +192,20 @@ def test_sensor_delay_and_quantisation():
     vals = np.array([q.measure(64.0 + 0.003 * k, 10.0)[0] for k in range(200)])
     assert np.allclose(vals / 0.05, np.round(vals / 0.05), atol=1e-9)
     assert len(np.unique(vals)) > 5
+
+
+def test_a_stuck_encoder_repeats_its_last_reading_for_its_hold_time():
+    """``sensor_stick``: from reading start_s / period on, the motor encoder repeats the reading it made
+    just before (noise included) for hold_ms; the train speed and every other reading are untouched."""
+    period = 1e-3
+    plain = SensorModel(SensorConfig(motor_speed_noise_rad_s=0.01), seed=3)
+    stuck = RealitySensors(SensorModel(SensorConfig(motor_speed_noise_rad_s=0.01), seed=3),
+                           {"sensor_stick": {"start_s": 0.02, "hold_ms": 7.0}}, period)
+    a = np.array([plain.measure(60.0 + 0.1 * k, 10.0 + k) for k in range(40)])
+    b = np.array([stuck.measure(60.0 + 0.1 * k, 10.0 + k) for k in range(40)])
+    assert np.array_equal(b[:, 1], a[:, 1])
+    assert np.array_equal(b[:20, 0], a[:20, 0]) and np.array_equal(b[27:, 0], a[27:, 0])
+    assert np.all(b[20:27, 0] == a[19, 0])
 
 
 def test_can_delay_jitter_loss():

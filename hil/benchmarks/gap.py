@@ -18,8 +18,12 @@ K real runs, each drawn (seeded; the seed is drawn at run time unless given, and
   candidates can mimic, each classed in advance (``outside``: the right answer names no effect;
   ``nuisance``: the rail's curve is what differs): the drive's constant-power torque limit
   (``power_limit``: the torque capped at P_max / omega_m once the motor runs 0.5-5 % above its
-  equilibrium speed; the rail curve and the drivetrain losses each remove most of its gap) and a rail
-  curve stretched (or shrunk) in creep by 6-14 % (``rail_stretch``, inside the nuisance's range 0.85-1.18);
+  equilibrium speed; the rail curve and the drivetrain losses each remove most of its gap), a rail
+  curve stretched (or shrunk) in creep by 6-14 % (``rail_stretch``, inside the nuisance's range 0.85-1.18;
+  classed ``nuisance``), a torque map of the drive (``torque_map``: the torque gain falling by
+  ``droop`` 0.5-3 times the motor's relative speed rise above its equilibrium speed, acting from the
+  start; ``outside``) and a stuck motor encoder (``sensor_stick``: its last reading repeated for 5-30
+  ms from a time drawn in 0.2-0.65 s; ``outside``: no candidate holds a reading);
 * ``nominal``: no effect at all (right answer: no gap, "none").
 
 Each run is recorded to MCAP, diagnosed through ``hil.gap.read_real_log`` (which drops the truth
@@ -97,7 +101,8 @@ OUTSIDE = {
 #: (``LINE_TOLERANCE``; a torque ripple under a command constant over the window: nothing in the log
 #: says the sine scales with the torque)
 OUTSIDE_VARIABLES = {"torque_ripple": {"torque"}, "wheel_radius": {"creep_speed", "motor_speed"},
-                     "tachometer_gain": {"motor_speed"}, "power_limit": {"motor_speed", "torque"}}
+                     "tachometer_gain": {"motor_speed"}, "power_limit": {"motor_speed", "torque"},
+                     "torque_map": {"motor_speed", "torque"}, "sensor_stick": {"motor_speed"}}
 #: the out-of-library family: member -> (its class, decided before any diagnosis: "outside" (no effect
 #: is right) or "nuisance" (the rail's curve differs), the reality effect that makes it, sampler(rng) ->
 #: its parameters).  None is a candidate (``EFFECTS[effect].candidate`` is False).
@@ -110,6 +115,13 @@ FAMILY = {
     "rail_stretch": ("nuisance", "rail_curve",
                      lambda g: {"peak_mu_scale": 1.0, "creep_scale": float(g.choice([-1, 1])) * U(g, 0.06, 0.14)
                                 + 1.0}),
+    # the drive's torque gain falling linearly with motor speed about the equilibrium speed (no knee: it
+    # acts as the train speeds up, before the fault too); no candidate adds torque below nor takes it
+    # off only above the equilibrium speed, the drivetrain losses and the rail curve mimic parts of it
+    "torque_map": ("outside", "torque_map", lambda g: {"droop": U(g, 0.5, 3.0)}),
+    # the motor encoder stuck for 5-30 ms (its last reading repeated), somewhere in 0.2-0.65 s (the fault
+    # of ffcc_a is at 0.5 s: before it the speed hardly moves and the stick may leave no gap at all)
+    "sensor_stick": ("outside", "sensor_stick", lambda g: {"start_s": U(g, 0.2, 0.65), "hold_ms": U(g, 5.0, 30.0)}),
 }
 LINE_TOLERANCE = 0.02
 PLANT_FORMS = ("load_transfer", "compliance", "adhesion_lag", "resistance", "creep_relaxation", "bristle",
@@ -251,7 +263,10 @@ def run_case(scenario, kind: str, effects: dict, run_seed: int, out_dir: Path, i
            "oracle": limit, "excluded": held_out, "ranked_candidates": [r["candidate"] for r in which["ranking"]],
            "failed_candidates": which["failed_candidates"], "gap_present": which["gap_present"],
            "member": member_of(kind, effects),
-           "not_separable": [a["effect"] for a in which.get("not_separable") or []]}
+           "not_separable": [a["effect"] for a in which.get("not_separable") or []],
+           "forward": {k: (which["forward"] or {}).get(k) for k in ("first", "second", "accepted", "rejected_because")}
+           if which["forward"] else None,
+           "veto_in_time": ((which["forward"] or {}).get("held_out_in_time") or {}).get("pair_wins")}
     rec["member_class"] = FAMILY[rec["member"]][0] if rec["member"] else None
     if kind == "outside" or rec["member_class"] == "outside":
         right = set().union(*(OUTSIDE_VARIABLES[n] for n in effects))

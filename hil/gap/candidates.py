@@ -98,6 +98,15 @@ class Context:
         c.base_names = self.base_names + (fit.name,)
         return c
 
+    def split(self, train_mask, held_mask) -> "Context":
+        """This context fitted on ``train_mask`` and judged on ``held_mask`` (forward selection's veto from
+        data held out in time); the simulators are shared (they do not depend on the split)."""
+        import copy
+        c = copy.copy(self)
+        c.train, c.held = train_mask, held_mask
+        c.n_read = periods_read(train_mask, self.data.n)
+        return c
+
     def on_top_of_effects(self, effects: dict, **sensor_periods) -> "Context":
         """This context with plant ``effects`` {name: full params} and sensor forms (periods, by
         ``SENSOR_FORMS_OF_CONTEXT`` key) held fixed underneath every model (the bench's oracle: the
