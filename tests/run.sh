@@ -133,7 +133,7 @@ elif [ "${CI:-}" = "true" ]; then
 fi
 
 say "pytest (host, all but the vcan tests and those that time the machine; two workers)"
-"${PYTEST[@]}" "${PARALLEL[@]}" -m "not vcan and not realtime and not serial" --durations=15 "$@" || status=$?
+"${PYTEST[@]}" "${PARALLEL[@]}" -m "not vcan and not realtime and not serial" --durations=40 "$@" || status=$?
 
 if [ -n "$vcan_pid" ]; then
   waited=0
