@@ -300,8 +300,8 @@ def cmd_control_bench(args) -> int:
                           f"{FIRST_PATCH_S:g} s)")
     seed = int.from_bytes(os.urandom(4), "little") % (1 << 31) if args.seed is None else args.seed
     load_before = os.getloadavg()[0]
-    print(f"hil bench control: seed {seed} ({'drawn now' if args.seed is None else 'given'}), {args.draws} draws of "
-          f"{args.duration_s:g} s, laws {', '.join(laws)}", file=sys.stderr if args.json else sys.stdout)
+    print(wrap(f"hil bench control: seed {seed} ({'drawn now' if args.seed is None else 'given'}), {args.draws} draws "
+               f"of {args.duration_s:g} s, laws {', '.join(laws)}", "  ", ""), file=sys.stderr if args.json else sys.stdout)
     compile_kernels("hil bench control")
     base_text = Path(BASE).read_text() if Path(BASE).exists() else \
         (Path(__file__).resolve().parents[2] / BASE).read_text()
@@ -325,8 +325,7 @@ def cmd_control_bench(args) -> int:
     if args.json:
         print(json.dumps(out))
         return 0
-    head = ["law", "eta_low med", "eta_low p5", "eta med", "macro-slip", "reaction ms", "recovery s", "ripple %",
-            "x real time"]
+    head = ["law", "eta_low", "p5", "eta", "slip", "react ms", "recov s", "ripple %", "x RT"]     # medians but p5
     rows = [[law, *(_fmt(r[k], f) for k, f in (("eta_low_median", ".3f"), ("eta_low_p5", ".3f"), ("eta_median", ".3f"),
                                                 ("macro_slip_fraction", ".0%"), ("reaction_median_ms", ".1f"),
                                                 ("recovery_median_s", ".3f"), ("torque_ripple_median_percent", ".2f"),
@@ -335,13 +334,17 @@ def cmd_control_bench(args) -> int:
     print(columns(head, rows, "  "))
     sp = out["speed"]
     if sp:
-        print(f"  speed, {sp['duration_s']:g} s logged in-process lockstep run: demand {_fmt(sp['demand_x_realtime'], '.1f')}"
-              f" x real time{' (ended as a fault: the wheel ran away)' if sp['demand_fault'] else ''}, identified "
-              f"{_fmt(sp['identified_x_realtime'], '.1f')} x ({_fmt(sp['identified_over_demand'], '.2f')} of demand's)")
+        print(wrap(f"speed, {sp['duration_s']:g} s logged in-process lockstep run: demand "
+                   f"{_fmt(sp['demand_x_realtime'], '.1f')} x real time"
+                   f"{' (ended as a fault: the wheel ran away)' if sp['demand_fault'] else ''}, identified "
+                   f"{_fmt(sp['identified_x_realtime'], '.1f')} x ({_fmt(sp['identified_over_demand'], '.2f')} of "
+                   f"demand's)", "  "))
     for line in (_acted_line(out), _identification_line(out)):
         if line:
             print(wrap(line.replace("`", ""), "  "))
-    print(wrap("eta_low: adhesion utilisation where the demand exceeds the true peak and 1 s after each change "
+    print(wrap("Columns: medians over the draws (p5: eta_low's 5th percentile; slip: runs with macro-slip; "
+               "x RT: simulated seconds per wall second).  "
+               "eta_low: adhesion utilisation where the demand exceeds the true peak and 1 s after each change "
                "(hil/traction.py); the oracle reads the true curve: the ceiling, never a run's law; prior holds "
                "the one creep best over the family's curves.", "  "))
     return 0
