@@ -493,6 +493,43 @@ def test_a_fits_short_simulation_is_the_whole_runs_first_periods(scenario):
     assert periods_read(mask, n) == 251 and periods_read(np.zeros(n, bool), n) == n
 
 
+def test_each_candidates_compiled_step_computes_the_virtual_machines_bits(scenario):
+    """``hil.gap.compiled``: every plant candidate's period step (its parameters drawn inside their
+    bounds), the nominal one, and one on top of another effect, rolled over a run with a varying torque,
+    gives exactly (bit for bit) what CasADi's virtual machine gives; and each was compiled (a C compiler
+    is on every machine the tests run on), from the cache when the same step comes again."""
+    import shutil
+    from hil.gap.candidates import PlantCandidate, candidates
+    from hil.gap.model import Simulator
+    from plant.reality import fill_defaults
+    assert shutil.which("cc") or shutil.which("gcc")
+    seed = fresh_seed()
+    g = np.random.default_rng(seed)
+    print(f"seed {seed}")
+    cfg = scenario.plant_config()
+    n = 300
+    torque = 2000.0 + 300.0 * g.standard_normal(n)
+    x0 = np.array([260.0, 13.0]) * (1 + 0.01 * g.standard_normal(2))
+    cases = [(None, (), [], None)]
+    for c in candidates(scenario):
+        if isinstance(c, PlantCandidate):
+            cases.append((c.name, c.fit_params, [float(g.uniform(a, b)) for a, b in zip(c.lo, c.hi)], None))
+    cases.append(("adhesion_lag", ("tau_s",), [0.01], {"load_transfer": {"bogie_height_m": 1.2}}))
+    assert len(cases) >= 11
+    for effect, names, theta, base in cases:
+        base = fill_defaults(base, cfg) if base else None
+        fixed = fill_defaults({effect: dict(EFFECTS[effect].params)}, cfg)[effect] if effect else {}
+        sim = Simulator(cfg, effect, names, fixed, n, base)
+        assert sim._step is not sim.step_vm and sim._step.name() == "gap_step", effect
+        th = np.array(theta) if names else np.zeros(1)
+        xi = sim.initial(th, x0, float(torque[0]))
+        args = (xi, torque[None, :n - 1], np.arange(n - 1)[None, :] * 1e-3, th)
+        c_out = [np.asarray(o) for o in sim._step.mapaccum("c", n - 1)(*args)]
+        vm_out = [np.asarray(o) for o in sim.step_vm.mapaccum("vm", n - 1)(*args)]
+        assert len(c_out) == len(vm_out) >= 1, effect
+        for c, vm in zip(c_out, vm_out):
+            assert np.isfinite(vm).all() and np.array_equal(c, vm), (effect, theta, np.max(np.abs(c - vm)))
+
 def test_sparse_description_of_known_residuals():
     """hil/gap/sparse.py on residuals made here: a gain on the motor speed is described by the motor
     speed with its coefficient; a creep-proportional term by the creep; noise is not described; a sine

@@ -3,7 +3,8 @@
 * ``Simulator``: the CasADi period step of ``plant.reality.RealityModel`` rolled over the whole run
   with ``mapaccum`` (one call simulates every period, so a least-squares fit can afford hundreds of
   whole-run simulations), the fitted effect parameters as a vector input; a fit that reads only the
-  first periods (the training blocks of the analysis window) simulates only those.
+  first periods (the training blocks of the analysis window) simulates only those.  The step is
+  compiled to C where a compiler is (``hil.gap.compiled``: the same bits, faster).
 * ``observer_mu_hat``: the TCU's load-torque observer (identifier/observer.py, eq. 4-5) as a linear
   filter over whole arrays (scipy ``lfilter``), so the model's mu^ is computed exactly the way the
   TCU computes it, without a Python loop per sample.
@@ -18,6 +19,7 @@ import numpy as np
 from scipy import signal
 
 from plant.params import KMH_PER_MS
+from .compiled import compiled
 from identifier.observer import LoadTorqueObserver
 from plant.reality import RealityModel
 
@@ -60,7 +62,8 @@ class Simulator:
         # elimination merges nodes of one operation on the same operands: the same values, fewer
         # instructions for the SX virtual machine to run every period)
         xs = step.sx_in()
-        self._step = ca.Function("gap_step", xs, step.call(xs, True, False), {"cse": True})
+        self.step_vm = ca.Function("gap_step", xs, step.call(xs, True, False), {"cse": True})
+        self._step = compiled(self.step_vm)     # C where a compiler is: the same bits, faster
         self._sims = {n: self._step.mapaccum("gap_sim", n - 1)}     # periods simulated -> the rolled step
         self.fit_params = fit_params
         self.effect = effect
