@@ -94,13 +94,23 @@ def test_a_worker_sigkilled_mid_sweep_costs_only_a_rerun(tmp_path):
     killed = []
 
     def killer():
+        """SIGKILL a worker process of this test's cluster that has written a row (found by the port in its
+        address), once two rows are written: the rows then come from at least two addresses, whichever
+        worker started first."""
         deadline = time.monotonic() + 90
-        while time.monotonic() < deadline and len(list(table.glob("part-*.parquet"))) < 2:
+        while time.monotonic() < deadline:
             time.sleep(0.05)
-        workers = _worker_pids(psutil.Process())
-        if workers:
-            os.kill(workers[0].pid, signal.SIGKILL)      # a worker process this test's cluster started
-            killed.append(workers[0].pid)
+            if len(list(table.glob("part-*.parquet"))) < 2:
+                continue
+            try:
+                ports = {int(a.rsplit(":", 1)[1]) for a in pd.read_parquet(table)["worker"].dropna()}
+            except Exception:  # noqa: BLE001 - a part being written: read again
+                continue
+            for w in _worker_pids(psutil.Process()):
+                if ports & {c.laddr.port for c in w.net_connections("tcp") if c.status == "LISTEN"}:
+                    os.kill(w.pid, signal.SIGKILL)
+                    killed.append(w.pid)
+                    return
 
     t = threading.Thread(target=killer, daemon=True)
     t.start()
