@@ -138,6 +138,31 @@ def test_identified_jumps_to_a_confirmed_peak_creep_the_creep_passed_well_beyond
     assert law.v_hat == pytest.approx(0.98 * 0.90, abs=1e-3)
 
 
+def test_extremum_seekings_slope_estimate_restarts_at_a_change_of_rail():
+    """The law alone: mu^ falls from 0.30 to 0.06 over 15 ms (a wet patch seen through the observer) at four
+    phases of the 8 Hz dither, the creep held.  The demodulated step is a slope of the phase's sign: with
+    ``reset_mu = 0`` it moves the set-point by more than 0.5 km/h at some phase within 150 ms; with the
+    default (0.05) the estimate restarts and the set-point stays within 0.25 km/h of where it was."""
+    from identifier.control import make_controller
+    from identifier.control.base import ControlInput
+    from identifier.settings import VehicleModel
+
+    def excursion(options, k_step):
+        law = make_controller("extremum_seeking", VehicleModel(120.0, 9000.0, 4.0, 0.5), 1.2, options)
+        moved = 0.0
+        for k in range(k_step + 150):
+            mu = 0.30 if k < k_step else 0.30 - 0.24 * min(1.0, (k - k_step) / 15)
+            law.torque_nm(ControlInput(k, k * 1e-3, 1e-3, 20000.0, 1.2, mu * 10000, mu, True))
+            if k == k_step - 1:
+                before = law.v_hat
+            elif k >= k_step:
+                moved = max(moved, abs(law.v_hat - before))
+        return moved
+
+    steps = [200 + round(1000 * i / 32) for i in range(4)]        # quarter periods of the dither
+    assert max(excursion({"reset_mu": 0.0}, k) for k in steps) > 0.5
+    assert max(excursion(None, k) for k in steps) < 0.25
+
 def test_a_tcu_process_on_the_bus_gets_the_demand_frame_and_is_judged_the_same(runs, tmp_path_factory):
     """The TCU as its own process on the default bus: lockstep is deterministic, so the same figures."""
     scenario = load_scenario(WET, {"control.law": "constant_creep"})

@@ -11,7 +11,8 @@
                       Krstic's scheme; J. Adv. Transp. 2019, 6270515 for its use on a locomotive).
 ``identified``        extremum seeking placed by the identifier: a confirmed curve whose peak creep the creep
                       has passed well beyond moves the set-point to it at once (kept inside the 90 %
-                      peak-creep interval); the dither corrects it and carries on alone otherwise.
+                      peak-creep interval); each drop the slip detector flags starts it from at most the
+                      nominal peak creep; the dither corrects it and carries on alone otherwise.
 """
 from __future__ import annotations
 
@@ -90,12 +91,18 @@ class ConstantCreep(Controller):
 class ExtremumSeeking(Controller):
     """Set-point v^ + a sin(2 pi f t); slope g = LPF(HPF(mu^) sin(2 pi f t)); dv^/dt = k g (while the creep loop,
     not the demand, limits the torque; v^ then follows the measured creep from above).  The dither's phase is
-    shifted by ``lag_s``, the observer's lag behind the true mu (2 / its pole)."""
+    shifted by ``lag_s``, the observer's lag behind the true mu (2 / its pole).
+
+    A change of rail moves mu^ by far more than the dither can (docs/design/control.md measures both):
+    demodulated, that step is a slope of whatever sign the dither's phase gives, and it can throw v^ far
+    past the new rail's peak within a tenth of a second.  So when |mu^ - mean| exceeds ``reset_mu`` the
+    estimate starts again (mean = mu^, slope = 0) and v^ stays where it is (0: never)."""
     name = "extremum_seeking"
     defaults = {"dither_kmh": 0.08, "dither_hz": 8.0, "gain": 300.0, "filter_s": 0.1, "lag_s": 0.004,
-                "min_kmh": 0.2, "max_kmh": 12.0, **_LOOP_DEFAULTS}
+                "min_kmh": 0.2, "max_kmh": 12.0, "reset_mu": 0.05, **_LOOP_DEFAULTS}
     ranges = {"dither_kmh": (0.0, 2.0), "dither_hz": (0.1, 200.0), "gain": (0.0, 1e5), "filter_s": (0.001, 10.0),
-              "lag_s": (0.0, 1.0), "min_kmh": (0.0, 30.0), "max_kmh": (0.1, 30.0), **_LOOP_RANGES}
+              "lag_s": (0.0, 1.0), "min_kmh": (0.0, 30.0), "max_kmh": (0.1, 30.0), "reset_mu": (0.0, 1.0),
+              **_LOOP_RANGES}
 
     def __init__(self, vehicle, nominal_peak_creep_kmh, options=None):
         super().__init__(vehicle, nominal_peak_creep_kmh, options)
@@ -110,6 +117,8 @@ class ExtremumSeeking(Controller):
         a = x.period_s / (o["filter_s"] + x.period_s)
         if self._mu_mean is None:
             self._mu_mean = x.mu_hat
+        if o["reset_mu"] and abs(x.mu_hat - self._mu_mean) > o["reset_mu"]:   # a change of rail: start again
+            self._mu_mean, self._slope = x.mu_hat, 0.0
         self._mu_mean += a * (x.mu_hat - self._mu_mean)                 # high pass: mu^ minus its mean
         demod = (x.mu_hat - self._mu_mean) * math.sin(phase - 2 * math.pi * o["dither_hz"] * o["lag_s"])
         self._slope += a * (demod - self._slope)                          # low pass of the demodulated slope
@@ -141,15 +150,22 @@ class Identified(ExtremumSeeking):
     data themselves swept past.  Only the peak *creep* is used: the peak mu of a curve fitted across two
     rails is the least reliable part of it.  Once the demand has passed through for
     ``rearm_s`` after a slip (the rail carries it again), the identifier is re-armed, so the next drop is
-    identified afresh and no curve outlives its rail."""
+    identified afresh and no curve outlives its rail.
+
+    At each drop the identifier's slip detector flags (``slipping`` rising: the first after a re-arm),
+    nothing about the new rail is known yet, so v^ starts from no higher than ``drop_fraction`` x the
+    nominal curve's peak creep v_N, the creep the TCU's own prior curve peaks at, instead of the creep
+    the rail before carried (0: off)."""
     name = "identified"
-    defaults = {"hold_fraction": 0.98, "jump_ratio": 1.5, "rearm_s": 0.3, **ExtremumSeeking.defaults}
+    defaults = {"hold_fraction": 0.98, "jump_ratio": 1.5, "rearm_s": 0.3, "drop_fraction": 1.0,
+                **ExtremumSeeking.defaults}
     ranges = {"hold_fraction": (0.1, 2.0), "jump_ratio": (0.0, 100.0), "rearm_s": (0.001, 60.0),
-              **ExtremumSeeking.ranges}
+              "drop_fraction": (0.0, 20.0), **ExtremumSeeking.ranges}
 
     def __init__(self, vehicle, nominal_peak_creep_kmh, options=None):
         super().__init__(vehicle, nominal_peak_creep_kmh, options)
         self._was_confirmed = False
+        self._was_slipping = False
         self._passing_s = 0.0
         self._rearm = False
 
@@ -163,6 +179,9 @@ class Identified(ExtremumSeeking):
 
     def torque_nm(self, x: ControlInput) -> float:
         o = self.options
+        if x.slipping and not self._was_slipping and o["drop_fraction"] > 0.0:
+            self.v_hat = min(self.v_hat, max(o["drop_fraction"] * self.nominal_peak_creep_kmh, o["min_kmh"]))
+        self._was_slipping = x.slipping
         if x.confirmed and not self._was_confirmed:
             target = self._target_kmh(x)
             if target is not None and x.creep_speed_kmh >= o["jump_ratio"] * target:
