@@ -69,13 +69,13 @@ if [ -f "$STAMP" ] && [ "$(cat "$STAMP")" = "$WANT" ] \
 else
   say "installing the package and test dependencies"
   rm -f "$STAMP"
-  # uv when PyPI gives it (the same packages as pip; with the bytecode compiled, as pip does, since
-  # CI sets PYTHONDONTWRITEBYTECODE and every process would compile its imports again: 35 s instead of
-  # pip's 50 s on an empty cache, measured here); pip otherwise.  Third-party FMUs for tests/test_fmu.py: gemseo-fmu with --no-deps (it pins
+  # uv when PyPI gives it (faster than pip, the same packages: docs/design/ci.md), compiling the bytecode
+  # as pip does (CI sets PYTHONDONTWRITEBYTECODE: without it every process compiles its imports again);
+  # pip otherwise.  Third-party FMUs for tests/test_fmu.py: gemseo-fmu with --no-deps (it pins
   # fmpy<=0.3.19 and pulls gemseo[all]).
   if .venv/bin/python -m pip install -q --disable-pip-version-check uv >/dev/null 2>&1 && [ -x .venv/bin/uv ]; then
     .venv/bin/uv pip install -q --compile-bytecode --python .venv/bin/python -e ".[test,docs]"
-    .venv/bin/uv pip install -q --python .venv/bin/python --no-deps "$GEMSEO_FMU"
+    .venv/bin/uv pip install -q --compile-bytecode --python .venv/bin/python --no-deps "$GEMSEO_FMU"
   else
     say "uv not installed from the registry: pip"
     .venv/bin/python -m pip install -q --disable-pip-version-check --upgrade pip >/dev/null

@@ -530,6 +530,20 @@ def test_each_candidates_compiled_step_computes_the_virtual_machines_bits(scenar
         for c, vm in zip(c_out, vm_out):
             assert np.isfinite(vm).all() and np.array_equal(c, vm), (effect, theta, np.max(np.abs(c - vm)))
 
+def test_without_a_c_compiler_the_step_runs_on_the_virtual_machine(tmp_path):
+    """A process whose PATH holds no C compiler (and no ``$CC``) builds its simulators on CasADi's virtual
+    machine, with no error and nothing written to the cache: the slower path, the same numbers."""
+    import subprocess
+    import sys
+    from hil.testing import subprocess_env
+    code = ("from hil.config import load_scenario; from hil.gap.model import Simulator; "
+            f"cfg = load_scenario({str(FFCC_A)!r}).plant_config(); s = Simulator(cfg, None, (), {{}}, 50); "
+            "print(s._step is s.step_vm)")
+    env = {**subprocess_env(), "PATH": str(tmp_path)}
+    env.pop("CC", None)
+    r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and r.stdout.strip() == "True", r.stderr[-2000:]
+
 def test_sparse_description_of_known_residuals():
     """hil/gap/sparse.py on residuals made here: a gain on the motor speed is described by the motor
     speed with its coefficient; a creep-proportional term by the creep; noise is not described; a sine

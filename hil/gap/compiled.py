@@ -4,21 +4,20 @@ The gap diagnosis spends nearly all its time simulating whole runs: the period s
 ``hil.gap.model.Simulator`` (about 2000 SX instructions: ten RK4 sub-steps) rolled over every period,
 hundreds of times per least-squares fit.  CasADi's virtual machine interprets each instruction; the
 same instructions as C, compiled without fast-math and without FMA contraction, give the same IEEE
-operations in the same order, so the same bits, about 2.4 times faster (the design note's
-measurement).
+operations in the same order, so the same bits, faster (docs/design/gap-diagnosis.md measures it).
 
 ``compiled(fn)`` generates ``fn``'s C (``casadi.CodeGenerator``), and compiles it into a shared library
-named by the SHA-256 of that source, the compiler and its flags, kept in ``__pycache__/casadi-c`` beside
+named by the SHA-256 of that source, the compiler's version and its flags, kept in ``__pycache__/casadi-c`` beside
 this file (as numba keeps the identifier's kernels), or in a directory of this process's own when that
 one cannot be written.  A later call with the same function (the same source) loads the library
 without compiling.  Two processes compiling the same source each write a file of their own and rename
 it into place, so neither reads a half-written library.  The cache keeps the ``KEEP`` libraries used last
-(a forward selection's steps carry the first effect's fitted values: new sources each time, about
-40 kB each); older ones are removed when a new one is written.  With no C compiler (``$CC``, else ``cc``,
+(a forward selection's steps carry the first effect's fitted values: a new source each time); older ones are removed when a new one is written.  With no C compiler (``$CC``, else ``cc``,
 ``gcc``), or when compiling fails, ``fn`` itself is returned: slower, the same numbers.
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 import shutil
@@ -36,10 +35,17 @@ KEEP = 300
 _own_cache: list[Path] = []
 
 
-def _compiler() -> str | None:
+@functools.lru_cache(maxsize=None)
+def _compiler() -> tuple[str, str] | None:
+    """(the C compiler's path, the first line of its ``--version``), or None."""
     for name in (os.environ.get("CC", ""), "cc", "gcc"):
-        if name and shutil.which(name):
-            return shutil.which(name)
+        path = shutil.which(name) if name else None
+        if path:
+            try:
+                out = subprocess.run([path, "--version"], capture_output=True, text=True, timeout=30).stdout
+            except (OSError, subprocess.SubprocessError):
+                continue
+            return path, (out.splitlines() or [""])[0]
     return None
 
 
@@ -74,15 +80,16 @@ def _prune(cache: Path) -> None:
 
 def compiled(fn: ca.Function) -> ca.Function:
     """``fn`` as a compiled library (loaded from the cache, or compiled into it), else ``fn`` itself."""
-    cc = _compiler()
-    if cc is None:
+    found = _compiler()
+    if found is None:
         return fn
+    cc, version = found
     with tempfile.TemporaryDirectory(prefix="hil-casadi-src-") as tmp:
         gen = ca.CodeGenerator("step.c", {"with_header": False})
         gen.add(fn)
         gen.generate(tmp + os.sep)
         source = (Path(tmp) / "step.c").read_bytes()
-        key = hashlib.sha256(source + "\0".join((os.path.basename(cc), *FLAGS, ca.__version__)).encode())
+        key = hashlib.sha256(source + "\0".join((version, *FLAGS, ca.__version__)).encode())
         cache = _cache_dir()
         lib = cache / f"{fn.name()}-{key.hexdigest()[:24]}.so"
         if not lib.exists():
