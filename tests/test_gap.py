@@ -130,6 +130,7 @@ def bench_json_keys(out: dict, stderr: str, seed: int, doc) -> None:
     for k in ("top1_accuracy", "none_accuracy", "false_confident_rate"):
         assert out[k] is None or 0 <= out[k] <= 1
     assert "false-confident" in (doc / "gap.md").read_text()
+    assert f"--seed {seed} --mix {BENCH_MIX} --doc {doc}`" in (doc / "gap.md").read_text()   # the command as run
     assert json.loads((doc / "gap.json").read_text())["cases"] == BENCH_CASES
     assert sum(sum(row.values()) for row in out["confusion"].values()) == BENCH_CASES
     assert f"case {BENCH_CASES}/{BENCH_CASES}" in stderr

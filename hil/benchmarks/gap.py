@@ -459,7 +459,8 @@ def markdown(result: dict) -> str:
     pct = lambda v: "-" if v is None else f"{v * 100:.0f} %"  # noqa: E731
     lines = ["# `hil bench gap`: the blind check of `hil gap`", "",
              f"Written by `hil bench gap {result['scenario']} --cases {result['cases']} --seed {result['seed']}"
-             f"{' --mix ' + result['mix_arg'] if result.get('mix_arg') else ''} --doc docs/benchmarks` "
+             f"{' --mix ' + result['mix_arg'] if result.get('mix_arg') else ''}"
+             f"{' --doc ' + str(result['doc_arg']) if result.get('doc_arg') else ''}` "
              f"(seed drawn at run time: {result['seed_drawn']}); wall {result['wall_s']:.0f} s, "
              f"median diagnosis {f(result['median_diagnosis_s'], '.1f')} s.", "",
              "Cases by kind: " + ", ".join(f"{k} {v}" for k, v in result["by_kind"].items()), "",
@@ -563,7 +564,7 @@ def cmd_gap_bench(args) -> int:
                       if rec["failed_candidates"] else ""), indent="    "),
               file=sys.stderr, flush=True)
     result = summarise(records)
-    result.update({"seed": seed, "seed_drawn": seed_drawn, "mix": mix, "mix_arg": args.mix,
+    result.update({"seed": seed, "seed_drawn": seed_drawn, "mix": mix, "mix_arg": args.mix, "doc_arg": args.doc,
                    "scenario": scenario.path, "wall_s": time.perf_counter() - wall0,
                    "records": [{k: v for k, v in r.items() if k != "log" or args.out} for r in records]})
     result = clean(result)
