@@ -498,7 +498,7 @@ def test_each_candidates_compiled_step_computes_the_virtual_machines_bits(scenar
     """``hil.gap.compiled``: every plant candidate's period step (its parameters drawn inside their
     bounds), the nominal one, and one on top of another effect, rolled over a run with a varying torque,
     gives exactly (bit for bit) what CasADi's virtual machine gives; and each was compiled (a C compiler
-    is on every machine the tests run on), from the cache when the same step comes again."""
+    is on every machine the tests run on)."""
     import shutil
     from hil.gap.candidates import PlantCandidate, candidates
     from hil.gap.model import Simulator
@@ -533,7 +533,7 @@ def test_each_candidates_compiled_step_computes_the_virtual_machines_bits(scenar
 
 def test_without_a_c_compiler_the_step_runs_on_the_virtual_machine(tmp_path):
     """A process whose PATH holds no C compiler (and no ``$CC``) builds its simulators on CasADi's virtual
-    machine, with no error and nothing written to the cache: the slower path, the same numbers."""
+    machine, with no error: the slower path, the same numbers."""
     import subprocess
     import sys
     from hil.testing import subprocess_env

@@ -241,8 +241,9 @@ def _sched_fifo_or_skip():
 
 def _suite_in_real_time(tmp_path, tcu):
     """The example suite in real time on a fresh local bus, ``tcu`` (None: the built-in one) under
-    SCHED_FIFO: (the pytest process, the JUnit root), the JUnit checked against its schema, one case per
-    check, none errored or skipped, and the bus and DBC in its properties."""
+    SCHED_FIFO: (the pytest process, {check name: its JUnit failure message} of the checks that failed),
+    the JUnit checked against its schema, one case per check, none errored or skipped, and the bus and DBC
+    in its properties."""
     import subprocess
 
     from lxml import etree
@@ -267,13 +268,7 @@ def _suite_in_real_time(tmp_path, tcu):
     assert not [n for n, c in cases.items() if c.find("error") is not None or c.find("skipped") is not None], out
     props = [(p.get("name"), p.get("value")) for p in root.iter("property")]
     assert ("bus", f"localbus:{bus} realtime") in props and ("dbc", "their.dbc") in props, props
-    return r, root
-
-
-def _failed(root) -> dict:
-    """{check name: its JUnit failure message} of the checks that failed."""
-    return {c.get("name").split("-", 1)[1]: c.find("failure").get("message")
-            for c in root.iter("testcase") if c.find("failure") is not None}
+    return r, {n: c.find("failure").get("message") for n, c in cases.items() if c.find("failure") is not None}
 
 
 @pytest.mark.realtime
@@ -291,17 +286,15 @@ def test_the_example_suite_in_real_time_on_a_local_bus(tmp_path, tcu, fails, say
     the commands came late (without step counters a late answer is a missed deadline: docs/guide/verdicts.md).
     No case errors.
 
-    The built-in TCU's run is made once more when every check failed on lateness alone: on this shared
-    2-core machine a CPU taken from the TCU for a tenth of a second (once in a CI run here: 120 of 3000
-    deadlines missed, against 4-14 in six runs alone) is the machine's, not the suite's; two such runs in
-    a row fail the test."""
+    The built-in TCU's run is made once more when every check failed on lateness alone: on a shared
+    2-core machine a CPU taken from the TCU for a tenth of a second is the machine's, not the suite's
+    (docs/design/ci.md has the CI run that showed it); two such runs in a row fail the test."""
     _sched_fifo_or_skip()
-    r, root = _suite_in_real_time(tmp_path / "run1", tcu)
-    failed = _failed(root)
-    if tcu is None and set(failed) == CHECKS and all(m.startswith("the TCU's commands came late") for m in failed.values()):
+    r, failed = _suite_in_real_time(tmp_path / "run1", tcu)
+    late = set(failed) == CHECKS and all(m.startswith("the TCU's commands came late") for m in failed.values())
+    if tcu is None and late:
         print(f"real time, built-in TCU: every check failed on lateness ({next(iter(failed.values()))}); once more")
-        r, root = _suite_in_real_time(tmp_path / "run2", tcu)
-        failed = _failed(root)
+        r, failed = _suite_in_real_time(tmp_path / "run2", tcu)
     out = r.stdout[-3000:] + r.stderr[-2000:]
     assert set(failed) == fails, out
     for name, message in failed.items():

@@ -1,19 +1,20 @@
 """A CasADi function compiled to C once per machine, with CasADi's virtual machine as the fallback.
 
 The gap diagnosis spends nearly all its time simulating whole runs: the period step of
-``hil.gap.model.Simulator`` (about 2000 SX instructions: ten RK4 sub-steps) rolled over every period,
-hundreds of times per least-squares fit.  CasADi's virtual machine interprets each instruction; the
-same instructions as C, compiled without fast-math and without FMA contraction, give the same IEEE
-operations in the same order, so the same bits, faster (docs/design/gap-diagnosis.md measures it).
+``hil.gap.model.Simulator`` (ten RK4 sub-steps) rolled over every period, hundreds of times per
+least-squares fit.  CasADi's virtual machine interprets each instruction; the same instructions as C,
+compiled without fast-math and without FMA contraction, give the same IEEE operations in the same
+order, so the same bits, faster (docs/design/gap-diagnosis.md measures it).
 
-``compiled(fn)`` generates ``fn``'s C (``casadi.CodeGenerator``), and compiles it into a shared library
-named by the SHA-256 of that source, the compiler's version and its flags, kept in ``__pycache__/casadi-c`` beside
-this file (as numba keeps the identifier's kernels), or in a directory of this process's own when that
-one cannot be written.  A later call with the same function (the same source) loads the library
+``compiled(fn)`` generates ``fn``'s C (``casadi.CodeGenerator``) and compiles it into a shared library
+named by the SHA-256 of that source, the compiler's version and its flags.  The library is kept in
+``__pycache__/casadi-c`` beside this file (as numba keeps the identifier's kernels), or in a directory
+of this process's own when that one cannot be written; a later call with the same function loads it
 without compiling.  Two processes compiling the same source each write a file of their own and rename
-it into place, so neither reads a half-written library.  The cache keeps the ``KEEP`` libraries used last
-(a forward selection's steps carry the first effect's fitted values: a new source each time); older ones are removed when a new one is written.  With no C compiler (``$CC``, else ``cc``,
-``gcc``), or when compiling fails, ``fn`` itself is returned: slower, the same numbers.
+it into place, so neither reads a half-written library.  The cache keeps the ``KEEP`` libraries used
+last (a forward selection's steps carry the first effect's fitted values: a new source each time);
+older ones are removed when a new one is written.  With no C compiler (``$CC``, else ``cc``, ``gcc``),
+or when compiling fails, ``fn`` itself is returned: slower, the same numbers.
 """
 from __future__ import annotations
 
