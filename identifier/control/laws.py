@@ -9,10 +9,11 @@
 ``extremum_seeking``  perturbation-based peak tracking: a sine dither on the creep set-point, the observer's
                       mu^ demodulated by it gives the slope d mu / d v_s, the set-point climbs it (Ariyur and
                       Krstic's scheme; J. Adv. Transp. 2019, 6270515 for its use on a locomotive).
-``identified``        extremum seeking placed by the identifier: a confirmed curve whose peak creep the creep
-                      has passed well beyond moves the set-point to it at once (kept inside the 90 %
-                      peak-creep interval); each drop the slip detector flags starts it from at most the
-                      nominal peak creep; the dither corrects it and carries on alone otherwise.
+``identified``        extremum seeking placed by what the TCU learns of the rail: at each change of rail mu^
+                      shows (a drop or a recovery) the creep falls to a bound safe on every rail of the
+                      prior family and climbs from there until mu^ stops rising; a confirmed curve whose
+                      peak creep the creep has passed well beyond moves the set-point to it (kept inside the
+                      90 % peak-creep interval); the dither corrects both and carries on alone otherwise.
 """
 from __future__ import annotations
 
@@ -131,36 +132,42 @@ class ExtremumSeeking(Controller):
 
 
 class Identified(ExtremumSeeking):
-    """Extremum seeking placed by the identifier (module docstring).  The set-point v^ is extremum seeking's
-    (the fallback while nothing is confirmed, and the correction of a confirmed curve that is off), except
-    that at each confirmation it jumps to
+    """Extremum seeking placed by what the TCU learns of the rail (module docstring).
 
-        v^ = hold_fraction x clip(v_p, lower, upper)        v_p the confirmed curve's peak creep,
-                                                            [lower, upper] its 90 % peak-creep interval
+    **A change of rail** (mu^ leaves its mean, a first-order filter of ``filter_s``, by more than
+    ``change_mu``, up or down, while the creep is held): the set-point drops to at most ``cap_kmh`` and,
+    ``scan_settle_s`` later, climbs at ``scan_kmh_per_s`` while mu^ (filtered over ``scan_filter_s``) keeps
+    rising; once it has fallen ``scan_drop_mu`` below the best seen, the set-point returns to the creep
+    where the best was seen and extremum seeking takes over from there (its estimate restarted).  The
+    scan also ends when the demand, not the creep loop, limits the torque (the rail carries the demand).
+    Why: with the peak creep of the new rail unknown, the creep the old rail carried may be past twice
+    it (macro-slip) on a wet patch after a dry rail, and on a dry rail after a patch whose peak lay far
+    out; ``cap_kmh`` = 0.75 km/h is below twice the lowest peak creep of the TCU's prior family
+    (``default``: 0.4 km/h), and a climb at 4 km/h/s finds a peak the dither would take seconds to
+    reach.  During a scan the change test is off: the scan itself moves mu^.
 
-    when the creep then is at least ``jump_ratio`` x v^ (the data have passed the claimed peak well beyond
-    it), so the creep comes back from the new rail's macro-slip within the identification time instead of
-    the hundreds of milliseconds a dither-driven descent takes.  Why the condition: in closed loop a drop's
-    samples straddle the change of rail while the loop holds the creep, and a fall of mu that the rail
-    made looks, to an identifier of one static curve, like the fall past a peak at the newest creeps.
-    ``gp`` now dates the change and drops the samples before it (identifier/strategies/gp.py), but a
-    strategy that does not would claim a peak just below the creep reached, and an ``unconfirmed`` best
-    estimate may be the working range's bound; acting on either would pull the creep off the new rail's
-    peak (docs/design/control.md measures both).  A claimed peak far below the creep reached is one the
-    data themselves swept past.  Only the peak *creep* is used: the peak mu of a curve fitted across two
-    rails is the least reliable part of it.  Once the demand has passed through for
-    ``rearm_s`` after a slip (the rail carries it again), the identifier is re-armed, so the next drop is
-    identified afresh and no curve outlives its rail.
+    **A confirmed curve** whose peak creep the creep has passed ``jump_ratio``-fold moves the set-point
+    to ``hold_fraction`` x that peak creep (clipped to its 90 % interval); the dither corrects it.  Why
+    the condition: in closed loop a drop's samples straddle the change of rail while the loop holds the
+    creep, and a fall of mu that the rail made looks, to an identifier of one static curve, like the fall
+    past a peak at the newest creeps; ``gp`` dates the change and drops the samples before it
+    (identifier/strategies/gp.py), but a strategy that does not would claim a peak just below the creep
+    reached, and an ``unconfirmed`` best estimate may be the working range's bound (docs/design/control.md
+    measures both).  Only the peak *creep* is used: the peak mu of a curve fitted across two rails is
+    the least reliable part of it.  Once the demand has passed through for ``rearm_s`` after a slip (the
+    rail carries it again), the identifier is re-armed, so the next drop is identified afresh.
 
-    At each drop the identifier's slip detector flags (``slipping`` rising: the first after a re-arm),
-    nothing about the new rail is known yet, so v^ starts from no higher than ``drop_fraction`` x the
-    nominal curve's peak creep v_N, the creep the TCU's own prior curve peaks at, instead of the creep
-    the rail before carried (0: off)."""
+    At each drop the identifier's slip detector flags (``slipping`` rising, the first after a re-arm)
+    outside a scan, v^ starts from no higher than ``drop_fraction`` x the nominal curve's peak creep v_N
+    (0: off)."""
     name = "identified"
     defaults = {"hold_fraction": 0.98, "jump_ratio": 1.5, "rearm_s": 0.3, "drop_fraction": 1.0,
-                **ExtremumSeeking.defaults}
+                "change_mu": 0.02, "cap_kmh": 0.75, "scan_kmh_per_s": 4.0, "scan_settle_s": 0.03,
+                "scan_filter_s": 0.01, "scan_drop_mu": 0.004, "scan_flat_kmh": 0.25, **ExtremumSeeking.defaults}
     ranges = {"hold_fraction": (0.1, 2.0), "jump_ratio": (0.0, 100.0), "rearm_s": (0.001, 60.0),
-              "drop_fraction": (0.0, 20.0), **ExtremumSeeking.ranges}
+              "drop_fraction": (0.0, 20.0), "change_mu": (0.0, 1.0), "cap_kmh": (0.0, 30.0),
+              "scan_kmh_per_s": (0.0, 1000.0), "scan_settle_s": (0.0, 10.0), "scan_filter_s": (0.0, 10.0),
+              "scan_drop_mu": (0.0, 1.0), "scan_flat_kmh": (0.0, 30.0), **ExtremumSeeking.ranges}
 
     def __init__(self, vehicle, nominal_peak_creep_kmh, options=None):
         super().__init__(vehicle, nominal_peak_creep_kmh, options)
@@ -168,6 +175,8 @@ class Identified(ExtremumSeeking):
         self._was_slipping = False
         self._passing_s = 0.0
         self._rearm = False
+        self._change_mean = None       # mu^'s mean for the change test
+        self._scan = None              # while scanning: [time in it, best mu, the creep there, mu^ filtered]
 
     def _target_kmh(self, x: ControlInput) -> float | None:
         """hold_fraction x the confirmed peak creep, clipped to its interval (class docstring), or None."""
@@ -177,17 +186,55 @@ class Identified(ExtremumSeeking):
             peak = min(max(peak, lo), hi) if math.isfinite(peak) else lo
         return self.options["hold_fraction"] * peak if math.isfinite(peak) else None
 
+    def _rail_changed(self, x: ControlInput) -> bool:
+        """The change test (class docstring), its mean updated."""
+        o = self.options
+        if self._change_mean is None:
+            self._change_mean = x.mu_hat
+        changed = bool(o["change_mu"]) and abs(x.mu_hat - self._change_mean) > o["change_mu"]
+        self._change_mean += x.period_s / (o["filter_s"] + x.period_s) * (x.mu_hat - self._change_mean)
+        return changed
+
+    def _scan_step(self, x: ControlInput) -> float:
+        """One period of the scan (class docstring); ends it when mu^ has passed its best."""
+        o, scan = self.options, self._scan
+        scan[0] += x.period_s
+        if scan[0] >= o["scan_settle_s"]:
+            a = x.period_s / (o["scan_filter_s"] + x.period_s)
+            scan[3] = x.mu_hat if scan[3] is None else scan[3] + a * (x.mu_hat - scan[3])
+            if scan[3] > scan[1]:
+                scan[1], scan[2] = scan[3], x.creep_speed_kmh
+            if scan[4] is None or scan[3] > scan[4][0] + o["scan_drop_mu"]:
+                scan[4] = (scan[3], x.creep_speed_kmh)          # the last rise of scan_drop_mu
+            passed = scan[3] < scan[1] - o["scan_drop_mu"] or \
+                x.creep_speed_kmh > scan[4][1] + o["scan_flat_kmh"]
+            if passed or not self.loop.limited or self.v_hat >= o["max_kmh"]:
+                if passed:
+                    self.v_hat = min(max(scan[2], o["min_kmh"]), o["max_kmh"])
+                self._scan = None
+                self._change_mean = self._mu_mean = x.mu_hat
+                self._slope = 0.0
+                return self.loop.torque_nm(x, self.v_hat)
+            self.v_hat = min(self.v_hat + o["scan_kmh_per_s"] * x.period_s, o["max_kmh"])
+        return self.loop.torque_nm(x, self.v_hat)
+
     def torque_nm(self, x: ControlInput) -> float:
         o = self.options
-        if x.slipping and not self._was_slipping and o["drop_fraction"] > 0.0:
+        changed = self._rail_changed(x) if self._scan is None else False
+        if changed and o["cap_kmh"] > 0.0:
+            self.v_hat = min(self.v_hat, max(o["cap_kmh"], o["min_kmh"]))
+            if o["scan_kmh_per_s"] > 0.0:
+                self._scan = [0.0, -math.inf, self.v_hat, None, None]
+        if x.slipping and not self._was_slipping and o["drop_fraction"] > 0.0 and self._scan is None:
             self.v_hat = min(self.v_hat, max(o["drop_fraction"] * self.nominal_peak_creep_kmh, o["min_kmh"]))
         self._was_slipping = x.slipping
         if x.confirmed and not self._was_confirmed:
             target = self._target_kmh(x)
             if target is not None and x.creep_speed_kmh >= o["jump_ratio"] * target:
                 self.v_hat = min(max(target, o["min_kmh"]), o["max_kmh"])
+                self._scan = None
         self._was_confirmed = x.confirmed
-        torque = super().torque_nm(x)
+        torque = self._scan_step(x) if self._scan is not None else super().torque_nm(x)
         self._passing_s = self._passing_s + x.period_s if x.slipping and not self.loop.limited else 0.0
         if self._passing_s >= o["rearm_s"]:
             self._rearm, self._passing_s, self._was_confirmed = True, 0.0, False
