@@ -348,9 +348,9 @@ def test_an_external_tcu_gets_the_demand_frame_and_is_judged_the_same(runs, tmp_
     assert json.loads(out)["rejected_frames"] == {}
 
 
-def test_the_control_bench_reports_every_law_with_the_oracle_on_top_and_says_whether_identified_acted(tmp_path):
+def test_the_control_bench_reports_every_law_with_the_oracle_on_top_and_the_identification_per_drop(tmp_path):
     """`hil bench control` as a user runs it, on one short draw (seed drawn now, printed): the keys scripts read,
-    the report written, the oracle's ceiling, and whether `identified` differed from its fallback."""
+    the report written, the oracle's ceiling, and the identifier's confirmations per drop."""
     import json
 
     from .conftest import case_seed
@@ -369,11 +369,7 @@ def test_the_control_bench_reports_every_law_with_the_oracle_on_top_and_says_whe
         assert len(res["runs"]) == 1
     oracle = out["results"]["oracle"]
     assert oracle["macro_slip_fraction"] == 0.0 and oracle["eta_low_median"] > 0.9, oracle
-    # acted or not, computed here from the two laws' runs
-    a, b = out["results"]["identified"]["runs"][0], out["results"]["extremum_seeking"]["runs"][0]
-    differs = any(a[k] != b[k] for k in ("adhesion_utilisation", "adhesion_utilisation_low", "macro_slip_s",
-                                         "torque_ripple_percent"))
-    assert out["identified_acted_draws"] == int(differs)
+    a = out["results"]["identified"]["runs"][0]
     # the identification per drop, counted here from the run's rows
     rows = a["drop_identification"]
     confirmed = [d for d in rows if d["t_identified_s"] is not None]
@@ -382,6 +378,6 @@ def test_the_control_bench_reports_every_law_with_the_oracle_on_top_and_says_whe
         "holding_truth": sum(1 for d in confirmed if d["interval_holds_truth"] is True),
         "peak_creep_within_10_percent": sum(1 for d in confirmed if d["peak_creep_err_percent"] <= 10.0)}
     report = (tmp_path / "control.md").read_text()
-    assert f"seed {seed}" in report and "acted on the identifier in" in report
+    assert f"seed {seed}" in report
     assert f"the identifier confirmed {len(confirmed)} of {len(rows)} drops" in report
     assert (tmp_path / "control-eta-low.png").stat().st_size > 1000

@@ -212,23 +212,6 @@ def identification_counts(runs: list[dict]) -> dict:
                                                 and d["peak_creep_err_percent"] <= 10.0)}
 
 
-def acted_draws(results: dict) -> int | None:
-    """In how many draws ``identified`` acted on the identifier: it is extremum seeking until it does
-    (identifier/control/laws.py), so a draw whose figures equal ``extremum_seeking``'s is one it did not
-    act in.  None unless both laws ran."""
-    if "identified" not in results or "extremum_seeking" not in results:
-        return None
-    keys = ("adhesion_utilisation", "adhesion_utilisation_low", "macro_slip_s", "torque_ripple_percent")
-    es = {r["index"]: r for r in results["extremum_seeking"]["runs"]}
-    return sum(any(r[k] != es[r["index"]][k] for k in keys) for r in results["identified"]["runs"])
-
-
-def _acted_line(out: dict) -> str | None:
-    n = out.get("identified_acted_draws")
-    return None if n is None else (f"`identified` acted on the identifier in {n} of {out['draws']} draws; in the "
-                                   f"others its figures are extremum seeking's (its fallback) to the last digit.")
-
-
 def _identification_line(out: dict) -> str | None:
     r = out["results"].get("identified")
     if r is None:
@@ -317,7 +300,7 @@ def cmd_control_bench(args) -> int:
         bar.close()
     results = summarise(runs, laws)
     out = {"seed": seed, "draws": args.draws, "family": FAMILY, "wall_s": time.perf_counter() - t0,
-           "prior_set_point_kmh": prior_kmh, "identified_acted_draws": acted_draws(results),
+           "prior_set_point_kmh": prior_kmh,
            "drawn": [d for _, d in draws], "results": results, "speed": speed_pair(base_text, seed, args.speed_s)}
     out["written"] = provenance(args, seed, load_before)
     if args.doc:
@@ -339,7 +322,7 @@ def cmd_control_bench(args) -> int:
                    f"{' (ended as a fault: the wheel ran away)' if sp['demand_fault'] else ''}, identified "
                    f"{_fmt(sp['identified_x_realtime'], '.1f')} x ({_fmt(sp['identified_over_demand'], '.2f')} of "
                    f"demand's)", "  "))
-    for line in (_acted_line(out), _identification_line(out)):
+    for line in (_identification_line(out),):
         if line:
             print(wrap(line.replace("`", ""), "  "))
     print(wrap("Columns: medians over the draws (p5: eta_low's 5th percentile; slip: runs with macro-slip; "
@@ -504,7 +487,7 @@ def write_report(out: dict, doc: Path, draws=None) -> None:
                   f"{_fmt(sp['demand_x_realtime'], '.1f')} x real time"
                   f"{' (ended as a fault: the wheel ran away)' if sp['demand_fault'] else ''}, `identified` "
                   f"{_fmt(sp['identified_x_realtime'], '.1f')} x ({_fmt(sp['identified_over_demand'], '.2f')} of demand's)."]
-    for line in (_acted_line(out), _identification_line(out)):
+    for line in (_identification_line(out),):
         if line:
             lines += ["", line]
     if out.get("prior_set_point_kmh") is not None:
