@@ -91,7 +91,8 @@ class ConstantCreep(Controller):
 
 class ExtremumSeeking(Controller):
     """Set-point v^ + a sin(2 pi f t); slope g = LPF(HPF(mu^) sin(2 pi f t)); dv^/dt = k g (while the creep loop,
-    not the demand, limits the torque; v^ then follows the measured creep from above).  The dither's phase is
+    not the demand, limits the torque; v^ then stays no more than ``carry_kmh`` above the measured creep, twice
+    the dither, so the dither's trough stays clear of the creep the demand carries).  The dither's phase is
     shifted by ``lag_s``, the observer's lag behind the true mu (2 / its pole).
 
     A change of rail moves mu^ by far more than the dither can (docs/design/control.md measures both):
@@ -100,10 +101,10 @@ class ExtremumSeeking(Controller):
     estimate starts again (mean = mu^, slope = 0) and v^ stays where it is (0: never)."""
     name = "extremum_seeking"
     defaults = {"dither_kmh": 0.08, "dither_hz": 8.0, "gain": 300.0, "filter_s": 0.1, "lag_s": 0.004,
-                "min_kmh": 0.2, "max_kmh": 12.0, "reset_mu": 0.05, **_LOOP_DEFAULTS}
+                "min_kmh": 0.2, "max_kmh": 12.0, "reset_mu": 0.05, "carry_kmh": 0.16, **_LOOP_DEFAULTS}
     ranges = {"dither_kmh": (0.0, 2.0), "dither_hz": (0.1, 200.0), "gain": (0.0, 1e5), "filter_s": (0.001, 10.0),
               "lag_s": (0.0, 1.0), "min_kmh": (0.0, 30.0), "max_kmh": (0.1, 30.0), "reset_mu": (0.0, 1.0),
-              **_LOOP_RANGES}
+              "carry_kmh": (0.0, 30.0), **_LOOP_RANGES}
 
     def __init__(self, vehicle, nominal_peak_creep_kmh, options=None):
         super().__init__(vehicle, nominal_peak_creep_kmh, options)
@@ -126,7 +127,7 @@ class ExtremumSeeking(Controller):
         if self.loop.limited:
             self.v_hat += o["gain"] * self._slope * x.period_s
         else:                       # the demand limits: keep v^ just above the creep it carries
-            self.v_hat = max(min(self.v_hat, x.creep_speed_kmh + 2 * o["dither_kmh"]), o["min_kmh"])
+            self.v_hat = max(min(self.v_hat, x.creep_speed_kmh + o["carry_kmh"]), o["min_kmh"])
         self.v_hat = min(max(self.v_hat, o["min_kmh"]), o["max_kmh"])
         return self.loop.torque_nm(x, self.v_hat + o["dither_kmh"] * math.sin(phase))
 
@@ -216,6 +217,8 @@ class Identified(ExtremumSeeking):
             if passed or not self.loop.limited or self.v_hat >= o["max_kmh"]:
                 if passed:
                     self.v_hat = min(max(scan[2], o["min_kmh"]), o["max_kmh"])
+                elif not self.loop.limited:        # the rail carries the demand: v^ just above its creep
+                    self.v_hat = min(max(x.creep_speed_kmh + o["carry_kmh"], o["min_kmh"]), o["max_kmh"])
                 self._scan = None
                 self._change_mean = self._mu_mean = x.mu_hat
                 self._slope = 0.0
