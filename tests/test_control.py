@@ -163,6 +163,34 @@ def test_extremum_seekings_slope_estimate_restarts_at_a_change_of_rail():
     assert max(excursion({"reset_mu": 0.0}, k) for k in steps) > 0.5
     assert max(excursion(None, k) for k in steps) < 0.25
 
+def test_identified_drops_to_a_safe_creep_at_a_change_of_rail_and_climbs_to_the_new_peak():
+    """The law alone, its creep following its set-point (a 7 ms lag, as the creep loop's) on a curve
+    mu(v) = 2 mu_p (v / v_p) / (1 + (v / v_p)^2) (peak mu_p at v_p), mu^ = mu(creep).  A wet patch (0.30 at
+    0.9 km/h -> 0.10 at 1.8 km/h) brings the set-point to 0.75 km/h or below within 20 ms, and the climb
+    ends within 0.2 km/h of the patch's peak creep within 0.6 s; the dry rail again (mu^ rising) brings it
+    to 0.75 km/h or below within 20 ms, although the creep the patch carried (1.8) is twice the dry peak's."""
+    from identifier.control import make_controller
+    from identifier.control.base import ControlInput
+    from identifier.settings import VehicleModel
+
+    law = make_controller("identified", VehicleModel(120.0, 9000.0, 4.0, 0.5), 0.9)
+
+    def mu(v, mu_p, v_p):
+        return 2 * mu_p * (v / v_p) / (1 + (v / v_p) ** 2)
+
+    creep, dt, seen = 0.9, 1e-3, {}
+    rails = ((0.30, 0.9), (0.10, 1.8), (0.30, 0.9))          # dry, then the patch from 1 s, dry again from 2 s
+    for k in range(3000):
+        mu_p, v_p = rails[k // 1000]
+        m = mu(creep, mu_p, v_p)
+        law.torque_nm(ControlInput(k, k * dt, dt, 20000.0, creep, m * 10000, m, True))
+        creep += (law.v_hat - creep) * dt / 0.007
+        seen[k] = law.v_hat
+    assert max(seen[k] for k in range(1005, 1025)) <= 0.75 + 1e-9, "no drop at the patch"
+    assert abs(seen[1600] - 1.8) < 0.2, seen[1600]
+    assert max(seen[k] for k in range(2005, 2025)) <= 0.75 + 1e-9, "no drop at the dry rail's return"
+
+
 def test_a_tcu_process_on_the_bus_gets_the_demand_frame_and_is_judged_the_same(runs, tmp_path_factory):
     """The TCU as its own process on the default bus: lockstep is deterministic, so the same figures."""
     scenario = load_scenario(WET, {"control.law": "constant_creep"})
