@@ -407,5 +407,6 @@ def test_the_control_bench_reports_every_law_with_the_oracle_on_top_and_the_iden
         "peak_creep_within_10_percent": sum(1 for d in confirmed if d["peak_creep_err_percent"] <= 10.0)}
     report = (tmp_path / "control.md").read_text()
     assert f"seed {seed}" in report
+    assert "| 60 s logged run >= 10 x real time | not measured |" in report      # --speed-s 0: no speed run
     assert f"the identifier confirmed {len(confirmed)} of {len(rows)} drops" in report
     assert (tmp_path / "control-eta-low.png").stat().st_size > 1000
