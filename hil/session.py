@@ -35,6 +35,7 @@ import os
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 from .bus.frames import DBC_PATH, STATE_FAULT, STATE_FINISHED, FrameCodec, bus_load, format_bus_load
@@ -312,12 +313,14 @@ class Session:
         self.load: dict | None = None
         self.rec = self.node = self.timing = self.summary = None
         self.wall_s = 0.0
+        self._ready_s: float | None = None       # time.perf_counter() when the session was open
         self._stack: contextlib.ExitStack | None = None
 
     def __enter__(self) -> "Session":
         with contextlib.ExitStack() as stack:      # a failure on the way releases what was taken
             self._open(stack)
             self._stack = stack.pop_all()
+        self._ready_s = time.perf_counter()
         return self
 
     def __exit__(self, *exc) -> bool:
@@ -461,6 +464,8 @@ class Session:
         if node is not None:
             node.finish(STATE_FAULT)     # the TCU ends too (after a LogWriteError: the log closes as far as it can)
         if isinstance(e, PeerSilent):
+            if not self.wall_s and self._ready_s is not None:     # the loop did not finish: wall up to the fault
+                self.wall_s = time.perf_counter() - self._ready_s
             e.summary = self.summarise({"fault": str(e)})
         if isinstance(e, FloatingPointError):    # the plant diverged: a scenario or --reality value out of range
             raise PlantError(f"{self.scenario.path}: {e} (a value of the scenario or of --reality beyond what the "

@@ -337,6 +337,7 @@ def test_a_tcu_that_dies_mid_run_is_exit_3_and_json_still_prints_one_object(tmp_
     assert "TCU process exited with code -9" in err and "Traceback" not in err
     s = json.loads(out)                               # exactly one JSON object, with the fault in it
     assert "TCU process exited" in s["fault"] and s["mcap"] == str(path) and s["identified"] is False
+    assert s["wall_s"] > 0 and s["sim_s_per_wall_s"] > 0          # up to the fault
     with open(path, "rb") as f:
         meta = {m.name: m.metadata for m in make_reader(f).iter_metadata()}
     assert "TCU process exited" in meta["fault"]["reason"]
