@@ -46,6 +46,16 @@ from .trace import Trace, clean
 CAN_LOG_SUFFIXES = (".log", ".asc", ".blf", ".csv", ".trc", ".mf4")
 #: the option a closed-loop log recorded before gp dated changes of rail is replayed with (``load_mcap``)
 GP_RAIL_CHANGES_OFF = "identifier.options.gp.rail_changes"
+#: closed-loop behaviour newer than some logs: (the key of the log's ``run`` metadata that marks a log recorded
+#: with it, the law it concerns or None for any, the ``--set`` overrides that replay a log without it as it
+#: ran).  A law's commands do not reach a replay (the logged torques do), but its requests to re-arm the
+#: identifier do, so the law must run as it did.
+NEWER_THAN_SOME_LOGS = (
+    ("gp_rail_changes", None, {GP_RAIL_CHANGES_OFF: False}),
+    ("identified_rail_climb", "identified", {"control.options.identified.change_mu": 0.0,
+                                             "control.options.identified.dither_kmh": 0.08,
+                                             "control.options.identified.gain": 300.0}),
+)
 #: topics a replay reads from an MCAP log
 REPLAY_TOPICS = {"/can/frames", "/plant/sensor", "/plant/state", "/tcu/identification", "/tcu/status"}
 
@@ -81,10 +91,14 @@ def load_mcap(path, scenario_file=None) -> ReplaySource:
     scenario = (load_scenario(scenario_file) if scenario_file is not None
                 else scenario_from_log(log, "; give the scenario with --scenario FILE"))
     run = log.metadata.get("run") or {}
-    if scenario.control.law != "demand" and run and "gp_rail_changes" not in run:
-        # a closed-loop log recorded before gp dated changes of rail: replayed as it was recorded
-        scenario = scenario_from_log(log, overrides={GP_RAIL_CHANGES_OFF: False}) if scenario_file is None else \
-            load_scenario(scenario_file, {GP_RAIL_CHANGES_OFF: False})
+    as_recorded = {}
+    if scenario.control.law != "demand" and run:
+        for key, law, overrides in NEWER_THAN_SOME_LOGS:
+            if key not in run and law in (None, scenario.control.law):
+                as_recorded.update(overrides)
+    if as_recorded:           # a closed-loop log recorded before some of today's behaviour: replayed as it ran
+        scenario = scenario_from_log(log, overrides=as_recorded) if scenario_file is None else \
+            load_scenario(scenario_file, as_recorded)
     try:
         seed = int(run["seed"]) if "seed" in run else None
     except ValueError:

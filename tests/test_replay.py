@@ -84,6 +84,28 @@ def test_logs_recorded_before_the_redesign_replay_to_the_same_identification(nam
     assert s["rt_percent"] == pytest.approx(34.667, abs=0.01)
 
 
+def test_a_closed_loop_identified_log_of_today_replays_the_same(tmp_path):
+    """A wet-patch run with today's ``identified`` law (two changes of rail, so its drop and climb act and
+    it asks for re-arms) replayed: the log marks today's behaviour in its run metadata, and the replay
+    gives the logged identification, not a counterfactual one."""
+    from mcap.reader import make_reader
+
+    r = hil("run", str(SCENARIOS / "wet_patch.toml"), "--bus", "inprocess", "--set", "rail.1.start_s=0.4",
+            "--set", "rail.2.start_s=1.5", "--set", "run.duration_s=2.5", "--out", str(tmp_path), "--json",
+            "--no-rrd")
+    assert r.returncode == 0, r.stderr
+    summary = json.loads(r.stdout)
+    assert summary["tcu_rearms"] >= 1                 # the law's request reached the identifier
+    path = Path(summary["mcap"])
+    with open(path, "rb") as f:
+        run = {m.name: m.metadata for m in make_reader(f).iter_metadata()}["run"]
+    assert "identified_rail_climb" in run and "gp_rail_changes" in run
+    r = hil("replay", str(path), "--json")
+    assert r.returncode == 0, r.stderr
+    s = json.loads(r.stdout)
+    assert s["control"] == "identified" and s["counterfactual"] is False and s["matches_log"] is True
+
+
 def test_a_gp_log_recorded_before_the_range_followed_the_data_replays_the_same():
     """tests/data/ffcc_a-gp-1-a2f9a38.mcap: ``hil run scenarios/ffcc_a.toml --seed 1 --set
     run.fault_time_s=0.15 --set run.duration_s=0.3`` by commit a2f9a38, whose ``gp`` gave up at a fixed
@@ -104,8 +126,10 @@ def test_a_closed_loop_gp_log_recorded_before_gp_dated_rail_changes_replays_the_
     """tests/data/wet_patch-gp-identified-1-f7678e9.mcap: ``hil run scenarios/wet_patch.toml --set
     rail.1.start_s=0.4 --set rail.2.start_s=1.5 --set run.duration_s=0.5`` by commit f7678e9, before
     ``gp`` dated a change of rail in closed loop: it confirmed at 0.418 s a peak creep 0.744 km/h, a point,
-    on a wet rail peaking at 0.9 km/h.  Its run metadata has no ``gp_rail_changes``, so the replay runs
-    gp as it ran then and gives what it logged (today's gp, dating the change, confirms nothing there)."""
+    on a wet rail peaking at 0.9 km/h.  Its run metadata has no ``gp_rail_changes`` and no
+    ``identified_rail_climb``, so the replay runs gp and the law as they ran then (the law's requests to re-arm
+    reach the identifier) and gives what it logged (today's gp, dating the change, confirms nothing there,
+    and with today's law the replay did not match either)."""
     r = hil("replay", ROOT / "tests" / "data" / "wet_patch-gp-identified-1-f7678e9.mcap", "--json")
     assert r.returncode == 0, r.stderr
     s = json.loads(r.stdout)

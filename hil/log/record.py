@@ -524,9 +524,10 @@ def start_recording(scenario, strategy: str, seed: int, bus: str, mode: str, pat
         rec.metadata("versions", package_versions())
         rec.metadata("run", {"strategy": strategy, "seed": str(seed), "bus": bus, "mode": mode,
                              "exchange_period_s": repr(scenario.run.exchange_period_s),
-                             # gp's dating of rail changes in closed loop is newer than some logs: replay
-                             # asks for it off where a closed-loop log lacks this key (hil/replay.py)
-                             "gp_rail_changes": "dated in closed loop"})
+                             # closed-loop behaviour newer than some logs: replay runs a log without
+                             # these keys as it ran (hil/replay.py, NEWER_THAN_SOME_LOGS)
+                             "gp_rail_changes": "dated in closed loop",
+                             "identified_rail_climb": "a drop and a climb at each change of rail"})
         if dbc is not None:
             rec.metadata("dbc", dbc)
         if bus_meta is not None:
