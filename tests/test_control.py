@@ -191,6 +191,37 @@ def test_identified_drops_to_a_safe_creep_at_a_change_of_rail_and_climbs_to_the_
     assert max(seen[k] for k in range(2005, 2025)) <= 0.75 + 1e-9, "no drop at the dry rail's return"
 
 
+def test_identified_drops_when_the_dither_finds_it_past_a_peak_that_mu_hat_never_showed():
+    """The law alone, its creep following its set-point with the dither (v^ + 0.05 sin(2 pi 8 t), a 7 ms lag)
+    on mu(v) = 2 mu_p (v / v_p) / (1 + (v / v_p)^2), peak 0.30 at 0.9 km/h.  The set-point is put at 2.6 km/h,
+    on the curve's tail, with mu^'s mean already there: no change of rail for the change test to see.  The
+    dither's slope estimate goes negative and the set-point drops to 0.75 km/h or below within 0.5 s; with
+    ``past_slope = 0`` the dither alone is still above twice the peak creep (1.8 km/h) then."""
+    from identifier.control import make_controller
+    from identifier.control.base import ControlInput
+    from identifier.settings import VehicleModel
+
+    def mu(v):
+        return 2 * 0.30 * (v / 0.9) / (1 + (v / 0.9) ** 2)
+
+    def set_point_after(options, seconds):
+        law = make_controller("identified", VehicleModel(120.0, 9000.0, 4.0, 0.5), 0.9, options)
+        law.v_hat, creep, dt = 2.6, 2.6, 1e-3
+        law._mu_mean = law._change_mean = mu(creep)      # mu^'s means already on the tail: no change of rail
+        law._was_slipping = True                          # and no drop of the slip detector's
+        lowest = law.v_hat
+        for k in range(round(seconds / dt)):
+            m = mu(creep)
+            law.torque_nm(ControlInput(k, k * dt, dt, 20000.0, creep, m * 10000, m, True))
+            set_point = law.v_hat + law.options["dither_kmh"] * math.sin(2 * math.pi * 8.0 * k * dt)
+            creep += (set_point - creep) * dt / 0.007
+            lowest = min(lowest, law.v_hat)
+        return lowest
+
+    assert set_point_after(None, 0.5) <= 0.75 + 1e-9
+    assert set_point_after({"past_slope": 0.0}, 0.5) > 1.8
+
+
 def test_a_tcu_process_on_the_bus_gets_the_demand_frame_and_is_judged_the_same(runs, tmp_path_factory):
     """The TCU as its own process on the default bus: lockstep is deterministic, so the same figures."""
     scenario = load_scenario(WET, {"control.law": "constant_creep"})

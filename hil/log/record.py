@@ -527,7 +527,8 @@ def start_recording(scenario, strategy: str, seed: int, bus: str, mode: str, pat
                              # closed-loop behaviour newer than some logs: replay runs a log without
                              # these keys as it ran (hil/replay.py, NEWER_THAN_SOME_LOGS)
                              "gp_rail_changes": "dated in closed loop",
-                             "identified_rail_climb": "a drop and a climb at each change of rail"})
+                             "identified_rail_climb": "a drop and a climb at each change of rail",
+                             "identified_past_a_peak": "a drop and a climb when the dither finds it past a peak"})
         if dbc is not None:
             rec.metadata("dbc", dbc)
         if bus_meta is not None:
