@@ -91,8 +91,8 @@ class ConstantCreep(Controller):
 
 class ExtremumSeeking(Controller):
     """Set-point v^ + a sin(2 pi f t); slope g = LPF(HPF(mu^) sin(2 pi f t)); dv^/dt = k g (while the creep loop,
-    not the demand, limits the torque; v^ then stays no more than ``carry_kmh`` above the measured creep, twice
-    the dither, so the dither's trough stays clear of the creep the demand carries).  The dither's phase is
+    not the demand, limits the torque; v^ then stays no more than ``carry_kmh`` above the measured creep, by
+    default twice the dither, so the dither's trough stays clear of the creep the demand carries).  The dither's phase is
     shifted by ``lag_s``, the observer's lag behind the true mu (2 / its pole).
 
     A change of rail moves mu^ by far more than the dither can (docs/design/control.md measures both):
@@ -152,7 +152,8 @@ class Identified(ExtremumSeeking):
     mu).  The dither then sees the fall: when its slope estimate 2 LPF(demod) / a stays below
     -``past_slope`` (per km/h) for ``past_s`` while the creep loop holds a creep above ``cap_kmh``, the
     set-point drops and climbs as at a change of rail, instead of the dither walking it down at
-    ``gain`` x its slope (docs/design/control.md: a macro-slip of 1.15 s that this cut to 0.17 s).
+    ``gain`` x its slope (docs/design/control.md has the macro-slip that showed it).  Without a dither
+    (``dither_kmh`` 0) there is no slope estimate and no such drop.
 
     **A confirmed curve** whose peak creep the creep has passed ``jump_ratio``-fold moves the set-point
     to ``hold_fraction`` x that peak creep (clipped to its 90 % interval); the dither corrects it.  Why
@@ -191,7 +192,8 @@ class Identified(ExtremumSeeking):
         self._passing_s = 0.0
         self._rearm = False
         self._change_mean = None       # mu^'s mean for the change test
-        self._scan = None              # while scanning: [time in it, best mu, the creep there, mu^ filtered]
+        self._scan = None              # while scanning: [time in it, best mu, the creep there, mu^ filtered,
+        #                                (mu, creep) at the last rise of scan_drop_mu]
         self._past_for_s = 0.0         # how long the slope estimate has said "past a peak"
 
     def _target_kmh(self, x: ControlInput) -> float | None:
@@ -240,8 +242,8 @@ class Identified(ExtremumSeeking):
         """The dither's slope estimate, 2 LPF(demod) / a, has stayed below -``past_slope`` for ``past_s``
         while the creep loop limited the torque above ``cap_kmh`` (class docstring)."""
         o = self.options
-        falling = (o["past_slope"] > 0.0 and self.loop.limited and x.creep_speed_kmh > o["cap_kmh"]
-                   and 2.0 * self._slope / o["dither_kmh"] < -o["past_slope"])
+        falling = (o["past_slope"] > 0.0 and o["dither_kmh"] > 0.0 and self.loop.limited
+                   and x.creep_speed_kmh > o["cap_kmh"] and 2.0 * self._slope / o["dither_kmh"] < -o["past_slope"])
         self._past_for_s = self._past_for_s + x.period_s if falling else 0.0
         return self._past_for_s >= o["past_s"]
 
