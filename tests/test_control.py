@@ -207,7 +207,7 @@ def test_identified_drops_when_the_dither_finds_it_past_a_peak_that_mu_hat_never
     def set_point_after(options, seconds):
         law = make_controller("identified", VehicleModel(120.0, 9000.0, 4.0, 0.5), 0.9, options)
         law.v_hat, creep, dt = 2.6, 2.6, 1e-3
-        law._mu_mean = law._change_mean = mu(creep)      # mu^'s means already on the tail: no change of rail
+        law._mu_mean = mu(creep)                          # mu^'s mean already on the tail: no change of rail
         law._was_slipping = True                          # and no drop of the slip detector's
         lowest = law.v_hat
         for k in range(round(seconds / dt)):

@@ -324,9 +324,9 @@ def cmd_control_bench(args) -> int:
                    f"{_fmt(sp['identified_x_realtime'], '.1f')} x ({_fmt(sp['identified_over_demand'], '.2f')} of "
                    f"demand's); the plant of that draw stepped alone {_fmt(sp.get('plant_alone_x_realtime'), '.1f')} x",
                    "  "))
-    for line in (_identification_line(out),):
-        if line:
-            print(wrap(line.replace("`", ""), "  "))
+    line = _identification_line(out)
+    if line:
+        print(wrap(line.replace("`", ""), "  "))
     print(wrap("Columns: medians over the draws (p5: eta_low's 5th percentile; slip: runs with macro-slip; "
                "x RT: simulated seconds per wall second).  "
                "eta_low: adhesion utilisation where the demand exceeds the true peak and 1 s after each change "
@@ -509,9 +509,9 @@ def write_report(out: dict, doc: Path, draws=None) -> None:
                   f"{' (ended as a fault: the wheel ran away)' if sp['demand_fault'] else ''}, `identified` "
                   f"{_fmt(sp['identified_x_realtime'], '.1f')} x ({_fmt(sp['identified_over_demand'], '.2f')} of demand's); "
                   f"the plant of that draw stepped alone, {_fmt(sp.get('plant_alone_x_realtime'), '.1f')} x."]
-    for line in (_identification_line(out),):
-        if line:
-            lines += ["", line]
+    line = _identification_line(out)
+    if line:
+        lines += ["", line]
     if out.get("prior_set_point_kmh") is not None:
         lines += ["", f"The prior law held {out['prior_set_point_kmh']:.2f} km/h."]
     lines += ["", "![eta_low per law](control-eta-low.png)", ""]

@@ -18,6 +18,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 from .base import ControlInput, Controller, CreepLoop
 
@@ -132,11 +133,21 @@ class ExtremumSeeking(Controller):
         return self.loop.torque_nm(x, self.v_hat + o["dither_kmh"] * math.sin(phase))
 
 
+@dataclass
+class _Scan:
+    """The climb of ``Identified`` (its class docstring) while it lasts."""
+    time_s: float = 0.0                       # since it began
+    mu: float | None = None                   # mu^, filtered over scan_filter_s
+    best_mu: float = -math.inf                # the best filtered mu^ ...
+    best_kmh: float = math.nan                # ... and the creep it was seen at
+    rise: tuple[float, float] | None = None   # (mu, creep) at the last rise of scan_drop_mu
+
+
 class Identified(ExtremumSeeking):
     """Extremum seeking placed by what the TCU learns of the rail (module docstring).
 
-    **A change of rail** (mu^ leaves its mean, a first-order filter of ``filter_s``, by more than
-    ``change_mu``, up or down, while the creep is held): the set-point drops to at most ``cap_kmh`` and,
+    **A change of rail** (mu^ leaves its mean, extremum seeking's first-order filter of ``filter_s``, by
+    more than ``change_mu``, up or down, while the creep is held): the set-point drops to at most ``cap_kmh`` and,
     ``scan_settle_s`` later, climbs at ``scan_kmh_per_s`` while mu^ (filtered over ``scan_filter_s``) keeps
     rising; once it has fallen ``scan_drop_mu`` below the best seen, the set-point returns to the creep
     where the best was seen and extremum seeking takes over from there (its estimate restarted).  The
@@ -191,9 +202,7 @@ class Identified(ExtremumSeeking):
         self._was_slipping = False
         self._passing_s = 0.0
         self._rearm = False
-        self._change_mean = None       # mu^'s mean for the change test
-        self._scan = None              # while scanning: [time in it, best mu, the creep there, mu^ filtered,
-        #                                (mu, creep) at the last rise of scan_drop_mu]
+        self._scan: _Scan | None = None
         self._past_for_s = 0.0         # how long the slope estimate has said "past a peak"
 
     def _target_kmh(self, x: ControlInput) -> float | None:
@@ -205,34 +214,30 @@ class Identified(ExtremumSeeking):
         return self.options["hold_fraction"] * peak if math.isfinite(peak) else None
 
     def _rail_changed(self, x: ControlInput) -> bool:
-        """The change test (class docstring), its mean updated."""
+        """The change test (class docstring), against extremum seeking's mean of mu^ (its ``torque_nm`` updates it)."""
         o = self.options
-        if self._change_mean is None:
-            self._change_mean = x.mu_hat
-        changed = bool(o["change_mu"]) and abs(x.mu_hat - self._change_mean) > o["change_mu"]
-        self._change_mean += x.period_s / (o["filter_s"] + x.period_s) * (x.mu_hat - self._change_mean)
-        return changed
+        return bool(o["change_mu"]) and self._mu_mean is not None and abs(x.mu_hat - self._mu_mean) > o["change_mu"]
 
     def _scan_step(self, x: ControlInput) -> float:
         """One period of the scan (class docstring); ends it when mu^ has passed its best."""
         o, scan = self.options, self._scan
-        scan[0] += x.period_s
-        if scan[0] >= o["scan_settle_s"]:
+        scan.time_s += x.period_s
+        if scan.time_s >= o["scan_settle_s"]:
             a = x.period_s / (o["scan_filter_s"] + x.period_s)
-            scan[3] = x.mu_hat if scan[3] is None else scan[3] + a * (x.mu_hat - scan[3])
-            if scan[3] > scan[1]:
-                scan[1], scan[2] = scan[3], x.creep_speed_kmh
-            if scan[4] is None or scan[3] > scan[4][0] + o["scan_drop_mu"]:
-                scan[4] = (scan[3], x.creep_speed_kmh)          # the last rise of scan_drop_mu
-            passed = scan[3] < scan[1] - o["scan_drop_mu"] or \
-                x.creep_speed_kmh > scan[4][1] + o["scan_flat_kmh"]
+            scan.mu = x.mu_hat if scan.mu is None else scan.mu + a * (x.mu_hat - scan.mu)
+            if scan.mu > scan.best_mu:
+                scan.best_mu, scan.best_kmh = scan.mu, x.creep_speed_kmh
+            if scan.rise is None or scan.mu > scan.rise[0] + o["scan_drop_mu"]:
+                scan.rise = (scan.mu, x.creep_speed_kmh)
+            passed = scan.mu < scan.best_mu - o["scan_drop_mu"] or \
+                x.creep_speed_kmh > scan.rise[1] + o["scan_flat_kmh"]
             if passed or not self.loop.limited or self.v_hat >= o["max_kmh"]:
                 if passed:
-                    self.v_hat = min(max(scan[2], o["min_kmh"]), o["max_kmh"])
+                    self.v_hat = min(max(scan.best_kmh, o["min_kmh"]), o["max_kmh"])
                 elif not self.loop.limited:        # the rail carries the demand: v^ just above its creep
                     self.v_hat = min(max(x.creep_speed_kmh + o["carry_kmh"], o["min_kmh"]), o["max_kmh"])
                 self._scan = None
-                self._change_mean = self._mu_mean = x.mu_hat
+                self._mu_mean = x.mu_hat
                 self._slope = 0.0
                 return self.loop.torque_nm(x, self.v_hat)
             self.v_hat = min(self.v_hat + o["scan_kmh_per_s"] * x.period_s, o["max_kmh"])
@@ -255,7 +260,7 @@ class Identified(ExtremumSeeking):
         if changed and o["cap_kmh"] > 0.0:
             self.v_hat = min(self.v_hat, max(o["cap_kmh"], o["min_kmh"]))
             if o["scan_kmh_per_s"] > 0.0:
-                self._scan = [0.0, -math.inf, self.v_hat, None, None]
+                self._scan = _Scan()
         if x.slipping and not self._was_slipping and o["drop_fraction"] > 0.0 and self._scan is None:
             self.v_hat = min(self.v_hat, max(o["drop_fraction"] * self.nominal_peak_creep_kmh, o["min_kmh"]))
         self._was_slipping = x.slipping
