@@ -74,18 +74,19 @@ def creep_speed_kmh(p: WheelsetParams, motor_speed_rad_s, train_speed_ms):
     return KMH_PER_MS * (motor_speed_rad_s / p.gear_ratio * p.wheel_radius_m - train_speed_ms)
 
 
-def build_dynamics(cfg: PlantConfig) -> ca.Function:
+def build_dynamics(cfg: PlantConfig, window: tuple[int, int] | None = None) -> ca.Function:
     """f(x, T_e, t[, rho]) -> (dx/dt, mu, v_s_kmh): the continuous-time model as a CasADi Function
-    (``rho``: the cleaned fractions of recovering rail segments, when there are any)."""
+    (``rho``: the cleaned fractions of recovering rail segments, when there are any; ``window``: only
+    these rail segments, ``RailSchedule.mu_casadi``)."""
     x = ca.SX.sym("x", 2)
     torque = ca.SX.sym("torque_nm")
     t = ca.SX.sym("t_s")
     extra = [ca.SX.sym("rho", cfg.cleaning_inputs)] if cfg.cleaning_inputs else []
-    return ca.Function("wheelset_dynamics", [x, torque, t, *extra], list(dynamics(cfg, x, torque, t, *extra)),
+    return ca.Function("wheelset_dynamics", [x, torque, t, *extra], list(dynamics(cfg, x, torque, t, *extra, window=window)),
                        ["x", "torque_nm", "t_s", *(["rho"] if extra else [])], ["dx", "mu", "creep_speed_kmh"])
 
 
-def dynamics(cfg: PlantConfig, x, torque, t, cleaned=None):
+def dynamics(cfg: PlantConfig, x, torque, t, cleaned=None, window=None):
     """(dx/dt, mu, v_s_kmh) as CasADi expressions.  The numbers in ``cfg`` (params, curves, fault
     time, mu_required) may themselves be CasADi symbols: the FMU export (plant/fmu) builds its
     parameterised model from this same function."""
@@ -93,7 +94,7 @@ def dynamics(cfg: PlantConfig, x, torque, t, cleaned=None):
     omega_m, v_t = x[0], x[1]
     v_s = creep_speed_kmh(p, omega_m, v_t)
     if cfg.rail is not None:
-        mu = cfg.rail.mu_casadi(v_s, v_t, t, cleaned)
+        mu = cfg.rail.mu_casadi(v_s, v_t, t, cleaned, window)
     else:
         mu = ca.if_else(t >= cfg.fault_time_s, cfg.fault_curve.mu_casadi(v_s, v_t),
                         cfg.normal_curve.mu_casadi(v_s, v_t))
@@ -119,10 +120,11 @@ def rk4_step(f, x, torque, t, h):
     return x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
 
 
-def build_period_step(cfg: PlantConfig) -> ca.Function:
+def build_period_step(cfg: PlantConfig, window: tuple[int, int] | None = None) -> ca.Function:
     """F(x, T_e, t0[, rho]) -> (x, mu, v_s_kmh) at t0 + exchange_period: ``substeps`` RK4 steps, torque
-    (and the rail's cleaned fractions rho, when it has recovering segments) held."""
-    f = build_dynamics(cfg)
+    (and the rail's cleaned fractions rho, when it has recovering segments) held; ``window``: the rail
+    segments (lo, hi) only, for periods where the others weigh nothing (``RailSchedule.window_at``)."""
+    f = build_dynamics(cfg, window)
     x0 = ca.SX.sym("x", 2)
     torque = ca.SX.sym("torque_nm")
     t0 = ca.SX.sym("t0_s")
@@ -217,13 +219,16 @@ class WheelsetPlant:
 
     The CasADi function is called through ``Function.buffer()`` on preallocated numpy arrays
     (a fraction of the cost of a call with numpy arguments; docs/design/identifier.md).  The arrays and the
-    buffer are attributes of the plant, so they live exactly as long as it does: if either were
+    buffers are attributes of the plant, so they live exactly as long as it does: if either were
     garbage-collected while the other is used, CasADi would read freed memory.
+
+    On a rail of several segments each period is stepped by a function of only the segments that weigh
+    in it (``RailSchedule.window_at``, built the first time it is needed): the same numbers to the bit,
+    without evaluating every segment's curve at every RK4 stage of the run.
     """
 
     def __init__(self, cfg: PlantConfig):
         self.cfg = cfg
-        self._step_fn = build_period_step(cfg)
         self.x0, self.equilibrium_torque_nm = equilibrium(cfg)
         self._x_in = np.zeros(2)
         self._torque_in = np.zeros(1)
@@ -234,9 +239,31 @@ class WheelsetPlant:
         #: recovering rail segments: the energy each has dissipated (J) and its cleaned fraction rho (plant/rail.py)
         self._cleaned = np.zeros(cfg.cleaning_inputs)
         self.dissipated_j = np.zeros(cfg.cleaning_inputs)
-        args = (self._x_in, self._torque_in, self._t0_in) + ((self._cleaned,) if cfg.cleaning_inputs else ())
-        self._buffer, self._eval = bind_buffer(self._step_fn, args, (self._x_out, self._mu_out, self._creep_out))
+        #: window (None: the whole rail) -> (function, buffer, evaluate); the buffers hold the arrays above
+        self._steps: dict = {}
+        rail = cfg.rail
+        self._rail_events_s = (sorted({x for s in rail.segments[1:] for x in (s.start_s, s.start_s + s.transition_s)})
+                               if rail is not None and len(rail.segments) > 1 else [])
+        self._window_until_s = -math.inf
+        self._eval = None if self._rail_events_s else self._step_for(None)
         self.reset()
+
+    def _step_for(self, window):
+        """The evaluate call of the period step of ``window`` (built and bound the first time)."""
+        entry = self._steps.get(window)
+        if entry is None:
+            fn = build_period_step(self.cfg, window)
+            args = (self._x_in, self._torque_in, self._t0_in) + ((self._cleaned,) if self.cfg.cleaning_inputs else ())
+            entry = self._steps[window] = (fn, *bind_buffer(fn, args, (self._x_out, self._mu_out, self._creep_out)))
+        return entry[2]
+
+    def _select_window(self, t0_s: float) -> None:
+        """The step function for the period from ``t0_s``, and until when it serves: the next rail event
+        (a segment's start or the end of its transition) closer than a period and the margin."""
+        margin, period = 1e-6, self.cfg.exchange_period_s
+        self._eval = self._step_for(self.cfg.rail.window_at(t0_s, t0_s + period, margin))
+        ahead = [e for e in self._rail_events_s if e > t0_s - margin]
+        self._window_until_s = ahead[0] - period - 2 * margin if ahead else math.inf
 
     @property
     def cleaned(self) -> tuple[float, ...]:
@@ -245,6 +272,7 @@ class WheelsetPlant:
 
     def reset(self) -> PlantState:
         self.step_index = 0
+        self._window_until_s = -math.inf
         self._x_out[:] = self.x0
         self._cleaned[:] = 0.0
         self.dissipated_j[:] = 0.0
@@ -263,9 +291,11 @@ class WheelsetPlant:
     def step(self, torque_nm: float) -> PlantState:
         self._x_in[:] = self._x_out
         self._torque_in[0] = torque_nm
-        self._t0_in[0] = self.t_s
+        t0_s = self._t0_in[0] = self.t_s
+        if self._rail_events_s and t0_s >= self._window_until_s:
+            self._select_window(t0_s)
         self._eval()
-        if not (np.isfinite(self._x_out[0]) and np.isfinite(self._x_out[1])):
+        if not (math.isfinite(self._x_out[0]) and math.isfinite(self._x_out[1])):
             raise FloatingPointError(f"plant diverged at t={self.t_s:.4f} s (torque {torque_nm} N·m)")
         self.step_index += 1
         if self.cfg.cleaning_inputs:

@@ -84,6 +84,16 @@ class RailSchedule:
                 out.append(min(max((t_s - s.start_s) / s.transition_s, 0.0), 1.0))
         return tuple(out)
 
+    def window_at(self, t0_s: float, t1_s: float, margin_s: float = 1e-6) -> tuple[int, int]:
+        """The segments (lo, hi) whose blend is the rail over [t0_s, t1_s] (``mu_casadi``'s ``window``):
+        lo has ended its transition by t0_s and hi + 1 begins after t1_s, each with ``margin_s`` to spare (a
+        wider window is the same number, a narrower one would not be)."""
+        lo = self.index_at(t0_s - margin_s)
+        s = self.segments[lo]
+        if lo and t0_s - margin_s < s.start_s + s.transition_s:
+            lo -= 1
+        return lo, self.index_at(t1_s + margin_s)
+
     def index_at(self, t_s: float) -> int:
         """The segment whose start is the last at or before ``t_s``."""
         i = 0
@@ -98,19 +108,25 @@ class RailSchedule:
             mu = (1 - a) * mu + a * m
         return mu
 
-    def mu_casadi(self, creep_speed_kmh, train_speed_ms, t, cleaned=None):
-        """mu(v_s, v_t, t) on CasADi expressions; ``cleaned``: rho per recovering segment (symbols)."""
+    def mu_casadi(self, creep_speed_kmh, train_speed_ms, t, cleaned=None, window=None):
+        """mu(v_s, v_t, t) on CasADi expressions; ``cleaned``: rho per recovering segment (symbols).
+
+        ``window`` = (lo, hi): the blend of segments lo..hi only, curve_lo as its base.  Where segment lo
+        has ended its transition (alpha_lo = 1) and segment hi + 1 has not begun (alpha = 0), it is the
+        same number as the whole blend, to the bit: (1 - 1) mu + 1 c = c and (1 - 0) mu + 0 c = mu
+        (``window_at`` gives the window of a time span)."""
         import casadi as ca
 
+        lo, hi = window if window is not None else (0, len(self.segments) - 1)
         mus = []
-        for i, s in enumerate(self.segments):
-            mu = s.curve.mu_casadi(creep_speed_kmh, train_speed_ms)
+        for i in range(lo, hi + 1):
+            mu = self.segments[i].curve.mu_casadi(creep_speed_kmh, train_speed_ms)
             if i in self.recovery and cleaned is not None:
                 ref = self.recovery[i].reference.mu_casadi(creep_speed_kmh, train_speed_ms)
                 mu = mu + cleaned[list(self.recovery).index(i)] * (ref - mu)
             mus.append(mu)
         alphas = []
-        for s in self.segments[1:]:
+        for s in self.segments[lo + 1:hi + 1]:
             if s.transition_s <= 0.0:
                 alphas.append(ca.if_else(t >= s.start_s, 1.0, 0.0))
             else:
