@@ -34,7 +34,7 @@ from identifier.messages import STAGE_NAMES
 from ..errors import ConfigError, LogWriteError
 from .writer import CLOSE, META, WriterGone, WriterProcess
 from .mcapfile import LeanMcapWriter
-from .schemas import PROFILE, TOPICS, TYPES
+from .schemas import FIELDS, PROFILE, TOPICS, TYPES
 
 CHUNK_SIZE = 32 * 1024
 
@@ -160,8 +160,14 @@ class McapFile:
             self._channels[topic] = self._writer.register_channel(topic, "protobuf", schema_id)
             self._types[topic] = cls
 
-    def write(self, topic: str, log_t_s: float, fields: dict) -> None:
+    def write(self, topic: str, log_t_s: float, fields: dict | tuple) -> None:
+        """One row: ``fields`` by name, or (a tuple) every field's value in ``FIELDS[topic]`` order."""
         ns = sim_time_ns(log_t_s)
+        if type(fields) is tuple:
+            names = FIELDS[topic]
+            if len(fields) != len(names):
+                raise ValueError(f"{topic}: a row of {len(fields)} values for {len(names)} fields")
+            fields = dict(zip(names, fields))
         data = self._types[topic](**fields).SerializeToString()
         self._writer.add_message(self._channels[topic], log_time=ns, data=data, publish_time=ns)
 
@@ -288,7 +294,24 @@ class Recorder:
         return self._written + (len(self._queue) if self._queue is not None else 0)
 
     def write(self, topic: str, log_t_s: float, /, **fields) -> None:
-        if self._proc is None and self._queue is None:
+        self._add(topic, log_t_s, fields)
+
+    def row(self, topic: str, log_t_s: float, values: tuple) -> None:
+        """``write`` with every field's value in ``FIELDS[topic]`` order: the loop's rows, a few a period,
+        without a dict to build and pickle for each (the names are put back in the writer)."""
+        self._add(topic, log_t_s, values)
+
+    def _add(self, topic: str, log_t_s: float, fields: dict | tuple) -> None:
+        proc = self._proc
+        if proc is not None and not self.failed and proc.unshipped < self._queue_limit:    # the usual case
+            proc.put((topic, log_t_s, fields))
+            self._written += 1
+            if proc.batched >= self.SHIP_IN_LINE_ROWS:    # no wait came to ship them in
+                self._ship(block=False)
+            if proc.unshipped > self.queued_max:
+                self.queued_max = proc.unshipped
+            return
+        if proc is None and self._queue is None:
             self._write(topic, log_t_s, fields)
             return
         if self.failed:
@@ -543,15 +566,13 @@ def start_recording(scenario, strategy: str, seed: int, bus: str, mode: str, pat
 
 # -- one writer per topic ----------------------------------------------------------------------------
 def write_plant_state(rec: Recorder, step: int, s, stage: str) -> None:
-    rec.write("/plant/state", s.t_s, step=step, t_s=s.t_s, motor_speed_rad_s=s.motor_speed_rad_s,
-              train_speed_ms=s.train_speed_ms, creep_speed_kmh=s.creep_speed_kmh, mu=s.mu,
-              load_torque_nm=s.load_torque_nm, torque_nm=s.torque_nm, fault_active=s.fault_active, stage=stage)
+    rec.row("/plant/state", s.t_s, (step, s.t_s, s.motor_speed_rad_s, s.train_speed_ms, s.creep_speed_kmh, s.mu,
+                                    s.load_torque_nm, s.torque_nm, s.fault_active, stage))
 
 
 def write_rail_truth(rec: Recorder, step: int, t_s: float, peak_mu: float, peak_creep_kmh: float, demand_mu: float,
                      segment: int) -> None:
-    rec.write("/plant/rail", t_s, step=step, t_s=t_s, peak_mu=peak_mu, peak_creep_kmh=peak_creep_kmh,
-              demand_mu=demand_mu, segment=segment)
+    rec.row("/plant/rail", t_s, (step, t_s, peak_mu, peak_creep_kmh, demand_mu, segment))
 
 
 def write_control_metrics(rec: Recorder, t_s: float, control: str, m: dict) -> None:
@@ -566,24 +587,21 @@ def write_control_metrics(rec: Recorder, t_s: float, control: str, m: dict) -> N
 
 
 def write_sensor(rec: Recorder, t_s: float, step: int, motor_speed_rad_s: float, train_speed_ms: float) -> None:
-    rec.write("/plant/sensor", t_s, step=step, t_s=t_s, motor_speed_rad_s=motor_speed_rad_s,
-              train_speed_ms=train_speed_ms)
+    rec.row("/plant/sensor", t_s, (step, t_s, motor_speed_rad_s, train_speed_ms))
 
 
 def write_command(rec: Recorder, command, period_s: float) -> None:
     t = command.step * period_s
-    rec.write("/tcu/command", t, step=command.step, t_s=t, torque_nm=command.torque_nm)
+    rec.row("/tcu/command", t, (command.step, t, command.torque_nm))
 
 
 def write_status(rec: Recorder, status, observer, period_s: float) -> None:
     """``/tcu/observer`` (when the TCU had a valid reading) and ``/tcu/status``."""
     if observer is not None:
-        rec.write("/tcu/observer", observer.t_s, step=observer.step, t_s=observer.t_s,
-                  creep_speed_kmh=observer.creep_speed_kmh, mu_hat=observer.mu_hat,
-                  load_torque_nm=observer.load_torque_nm)
+        rec.row("/tcu/observer", observer.t_s, (observer.step, observer.t_s, observer.creep_speed_kmh, observer.mu_hat,
+                                                observer.load_torque_nm))
     t = status.step * period_s
-    rec.write("/tcu/status", t, step=status.step, t_s=t, stage=status.stage, stage_name=STAGE_NAMES[status.stage],
-              correction=status.correction)
+    rec.row("/tcu/status", t, (status.step, t, status.stage, STAGE_NAMES[status.stage], status.correction))
 
 
 def write_identification(rec: Recorder, e, strategy: str) -> None:
@@ -597,15 +615,12 @@ def write_identification(rec: Recorder, e, strategy: str) -> None:
 
 
 def write_frame(rec: Recorder, t_s: float, msg, direction: str, status: str, wall_ns: int) -> None:
-    rec.write("/can/frames", t_s, t_s=t_s, wall_time_ns=wall_ns,
-              send_time_ns=int(round((msg.timestamp or 0.0) * 1e9)), arbitration_id=msg.arbitration_id,
-              is_extended_id=bool(msg.is_extended_id), is_fd=bool(msg.is_fd),
-              is_error_frame=bool(msg.is_error_frame), is_remote_frame=bool(msg.is_remote_frame),
-              bitrate_switch=bool(msg.bitrate_switch), dlc=int(msg.dlc), data=bytes(msg.data),
-              direction=direction, status=status)
+    rec.row("/can/frames", t_s, (t_s, wall_ns, int(round((msg.timestamp or 0.0) * 1e9)), msg.arbitration_id,
+                                 bool(msg.is_extended_id), bool(msg.is_fd), bool(msg.is_error_frame),
+                                 bool(msg.is_remote_frame), bool(msg.bitrate_switch), int(msg.dlc), bytes(msg.data),
+                                 direction, status))
 
 
 def write_timing(rec: Recorder, step: int, t_s: float, period_us: float, round_trip_us: float, lateness_us: float,
                  missed: bool) -> None:
-    rec.write("/loop/timing", t_s, step=step, t_s=t_s, period_us=period_us, round_trip_us=round_trip_us,
-              lateness_us=lateness_us, missed_deadline=missed)
+    rec.row("/loop/timing", t_s, (step, t_s, period_us, round_trip_us, lateness_us, missed))

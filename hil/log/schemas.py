@@ -74,6 +74,10 @@ MESSAGES: dict[str, list[tuple[str, str, bool]]] = {
                        ("torque_ripple_percent", "double", False)],
 }
 
+#: topic -> its message's field names in order: a row written positionally (``Recorder.row``) gives its
+#: values in this order
+FIELDS: dict[str, tuple[str, ...]] = {topic: tuple(f[0] for f in MESSAGES[name]) for topic, name in TOPICS.items()}
+
 
 def _build():
     fdp = descriptor_pb2.FileDescriptorProto(name="hil_messages.proto", package=PACKAGE, syntax="proto3")
