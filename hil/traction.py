@@ -60,8 +60,17 @@ class TruthTrack:
         self._constant_nm = None if self._demand is not None else scenario.identifier_settings().torque_demand_nm
         if self.rail is None:
             self._peaks = (scenario.normal_curve.peak(), scenario.fault_curve.peak())
-        self.cols = {k: [] for k in ("t_s", "creep_speed_kmh", "mu", "torque_nm", "train_speed_ms", "demand_mu",
-                                     "peak_mu", "peak_creep_kmh", "segment")}
+        self._rows: list[tuple] = []        # per step, in COLUMNS order
+
+    #: the per-step figures kept, in the order of a kept row
+    COLUMNS = ("t_s", "creep_speed_kmh", "mu", "torque_nm", "train_speed_ms", "demand_mu", "peak_mu", "peak_creep_kmh",
+               "segment")
+
+    @property
+    def cols(self) -> dict[str, np.ndarray]:
+        """Each of ``COLUMNS`` over the steps kept, as an array."""
+        table = np.array(self._rows, float).reshape(-1, len(self.COLUMNS))
+        return {k: table[:, i] for i, k in enumerate(self.COLUMNS)}
 
     def demand_torque_nm(self, t_s: float) -> float:
         return self._constant_nm if self._demand is None else self._demand.at(t_s) * self.torque_per_mu_nm
@@ -79,12 +88,8 @@ class TruthTrack:
         """Keep one step; returns (peak mu, peak creep, demand mu, segment) for the log."""
         peak_mu, peak_creep, segment = self.truth(state.t_s, state.train_speed_ms, cleaned)
         demand_mu = self.demand_torque_nm(state.t_s) / self.torque_per_mu_nm
-        c = self.cols
-        for k, x in (("t_s", state.t_s), ("creep_speed_kmh", state.creep_speed_kmh), ("mu", state.mu),
-                     ("torque_nm", state.torque_nm), ("train_speed_ms", state.train_speed_ms),
-                     ("demand_mu", demand_mu), ("peak_mu", peak_mu), ("peak_creep_kmh", peak_creep),
-                     ("segment", segment)):
-            c[k].append(x)
+        self._rows.append((state.t_s, state.creep_speed_kmh, state.mu, state.torque_nm, state.train_speed_ms,
+                           demand_mu, peak_mu, peak_creep, segment))
         return peak_mu, peak_creep, demand_mu, segment
 
     def changes_s(self) -> tuple[float, ...]:
@@ -94,7 +99,7 @@ class TruthTrack:
     def metrics(self, events=()) -> dict:
         """The run's figures (module docstring); ``events``: the TCU's identification events, for the per-drop
         identification figures (``drop_identification``)."""
-        c = {k: np.asarray(v, float) for k, v in self.cols.items()}
+        c = self.cols
         out = metrics(c, self.changes_s(), self.period_s, self.normal_force_n, self.torque_per_mu_nm)
         out["drop_identification"] = drop_figures(c, self.changes_s(), events)
         return out

@@ -268,7 +268,7 @@ class WheelsetPlant:
     @property
     def cleaned(self) -> tuple[float, ...]:
         """rho of each recovering rail segment (plant/rail.py), in the schedule's order."""
-        return tuple(float(c) for c in self._cleaned)
+        return tuple(self._cleaned.tolist())
 
     def reset(self) -> PlantState:
         self.step_index = 0

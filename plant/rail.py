@@ -31,6 +31,7 @@ a step is two points at the same time.  The motor torque asked is ``mu_d * torqu
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -42,6 +43,8 @@ _PEAK_GRID_KMH = np.linspace(PEAK_SEARCH_KMH[0], PEAK_SEARCH_KMH[1] / 2, 1501)
 #: the truth's peak is cached per train speed rounded to this (m/s) outside transitions; Polach peaks move
 #: by well under 0.1 % over it
 _SPEED_QUANTUM_MS = 0.05
+#: past a transition's end by this much, its alpha is 1 to the bit whatever the rounding of (t - start) / length
+_STEADY_MARGIN_S = 1e-9
 
 
 @dataclass(frozen=True)
@@ -66,6 +69,8 @@ class RailSchedule:
     segments: tuple[RailSegment, ...]
     recovery: dict[int, Recovery] = field(default_factory=dict)     # segment index -> its recovery
     _cache: dict = field(default_factory=dict, repr=False, compare=False)
+    #: (from, until, alphas, index): a span of time without a transition under way, where both are constant
+    _steady: tuple = field(default=(math.inf, -math.inf, (), 0), repr=False, compare=False)
 
     def __post_init__(self):
         if not self.segments or self.segments[0].start_s != 0.0:
@@ -76,13 +81,29 @@ class RailSchedule:
 
     def weights(self, t_s: float) -> tuple[float, ...]:
         """alpha_i(t) for segments 1..n (module docstring)."""
+        steady = self._steady
+        if steady[0] <= t_s < steady[1]:
+            return steady[2]
         out = []
         for s in self.segments[1:]:
             if s.transition_s <= 0.0:
                 out.append(1.0 if t_s >= s.start_s else 0.0)
             else:
                 out.append(min(max((t_s - s.start_s) / s.transition_s, 0.0), 1.0))
-        return tuple(out)
+        out = tuple(out)
+        self._remember_steady(t_s, out)
+        return out
+
+    def _remember_steady(self, t_s: float, alphas: tuple[float, ...]) -> None:
+        """When ``t_s`` lies between the end of segment k's transition (plus ``_STEADY_MARGIN_S``, so every
+        alpha has reached exactly 1 or 0) and segment k + 1's start, every time there has these alphas and
+        index k: kept for the next call (the truth asks every period)."""
+        k = self.index_at(t_s)
+        seg = self.segments[k]
+        start = seg.start_s + seg.transition_s + _STEADY_MARGIN_S if k else -math.inf
+        until = self.segments[k + 1].start_s if k + 1 < len(self.segments) else math.inf
+        if start <= t_s < until:
+            self._steady = (start, until, alphas, k)
 
     def window_at(self, t0_s: float, t1_s: float, margin_s: float = 1e-6) -> tuple[int, int]:
         """The segments (lo, hi) whose blend is the rail over [t0_s, t1_s] (``mu_casadi``'s ``window``):
@@ -96,6 +117,9 @@ class RailSchedule:
 
     def index_at(self, t_s: float) -> int:
         """The segment whose start is the last at or before ``t_s``."""
+        steady = self._steady
+        if steady[0] <= t_s < steady[1]:
+            return steady[3]
         i = 0
         for j, s in enumerate(self.segments):
             if t_s >= s.start_s:

@@ -25,8 +25,8 @@ class SensorModel:
 
     def measure(self, motor_speed_rad_s: float, train_speed_ms: float) -> tuple[float, float]:
         """(measured motor speed rad/s, measured train speed m/s)."""
-        noise = self._rng.standard_normal(2)
-        omega = motor_speed_rad_s + self.cfg.motor_speed_noise_rad_s * noise[0]
-        v = train_speed_ms + self.cfg.train_speed_noise_ms * noise[1]
+        noise_omega, noise_v = self._rng.standard_normal(2).tolist()     # Python floats: the same numbers
+        omega = motor_speed_rad_s + self.cfg.motor_speed_noise_rad_s * noise_omega
+        v = train_speed_ms + self.cfg.train_speed_noise_ms * noise_v
         return (self._quantise(omega, self.cfg.motor_speed_quantum_rad_s),
                 self._quantise(v, self.cfg.train_speed_quantum_ms))
