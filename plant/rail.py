@@ -158,15 +158,20 @@ class RailSchedule:
         return self._blend(mus, alphas)
 
     def mu_at(self, creep_speed_kmh, train_speed_ms: float, t_s: float, cleaned=()):
-        """mu on numpy arrays of creep speed, at one train speed and time."""
+        """mu on numpy arrays of creep speed, at one train speed and time.  Only the segments that weigh
+        at ``t_s`` are evaluated: from the last whose alpha is 1 to the last whose alpha is above 0 (the
+        same numbers as the whole blend, ``mu_casadi``)."""
+        alphas = self.weights(t_s)
+        lo = max((j for j, a in enumerate(alphas, start=1) if a == 1.0), default=0)
+        hi = max((j for j, a in enumerate(alphas, start=1) if a > 0.0), default=0)
         mus = []
-        for i, s in enumerate(self.segments):
-            mu = s.curve.mu_at(creep_speed_kmh, train_speed_ms)
+        for i in range(lo, max(hi, lo) + 1):
+            mu = self.segments[i].curve.mu_at(creep_speed_kmh, train_speed_ms)
             if i in self.recovery and cleaned:
                 rho = cleaned[list(self.recovery).index(i)]
                 mu = mu + rho * (self.recovery[i].reference.mu_at(creep_speed_kmh, train_speed_ms) - mu)
             mus.append(mu)
-        return self._blend(mus, self.weights(t_s))
+        return self._blend(mus, alphas[lo:max(hi, lo)])
 
     def peak(self, t_s: float, train_speed_ms: float, cleaned=()) -> tuple[float, float]:
         """(creep speed km/h, mu) at the peak of the true curve at ``t_s`` and ``train_speed_ms``."""
