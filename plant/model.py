@@ -82,7 +82,8 @@ def build_dynamics(cfg: PlantConfig, window: tuple[int, int] | None = None) -> c
     torque = ca.SX.sym("torque_nm")
     t = ca.SX.sym("t_s")
     extra = [ca.SX.sym("rho", cfg.cleaning_inputs)] if cfg.cleaning_inputs else []
-    return ca.Function("wheelset_dynamics", [x, torque, t, *extra], list(dynamics(cfg, x, torque, t, *extra, window=window)),
+    return ca.Function("wheelset_dynamics", [x, torque, t, *extra],
+                       list(dynamics(cfg, x, torque, t, *extra, window=window)),
                        ["x", "torque_nm", "t_s", *(["rho"] if extra else [])], ["dx", "mu", "creep_speed_kmh"])
 
 

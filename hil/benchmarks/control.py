@@ -340,8 +340,9 @@ def speed_pair(base_text: str, seed: int, duration_s: float) -> dict | None:
     simulated seconds per wall second (a run that ends as a fault: over what it ran) and their ratio; and the
     plant of that draw stepped alone for as long, at a constant torque (``plant_alone_x_realtime``): the
     ceiling of a loop that did nothing but the physics, measured in the same minutes.  Each law first runs
-    2.5 s of the family's base scenario untimed, so neither pays this process's one-time imports and compilations (numba's
-    kernels, loaded at the first TCU) and the first timed run is not the slower for coming first."""
+    2.5 s of the family's base scenario untimed, so neither pays this process's one-time imports and
+    compilations (numba's kernels, loaded at the first TCU): the first timed run is not the slower for
+    coming first."""
     import tempfile
 
     from ..config import parse_scenario
