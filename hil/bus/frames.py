@@ -27,6 +27,7 @@ import struct
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import can
 import cantools
@@ -92,10 +93,10 @@ class SampleReport:
     mu_hat: float
 
 
-@dataclass(frozen=True)
-class Frame:
+class Frame(NamedTuple):
     """A received frame that passed validation: its DBC name and the decoded object (``demand``: the
-    driver's demand a mapped sensor frame carries too, ``hil.bus.mapping``)."""
+    driver's demand a mapped sensor frame carries too, ``hil.bus.mapping``).  A named tuple: several are
+    made each period, and a frozen dataclass costs twice as much to build."""
     name: str
     value: object          # SensorReading | DriverDemand | TorqueCommand | (TcuStatus, ObserverSample|None) | IdentificationEvent | IntervalReport | SampleReport | Heartbeat
     demand: DriverDemand | None = None
