@@ -176,6 +176,13 @@ class FrameCodec:
             if layout is not None:
                 by_name = {x[0]: x for x in self._limits[fid]}
                 self._limits[fid] = [by_name[n] for n in layout.names]
+        #: per frame id, what ``classify`` reads for every frame: (name, length, layout, limits in the layout's
+        #: order with no bound as an infinite one)
+        inf = math.inf
+        self._decoders = {fid: (m.name, m.length, self.layouts[fid],
+                                tuple((name, is_float, -inf if lo is None else lo, inf if hi is None else hi)
+                                      for name, is_float, lo, hi in self._limits[fid]))
+                          for fid, m in self._by_id.items()}
         #: where each frame's authentication trailer starts (bytes)
         self.trailer_offsets = {fid: m.get_signal_by_name(AUTH_SIGNALS[0]).start // 8
                                 for fid, m in self._by_id.items()}
@@ -275,32 +282,31 @@ class FrameCodec:
             return None, "error_frame"
         if msg.is_remote_frame:
             return None, "remote_frame"
-        if msg.is_extended_id:
+        fid = msg.arbitration_id
+        entry = None if msg.is_extended_id else self._decoders.get(fid)
+        if entry is None:
             return None, "unknown_id"
-        m = self._by_id.get(msg.arbitration_id)
-        if m is None:
-            return None, "unknown_id"
+        name, length, layout, limits = entry
         data = bytes(msg.data)
-        if len(data) != m.length:
+        if len(data) != length:
             return None, "bad_length"
         if self.auth is not None:
-            verdict = self.auth.verify(m.frame_id, data)
+            verdict = self.auth.verify(fid, data)
             if verdict != "ok":
                 return None, verdict
-        layout = self.layouts[m.frame_id]
         if layout is not None:
             values = dict(zip(layout.names, layout.unpack(data)))
         else:
-            values = m.decode(data, decode_choices=False, scaling=True)
-        for name, is_float, lo, hi in self._limits[m.frame_id]:
-            x = values[name]
+            values = self._by_id[fid].decode(data, decode_choices=False, scaling=True)
+        for signal, is_float, lo, hi in limits:
+            x = values[signal]
             if is_float and not math.isfinite(x):
-                if name in NON_FINITE_OK:
+                if signal in NON_FINITE_OK:
                     continue
-                return None, f"non_finite:{name}"
-            if (lo is not None and x < lo) or (hi is not None and x > hi):
-                return None, f"out_of_range:{name}"
-        return Frame(m.name, self._to_object(m.frame_id, values)), "ok"
+                return None, f"non_finite:{signal}"
+            if not lo <= x <= hi:
+                return None, f"out_of_range:{signal}"
+        return Frame(name, self._to_object(fid, values)), "ok"
 
     def _to_object(self, fid: int, v: dict):
         if fid == SENSOR_ID:
