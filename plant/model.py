@@ -215,6 +215,10 @@ class Plant(Protocol):
     def step(self, torque_nm: float) -> PlantState: ...
 
 
+#: a period's window of rail segments reaches this far (s) past either end (``RailSchedule.window_at``)
+WINDOW_MARGIN_S = 1e-6
+
+
 class WheelsetPlant:
     """Fixed-step wheelset-rail plant: ``step(torque_nm)`` advances one exchange period.
 
@@ -224,8 +228,9 @@ class WheelsetPlant:
     garbage-collected while the other is used, CasADi would read freed memory.
 
     On a rail of several segments each period is stepped by a function of only the segments that weigh
-    in it (``RailSchedule.window_at``, built the first time it is needed): the same numbers to the bit,
-    without evaluating every segment's curve at every RK4 stage of the run.
+    in it (``RailSchedule.window_at``): the same numbers to the bit, without evaluating every segment's
+    curve at every RK4 stage of the run.  Every window the run can use is built here: a build takes
+    milliseconds, which inside the loop would make a real-time run miss deadlines at each change of rail.
     """
 
     def __init__(self, cfg: PlantConfig):
@@ -247,7 +252,16 @@ class WheelsetPlant:
                                if rail is not None and len(rail.segments) > 1 else [])
         self._window_until_s = -math.inf
         self._eval = None if self._rail_events_s else self._step_for(None)
+        for t0_s in self._period_starts_near_events():      # built now, not inside a real-time period
+            self._step_for(rail.window_at(t0_s, t0_s + cfg.exchange_period_s, WINDOW_MARGIN_S))
         self.reset()
+
+    def _period_starts_near_events(self) -> list[float]:
+        """The start of every period from two before to two after each rail event: the window changes only
+        there (``RailSchedule.window_at``), so these periods' windows are every window the run can use."""
+        period = self.cfg.exchange_period_s
+        steps = {0} | {k for e in self._rail_events_s for k in range(max(int(e / period) - 2, 0), int(e / period) + 3)}
+        return [k * period for k in sorted(steps)] if self._rail_events_s else []
 
     def _step_for(self, window):
         """The evaluate call of the period step of ``window`` (built and bound the first time)."""
@@ -261,7 +275,7 @@ class WheelsetPlant:
     def _select_window(self, t0_s: float) -> None:
         """The step function for the period from ``t0_s``, and until when it serves: the next rail event
         (a segment's start or the end of its transition) closer than a period and the margin."""
-        margin, period = 1e-6, self.cfg.exchange_period_s
+        margin, period = WINDOW_MARGIN_S, self.cfg.exchange_period_s
         self._eval = self._step_for(self.cfg.rail.window_at(t0_s, t0_s + period, margin))
         ahead = [e for e in self._rail_events_s if e > t0_s - margin]
         self._window_until_s = ahead[0] - period - 2 * margin if ahead else math.inf

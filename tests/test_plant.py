@@ -91,3 +91,30 @@ def test_sensor_noise_is_seeded_and_quantised():
     assert len(set(seq1)) > 3                                # noise present
     assert all(abs(x / 0.05 - round(x / 0.05)) < 1e-9 for x in seq1)   # on the quantisation grid
     assert SensorModel(cfg, 8).measure(50.0, 10.0) != a[0]
+
+
+def test_a_rail_stepped_by_windows_of_segments_is_the_whole_rail_to_the_bit():
+    """The wet patch with a recovering segment, its torque swept across the patch: every period's state, mu
+    and creep from the plant (a function of only the segments that weigh in each period) equal the whole
+    rail's function to the bit, and stepping through every change of rail builds no function (a build in the
+    loop made a real-time run miss deadlines at each change)."""
+    from pathlib import Path
+
+    from plant.model import build_period_step
+
+    sc = load_scenario(Path(__file__).parents[1] / "scenarios" / "wet_patch.toml",
+                       {"rail.1.recovers_to": 0, "rail.1.energy_clean_j": 2e5})
+    cfg = sc.plant_config()
+    plant = WheelsetPlant(cfg)
+    built = dict(plant._steps)
+    whole = build_period_step(cfg)
+    torque0 = plant.equilibrium_torque_nm
+    for k in range(sc.steps):
+        torque = torque0 * (1.3 + 0.3 * np.sin(k / 300))
+        x, t0, rho = plant._x_out.copy(), plant.t_s, plant._cleaned.copy()
+        plant.step(torque)
+        x_ref, mu_ref, creep_ref = whole(x, torque, t0, rho)
+        assert np.array_equal(np.r_[plant._x_out, plant._mu_out, plant._creep_out],
+                              np.r_[np.array(x_ref).ravel(), float(mu_ref), float(creep_ref)]), f"step {k}"
+    assert len(built) == 5 and plant._steps.keys() == built.keys()
+    assert plant.cleaned[0] > 0.5      # the recovery did act: rho entered the windows' functions
