@@ -56,6 +56,7 @@ NEWER_THAN_SOME_LOGS = (
                                              "control.options.identified.dither_kmh": 0.08,
                                              "control.options.identified.gain": 300.0}),
     ("identified_past_a_peak", "identified", {"control.options.identified.past_slope": 0.0}),
+    ("identified_rise", "identified", {"control.options.identified.rise_mu": 0.0}),
 )
 #: topics a replay reads from an MCAP log
 REPLAY_TOPICS = {"/can/frames", "/plant/sensor", "/plant/state", "/tcu/identification", "/tcu/status"}

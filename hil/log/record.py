@@ -551,7 +551,8 @@ def start_recording(scenario, strategy: str, seed: int, bus: str, mode: str, pat
                              # these keys as it ran (hil/replay.py, NEWER_THAN_SOME_LOGS)
                              "gp_rail_changes": "dated in closed loop",
                              "identified_rail_climb": "a drop and a climb at each change of rail",
-                             "identified_past_a_peak": "a drop and a climb when the dither finds it past a peak"})
+                             "identified_past_a_peak": "a drop and a climb when the dither finds it past a peak",
+                             "identified_rise": "a drop and a climb when mu^ rises above its level at the creep held"})
         if dbc is not None:
             rec.metadata("dbc", dbc)
         if bus_meta is not None:

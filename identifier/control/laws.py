@@ -166,6 +166,13 @@ class Identified(ExtremumSeeking):
     ``gain`` x its slope (docs/design/control.md has the macro-slip that showed it).  Without a dither
     (``dither_kmh`` 0) there is no slope estimate and no such drop.
 
+    **A better rail**: a rail that recovers over a transition can raise mu^ too slowly for the change test
+    (mu^ stays near its own mean) and too little at the creep held (a dry rail whose peak lies far below
+    that creep, after a patch whose peak lay far out: mu^ 0.181 -> 0.200).  While the creep loop holds a
+    creep above ``cap_kmh`` outside a scan, mu^ filtered over ``scan_filter_s`` is compared with its lowest
+    value since then: a rise of more than ``rise_mu`` drops the set-point and climbs as at a change of rail
+    (0: off; docs/design/control.md has the macro-slip that showed it and the A/B).
+
     **A confirmed curve** whose peak creep the creep has passed ``jump_ratio``-fold moves the set-point
     to ``hold_fraction`` x that peak creep (clipped to its 90 % interval); the dither corrects it.  Why
     the condition: in closed loop a drop's samples straddle the change of rail while the loop holds the
@@ -188,13 +195,13 @@ class Identified(ExtremumSeeking):
     defaults = {"hold_fraction": 0.98, "jump_ratio": 1.5, "rearm_s": 0.3, "drop_fraction": 1.0,
                 "change_mu": 0.02, "cap_kmh": 0.75, "scan_kmh_per_s": 4.0, "scan_settle_s": 0.03,
                 "scan_filter_s": 0.01, "scan_drop_mu": 0.004, "scan_flat_kmh": 0.25,
-                "past_slope": 0.02, "past_s": 0.05, **ExtremumSeeking.defaults,
+                "past_slope": 0.02, "past_s": 0.05, "rise_mu": 0.008, **ExtremumSeeking.defaults,
                 "dither_kmh": 0.05, "gain": 480.0}
     ranges = {"hold_fraction": (0.1, 2.0), "jump_ratio": (0.0, 100.0), "rearm_s": (0.001, 60.0),
               "drop_fraction": (0.0, 20.0), "change_mu": (0.0, 1.0), "cap_kmh": (0.0, 30.0),
               "scan_kmh_per_s": (0.0, 1000.0), "scan_settle_s": (0.0, 10.0), "scan_filter_s": (0.0, 10.0),
               "scan_drop_mu": (0.0, 1.0), "scan_flat_kmh": (0.0, 30.0), "past_slope": (0.0, 10.0),
-              "past_s": (0.0, 10.0), **ExtremumSeeking.ranges}
+              "past_s": (0.0, 10.0), "rise_mu": (0.0, 1.0), **ExtremumSeeking.ranges}
 
     def __init__(self, vehicle, nominal_peak_creep_kmh, options=None):
         super().__init__(vehicle, nominal_peak_creep_kmh, options)
@@ -204,6 +211,8 @@ class Identified(ExtremumSeeking):
         self._rearm = False
         self._scan: _Scan | None = None
         self._past_for_s = 0.0         # how long the slope estimate has said "past a peak"
+        self._rise_mu: float | None = None      # mu^ filtered over scan_filter_s (the rise test) ...
+        self._level_mu: float | None = None     # ... and its lowest value while the creep is held
 
     def _target_kmh(self, x: ControlInput) -> float | None:
         """hold_fraction x the confirmed peak creep, clipped to its interval (class docstring), or None."""
@@ -252,9 +261,25 @@ class Identified(ExtremumSeeking):
         self._past_for_s = self._past_for_s + x.period_s if falling else 0.0
         return self._past_for_s >= o["past_s"]
 
+    def _rose(self, x: ControlInput) -> bool:
+        """The rise test (class docstring): filtered mu^ above its lowest value while the creep loop holds a
+        creep above ``cap_kmh`` outside a scan, by more than ``rise_mu``."""
+        o = self.options
+        a = x.period_s / (o["scan_filter_s"] + x.period_s)
+        self._rise_mu = x.mu_hat if self._rise_mu is None else self._rise_mu + a * (x.mu_hat - self._rise_mu)
+        if not o["rise_mu"] or self._scan is not None or not self.loop.limited or x.creep_speed_kmh <= o["cap_kmh"]:
+            self._level_mu = None
+            return False
+        self._level_mu = self._rise_mu if self._level_mu is None else min(self._level_mu, self._rise_mu)
+        if self._rise_mu > self._level_mu + o["rise_mu"]:
+            self._level_mu = None
+            return True
+        return False
+
     def torque_nm(self, x: ControlInput) -> float:
         o = self.options
-        changed = self._rail_changed(x) if self._scan is None else False
+        rose = self._rose(x)
+        changed = rose or (self._rail_changed(x) if self._scan is None else False)
         if self._scan is None and self._past_a_peak(x):
             changed, self._past_for_s = True, 0.0
         if changed and o["cap_kmh"] > 0.0:
