@@ -196,7 +196,8 @@ def test_identified_drops_when_the_dither_finds_it_past_a_peak_that_mu_hat_never
     on mu(v) = 2 mu_p (v / v_p) / (1 + (v / v_p)^2), peak 0.30 at 0.9 km/h.  The set-point is put at 2.6 km/h,
     on the curve's tail, with mu^'s mean already there: no change of rail for the change test to see.  The
     dither's slope estimate goes negative and the set-point drops to 0.75 km/h or below within 0.5 s; with
-    ``past_slope = 0`` the dither alone is still above twice the peak creep (1.8 km/h) then."""
+    ``past_slope = 0`` and ``rise_mu = 0`` (the dither walking down the tail raises mu^ too) the dither alone
+    is still above twice the peak creep (1.8 km/h) then."""
     from identifier.control import make_controller
     from identifier.control.base import ControlInput
     from identifier.settings import VehicleModel
@@ -219,7 +220,43 @@ def test_identified_drops_when_the_dither_finds_it_past_a_peak_that_mu_hat_never
         return lowest
 
     assert set_point_after(None, 0.5) <= 0.75 + 1e-9
-    assert set_point_after({"past_slope": 0.0}, 0.5) > 1.8
+    assert set_point_after({"rise_mu": 0.0}, 0.5) <= 0.75 + 1e-9          # the past-a-peak test alone
+    assert set_point_after({"past_slope": 0.0, "rise_mu": 0.0}, 0.5) > 1.8
+
+
+def test_identified_drops_when_a_recovering_rail_raises_mu_hat_a_little_at_the_creep_held():
+    """The law alone (change test and past-a-peak test off, so only the rise test acts), its creep following
+    its set-point with a 7 ms lag, on mu(v) = 2 mu_p (v / v_p) / (1 + (v / v_p)^2).  A patch (peak 0.19 at
+    2.9 km/h) with the creep held at 2.3 km/h for 0.4 s: the set-point stays above 2 km/h.  Then over 0.1 s
+    the rail blends into a dry one (peak 0.30 at 0.9 km/h): mu^ at 2.3 km/h rises only from 0.185 to 0.204.
+    The set-point is at 0.75 km/h or below by the end of the blend; with ``rise_mu = 0`` it is still above
+    1.8 km/h (twice the dry peak creep) then."""
+    from identifier.control import make_controller
+    from identifier.control.base import ControlInput
+    from identifier.settings import VehicleModel
+
+    def mu(v, mu_p, v_p):
+        return 2 * mu_p * (v / v_p) / (1 + (v / v_p) ** 2)
+
+    def set_points(options):
+        law = make_controller("identified", VehicleModel(120.0, 9000.0, 4.0, 0.5), 0.9,
+                              {"change_mu": 0.0, "past_slope": 0.0, **options})
+        law.v_hat, creep, dt = 2.3, 2.3, 1e-3
+        law._mu_mean = mu(creep, 0.19, 2.9)               # on the patch already
+        law._was_slipping = True                          # and no drop of the slip detector's
+        out = []
+        for k in range(500):
+            blend = min(max((k - 400) / 100, 0.0), 1.0)
+            m = (1 - blend) * mu(creep, 0.19, 2.9) + blend * mu(creep, 0.30, 0.9)
+            law.torque_nm(ControlInput(k, k * dt, dt, 20000.0, creep, m * 10000, m, True))
+            creep += (law.v_hat - creep) * dt / 0.007
+            out.append(law.v_hat)
+        return out
+
+    default, off = set_points({}), set_points({"rise_mu": 0.0})
+    assert min(default[:400]) > 2.0, "a drop on a steady rail"
+    assert min(default[400:]) <= 0.75 + 1e-9
+    assert min(off) > 1.8
 
 
 def test_a_tcu_process_on_the_bus_gets_the_demand_frame_and_is_judged_the_same(runs, tmp_path_factory):
