@@ -168,7 +168,7 @@ class Identified(ExtremumSeeking):
 
     **A better rail**: a rail that recovers over a transition can raise mu^ too slowly for the change test
     (mu^ stays near its own mean) and too little at the creep held (a dry rail whose peak lies far below
-    that creep, after a patch whose peak lay far out: mu^ 0.181 -> 0.200).  While the creep loop holds a
+    that creep, after a patch whose peak lay far out).  While the creep loop holds a
     creep above ``cap_kmh`` outside a scan, mu^ filtered over ``scan_filter_s`` is compared with its lowest
     value since then: a rise of more than ``rise_mu`` drops the set-point and climbs as at a change of rail
     (0: off; docs/design/control.md has the macro-slip that showed it and the A/B).
@@ -211,7 +211,7 @@ class Identified(ExtremumSeeking):
         self._rearm = False
         self._scan: _Scan | None = None
         self._past_for_s = 0.0         # how long the slope estimate has said "past a peak"
-        self._rise_mu: float | None = None      # mu^ filtered over scan_filter_s (the rise test) ...
+        self._mu_filtered: float | None = None      # mu^ filtered over scan_filter_s (the rise test) ...
         self._level_mu: float | None = None     # ... and its lowest value while the creep is held
 
     def _target_kmh(self, x: ControlInput) -> float | None:
@@ -266,12 +266,13 @@ class Identified(ExtremumSeeking):
         creep above ``cap_kmh`` outside a scan, by more than ``rise_mu``."""
         o = self.options
         a = x.period_s / (o["scan_filter_s"] + x.period_s)
-        self._rise_mu = x.mu_hat if self._rise_mu is None else self._rise_mu + a * (x.mu_hat - self._rise_mu)
+        f = self._mu_filtered
+        f = self._mu_filtered = x.mu_hat if f is None else f + a * (x.mu_hat - f)
         if not o["rise_mu"] or self._scan is not None or not self.loop.limited or x.creep_speed_kmh <= o["cap_kmh"]:
             self._level_mu = None
             return False
-        self._level_mu = self._rise_mu if self._level_mu is None else min(self._level_mu, self._rise_mu)
-        if self._rise_mu > self._level_mu + o["rise_mu"]:
+        self._level_mu = f if self._level_mu is None else min(self._level_mu, f)
+        if f > self._level_mu + o["rise_mu"]:
             self._level_mu = None
             return True
         return False
