@@ -96,7 +96,7 @@ class SampleReport:
 class Frame(NamedTuple):
     """A received frame that passed validation: its DBC name and the decoded object (``demand``: the
     driver's demand a mapped sensor frame carries too, ``hil.bus.mapping``).  A named tuple: several are
-    made each period, and a frozen dataclass costs twice as much to build."""
+    made each period, and a tuple is cheaper to build than a frozen dataclass."""
     name: str
     value: object          # SensorReading | DriverDemand | TorqueCommand | (TcuStatus, ObserverSample|None) | IdentificationEvent | IntervalReport | SampleReport | Heartbeat
     demand: DriverDemand | None = None
