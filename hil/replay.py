@@ -57,6 +57,7 @@ NEWER_THAN_SOME_LOGS = (
                                              "control.options.identified.gain": 300.0}),
     ("identified_past_a_peak", "identified", {"control.options.identified.past_slope": 0.0}),
     ("identified_rise", "identified", {"control.options.identified.rise_mu": 0.0}),
+    ("identified_max_creep", "identified", {"control.options.identified.max_kmh": 12.0}),
 )
 #: topics a replay reads from an MCAP log
 REPLAY_TOPICS = {"/can/frames", "/plant/sensor", "/plant/state", "/tcu/identification", "/tcu/status"}
@@ -88,6 +89,14 @@ def _msg_from_record(r) -> can.Message:
                        data=bytes(r.data), check=False)
 
 
+def _named_in(scenario, key: str) -> bool:
+    """Whether the scenario itself sets the control option ``key`` (``control.options.LAW.NAME``): an option
+    it names ran as named, whatever the default of then."""
+    parts = key.split(".")
+    return len(parts) == 4 and parts[:2] == ["control", "options"] and \
+        parts[3] in scenario.control.options.get(parts[2], {})
+
+
 def load_mcap(path, scenario_file=None) -> ReplaySource:
     log = read_log(path, topics=REPLAY_TOPICS)
     scenario = (load_scenario(scenario_file) if scenario_file is not None
@@ -97,7 +106,7 @@ def load_mcap(path, scenario_file=None) -> ReplaySource:
     if scenario.control.law != "demand" and run:
         for key, law, overrides in NEWER_THAN_SOME_LOGS:
             if key not in run and law in (None, scenario.control.law):
-                as_recorded.update(overrides)
+                as_recorded.update({k: v for k, v in overrides.items() if not _named_in(scenario, k)})
     if as_recorded:           # a closed-loop log recorded before some of today's behaviour: replayed as it ran
         scenario = scenario_from_log(log, overrides=as_recorded) if scenario_file is None else \
             load_scenario(scenario_file, as_recorded)

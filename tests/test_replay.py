@@ -99,7 +99,8 @@ def test_a_closed_loop_identified_log_of_today_replays_the_same(tmp_path):
     path = Path(summary["mcap"])
     with open(path, "rb") as f:
         run = {m.name: m.metadata for m in make_reader(f).iter_metadata()}["run"]
-    assert {"identified_rail_climb", "identified_past_a_peak", "gp_rail_changes"} <= set(run)
+    assert {"identified_rail_climb", "identified_past_a_peak", "identified_rise", "identified_max_creep",
+            "gp_rail_changes"} <= set(run)
     r = hil("replay", str(path), "--json")
     assert r.returncode == 0, r.stderr
     s = json.loads(r.stdout)
@@ -268,3 +269,19 @@ def test_can_log_needs_a_scenario(runs, tmp_path, capsys):
     can_log.write_text("(0.000000) vcan0 100##1" + "00" * 24 + "\n")
     rc, out, err = replay_in_process(capsys, str(can_log))
     assert rc == 2 and "--scenario" in err and err.count("\n") == 1
+
+
+def test_a_replay_keeps_a_control_option_the_logs_scenario_sets_itself():
+    """A log recorded before a default changed is replayed with the default of then (NEWER_THAN_SOME_LOGS),
+    but only for options its scenario leaves out: an option it names ran as named."""
+    from hil.config import load_scenario
+    from hil.replay import NEWER_THAN_SOME_LOGS, _named_in
+
+    named = load_scenario(SCENARIOS / "wet_patch.toml", {"control.options.identified.max_kmh": 5.0})
+    plain = load_scenario(SCENARIOS / "wet_patch.toml")
+    keys = [k for _, _, overrides in NEWER_THAN_SOME_LOGS for k in overrides]
+    assert "control.options.identified.max_kmh" in keys
+    assert _named_in(named, "control.options.identified.max_kmh")
+    assert not _named_in(plain, "control.options.identified.max_kmh")
+    assert not _named_in(named, "control.options.identified.rise_mu")
+    assert not _named_in(named, "identifier.options.gp.rail_changes")

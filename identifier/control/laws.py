@@ -173,6 +173,14 @@ class Identified(ExtremumSeeking):
     value since then: a rise of more than ``rise_mu`` drops the set-point and climbs as at a change of rail
     (0: off; docs/design/control.md has the macro-slip that showed it and the A/B).
 
+    **A bound on the creep held**: ``max_kmh`` is 1.6 km/h here (extremum seeking's 12), twice the lowest peak
+    creep of a dry rail in the TCU's prior (0.8 km/h: hil/benchmarks/control.py's dry rails).  Why: on a
+    patch whose peak lies far out (up to 3 km/h in the ``default`` family) a return to dry rail within
+    about 0.1 s puts the creep held past twice the dry peak creep before mu^ at that creep has moved by
+    more than its noise, so no test above can act in time; below the bound the return cannot make a
+    macro-slip.  It costs such patches the mu between the bound and their peak (docs/design/control.md
+    measures both).
+
     **A confirmed curve** whose peak creep the creep has passed ``jump_ratio``-fold moves the set-point
     to ``hold_fraction`` x that peak creep (clipped to its 90 % interval); the dither corrects it.  Why
     the condition: in closed loop a drop's samples straddle the change of rail while the loop holds the
@@ -196,7 +204,7 @@ class Identified(ExtremumSeeking):
                 "change_mu": 0.02, "cap_kmh": 0.75, "scan_kmh_per_s": 4.0, "scan_settle_s": 0.03,
                 "scan_filter_s": 0.01, "scan_drop_mu": 0.004, "scan_flat_kmh": 0.25,
                 "past_slope": 0.02, "past_s": 0.05, "rise_mu": 0.008, **ExtremumSeeking.defaults,
-                "dither_kmh": 0.05, "gain": 480.0}
+                "dither_kmh": 0.05, "gain": 480.0, "max_kmh": 1.6}
     ranges = {"hold_fraction": (0.1, 2.0), "jump_ratio": (0.0, 100.0), "rearm_s": (0.001, 60.0),
               "drop_fraction": (0.0, 20.0), "change_mu": (0.0, 1.0), "cap_kmh": (0.0, 30.0),
               "scan_kmh_per_s": (0.0, 1000.0), "scan_settle_s": (0.0, 10.0), "scan_filter_s": (0.0, 10.0),
