@@ -58,6 +58,9 @@ NEWER_THAN_SOME_LOGS = (
     ("identified_past_a_peak", "identified", {"control.options.identified.past_slope": 0.0}),
     ("identified_rise", "identified", {"control.options.identified.rise_mu": 0.0}),
     ("identified_max_creep", "identified", {"control.options.identified.max_kmh": 12.0}),
+    ("gp_closed_loop_tracking", None, {"identifier.options.gp.track_train_speed": False,
+                                       "identifier.options.gp.floor_peak_mu": 0.0,
+                                       "identifier.options.gp.floor_peak_creep_kmh": 0.0}),
 )
 #: topics a replay reads from an MCAP log
 REPLAY_TOPICS = {"/can/frames", "/plant/sensor", "/plant/state", "/tcu/identification", "/tcu/status"}
@@ -90,11 +93,13 @@ def _msg_from_record(r) -> can.Message:
 
 
 def _named_in(scenario, key: str) -> bool:
-    """Whether the scenario itself sets the control option ``key`` (``control.options.LAW.NAME``): an option
-    it names ran as named, whatever the default of then."""
+    """Whether the scenario itself sets the option ``key`` (``control.options.LAW.NAME`` or
+    ``identifier.options.STRATEGY.NAME``): an option it names ran as named, whatever the default of then."""
     parts = key.split(".")
-    return len(parts) == 4 and parts[:2] == ["control", "options"] and \
-        parts[3] in scenario.control.options.get(parts[2], {})
+    if len(parts) != 4 or parts[1] != "options":
+        return False
+    tables = {"control": scenario.control.options, "identifier": scenario.identifier.get("options", {})}
+    return parts[3] in (tables.get(parts[0]) or {}).get(parts[2], {})
 
 
 def load_mcap(path, scenario_file=None) -> ReplaySource:

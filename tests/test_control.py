@@ -424,6 +424,38 @@ def test_in_closed_loop_gp_confirms_no_peak_from_the_change_of_rail(runs, static
             assert all(e.t_s >= first + 0.2 for e in conf) and all(x <= 0.10 for x in errs)
 
 
+def test_in_closed_loop_gps_interval_holds_the_peak_the_law_holds_the_creep_at(tmp_path_factory):
+    """Draw 37 of ``hil bench control``'s seed 1885060422 (a patch from 11.87 s peaking at 0.491 km/h), 13 s
+    of it: gp confirms on the patch while ``identified`` holds the creep near the peak.  With the train-speed
+    line extrapolated from the restart and no interval floors (the closed-loop options off) the creep drifts
+    low and the 90 % interval misses the true peak creep from below; with the defaults (the line refitted
+    every sample, the floors) it holds the true peak, mu and creep."""
+    from hil.benchmarks.control import BASE, draw_text
+    from hil.config import parse_scenario
+
+    text, drawn = draw_text((ROOT / BASE).read_text(), 1885060422, 37, 30.0)
+    assert 0.45 < drawn["patches"][-1]["peak_creep_kmh"] < 0.55
+
+    def confirmed(overrides):
+        scenario = parse_scenario(text, "draw 37", {"control.law": "identified", "run.duration_s": 13.0, **overrides})
+        summary = run(scenario, "gp", 1885060422 % 1000 + 37, bus="inprocess", out_dir=tmp_path_factory.mktemp("d37"),
+                      progress=False)
+        log = read_log(summary["mcap"])
+        rows = [r for r in summary["drop_identification"] if r["t_identified_s"] is not None and r["t_s"] > 11.0]
+        assert len(rows) == 1, summary["drop_identification"]
+        e = next(e for e in log.topic("/tcu/identification") if e.kind == "confirmed" and e.t_s > 11.0)
+        return rows[0], e
+
+    off = {"identifier.options.gp.track_train_speed": False, "identifier.options.gp.floor_peak_mu": 0.0,
+           "identifier.options.gp.floor_peak_creep_kmh": 0.0}
+    row, e = confirmed(off)
+    print("off:", e.t_s, e.peak_mu_ci, e.peak_creep_ci, row)
+    assert row["interval_holds_truth"] is False and e.peak_creep_ci[1] < 0.48
+    row, e = confirmed({})
+    print("defaults:", e.t_s, e.peak_mu_ci, e.peak_creep_ci, row)
+    assert row["interval_holds_truth"] is True and row["peak_creep_err_percent"] < 5.0
+
+
 def test_identification_is_reported_per_drop_against_the_rail_then(static_rail_run):
     _, summary, log = static_rail_run        # a run that confirms on the patch (the figures are the point here)
     rows = summary["drop_identification"]
