@@ -99,7 +99,7 @@ def test_a_closed_loop_identified_log_of_today_replays_the_same(tmp_path):
     path = Path(summary["mcap"])
     with open(path, "rb") as f:
         run = {m.name: m.metadata for m in make_reader(f).iter_metadata()}["run"]
-    assert {"identified_rail_climb", "identified_past_a_peak", "identified_rise", "identified_max_creep",
+    assert {"identified_rail_climb", "identified_past_a_peak", "identified_rise", "identified_creep_bounds",
             "gp_rail_changes"} <= set(run)
     r = hil("replay", str(path), "--json")
     assert r.returncode == 0, r.stderr
@@ -280,7 +280,7 @@ def test_a_replay_keeps_a_control_option_the_logs_scenario_sets_itself():
     named = load_scenario(SCENARIOS / "wet_patch.toml", {"control.options.identified.max_kmh": 5.0})
     plain = load_scenario(SCENARIOS / "wet_patch.toml")
     keys = [k for _, _, overrides in NEWER_THAN_SOME_LOGS for k in overrides]
-    assert "control.options.identified.max_kmh" in keys
+    assert "control.options.identified.max_kmh" in keys and "control.options.identified.cap_kmh" in keys
     assert _named_in(named, "control.options.identified.max_kmh")
     assert not _named_in(plain, "control.options.identified.max_kmh")
     assert not _named_in(named, "control.options.identified.rise_mu")

@@ -154,9 +154,10 @@ class Identified(ExtremumSeeking):
     scan also ends when the demand, not the creep loop, limits the torque (the rail carries the demand).
     Why: with the peak creep of the new rail unknown, the creep the old rail carried may be past twice
     it (macro-slip) on a wet patch after a dry rail, and on a dry rail after a patch whose peak lay far
-    out; ``cap_kmh`` = 0.75 km/h is below twice the lowest peak creep of the TCU's prior family
-    (``default``: 0.4 km/h), and a climb at 4 km/h/s finds a peak the dither would take seconds to
-    reach.  During a scan the change test is off: the scan itself moves mu^.
+    out; ``cap_kmh`` = 0.7 km/h is below twice the lowest peak creep of the TCU's prior family
+    (``default``: 0.4 km/h) by the dither's amplitude and the creep loop's overshoot (0.05 km/h each: a
+    climb from 0.75 on a patch peaking at 0.41 km/h ended at 0.80 and the dither took the creep past 0.82),
+    and a climb at 4 km/h/s finds a peak the dither would take seconds to reach.  During a scan the change test is off: the scan itself moves mu^.
 
     **Past a peak**: a change of rail can leave mu^ almost where it was (a dry rail after a patch whose
     peak lay far out: the dry curve's tail, at the creep the patch carried, gives about the patch's peak
@@ -201,7 +202,7 @@ class Identified(ExtremumSeeking):
     large moves, the dither only the corrections, and a smaller dither ripples the torque less."""
     name = "identified"
     defaults = {"hold_fraction": 0.98, "jump_ratio": 1.5, "rearm_s": 0.3, "drop_fraction": 1.0,
-                "change_mu": 0.02, "cap_kmh": 0.75, "scan_kmh_per_s": 4.0, "scan_settle_s": 0.03,
+                "change_mu": 0.02, "cap_kmh": 0.7, "scan_kmh_per_s": 4.0, "scan_settle_s": 0.03,
                 "scan_filter_s": 0.01, "scan_drop_mu": 0.004, "scan_flat_kmh": 0.25,
                 "past_slope": 0.02, "past_s": 0.05, "rise_mu": 0.008, **ExtremumSeeking.defaults,
                 "dither_kmh": 0.05, "gain": 480.0, "max_kmh": 1.6}
