@@ -155,9 +155,10 @@ class Identified(ExtremumSeeking):
     Why: with the peak creep of the new rail unknown, the creep the old rail carried may be past twice
     it (macro-slip) on a wet patch after a dry rail, and on a dry rail after a patch whose peak lay far
     out; ``cap_kmh`` = 0.7 km/h is below twice the lowest peak creep of the TCU's prior family
-    (``default``: 0.4 km/h) by the dither's amplitude and the creep loop's overshoot (0.05 km/h each: a
-    climb from 0.75 on a patch peaking at 0.41 km/h ended at 0.80 and the dither took the creep past 0.82),
-    and a climb at 4 km/h/s finds a peak the dither would take seconds to reach.  During a scan the change test is off: the scan itself moves mu^.
+    (``default``: 0.4 km/h) by the dither's amplitude and the creep loop's overshoot (about 0.05 km/h
+    each): on a patch whose peak is the lowest, the climb from the cap ends near it and the dither rides
+    on top.  A climb at 4 km/h/s finds a peak the dither would take seconds to reach.  During a scan the
+    change test is off: the scan itself moves mu^.
 
     **Past a peak**: a change of rail can leave mu^ almost where it was (a dry rail after a patch whose
     peak lay far out: the dry curve's tail, at the creep the patch carried, gives about the patch's peak

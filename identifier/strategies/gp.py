@@ -74,15 +74,14 @@ extrapolated from before the slip drifts over the tenths of a second a closed lo
 test fires through a transition, so the last restart dates its end and the posterior holds the new
 rail only.  With ``track_train_speed`` the line is fitted again at every sample, to the latest
 ``baseline_readings`` readings, and the creep uses it at that sample: a line extrapolated from a restart
-drifts as the train's acceleration changes with the torque the law commands (in the bench's family by
-0.03-0.06 km/h of creep over 0.4 s, always low, which put the peak creep below its 90 % interval in 8 of 10
-closed-loop confirmations, docs/design/control.md).  And in closed loop a published interval is never
-narrower than ``floor_peak_mu`` / ``floor_peak_creep_kmh`` either side of its median: the law holds the
-creep near the peak for tenths of a second, the posterior's white-noise model then narrows the peak to
-+-0.0002 in mu, and what it leaves out (the line's remaining lag, about 0.02 km/h at its 1st percentile;
-the model's own errors, up to 0.0003 in peak mu on those ten) is larger.  The confirmation's test is
-unchanged, and in open loop, where the slip crosses the peak within tens of milliseconds, so are the
-intervals.  Nothing is confirmed before the settling restart.  And a maximum at the lowest creep seen
+drifts as the train's acceleration changes with the torque the law commands, and the creep with it,
+always the same way, so the peak creep comes out biased and outside its interval.  And in closed loop
+a published interval is never narrower than ``floor_peak_mu`` / ``floor_peak_creep_kmh`` either side of
+its median: the law holds the creep near the peak for tenths of a second, and the posterior, whose
+errors are white, then narrows below what it leaves out (the line's remaining lag, the model's own
+errors; the floors are of their size).  The confirmation's test is unchanged, and in open loop, where
+the slip crosses the peak within tens of milliseconds, so are the intervals (docs/design/control.md
+measures both).  Nothing is confirmed before the settling restart.  And a maximum at the lowest creep seen
 since the restart is the data's edge, not a peak (the fall may have begun below): while more than
 (1 - ``confirm_level``) / 2 of the draws put it there, nothing is confirmed (as B bounds the rise
 above).  So a closed-loop confirmation needs the new rail's samples to span creeps on both sides of
@@ -151,7 +150,7 @@ DEFAULTS = {
     "sigma_y_fallback": 0.005,           # rad/s, when there is no baseline
     "compiled": True,                    # the filter step and the peak draws by identifier/kernels.py; False: numpy
     "rail_changes": True,                # in closed loop: date changes of rail and drop the samples before them
-    "track_train_speed": True,           # in closed loop (with rail_changes): the train-speed line refitted every sample
+    "track_train_speed": True,           # in closed loop (with rail_changes): the line refitted every sample
     "floor_peak_mu": 0.001,              # in closed loop: the published interval's least half-width, peak mu ...
     "floor_peak_creep_kmh": 0.02,        # ... and peak creep (km/h)
     "change_settle_s": 0.2,              # closed loop: the samples of this long from the slip's start are dropped
@@ -254,7 +253,8 @@ class GpStrategy(SpeedModelStrategy):
         need(isinstance(o["rail_changes"], bool), "rail_changes", "true or false")
         need(isinstance(o["track_train_speed"], bool), "track_train_speed", "true or false")
         for key, top in (("floor_peak_mu", 1.0), ("floor_peak_creep_kmh", 10.0)):
-            need(0.0 <= float(o[key]) <= top, key, f"in [0, {top}]")
+            need(isinstance(o[key], (int, float)) and not isinstance(o[key], bool) and 0.0 <= o[key] <= top,
+                 key, f"a number in [0, {top}]")
         for key in ("change_settle_s", "change_min_mu", "change_fall_slope", "change_rise_slope"):
             need(isinstance(o[key], (int, float)) and math.isfinite(o[key]) and o[key] >= 0, key, "a number >= 0")
         for key in ("confirm_level", "report_level"):
