@@ -393,8 +393,8 @@ class Session:
         if not self.record:
             return
         if self.path.exists():        # said when it happens: a run that fails before this leaves the old log
-            log(f"warning: replacing {self.path} (a log of an earlier run with the same scenario, strategy, seed, "
-                "plant and effects)")
+            log(f"warning: replacing {self.path}\n  (a log of an earlier run with the same scenario, strategy, "
+                "seed, plant and effects)")
         plant = self.plant
         dbc_path = Path(self.mapping.dbc_path) if self.mapping is not None else DBC_PATH
         dbc = {"name": dbc_path.name, "text": dbc_path.read_text()}     # the checks decode frames with it

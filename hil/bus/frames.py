@@ -379,7 +379,7 @@ def bus_load(db, period_s: float, heartbeat_period_s: float, bitrate: int, data_
 
 
 def format_bus_load(load: dict) -> str:
+    """Two lines for a terminal: the load, then the settings it was computed at (indented)."""
     return (f"bus load {load['load_percent']:.1f} % (peak {load['peak_load_percent']:.1f} % with a sample and a result "
-            f"frame) at "
-            f"{load['bitrate'] / 1e3:g} kbit/s arbitration, {load['data_bitrate'] / 1e6:g} Mbit/s data, "
+            f"frame)\n  at {load['bitrate'] / 1e3:g} kbit/s arbitration, {load['data_bitrate'] / 1e6:g} Mbit/s data, "
             f"{load['period_s'] * 1e3:g} ms exchange period")

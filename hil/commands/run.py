@@ -126,8 +126,9 @@ def print_summary(s: dict, file=sys.stdout, heading: str | None = None) -> None:
         print(f"  identified at {_fmt(s['t_identified_s'], '.3f')} s: RT {_fmt(s['rt_percent'], '.1f')} % after "
               f"{s['corrections']} corrections", file=file)
     elif s.get("unconfirmed"):
-        print(f"  UNCONFIRMED: the TCU gave up after {s['corrections']} corrections (the data did not pin the curve); "
-              "its best estimate:", file=file)
+        print(f"  UNCONFIRMED: the TCU gave up after {s['corrections']} corrections (the data did not pin the curve)",
+              file=file)
+        print("  its best estimate:", file=file)
     else:
         print(f"  NOT identified within the run ({s['corrections']} corrections)", file=file)
     if s.get("params"):
@@ -135,22 +136,23 @@ def print_summary(s: dict, file=sys.stdout, heading: str | None = None) -> None:
         if s.get("peak_mu_ci") and s.get("peak_creep_ci"):
             (m0, m1), (c0, c1) = s["peak_mu_ci"], s["peak_creep_ci"]
             print(f"  how sure (90 % intervals): peak mu {m0:.4f} .. {m1:.4f}, peak creep {c0:.3f} .. {c1:.3f} km/h"
-                  + (" (open: the peak may lie past the creeps seen; the upper ends are the TCU's range)"
+                  + ("\n    (open: the peak may lie past the creeps seen; the upper ends are the TCU's range)"
                      if s.get("peak_interval_open") else ""), file=file)
         print(f"  fit: MSE {_fmt(s['mse'], '.3e')}  RMSE {_fmt(s['rmse'], '.3e')}  MAE {_fmt(s['mae'], '.3e')}  "
               f"R2 {_fmt(s['r2'], '.5f')}", file=file)
         print(f"  vs true curve: peak mu error {_fmt(s['peak_mu_err_percent'], '.2f')} %, peak creep error "
               f"{_fmt(s['peak_creep_err_percent'], '.2f')} %, R2 {_fmt(s.get('r2_vs_truth'), '.5f')} "
               f"(on 0..2x its peak creep)"
-              + ("; its 90 % intervals MISS the true peak" if s.get("peak_ci_holds_truth") is False else ""), file=file)
+              + ("\n    its 90 % intervals MISS the true peak" if s.get("peak_ci_holds_truth") is False else ""),
+              file=file)
     print(f"  observer lag {_fmt(s.get('observer_lag_ms'), '.1f')} ms; "
           f"{_fmt(s.get('sim_s'), '.2f')} s simulated in {_fmt(s.get('wall_s'), '.2f')} s", file=file)
     if s.get("adhesion_utilisation") is not None:
         print(f"  traction ({s.get('control')}): adhesion utilisation {_fmt(s['adhesion_utilisation'], '.3f')}, "
               f"where it matters {_fmt(s.get('adhesion_utilisation_low'), '.3f')}; macro-slip "
-              f"{_fmt(s.get('macro_slip_s'), '.3f')} s ({s.get('macro_slip_count')}x); reaction "
-              f"{_fmt(s.get('reaction_ms'), '.1f')} ms, recovery {_fmt(s.get('recovery_s'), '.3f')} s, ripple "
-              f"{_fmt(s.get('torque_ripple_percent'), '.2f')} %", file=file)
+              f"{_fmt(s.get('macro_slip_s'), '.3f')} s ({s.get('macro_slip_count')}x)", file=file)
+        print(f"    reaction {_fmt(s.get('reaction_ms'), '.1f')} ms, recovery {_fmt(s.get('recovery_s'), '.3f')} s, "
+              f"ripple {_fmt(s.get('torque_ripple_percent'), '.2f')} %", file=file)
     if s.get("mode") in ("lockstep", "realtime"):
         line = f"  {s['mode']} over {s['bus']}: round trip p50 {_fmt(s.get('round_trip_p50_us'), '.0f')} us"
         if s["mode"] == "realtime":

@@ -77,7 +77,8 @@ rail only.  With ``track_train_speed`` the line is fitted again at every sample,
 drifts as the train's acceleration changes with the torque the law commands, and the creep with it,
 always the same way, so the peak creep comes out biased and outside its interval.  And in closed loop
 a published interval is never narrower than ``floor_peak_mu`` / ``floor_peak_creep_kmh`` either side of
-its median: the law holds the creep near the peak for tenths of a second, and the posterior, whose
+its median (an open one excepted: its upper ends are the range's): the law holds the creep near the
+peak for tenths of a second, and the posterior, whose
 errors are white, then narrows below what it leaves out (the line's remaining lag, the model's own
 errors; the floors are of their size).  The confirmation's test is unchanged, and in open loop, where
 the slip crosses the peak within tens of milliseconds, so are the intervals (docs/design/control.md
@@ -511,15 +512,16 @@ class GpStrategy(SpeedModelStrategy):
         """The event of ``kind`` with the median peak and the intervals at ``report_level`` (rows 1-3
         of ``q``, the quantiles of ``_evaluate``; columns peak mu, peak creep)."""
         (mu_lo, creep_lo), (mu_mid, creep_mid), (mu_hi, creep_hi) = q[1], q[2], q[3]
-        if self.closed_loop:           # never narrower than the floors (module docstring)
-            f_mu, f_creep = float(self.opts["floor_peak_mu"]), float(self.opts["floor_peak_creep_kmh"])
-            mu_lo, mu_hi = min(mu_lo, mu_mid - f_mu), max(mu_hi, mu_mid + f_mu)
+        peak_open = self._open_beyond(float(self.opts["report_level"]))
+        if self.closed_loop and not peak_open:     # never narrower than the floors (module docstring); an open
+            f_mu, f_creep = float(self.opts["floor_peak_mu"]), float(self.opts["floor_peak_creep_kmh"])  # one's
+            mu_lo, mu_hi = min(mu_lo, mu_mid - f_mu), max(mu_hi, mu_mid + f_mu)        # upper ends stay the range's
             creep_lo, creep_hi = min(creep_lo, creep_mid - f_creep), max(creep_hi, creep_mid + f_creep)
         self.theta_peak = (float(mu_mid), float(creep_mid))
         mu0, a, r = self._shape
         theta = theta_from_phi_floats((float(mu_mid), float(creep_mid), min(mu0, 0.5 * float(mu_mid)), a, r))
         return self.event(s, kind, theta, (float(mu_lo), float(mu_hi)), (float(creep_lo), float(creep_hi)),
-                          peak_open=self._open_beyond(float(self.opts["report_level"])))
+                          peak_open=peak_open)
 
     def fit_shape(self, peak_mu: float, peak_creep_kmh: float) -> tuple[float, float, float]:
         """(mu(0), a, r) of identifier/prior.py's form, on SHAPE_GRID, whose curve through the peak
