@@ -396,6 +396,8 @@ def summarise(records: list[dict]) -> dict:
     outside_like = [r for r in records if r["kind"] in ("rail", "outside", "out_of_library")]
     confident = [r for r in records if r["confidence"] == "confident"]
     confident_wrong = sum(not r["grade_right"] for r in confident)
+    # `not_separable` answers whose truth is in the library: right when the list holds every true class
+    listed = [r for r in records if r["confidence"] == "not_separable" and r["truth_classes"]]
     return {
         "cases": len(records), "by_kind": {k: sum(r["kind"] == k for r in records) for k in KINDS},
         "calibration": calibration(records),
@@ -404,6 +406,8 @@ def summarise(records: list[dict]) -> dict:
         "confident_wrong_outside_and_nuisance": sum(r["confidence"] == "confident" and not r["grade_right"]
                                                     for r in outside_like),
         "outside_and_nuisance_cases": len(outside_like),
+        "not_separable_library_truth": len(listed),
+        "not_separable_lists_truth": _rate(listed, "grade_right"),
         "none_accuracy_out_of_library": _rate(ool), "grade_right_out_of_library": _rate(ool, "grade_right"),
         "nominal_no_gap": _rate([dict(r, no_gap=not r["gap_present"]) for r in records if r["kind"] == "nominal"],
                                 "no_gap"),
@@ -483,6 +487,9 @@ def markdown(result: dict) -> str:
              f"| confident wrong among rail, outside and out-of-library cases | "
              f"{result.get('confident_wrong_outside_and_nuisance')} of {result.get('outside_and_nuisance_cases')} | "
              "0 of >= 60 |",
+             f"| 'not_separable' lists every true class, truth in the library "
+             f"({result.get('not_separable_library_truth', 0)} answers) | "
+             f"{pct(result.get('not_separable_lists_truth'))} | >= 90 % |",
              f"| out-of-library family: 'none' / right for its grade | {pct(result.get('none_accuracy_out_of_library'))}"
              f" / {pct(result.get('grade_right_out_of_library'))} | >= 90 % |",
              f"| nominal row: no gap | {pct(result.get('nominal_no_gap'))} | 100 % |",
@@ -611,7 +618,9 @@ def summary_text(result: dict) -> str:
                      + f"; confident wrong {result['confident_wrong']} of {result['confident_cases']} (95 % upper "
                      f"bound {f(result['confident_wrong_upper95'], '.3f')}); out-of-library 'none' "
                      f"{f(result['none_accuracy_out_of_library'], '.3f')}; nominal no gap "
-                     f"{f(result['nominal_no_gap'], '.3f')}")
+                     f"{f(result['nominal_no_gap'], '.3f')}; 'not_separable' lists every true class "
+                     f"{f(result.get('not_separable_lists_truth'), '.3f')} of the "
+                     f"{result.get('not_separable_library_truth', 0)} with the truth in the library")
     lines.append(f"  the limit (the truth scored as a candidate, {result['oracle_cases']} cases): held-out forms told "
                  f"apart {result['held_out_separable']} (top-1 there {f(result['top1_accuracy_held_out_separable'], '.3f')}), "
                  f"beyond the log {result['held_out_beyond_the_log']}; two-effect told apart "
