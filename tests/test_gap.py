@@ -486,6 +486,22 @@ def test_the_veto_in_time_keeps_a_true_delay_under_a_load_transfer(tmp_path, sce
     assert which["confidence"] == "confident" and which["named_set"] == ["can", "load_transfer"], which["verdict"]
 
 
+def test_a_first_effect_only_most_likely_alone_is_named_when_the_pair_settles_it(tmp_path, scenario):
+    """Issue 35: a resistance under a sensor delay (case 62 of the 300-case two-effect bench, seed
+    1782120538, the delay's own form held out).  Alone the delay removes most of the gap but does not beat
+    compliance by the margin ("most likely sensor_delay"); the resistance on top is accepted.  Before,
+    only the resistance was named.  Now compliance's best with the same resistance on top is fitted too,
+    the pair beats it by the margin, and both are named."""
+    effects, out, _ = _bench_case(tmp_path, scenario, 1782120538, 62, "two_effect=1")
+    assert set(effects) == {"resistance", "sensor_delay"}
+    which, fw = out["which"], out["which"]["forward"]
+    print(fw["first"], fw["second"], fw.get("runner_pair"), fw.get("pair_vs_runner"), which["verdict"][:300])
+    assert fw["accepted"] and fw["first"] == "sensor_delay" and fw["second"] == "resistance"
+    assert EFFECTS[fw["runner_pair"]["first"]].effect_class == "compliance", fw["runner_pair"]
+    assert fw["pair_vs_runner"] == "pair"
+    assert which["confidence"] == "confident" and which["named_set"] == ["resistance", "sensor_delay"]
+
+
 def test_the_veto_in_time_rejects_a_pair_that_removes_next_to_none_of_a_large_gap(tmp_path, scenario):
     """Issue 35: on a constant-power limit (outside the library; power_ratio 1.0441, run seed 1228207239,
     a case the veto was measured on) forward selection's best pair (an adhesion lag on the drivetrain

@@ -494,6 +494,20 @@ def forward(ctx: Context, nom_fit: Fit, base: dict, first: Fit, first_row: dict,
             out["pair_vs_rail"] = "pair"
     else:
         out["pair_vs_rail"] = "pair"
+    runner1 = next((r for r in explanations(ranking, None) if r["effect"] != first_row["effect"]), None)
+    if out["accepted"] and runner1 is not None and not beats(first_row, runner1) \
+            and runner1["effect"] != second["effect"] and runner1["candidate"] in by_name:
+        # the first was only "most likely" alone (another class within the margin of it): is it the first
+        # of the pair, or is that class?  The other class's best with the same second effect on top
+        cand, other = by_name[second["candidate"]], by_name[runner1["candidate"]]
+        try:
+            f_other = other.fit(ctx, nom_fit)
+            r2 = entry(ctx, cand.fit(ctx.on_top_of(f_other), pseudo(f_other, nom_fit)), base)
+            out["runner_pair"] = {"first": runner1["candidate"], "held_out_shrink": r2["held_out_shrink"],
+                                  "score_gain": r2["score_gain"], "held_out_gap": r2["held_out_gap"]}
+            out["pair_vs_runner"] = "pair" if beats(second, r2) else "not_separable"
+        except FIT_ERRORS as e:               # the first stays "most likely"
+            failed.append(failure(cand.name, f"on top of {runner1['candidate']}", e))
     if out["accepted"]:
         # and the pair must win on data held out in time: fitted without the last stage, judged on it (the
         # pair named: the rail curve with the second when that explains it better than the first with it)
@@ -616,9 +630,11 @@ def pseudo(fit: Fit, nom_fit: Fit) -> Fit:
 
 def rejudge(named, named_set, verdict, confidence, best, fw, ranking=()):
     """The answer once forward selection accepted a second effect.  A first effect that was only
-    "most likely" alone because it did not beat the rail nuisance by the margin is named with the
-    second when the pair beats the rail curve with the same second effect (that comparison is the
-    test of the first against the rail, now that the second no longer hides in its remainder)."""
+    "most likely" alone because it did not beat the rail nuisance or another class's best by the
+    margin is named with the second when the pair beats the rail curve with the same second effect
+    and that class's best with it (``pair_vs_runner``), or that class is the second's: those
+    comparisons test the first against its rivals now that the second no longer hides in its
+    remainder."""
     first, second = fw["first"], fw["second"]
     pair = (f"{second} ({fw['second_form']}) on top of {first} ({fw['first_form']}) removes "
             f"{fw['second_removes_of_remainder'] * 100:.0f} % "
@@ -632,7 +648,9 @@ def rejudge(named, named_set, verdict, confidence, best, fw, ranking=()):
         return second, [second], (f"{second} found, and rail or {what(first)}: not separable in this log; "
                                   f"{pair}"), "confident"
     runner = next((r for r in ranking if r["effect"] != best["effect"]), None)
-    only_the_rail = (runner is None or beats(best, runner)) and not any(best["at_bound"].values())
+    runner_settled = runner is None or beats(best, runner) or runner["effect"] == second \
+        or fw.get("pair_vs_runner") == "pair"
+    only_the_rail = runner_settled and not any(best["at_bound"].values())
     if confidence == "tentative" and not (only_the_rail and "rail_pair" in fw):
         return second, [second], (f"{second} found; {pair}; {first} is only the most likely first effect "
                                   f"({verdict})"), "confident"
