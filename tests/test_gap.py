@@ -519,7 +519,8 @@ def test_the_veto_in_time_rejects_a_pair_that_removes_next_to_none_of_a_large_ga
     veto = time_veto(result.ctx, fw["first_candidate"], (fw["first_candidate"], fw["second_candidate"]), True, [])
     pair, first = veto["rows"][0], veto["rows"][1]
     print(fw["first_candidate"], fw["second_candidate"], veto["held_out"],
-          [(r["explanation"], round(r["held_out_gap"], 2), round(r.get("pair_profile_gain", 0), 1)) for r in veto["rows"]])
+          [(r["explanation"], round(r["held_out_gap"], 2), round(r.get("pair_profile_gain", 0), 1))
+           for r in veto["rows"]])
     assert first["held_out_gap"] > 100 and pair["score_gain"] - first["score_gain"] > 1000 * MIN_MARGIN
     assert first["pair_profile_gain"] < MIN_MARGIN
     assert not veto["pair_wins"] and fw["first_candidate"] in veto["why"], veto["why"]

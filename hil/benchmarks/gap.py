@@ -468,8 +468,9 @@ def markdown(result: dict) -> str:
              f"(seed drawn at run time: {result['seed_drawn']}); wall {result['wall_s']:.0f} s, "
              f"median diagnosis {f(result['median_diagnosis_s'], '.1f')} s.", "",
              "Cases by kind: " + ", ".join(f"{k} {v}" for k, v in result["by_kind"].items()), "",
-             "| figure | measured | target (issue 18) |", "|---|---|---|",
-             f"| top-1, single effects in a held-out form | {pct(result['top1_accuracy_held_out_forms'])} | >= 90 % |",
+             "| figure | measured | target (issues 18 and 35) |", "|---|---|---|",
+             f"| top-1, single effects in a held-out form | {pct(result['top1_accuracy_held_out_forms'])} | >= 80 % of "
+             "those told apart, never a wrong class |",
              f"| top-1, single effects in the candidates' form | {pct(result['top1_accuracy_library_forms'])} | - |",
              f"| set accuracy (all cases) | {pct(result['set_accuracy'])} | - |",
              f"| false-confident rate (all cases) | {pct(result['false_confident_rate'])} | <= 2 % |",

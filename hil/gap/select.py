@@ -328,7 +328,9 @@ def forward(ctx: Context, nom_fit: Fit, base: dict, first: Fit, first_row: dict,
     its bounds; and, as a single effect must (issue 35), the pair beats every class's best single
     candidate by the margin (``beats``), no parameter of it sits at a bound of its range but a zero
     floor (``implausible``), and the pair or the rail curve with the same second effect beats the rail
-    curve alone.  The pair is then compared with the rail curve plus the same second effect, and, last
+    curve alone.  The pair is then compared with the rail curve plus the same second effect (``pair_vs_rail``)
+    and, when the first alone did not beat another class's best by the margin, with that class's best
+    plus the same second effect (``pair_vs_runner``, read by ``rejudge``), and, last
     (it costs fits), the pair named must win on data held out in time (``time_veto``: fitted without the
     serious stage, judged on it).  ``rejected_because`` says which test failed.  ``exclude``: candidates
     not to offer; a fit that fails at any step is appended to ``failed`` (a second effect whose fit on
