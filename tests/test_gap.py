@@ -502,6 +502,20 @@ def test_a_first_effect_only_most_likely_alone_is_named_when_the_pair_settles_it
     assert which["confidence"] == "confident" and which["named_set"] == ["resistance", "sensor_delay"]
 
 
+def test_a_pair_is_fitted_in_a_form_within_its_range(tmp_path, scenario):
+    """Issue 35: a static load transfer under a sensor low-pass (case 5 of the 300-case two-effect bench,
+    seed 1667270391, the low-pass's own form held out).  Fitted together with the delay, the pitching form
+    of the load transfer scored best with its pitch frequency run to a bound of its range, and the pair
+    was rejected as implausible ("not_separable: load_transfer or the rail curve").  A pair within its
+    range is now preferred to a better score off it: both are named."""
+    effects, out, _ = _bench_case(tmp_path, scenario, 1667270391, 5, "two_effect=1")
+    assert set(effects) == {"load_transfer", "sensor_lowpass"}
+    which, fw = out["which"], out["which"]["forward"]
+    print(fw["first_candidate"], fw["second_candidate"], fw["first_params"], fw["rejected_because"])
+    assert fw["accepted"] and not fw["rejected_because"]
+    assert which["confidence"] == "confident" and which["named_set"] == ["load_transfer", "sensor_delay"]
+
+
 def test_the_veto_in_time_rejects_a_pair_that_removes_next_to_none_of_a_large_gap(tmp_path, scenario):
     """Issue 35: on a constant-power limit (outside the library; power_ratio 1.0441, run seed 1228207239,
     a case the veto was measured on) forward selection's best pair (an adhesion lag on the drivetrain

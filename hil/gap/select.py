@@ -372,10 +372,15 @@ def forward(ctx: Context, nom_fit: Fit, base: dict, first: Fit, first_row: dict,
                     say(f"forward selection: {c1.name} and {cand.name} fitted together")
                     jf = fit_pair(ctx, c1, cand, r1["params"], f2.extra[cand.ARGUMENT[cand.form]],
                                   f2.extra["x0"])
-                    jrow = entry(ctx, jf, base)
-                    if jrow["score_gain"] > row["score_gain"]:
-                        row = dict(jrow, first_params=jf.extra["plant_params"], first_form=r1["form"],
-                                   first_candidate=c1.name)
+                    jrow = dict(entry(ctx, jf, base), first_params=jf.extra["plant_params"], first_form=r1["form"],
+                                first_candidate=c1.name)
+                    # the better pair: a plausible one (no parameter off its range) before the best score
+                    # (a form that runs off its range to score well would be rejected as implausible,
+                    # where another form of the same class fits the pair within its range)
+                    now = by_name.get(row.get("first_candidate", first.name), first_cand)
+                    if (not implausible(jrow, [c1, cand]), jrow["score_gain"]) > \
+                            (not implausible(row, [now, cand]), row["score_gain"]):
+                        row = jrow
                         joint.add(cand.name)
                 except FIT_ERRORS as e:       # keep the greedy fit
                     failed.append(failure(cand.name, f"together with {c1.name}", e))
