@@ -168,7 +168,8 @@ class Diagnosis:
         if gap_present and FORWARD_MIN_SHARE <= best["held_out_shrink"] and best["held_out_gap"] > NOISE_GAP and \
                 not within_noise(rail) and \
                 (best["held_out_shrink"] < FORWARD_MAX_SHARE or best["held_out_gap"] >= FORWARD_MIN_LEFT):
-            forward_ = forward(ctx, nom_fit, base, best_fit, best, rail_fit, ranking, exclude, failed, say)
+            forward_ = forward(ctx, nom_fit, base, best_fit, best, rail_fit, ranking, exclude, failed, say,
+                               alone={f.name: f for f in fits})
             if forward_ is not None and forward_["accepted"]:
                 named, named_set, verdict, confidence = rejudge(named, named_set, verdict, confidence, best,
                                                                 forward_, ranking)

@@ -319,7 +319,7 @@ def judge(base, ranking, rail, gap_present):
 
 # -- forward selection -----------------------------------------------------------------------------
 def forward(ctx: Context, nom_fit: Fit, base: dict, first: Fit, first_row: dict, rail_fit, ranking, exclude,
-            failed: list, say=quiet) -> dict | None:
+            failed: list, say=quiet, alone: dict | None = None) -> dict | None:
     """Second step of forward selection: every form of every other class fitted on top of the first
     (its parameters held), judged on held-out data against the first alone.  Sensor-level pairs are not
     tried (a delay on a delay is one delay).  Accepted when the best second effect removes at least
@@ -333,7 +333,8 @@ def forward(ctx: Context, nom_fit: Fit, base: dict, first: Fit, first_row: dict,
     plus the same second effect (``pair_vs_runner``, read by ``rejudge``), and, last
     (it costs fits), the pair named must win on data held out in time (``time_veto``: fitted without the
     serious stage, judged on it).  ``rejected_because`` says which test failed.  ``exclude``: candidates
-    not to offer; a fit that fails at any step is appended to ``failed`` (a second effect whose fit on
+    not to offer; ``alone``: the single candidates' fits by name (the rival class's best is built on, not
+    fitted again); a fit that fails at any step is appended to ``failed`` (a second effect whose fit on
     top fails is not ranked; a failed joint fit or refit keeps the fit it would replace)."""
     if first.name == "sensor_quantisation":
         return None
@@ -501,14 +502,14 @@ def forward(ctx: Context, nom_fit: Fit, base: dict, first: Fit, first_row: dict,
             out["pair_vs_rail"] = "pair"
     else:
         out["pair_vs_rail"] = "pair"
-    runner1 = next((r for r in explanations(ranking, None) if r["effect"] != first_row["effect"]), None)
-    if out["accepted"] and runner1 is not None and not beats(first_row, runner1) \
-            and runner1["effect"] != second["effect"] and runner1["candidate"] in by_name:
+    runner1 = next((r for r in ranking if r["effect"] != first_row["effect"]), None)   # as ``rejudge``'s
+    f_other = (alone or {}).get(runner1["candidate"]) if runner1 is not None else None
+    if out["accepted"] and f_other is not None and not beats(first_row, runner1) \
+            and runner1["effect"] != second["effect"]:
         # the first was only "most likely" alone (another class within the margin of it): is it the first
         # of the pair, or is that class?  The other class's best with the same second effect on top
-        cand, other = by_name[second["candidate"]], by_name[runner1["candidate"]]
+        cand = by_name[second["candidate"]]
         try:
-            f_other = other.fit(ctx, nom_fit)
             r2 = entry(ctx, cand.fit(ctx.on_top_of(f_other), pseudo(f_other, nom_fit)), base)
             out["runner_pair"] = {"first": runner1["candidate"], "held_out_shrink": r2["held_out_shrink"],
                                   "score_gain": r2["score_gain"], "held_out_gap": r2["held_out_gap"]}

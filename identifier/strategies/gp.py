@@ -78,9 +78,8 @@ drifts as the train's acceleration changes with the torque the law commands, and
 always the same way, so the peak creep comes out biased and outside its interval.  And in closed loop
 a published interval is never narrower than ``floor_peak_mu`` / ``floor_peak_creep_kmh`` either side of
 its median (an open one excepted: its upper ends are the range's): the law holds the creep near the
-peak for tenths of a second, and the posterior, whose
-errors are white, then narrows below what it leaves out (the line's remaining lag, the model's own
-errors; the floors are of their size).  The confirmation's test is unchanged, and in open loop, where
+peak for tenths of a second, and the posterior, whose errors are white, then narrows below what it
+leaves out (the line's remaining lag, the model's own errors; the floors are of their size).  The confirmation's test is unchanged, and in open loop, where
 the slip crosses the peak within tens of milliseconds, so are the intervals (docs/design/control.md
 measures both).  Nothing is confirmed before the settling restart.  And a maximum at the lowest creep seen
 since the restart is the data's edge, not a peak (the fall may have begun below): while more than
@@ -513,9 +512,11 @@ class GpStrategy(SpeedModelStrategy):
         of ``q``, the quantiles of ``_evaluate``; columns peak mu, peak creep)."""
         (mu_lo, creep_lo), (mu_mid, creep_mid), (mu_hi, creep_hi) = q[1], q[2], q[3]
         peak_open = self._open_beyond(float(self.opts["report_level"]))
-        if self.closed_loop and not peak_open:     # never narrower than the floors (module docstring); an open
-            f_mu, f_creep = float(self.opts["floor_peak_mu"]), float(self.opts["floor_peak_creep_kmh"])  # one's
-            mu_lo, mu_hi = min(mu_lo, mu_mid - f_mu), max(mu_hi, mu_mid + f_mu)        # upper ends stay the range's
+        # in closed loop never narrower than the floors (module docstring); an open interval's upper ends
+        # stay the range's
+        if self.closed_loop and not peak_open:
+            f_mu, f_creep = float(self.opts["floor_peak_mu"]), float(self.opts["floor_peak_creep_kmh"])
+            mu_lo, mu_hi = min(mu_lo, mu_mid - f_mu), max(mu_hi, mu_mid + f_mu)
             creep_lo, creep_hi = min(creep_lo, creep_mid - f_creep), max(creep_hi, creep_mid + f_creep)
         self.theta_peak = (float(mu_mid), float(creep_mid))
         mu0, a, r = self._shape
