@@ -35,8 +35,8 @@ parameter error where the forms match.
 
 Per grade (``calibration``), the fraction of right answers (issue 35): ``confident`` / ``tentative``
 right when every effect named (for ``tentative`` the "most likely" one) is a true effect;
-``not_separable`` when its list holds every true class (the rail curve for a nuisance; any list for
-a truth outside the library); ``nuisance`` when the rail's curve differs; ``none`` when the truth is
+``not_separable`` when its list holds every true class (a pair listed holds both of its classes; the
+rail curve for a nuisance; any list for a truth outside the library); ``nuisance`` when the rail's curve differs; ``none`` when the truth is
 outside the library, nominal, or beyond what the log tells apart (the oracle).  ``--doc DIR`` writes it
 to ``DIR/gap-calibration.json``, which ``hil gap`` prints beside its answer.
 
@@ -263,7 +263,7 @@ def run_case(scenario, kind: str, effects: dict, run_seed: int, out_dir: Path, i
            "oracle": limit, "excluded": held_out, "ranked_candidates": [r["candidate"] for r in which["ranking"]],
            "failed_candidates": which["failed_candidates"], "gap_present": which["gap_present"],
            "member": member_of(kind, effects),
-           "not_separable": [a["effect"] for a in which.get("not_separable") or []],
+           "not_separable": ["+".join(a.get("effects") or [a["effect"]]) for a in which.get("not_separable") or []],
            "forward": {k: (which["forward"] or {}).get(k) for k in ("first", "second", "accepted", "rejected_because")}
            if which["forward"] else None,
            "veto_in_time": ((which["forward"] or {}).get("held_out_in_time") or {}).get("pair_wins")}
@@ -314,7 +314,7 @@ def grade_right(rec: dict, which: dict) -> bool:
     if grade == "tentative":
         return which["ranking"][0]["effect"] in truth
     if grade == "not_separable":
-        listed = {a["effect"] for a in which.get("not_separable") or []}
+        listed = {e for a in which.get("not_separable") or [] for e in a.get("effects") or [a["effect"]]}
         return truth <= listed and (not rail or "rail_curve" in listed)
     if grade == "nuisance":
         return rail

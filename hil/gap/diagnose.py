@@ -34,8 +34,8 @@ from .candidates import SIGNALS, UNITS, Context, Fit, candidates, fit_nominal
 from .identify import identification
 from .model import ObserverReplica, initial_line
 from .select import (FORWARD_MIN_SHARE, MARGIN_GAP_RATIO, MIN_GAP, MIN_MARGIN, MIN_SCORE_GAIN, MIN_SHRINK, NOISE_GAP,
-                     NONE, entry, fit_candidates, fit_rail, forward, judge, label, quantiser, rejudge, score,
-                     within_noise)
+                     NONE, entry, fit_candidates, fit_rail, forward, judge, label, pair_explanation, quantiser,
+                     rejudge, score, within_noise)
 from .sparse import describe_residual
 from .where import normal_running_replay, observability, separation, where
 
@@ -172,6 +172,16 @@ class Diagnosis:
             if forward_ is not None and forward_["accepted"]:
                 named, named_set, verdict, confidence = rejudge(named, named_set, verdict, confidence, best,
                                                                 forward_, ranking)
+        listed = [{"explanation": label(r), "effect": r["effect"], "effects": [r["effect"]], "form": r["form"],
+                   "held_out_shrink": r["held_out_shrink"], "held_out_gap": r["held_out_gap"],
+                   "score_gain": r["score_gain"]} for r in alternatives]
+        pair = pair_explanation(forward_, alternatives) if confidence == "not_separable" else None
+        if pair is not None:
+            # the pair forward selection turned away only against the explanations listed: one more of them
+            listed.append(pair)
+            verdict += (f"; or {pair['explanation']}, within the margin of them too (removes "
+                        f"{pair['held_out_shrink'] * 100:.0f} %, leaves {pair['held_out_gap']:.2f} noise units; "
+                        f"not named because {'; '.join(pair['turned_away_because'])})")
         if lattice:
             # named beside whatever explains the mean
             named_set = sorted(named_set + ["sensor_quantisation"])
@@ -198,9 +208,7 @@ class Diagnosis:
             "where": where_,
             "which": {"named": named, "named_set": named_set, "verdict": verdict, "gap_present": gap_present,
                       "confidence": confidence, "nominal_held_out_gap": base["gap"], "ranking": ranking,
-                      "not_separable": [{"explanation": label(r), "effect": r["effect"], "form": r["form"],
-                                         "held_out_shrink": r["held_out_shrink"], "held_out_gap": r["held_out_gap"],
-                                         "score_gain": r["score_gain"]} for r in alternatives],
+                      "not_separable": listed,
                       "separate_by": separate[0] if separate else None,
                       "separate_by_pairs": separate,
                       "nuisances": nuisances, "forward": forward_, "unobservable": unobservable,

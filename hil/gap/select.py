@@ -330,7 +330,9 @@ def forward(ctx: Context, nom_fit: Fit, base: dict, first: Fit, first_row: dict,
     and, when the first alone did not beat another class's best by the margin, with that class's best
     plus the same second effect (``pair_vs_runner``, read by ``rejudge``), and, last
     (it costs fits), the pair named must win on data held out in time (``time_veto``: fitted without the
-    serious stage, judged on it).  ``rejected_because`` says which test failed.  ``exclude``: candidates
+    serious stage, judged on it).  ``rejected_because`` says which test failed; ``own_tests_passed``, that
+    the second passed its own tests and the pair was turned away only against other explanations
+    (``pair_explanation`` lists it then).  ``exclude``: candidates
     not to offer; ``alone``: the single candidates' fits by name (the rival class's best is built on, not
     fitted again); a fit that fails at any step is appended to ``failed`` (a second effect whose fit on
     top fails is not ranked; a failed joint fit or refit keeps the fit it would replace)."""
@@ -452,7 +454,10 @@ def forward(ctx: Context, nom_fit: Fit, base: dict, first: Fit, first_row: dict,
     # the pair must earn its place as a single effect would: beat every class's best single candidate by
     # the margin (``beats``), not only the first alone
     unbeaten = [r["candidate"] for r in explanations(ranking, None) if not beats(second, r)]
-    why = [w for w, bad in (
+    # the second's own tests (does it add to the first, is it this class, is its fit plausible), then the
+    # pair against the other explanations: a pair that passes its own tests and fails only against them
+    # is one more explanation within the margin (``pair_explanation``)
+    own = [w for w, bad in (
         (f"it gains less than {MIN_MARGIN:g} in held-out score over {first_row['effect']} alone",
          second["score_gain"] - first_row["score_gain"] < MIN_MARGIN),
         (f"it removes less than {FORWARD_MIN_REMAINDER * 100:.0f} % of what {first_row['effect']} left",
@@ -462,8 +467,9 @@ def forward(ctx: Context, nom_fit: Fit, base: dict, first: Fit, first_row: dict,
         ("its fit is pinned at its bounds", bool(bounded)),
         (f"parameters at a bound of their range: {', '.join(off_range)}", bool(off_range)),
         (f"the pair removes less than {MIN_SHRINK * 100:.0f} %", second["held_out_shrink"] < MIN_SHRINK),
-        (f"the pair does not beat the single candidate(s) {', '.join(unbeaten)} by the margin", bool(unbeaten)),
     ) if bad]
+    why = own + ([f"the pair does not beat the single candidate(s) {', '.join(unbeaten)} by the margin"]
+                 if unbeaten else [])
     accepted = not why
     out = {"first": first_row["effect"], "first_form": second.get("first_form", first_row["form"]),
            "first_candidate": second.get("first_candidate", first.name), "second_candidate": second["candidate"],
@@ -472,6 +478,8 @@ def forward(ctx: Context, nom_fit: Fit, base: dict, first: Fit, first_row: dict,
            "second_params": second["params"], "first_params": second.get("first_params", first.params),
            "pair_held_out_shrink": second["held_out_shrink"],
            "second_removes_of_remainder": removed, "accepted": bool(accepted), "rejected_because": why,
+           "own_tests_passed": not own, "pair_score_gain": second["score_gain"],
+           "pair_held_out_gap": second["held_out_gap"],
            "ranking": [{k: r[k] for k in ("effect", "form", "params", "score_gain", "held_out_shrink",
                                           "held_out_gap", "at_bound")} for r in rows]}
     if accepted and rail_fit is not None:
@@ -662,6 +670,25 @@ def rejudge(named, named_set, verdict, confidence, best, fw, ranking=()):
                                   f"({verdict})"), "confident"
     return first, sorted([first, second]), (f"{first} and {second} explain the gap: {first} ({best['form']}) "
                                             f"removes {best['share'] * 100:.0f} % alone; {pair}"), "confident"
+
+
+def pair_explanation(fw: dict | None, listed: list) -> dict | None:
+    """The pair forward selection found, as one more explanation of a "not_separable" answer (issue 35
+    item 2: every explanation within the margin of the others is listed): when the second passed its own
+    tests (it adds to the first, beats the other classes' seconds, fits within its range) and the pair
+    was turned away only against other explanations (a single candidate or the rail curve it does not
+    beat by the margin, on the held-out blocks or on data held out in time), and the best explanation
+    listed does not beat it by the margin.  None otherwise.  ``fw``: ``forward``'s answer; ``listed``:
+    the answer's explanations (ranking rows, best first)."""
+    if not fw or fw["accepted"] or not fw.get("own_tests_passed") or not listed:
+        return None
+    row = {"score_gain": fw["pair_score_gain"], "held_out_gap": fw["pair_held_out_gap"]}
+    if beats(listed[0], row):
+        return None
+    return {"explanation": f"{fw['first']} ({fw['first_form']}) with {fw['second']} ({fw['second_form']})",
+            "effect": fw["first"], "effects": sorted({fw["first"], fw["second"]}), "form": fw["first_form"],
+            "held_out_shrink": fw["pair_held_out_shrink"], "held_out_gap": fw["pair_held_out_gap"],
+            "score_gain": fw["pair_score_gain"], "turned_away_because": fw["rejected_because"]}
 
 
 def what(effect: str) -> str:
