@@ -36,9 +36,10 @@ parameter error where the forms match.
 Per grade (``calibration``), the fraction of right answers (issue 35): ``confident`` / ``tentative``
 right when every effect named (for ``tentative`` the "most likely" one) is a true effect;
 ``not_separable`` when its list holds every true class (a pair listed holds both of its classes; the
-rail curve for a nuisance; any list for a truth outside the library); ``nuisance`` when the rail's curve differs; ``none`` when the truth is
-outside the library, nominal, or beyond what the log tells apart (the oracle).  ``--doc DIR`` writes it
-to ``DIR/gap-calibration.json``, which ``hil gap`` prints beside its answer.
+rail curve for a nuisance; any list for a truth outside the library); ``nuisance`` when the rail's
+curve differs; ``none`` when the truth is outside the library, nominal, or beyond what the log tells
+apart (the oracle).  ``--doc DIR`` writes it to ``DIR/gap-calibration.json``, which ``hil gap`` prints
+beside its answer.
 
 Not drawn: ``torque_lag``.  The TCU commands a constant torque, so a first-order torque lag never
 acts and no diagnosis can see it (the gap is zero); it stays in the library and among the candidates.
