@@ -33,9 +33,9 @@ from .calibration import grade_line, read_calibration
 from .candidates import SIGNALS, UNITS, Context, Fit, candidates, fit_nominal
 from .identify import identification
 from .model import ObserverReplica, initial_line
-from .select import (FORWARD_MIN_SHARE, MARGIN_GAP_RATIO, MIN_GAP, MIN_MARGIN, MIN_SCORE_GAIN, MIN_SHRINK, NOISE_GAP,
-                     NONE, entry, fit_candidates, fit_rail, forward, judge, label, pair_explanation, quantiser,
-                     rejudge, score, within_noise)
+from .select import (FORWARD_MAX_SHARE, FORWARD_MIN_LEFT, FORWARD_MIN_SHARE, MARGIN_GAP_RATIO, MIN_GAP, MIN_MARGIN,
+                     MIN_SCORE_GAIN, MIN_SHRINK, NOISE_GAP, NONE, entry, fit_candidates, fit_rail, forward, judge,
+                     label, pair_explanation, quantiser, rejudge, score, within_noise)
 from .sparse import describe_residual
 from .where import normal_running_replay, observability, separation, where
 
@@ -164,9 +164,12 @@ class Diagnosis:
                             f"{sb['between'][1]})")
         forward_ = None
         # nothing is named on top of an explanation that leaves the held-out gap within the noise: the
-        # rail nuisance (``within_noise``) or the best single effect (its gap above NOISE_GAP)
+        # rail nuisance (``within_noise``) or the best single effect (its gap above NOISE_GAP); after a
+        # first that removes most of the gap, not within twice that (``FORWARD_MIN_LEFT``: what a form
+        # that differs from its candidate's leaves, which a small second effect can take half of)
         if gap_present and FORWARD_MIN_SHARE <= best["held_out_shrink"] and best["held_out_gap"] > NOISE_GAP and \
-                not within_noise(rail):
+                not within_noise(rail) and \
+                (best["held_out_shrink"] < FORWARD_MAX_SHARE or best["held_out_gap"] >= FORWARD_MIN_LEFT):
             forward_ = forward(ctx, nom_fit, base, best_fit, best, rail_fit, ranking, exclude, failed, say,
                                alone={f.name: f for f in fits})
             if forward_ is not None and forward_["accepted"]:

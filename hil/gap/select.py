@@ -59,8 +59,9 @@ MIN_SHRINK = 0.8           # fraction of the held-out gap a named effect must re
 MIN_MARGIN = 25.0          # held-out score by which it must beat the runner-up and the nuisance, and ...
 MARGIN_GAP_RATIO = 0.5     # ... the gap it leaves must be at most this fraction of theirs, unless ...
 NOISE_GAP = 0.5            # ... theirs is already this close to the noise floor (noise units)
-FORWARD_MIN_SHARE = 0.15   # forward selection starts from a best single effect removing at least this and
-                           # leaving more than NOISE_GAP (a misfit's remainder is left to forward's own tests)
+FORWARD_MIN_SHARE = 0.15   # forward selection starts from a best single effect removing at least this, and
+FORWARD_MAX_SHARE = 0.9    # ... below this, or (a form that differs from its candidate's leaves a remainder a
+FORWARD_MIN_LEFT = 1.0     # ... second may take) leaving at least this many noise units: twice NOISE_GAP
 FORWARD_MIN_REMAINDER = 0.5  # accepts a second one removing at least this fraction of what the first left
 FORWARD_JOINT = 3          # pairs fitted together: the best this many forms of a plant first, or plant seconds
 MIN_SCORE_GAIN = 25.0      # held-out NLL + BIC penalty improvement over the nominal model
