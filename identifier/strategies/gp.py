@@ -84,8 +84,9 @@ confirmation's test is unchanged, and in open loop, where the slip crosses the p
 milliseconds, so are the intervals (docs/design/control.md measures both).  Nothing is confirmed
 before the settling restart.  And a maximum at the lowest creep seen since the restart is the data's
 edge, not a peak (the fall may have begun below): while more than (1 - ``confirm_level``) / 2 of the
-draws put it there, nothing is confirmed (as B bounds the rise above).  So a closed-loop confirmation needs the new rail's samples to span creeps on both sides of
-the claimed peak.  In open loop none of this applies: the slip starts from the stable side on one rail.
+draws put it there, nothing is confirmed (as B bounds the rise above).  So a closed-loop confirmation
+needs the new rail's samples to span creeps on both sides of the claimed peak.  In open loop none of
+this applies: the slip starts from the stable side on one rail.
 
 The numpy code here is the reference; ``compiled`` (default) runs the filter step, the peak draws
 with their quantiles and the published curve's shape search by their twins in identifier/kernels.py
