@@ -153,6 +153,7 @@ SLOW = {
     "tests/test_gap.py::test_the_veto_in_time_keeps_a_true_delay_under_a_load_transfer",
     "tests/test_gap.py::test_a_pair_is_fitted_in_a_form_within_its_range",
     "tests/test_gap.py::test_a_small_delay_under_a_first_that_leaves_little_is_named",
+    "tests/test_gap.py::test_a_drive_torque_that_falls_with_motor_speed_is_described_by_the_motor_speed",
     "tests/test_gap.py::test_a_second_effect_is_not_fitted_into_a_held_out_forms_misfit",
     "tests/test_gap.py::test_no_second_effect_within_twice_the_noise_after_a_first_that_removes_most",
     "tests/test_gap.py::test_a_pair_turned_away_only_against_the_rail_is_listed_not_named",

@@ -760,6 +760,46 @@ def test_sparse_description_of_known_residuals():
     assert d["terms"][0]["coef"] == pytest.approx(frac, rel=0.25)      # the term is coef x torque x sin
 
 
+def test_a_red_spectrum_has_no_line_and_a_line_above_its_floor_is_found():
+    """``spectral_line``: a residual that only drifts (an exponential runaway, as a replay that slips
+    where the wheel was held leaves) has its largest periodogram bin at the search's 2 Hz edge on a
+    falling slope: no line (it was refined to 1.0 Hz, below the floor, and described as a 1 Hz sine).
+    A sine drawn here at 20-150 Hz in white noise is found within 2 %."""
+    from hil.gap.sparse import LINE_MIN_HZ, spectral_line
+    seed = fresh_seed()
+    g = np.random.default_rng(seed)
+    dt, n = 0.001, 1000
+    t = dt * np.arange(n)
+    mask = np.ones(n, bool)
+    tau_s = g.uniform(0.05, 0.2)
+    drift = -g.uniform(5, 60) * np.expm1(np.clip(t - g.uniform(0.5, 0.7), 0, None) / tau_s) \
+        / np.expm1(0.3 / tau_s) + 0.01 * g.standard_normal(n)
+    print(f"seed {seed}: tau {tau_s:.3f} s")
+    assert spectral_line(drift, mask, dt) is None
+    f_hz = g.uniform(20, 150)
+    line = spectral_line(0.05 * np.sin(2 * np.pi * f_hz * t) + 0.01 * g.standard_normal(n), mask, dt)
+    assert line is not None and line >= LINE_MIN_HZ and abs(line / f_hz - 1) <= 0.02, (line, f_hz)
+
+
+@pytest.mark.parametrize("case, member", [(5, "power_limit"), (3, "torque_map")])
+def test_a_drive_torque_that_falls_with_motor_speed_is_described_by_the_motor_speed(tmp_path, scenario, case,
+                                                                                     member):
+    """Issue 35's out-of-library family (cases of a 44-case probe, seed 5150, mix out_of_library=1,
+    outside=0.6): a constant-power cap and a torque map that falls with motor speed.  The nominal
+    replay slips where the capped wheel was held, and its residual is its own runaway: the description
+    read "-85 x train_speed + 17.9 x sin(2 pi 1.00 Hz t)" in every such case.  Described by the
+    acceleration the nominal model lacks at the measured state, the missing term depends on the motor
+    speed, with a negative coefficient (less torque as the motor speeds up), and no line is claimed."""
+    effects, out, _ = _bench_case(tmp_path, scenario, 5150, case, "out_of_library=1,outside=0.6")
+    assert list(effects) == [member]
+    d = out["which"]["description"]
+    print(d["sentence"])
+    assert out["which"]["named"] == "none"
+    assert d["described"] and d["view"] == "rate" and d["line_hz"] is None
+    assert d["variables"] == ["motor_speed"]
+    assert next(t["coef"] for t in d["terms"] if t["term"] == "motor_speed") < 0
+
+
 def test_a_tachometer_gain_is_none_of_the_candidates_but_described_by_the_motor_speed(tmp_path, scenario):
     """Issue 18 item 5: an effect outside every class (the motor encoder reads 0.3-2 % high or low)
     is named by no candidate, and the sparse description says the missing term is the motor speed,

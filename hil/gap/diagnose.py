@@ -36,7 +36,7 @@ from .model import ObserverReplica, initial_line
 from .select import (FORWARD_MAX_SHARE, FORWARD_MIN_LEFT, FORWARD_MIN_SHARE, MARGIN_GAP_RATIO, MIN_GAP, MIN_MARGIN,
                      MIN_SCORE_GAIN, MIN_SHRINK, NOISE_GAP, NONE, entry, fit_candidates, fit_rail, forward, judge,
                      label, pair_explanation, quantiser, rejudge, score, within_noise)
-from .sparse import describe_residual
+from .sparse import AHEAD_PERIODS, describe_residual
 from .where import normal_running_replay, observability, separation, where
 
 
@@ -201,8 +201,12 @@ class Diagnosis:
                             "noise_floor": sigma[s], "unit": UNITS[s]} for s in SIGNALS}
         unobservable = observability(where_["input_constant"])
         # what the nominal model leaves, described by a sparse regression (when there is a gap)
-        description = describe_residual(ctx.meas["motor"], nominal["motor"], d.train_speed_ms, creep_meas,
-                                        d.torque_cmd_nm, d.period_s, ctx.train, ctx.held) if gap_present else None
+        description = None
+        if gap_present:
+            ahead = ctx.simulator(None, (), {}).ahead(d.motor_speed_rad_s, d.train_speed_ms, d.torque_cmd_nm,
+                                                      AHEAD_PERIODS)
+            description = describe_residual(ctx.meas["motor"], nominal["motor"], d.train_speed_ms, creep_meas,
+                                            d.torque_cmd_nm, d.period_s, ctx.train, ctx.held, ahead)
         out = {
             "real_log": d.path, "real_log_source": d.source, "model": sc.path, "periods": d.n, "analysis_periods": int(window.sum()),
             "held_out_periods": int(held_mask.sum()), "block_periods": self.block,

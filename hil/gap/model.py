@@ -96,6 +96,26 @@ class Simulator:
         return motor, train
 
 
+    def ahead(self, motor, train, torque, periods: int, t0: float = 0.0) -> np.ndarray:
+        """omega_m predicted ``periods`` ahead from every measured state: ``out[k]`` is the model's motor
+        speed at step k + periods when started from (motor[k], train[k]) at t_k under the logged
+        commands (NaN for the last ``periods`` steps).  What the measured speed then differs by is
+        the model's equation error at the measured state (``hil.gap.sparse``); the nominal model's
+        state is (omega_m, v_t) and nothing else, so only it (no effect, no base) can start there."""
+        if self.effect is not None or self.base:
+            raise ValueError("ahead(): only the nominal model starts from a measured state")
+        n = len(motor)
+        step = self._step.map(n)
+        x = np.vstack([np.asarray(motor, float), np.asarray(train, float)])
+        times = t0 + self.cfg.exchange_period_s * np.arange(n)
+        for j in range(periods):
+            k = np.minimum(np.arange(n) + j, n - 1)
+            x = np.asarray(step(x, torque[k][None, :], times[k][None, :], np.zeros((1, n)))[0])
+        out = np.full(n, np.nan)
+        out[:n - periods] = x[0, :n - periods]
+        return out
+
+
 class ObserverReplica:
     """mu^(k) exactly as TractionIdentifier computes it from measured speeds and commands."""
 

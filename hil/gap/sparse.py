@@ -1,31 +1,46 @@
 """When no candidate explains the gap, describe it: a sparse regression of what the nominal model
 leaves on a small library of terms says what the missing term depends on.
 
-Two views of the motor-speed residual r(k) = y_meas(k) - y_nominal(k) over the analysis window:
+Two views of what the nominal model leaves in the motor speed over the analysis window:
 
-    level:  r(k)                        = sum_i xi_i theta_i(k)      a sensor-type term (``motor speed x 0.01``
-                                                                     reads as a tachometer gain of 1.01)
-    rate:   (r(k+1) - r(k)) / dt        = sum_i xi_i theta_i(k)      a dynamics-type term (an acceleration the
-                                                                     model lacks, e.g. a torque it does not apply)
+    level:  r(k) = y_meas(k) - y_nominal(k)                 = sum_i xi_i theta_i(k)   a sensor-type term
+            (the nominal model replayed over the whole run)                        (``motor speed x 0.01``
+                                                                                   reads as a tachometer
+                                                                                   gain of 1.01)
+    rate:   a(k) = (y_meas(k+h) - y^(k+h | x_meas(k))) / (h dt) = sum_i xi_i theta_i(k)   a dynamics-type
+            (the model started from the measured state at k,                       term: an acceleration
+            run h = ``AHEAD_PERIODS`` periods under the logged commands)            the model lacks there
 
-with the library theta = {1, motor speed, train speed, creep speed, creep rate, torque command}, all
-measured, and, when the residual carries a spectral line, a periodic term at its frequency f*
-(sin and cos of 2 pi f* t together, one term; and the same times the torque command, which only a
-command that varies in the window can tell apart from it).  The line is the periodogram's highest
-peak from ``LINE_MIN_HZ`` up, standing ``LINE_FACTOR`` times above the median of its neighbourhood:
-for white noise each bin's periodogram is exponential, so one bin stands LINE_FACTOR times above the
-true median with probability 2^-LINE_FACTOR; but the highest of a thousand bins is tested, against
-the median of some fifty neighbours that the Hann window correlates, and that median is itself noisy
-(it falls to half its mean now and then), so the factor sits well above what one bin's tail asks;
-and a red spectrum (what a missing slow term leaves) raises the neighbourhood with the peak.
-(Products such as motor speed x torque fitted a tachometer gain as well as motor speed alone did, and
-then named two variables where one is the answer: ``TERMS`` leaves them out.)  The sparse fit is a best subset of at most ``MAX_TERMS`` terms,
-chosen on the training blocks and judged on the held-out blocks (the diagnosis' own split): a term is
-added only when it raises the held-out R^2 by ``MIN_GAIN``.  This is SINDy's idea (Brunton, Proctor
-and Kutz, PNAS 2016) with an exhaustive subset in place of sequential thresholding, which a library of
-ten terms affords.  The view with the higher held-out R^2 is reported; below ``MIN_R2`` the answer is
-"no sparse description": the missing term is not in the library (or too weak against the noise), which
-is said rather than a term being forced.
+The rate view is SINDy's own form (the state's derivative regressed on the measured state) with the
+known model subtracted: it asks what acceleration is missing *at the state the wheelset was in*.  The
+derivative of the replay's residual is not that: once the replay leaves the measured run (a model that
+slips where the real wheel was held, by a torque cap say) that residual is mostly the model's own
+runaway, a function of the model's states and not of any measured one, and a library of measured terms
+then fits it with whatever drifts alike (the train speed, a slow sine).  h trades noise (a(k) carries
+sqrt(2) sigma / (h dt)) against the model's own divergence from a state near the adhesion peak, which
+grows within tens of periods.
+
+Both are regressed on the library theta = {1, motor speed, train speed, creep speed, creep rate,
+torque command}, all measured, and, when the residual r carries a spectral line, a periodic term at
+its frequency f* (sin and cos of 2 pi f* t together, one term; and the same times the torque command,
+which only a command that varies in the window can tell apart from it).  The line is the
+periodogram's highest peak from ``LINE_MIN_HZ`` up, standing ``LINE_FACTOR`` times above the median
+of its neighbourhood: for white noise each bin's periodogram is exponential, so one bin stands
+LINE_FACTOR times above the true median with probability 2^-LINE_FACTOR; but the highest of a
+thousand bins is tested, against the median of some fifty neighbours that the Hann window
+correlates, and that median is itself noisy (it falls to half its mean now and then), so the factor
+sits well above what one bin's tail asks.  A red spectrum (what a missing slow term leaves) has its
+highest bin at the search's lower edge, on a slope that falls from below it: that is no line (a line
+is a local peak), and none is looked for above it, where the window's leakage of the slope would be
+taken for one.  (Products such as motor speed x torque fitted a tachometer gain as well as motor
+speed alone did, and then named two variables where one is the answer: ``TERMS`` leaves them out.)
+The sparse fit is a best subset of at most ``MAX_TERMS`` terms, chosen on the training blocks and
+judged on the held-out blocks (the diagnosis' own split): a term is added only when it raises the
+held-out R^2 by ``MIN_GAIN``.  This is SINDy's idea (Brunton, Proctor and Kutz, PNAS 2016) with an
+exhaustive subset in place of sequential thresholding, which a library of ten terms affords.  The view
+with the higher held-out R^2 is reported; below ``MIN_R2`` the answer is "no sparse description": the
+missing term is not in the library (or too weak against the noise), which is said rather than a term
+being forced.
 """
 from __future__ import annotations
 
@@ -41,6 +56,8 @@ MIN_GAIN = 0.05
 #: a subset of its size: a plain sine, and the same sine times a command that steps by a few per cent,
 #: fit alike within the noise, and only the first is the simpler answer
 PRODUCT_MARGIN = 0.01
+#: the periods the rate view runs the model from each measured state (module docstring)
+AHEAD_PERIODS = 5
 #: the held-out R^2 below which there is no description
 MIN_R2 = 0.3
 #: the spectral line a periodic term needs: from this frequency up (below it a window of a second
@@ -92,6 +109,8 @@ def spectral_line(r, mask, period_s) -> float | None:
     if lo >= power.size - 2:
         return None
     k = lo + int(np.argmax(power[lo:-1]))
+    if k > 0 and power[k - 1] > power[k]:
+        return None      # the search's lowest bin on a falling (red) spectrum: a slope, not a line
     around = np.r_[power[max(k - LINE_NEIGHBOURS, 1):max(k - 2, 1)], power[k + 3:k + LINE_NEIGHBOURS + 1]]
     if around.size < 10 or power[k] < LINE_FACTOR * np.median(around):
         return None
@@ -103,7 +122,8 @@ def spectral_line(r, mask, period_s) -> float | None:
         coef, *_ = np.linalg.lstsq(w, x, rcond=None)
         return float(np.sum((w @ coef) ** 2))
     grid = freq[k] + df * np.linspace(-1.0, 1.0, 41)
-    return float(max(grid, key=fitted_power))
+    line_hz = float(max(grid, key=fitted_power))
+    return line_hz if line_hz >= LINE_MIN_HZ else None
 
 
 def _r2(y, yhat) -> float:
@@ -148,20 +168,26 @@ def best_subset(target, terms: dict, train, held) -> dict:
 
 
 def describe_residual(meas_motor, nominal_motor, train_ms, creep_kmh, torque_nm, period_s, train_mask,
-                      held_mask) -> dict:
-    """The sparse description of the motor-speed residual (module docstring): ``described`` (bool),
-    ``view`` (level | rate), ``terms`` (each with its coefficient and unit), ``variables`` (what they
-    depend on), ``held_out_r2``, and a sentence."""
+                      held_mask, ahead_motor=None) -> dict:
+    """The sparse description of what the nominal model leaves (module docstring): ``described``
+    (bool), ``view`` (level | rate), ``terms`` (each with its coefficient and unit), ``variables`` (what
+    they depend on), ``held_out_r2``, and a sentence.  ``ahead_motor[k]``: the nominal model's motor
+    speed ``AHEAD_PERIODS`` periods after it was started from the measured state at k
+    (``Simulator.ahead``); without it only the level view is tried."""
     r = meas_motor - nominal_motor
     line_hz = spectral_line(r, train_mask | held_mask, period_s)
     terms = library(meas_motor, train_ms, creep_kmh, torque_nm, period_s, line_hz)
     ok = np.isfinite(meas_motor) & np.isfinite(nominal_motor)
     for v in terms.values():
         ok &= np.isfinite(v).reshape(v.shape[0], -1).all(axis=1)
-    rate = np.full_like(r, np.nan)
-    rate[:-1] = np.diff(r) / period_s
+    targets = {"level": r}
+    if ahead_motor is not None:
+        h = AHEAD_PERIODS
+        rate = np.full_like(r, np.nan)
+        rate[:-h] = (meas_motor[h:] - ahead_motor[:-h]) / (h * period_s)     # a(k), module docstring
+        targets["rate"] = rate
     views = {}
-    for view, target in (("level", r), ("rate", rate)):
+    for view, target in targets.items():
         sel = ok & np.isfinite(target)
         tr, ho = train_mask & sel, held_mask & sel
         if tr.sum() < 20 or ho.sum() < 20:
@@ -172,7 +198,7 @@ def describe_residual(meas_motor, nominal_motor, train_ms, creep_kmh, torque_nm,
     view, fit = max(views.items(), key=lambda kv: kv[1]["held_out_r2"])
     described = bool(fit["terms"]) and fit["held_out_r2"] >= MIN_R2
     variables = sorted({v for t in fit["terms"] for v in VARIABLES[t]}) if described else []
-    what = "motor-speed residual" if view == "level" else "rate of the motor-speed residual (rad/s²)"
+    what = "motor-speed residual" if view == "level" else "motor acceleration the model lacks (rad/s²)"
     if described:
         parts = " + ".join(_term_text(t, fit, line_hz) for t in fit["terms"])
         depends = [v.replace("_", " ") for v in variables if v != "periodic"]
