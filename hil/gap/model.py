@@ -95,7 +95,6 @@ class Simulator:
             raise FloatingPointError("model diverged")
         return motor, train
 
-
     def ahead(self, motor, train, torque, periods: int, t0: float = 0.0) -> np.ndarray:
         """omega_m predicted ``periods`` ahead from every measured state: ``out[k]`` is the model's motor
         speed at step k + periods when started from (motor[k], train[k]) at t_k under the logged
