@@ -789,8 +789,12 @@ def test_a_drive_torque_that_falls_with_motor_speed_is_described_by_the_motor_sp
     replay slips where the capped wheel was held, and its residual is its own runaway: the description
     read "-85 x train_speed + 17.9 x sin(2 pi 1.00 Hz t)" in every such case.  Described by the
     acceleration the nominal model lacks at the measured state, the missing term depends on the motor
-    speed, with a negative coefficient (less torque as the motor speeds up), and no line is claimed."""
-    effects, out, _ = _bench_case(tmp_path, scenario, 5150, case, "out_of_library=1,outside=0.6")
+    speed, with a negative coefficient (less torque as the motor speeds up), and no line is claimed.
+    The report plots what the rate view regresses against the description rebuilt from its printed
+    terms, which scores on the held-out blocks the R² it claims."""
+    from hil.gap.report import write_report
+    from hil.gap.sparse import fitted, view_targets
+    effects, out, result = _bench_case(tmp_path, scenario, 5150, case, "out_of_library=1,outside=0.6")
     assert list(effects) == [member]
     d = out["which"]["description"]
     print(d["sentence"])
@@ -798,6 +802,17 @@ def test_a_drive_torque_that_falls_with_motor_speed_is_described_by_the_motor_sp
     assert d["described"] and d["view"] == "rate" and d["line_hz"] is None
     assert d["variables"] == ["motor_speed"]
     assert next(t["coef"] for t in d["terms"] if t["term"] == "motor_speed") < 0
+    data = result.data
+    target = view_targets(data.motor_speed_rad_s, result.nominal["motor"], data.period_s, result.ahead_motor)["rate"]
+    rebuilt = fitted(d, data.motor_speed_rad_s, data.train_speed_ms, result.creep_meas, data.torque_cmd_nm,
+                     data.period_s)
+    held = result.ctx.held & np.isfinite(target)
+    y = target[held]
+    r2 = 1 - np.sum((y - rebuilt[held]) ** 2) / np.sum((y - y.mean()) ** 2)
+    assert r2 == pytest.approx(d["held_out_r2"], abs=1e-6)
+    md = write_report(out, result, tmp_path / "report").read_text()
+    assert "![described](described.png)" in md
+    assert (tmp_path / "report" / "described.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def test_a_tachometer_gain_is_none_of_the_candidates_but_described_by_the_motor_speed(tmp_path, scenario):

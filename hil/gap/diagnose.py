@@ -46,8 +46,9 @@ class DiagnosisResult:
     what the report's plots and the bench's oracle read: the context the candidates were judged in,
     the nominal model (``nominal``: its predictions and plant trajectory), the best single candidate's
     fit, every candidate's fit, the nominal model's held-out score (``base``), the rail nuisance's
-    ranking row (None without a gap or when its fit failed), the ranking, the measured creep, and the
-    failed candidate fits (also in ``report["which"]["failed_candidates"]``)."""
+    ranking row (None without a gap or when its fit failed), the ranking, the measured creep, the
+    failed candidate fits (also in ``report["which"]["failed_candidates"]``), and what the sparse
+    description's rate view started from (``sparse.view_targets``; None without a gap)."""
 
     report: dict
     data: object
@@ -61,6 +62,7 @@ class DiagnosisResult:
     ranking: list
     creep_meas: np.ndarray
     failed: list = field(default_factory=list)
+    ahead_motor: np.ndarray | None = None     # the nominal model 5 periods from each measured state (sparse)
 
 
 def _log(progress, msg):
@@ -201,7 +203,7 @@ class Diagnosis:
                             "noise_floor": sigma[s], "unit": UNITS[s]} for s in SIGNALS}
         unobservable = observability(where_["input_constant"])
         # what the nominal model leaves, described by a sparse regression (when there is a gap)
-        description = None
+        description, ahead = None, None
         if gap_present:
             ahead = ctx.simulator(None, (), {}).ahead(d.motor_speed_rad_s, d.train_speed_ms, d.torque_cmd_nm,
                                                       AHEAD_PERIODS)
@@ -236,7 +238,7 @@ class Diagnosis:
             augmented = quantiser_fit if named == "sensor_quantisation" else best_fit if named != NONE else None
             out["identification"] = identification(ctx, nom_fit, augmented, creep_meas)
         return DiagnosisResult(clean(out), d, sc, ctx, nominal, best_fit, fits, base, rail, ranking, creep_meas,
-                               failed)
+                               failed, ahead)
 
 
 def diagnose(data, scenario, **kw) -> tuple[dict, DiagnosisResult]:

@@ -172,7 +172,31 @@ def write_report(out: dict, result, directory) -> Path:
     plt.close(fig)
     pngs.append("which.png")
 
-    # 5. identified curves
+    # 5. the sparse description: what its view regresses against what the description says
+    desc = out["which"].get("description")
+    if desc and desc.get("described"):
+        from .sparse import fitted, view_targets
+        data = result.data
+        target = view_targets(data.motor_speed_rad_s, result.nominal["motor"], data.period_s,
+                              result.ahead_motor)[desc["view"]]
+        fit = fitted(desc, data.motor_speed_rad_s, data.train_speed_ms, result.creep_meas, data.torque_cmd_nm,
+                     data.period_s)
+        held = result.ctx.held
+        fig, ax = plt.subplots(figsize=(10, 3.8))
+        ax.plot(t[w], target[w], ".", ms=1.5, color="0.6", label="what the nominal model leaves")
+        ax.plot(t[held], target[held], ".", ms=1.5, color="tab:orange", label="... on the held-out blocks")
+        ax.plot(t[w], fit[w], "-", lw=1.2, color="tab:blue",
+                label=f"the description (held-out R² {desc['held_out_r2']:.2f})")
+        ax.set_ylabel("motor-speed residual [rad/s]" if desc["view"] == "level"
+                      else "acceleration the model lacks [rad/s²]")
+        ax.set_xlabel("t [s]")
+        ax.legend(loc="best", fontsize=8)
+        fig.tight_layout()
+        fig.savefig(d / "described.png", dpi=110)
+        plt.close(fig)
+        pngs.append("described.png")
+
+    # 6. identified curves
     ident = out.get("identification")
     if ident:
         sc = result.scenario
@@ -203,7 +227,9 @@ def write_report(out: dict, result, directory) -> Path:
     md += ["", "(residual RMS in noise-floor units; 1 = as good as the sensors)", "",
            "## Which effect", "", out["which"]["verdict"], "",
            *([f"What the nominal model leaves, described (sparse regression): "
-              f"{out['which']['description']['sentence']}", ""] if out["which"].get("description") else []),
+              f"{out['which']['description']['sentence']}", "",
+              *(["![described](described.png)", ""] if "described.png" in pngs else [])]
+             if out["which"].get("description") else []),
            "![which](which.png)", "",
            "| effect | fitted parameters | score gain | held-out gap shrink |", "|---|---|---|---|"]
     for r in rk:

@@ -167,6 +167,34 @@ def best_subset(target, terms: dict, train, held) -> dict:
     return best
 
 
+def view_targets(meas_motor, nominal_motor, period_s, ahead_motor=None) -> dict[str, np.ndarray]:
+    """What each view regresses (module docstring): ``level`` r(k), and with ``ahead_motor`` ``rate``
+    a(k) (NaN for the last ``AHEAD_PERIODS`` steps)."""
+    out = {"level": meas_motor - nominal_motor}
+    if ahead_motor is not None:
+        h = AHEAD_PERIODS
+        rate = np.full_like(out["level"], np.nan)
+        rate[:-h] = (meas_motor[h:] - ahead_motor[:-h]) / (h * period_s)     # a(k)
+        out["rate"] = rate
+    return out
+
+
+def fitted(description: dict, meas_motor, train_ms, creep_kmh, torque_nm, period_s) -> np.ndarray:
+    """The description's sum along the run: its intercept plus each term times its coefficient (a
+    periodic term as coef x sin(2 pi f t + phase), times the torque for ``torque*periodic``)."""
+    line_hz = description.get("line_hz")
+    terms = library(meas_motor, train_ms, creep_kmh, torque_nm, period_s, line_hz)
+    y = np.full(meas_motor.shape, float(description.get("intercept") or 0.0))
+    phase = 2 * np.pi * (line_hz or 0.0) * period_s * np.arange(meas_motor.size)
+    for t in description["terms"]:
+        if "phase_rad" in t:
+            wave = np.sin(phase + t["phase_rad"])
+            y = y + t["coef"] * (torque_nm * wave if t["term"].startswith("torque") else wave)
+        else:
+            y = y + t["coef"] * terms[t["term"]]
+    return y
+
+
 def describe_residual(meas_motor, nominal_motor, train_ms, creep_kmh, torque_nm, period_s, train_mask,
                       held_mask, ahead_motor=None) -> dict:
     """The sparse description of what the nominal model leaves (module docstring): ``described``
@@ -174,18 +202,13 @@ def describe_residual(meas_motor, nominal_motor, train_ms, creep_kmh, torque_nm,
     they depend on), ``held_out_r2``, and a sentence.  ``ahead_motor[k]``: the nominal model's motor
     speed ``AHEAD_PERIODS`` periods after it was started from the measured state at k
     (``Simulator.ahead``); without it only the level view is tried."""
-    r = meas_motor - nominal_motor
+    targets = view_targets(meas_motor, nominal_motor, period_s, ahead_motor)
+    r = targets["level"]
     line_hz = spectral_line(r, train_mask | held_mask, period_s)
     terms = library(meas_motor, train_ms, creep_kmh, torque_nm, period_s, line_hz)
     ok = np.isfinite(meas_motor) & np.isfinite(nominal_motor)
     for v in terms.values():
         ok &= np.isfinite(v).reshape(v.shape[0], -1).all(axis=1)
-    targets = {"level": r}
-    if ahead_motor is not None:
-        h = AHEAD_PERIODS
-        rate = np.full_like(r, np.nan)
-        rate[:-h] = (meas_motor[h:] - ahead_motor[:-h]) / (h * period_s)     # a(k), module docstring
-        targets["rate"] = rate
     views = {}
     for view, target in targets.items():
         sel = ok & np.isfinite(target)
