@@ -62,7 +62,7 @@ class DiagnosisResult:
     ranking: list
     creep_meas: np.ndarray
     failed: list = field(default_factory=list)
-    ahead_motor: np.ndarray | None = None     # the nominal model 5 periods from each measured state (sparse)
+    ahead_motor: np.ndarray | None = None     # Simulator.ahead by sparse.AHEAD_PERIODS (the rate view)
 
 
 def _log(progress, msg):
