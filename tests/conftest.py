@@ -157,6 +157,7 @@ SLOW = {
     "tests/test_gap.py::test_a_second_effect_is_not_fitted_into_a_held_out_forms_misfit",
     "tests/test_gap.py::test_no_second_effect_within_twice_the_noise_after_a_first_that_removes_most",
     "tests/test_gap.py::test_a_pair_turned_away_only_against_the_rail_is_listed_not_named",
+    "tests/test_gap.py::test_a_pair_whose_first_is_not_the_best_alone_is_found_from_another_first",
     "tests/test_gap.py::test_a_first_effect_only_most_likely_alone_is_named_when_the_pair_settles_it",
     "tests/test_gap.py::test_the_veto_in_time_rejects_a_pair_that_removes_next_to_none_of_a_large_gap",
     "tests/test_lockstep_progress.py::test_a_forged_sensor_frame_from_a_third_node_ends_the_run_naming_it",

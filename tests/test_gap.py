@@ -598,6 +598,26 @@ def test_a_pair_turned_away_only_against_the_rail_is_listed_not_named(tmp_path, 
     assert grade_right({"truth_classes": pairs[0]["effects"], "effects": {}, "oracle": None}, which)
 
 
+def test_a_pair_whose_first_is_not_the_best_alone_is_found_from_another_first(tmp_path, scenario):
+    """Issue 35: a lighter running resistance under a held-out speed-sensor low-pass (case 109 of the
+    300-case two-effect bench, seed 179275234).  Alone, the drivetrain losses explain as much as the
+    sensor delay that stands for the low-pass, and the pair built on them finds no second effect; the
+    pair built on the delay, the other class the best single does not beat by the margin
+    (``other_firsts``), finds the resistance and is named with its factor."""
+    effects, out, _ = _bench_case(tmp_path, scenario, 179275234, 109, "two_effect=1")
+    assert set(effects) == {"resistance", "sensor_lowpass"}
+    which = out["which"]
+    tried = which["forward_firsts"]
+    print(which["verdict"], [(f["first"], f["second"], f["accepted"]) for f in tried])
+    assert which["ranking"][0]["effect"] != "sensor_delay"          # the delay was not the best alone
+    assert not tried[0]["accepted"] and tried[0]["first"] == which["ranking"][0]["effect"]
+    assert which["confidence"] == "confident" and which["named_set"] == ["resistance", "sensor_delay"]
+    fw = which["forward"]
+    assert fw["first"] == "sensor_delay" and fw["second"] == "resistance" and fw["held_out_in_time"]["pair_wins"]
+    factor = fw["second_params"]["factor"]
+    assert abs(factor - effects["resistance"]["factor"]) < 0.1 * effects["resistance"]["factor"], factor
+
+
 def test_the_veto_in_time_rejects_a_pair_that_removes_next_to_none_of_a_large_gap(tmp_path, scenario):
     """Issue 35: on a constant-power limit (outside the library; power_ratio 1.0441, run seed 1228207239,
     a case the veto was measured on) forward selection's best pair (an adhesion lag on the drivetrain

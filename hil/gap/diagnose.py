@@ -34,8 +34,9 @@ from .candidates import SIGNALS, UNITS, Context, Fit, candidates, fit_nominal
 from .identify import identification
 from .model import ObserverReplica, initial_line
 from .select import (FORWARD_MAX_SHARE, FORWARD_MIN_LEFT, FORWARD_MIN_SHARE, MARGIN_GAP_RATIO, MIN_GAP, MIN_MARGIN,
-                     MIN_SCORE_GAIN, MIN_SHRINK, NOISE_GAP, NONE, entry, fit_candidates, fit_rail, forward, judge,
-                     label, pair_explanation, quantiser, rejudge, score, within_noise)
+                     MIN_SCORE_GAIN, MIN_SHRINK, NOISE_GAP, NONE, choose_pair, entry, fit_candidates, fit_rail, forward,
+                     judge, label, other_firsts, pair_explanation, pair_label, pair_listed, quantiser, rejudge, score,
+                     within_noise)
 from .sparse import AHEAD_PERIODS, describe_residual
 from .where import normal_running_replay, observability, separation, where
 
@@ -164,7 +165,7 @@ class Diagnosis:
                 verdict += (f"; they differ most on {sb['signal']} in the {sb['stage']} stage "
                             f"({sb['difference_noise_units']:.2f} noise units between {sb['between'][0]} and "
                             f"{sb['between'][1]})")
-        forward_ = None
+        forward_, tried, rivals = None, [], []
         # nothing is named on top of an explanation that leaves the held-out gap within the noise: the
         # rail nuisance (``within_noise``) or the best single effect (its gap above NOISE_GAP); after a
         # first that removes most of the gap, not within twice that (``FORWARD_MIN_LEFT``: what a form
@@ -172,21 +173,45 @@ class Diagnosis:
         if gap_present and FORWARD_MIN_SHARE <= best["held_out_shrink"] and best["held_out_gap"] > NOISE_GAP and \
                 not within_noise(rail) and \
                 (best["held_out_shrink"] < FORWARD_MAX_SHARE or best["held_out_gap"] >= FORWARD_MIN_LEFT):
-            forward_ = forward(ctx, nom_fit, base, best_fit, best, rail_fit, ranking, exclude, failed, say,
-                               alone={f.name: f for f in fits})
-            if forward_ is not None and forward_["accepted"]:
-                named, named_set, verdict, confidence = rejudge(named, named_set, verdict, confidence, best,
-                                                                forward_, ranking)
+            alone = {f.name: f for f in fits}
+            firsts = [best]
+            forward_ = forward(ctx, nom_fit, base, best_fit, best, rail_fit, ranking, exclude, failed, say, alone=alone)
+            if forward_ is None or not forward_["accepted"]:
+                firsts += other_firsts(ranking, best)      # the true first need not be the best alone
+            for i, row in enumerate(firsts):
+                fw = forward_ if i == 0 else forward(ctx, nom_fit, base, alone[row["candidate"]], row, rail_fit,
+                                                     ranking, exclude, failed, say, alone=alone)
+                if fw is not None:
+                    tried.append((row, fw))
+            first_row, won, rivals = choose_pair(tried)
+            if won is not None and not rivals:
+                forward_ = won
+                named, named_set, verdict, confidence = rejudge(named, named_set, verdict, confidence, first_row,
+                                                                won, ranking)
+            elif won is not None:
+                # pairs on different firsts, each accepted, none beating the others by the margin
+                forward_ = won
+                pairs = [won] + rivals
+                alternatives, separate = [], []
+                named, named_set, confidence = NONE, [], "not_separable"
+                verdict = (" or ".join(pair_label(fw) for fw in pairs) + ": not separable in this log ("
+                           + "; ".join(f"{pair_label(fw)} removes {fw['pair_held_out_shrink'] * 100:.0f} %, leaves "
+                                       f"{fw['pair_held_out_gap']:.2f} noise units" for fw in pairs) + ")")
         listed = [{"explanation": label(r), "effect": r["effect"], "effects": [r["effect"]], "form": r["form"],
                    "held_out_shrink": r["held_out_shrink"], "held_out_gap": r["held_out_gap"],
                    "score_gain": r["score_gain"]} for r in alternatives]
-        pair = pair_explanation(forward_, alternatives) if confidence == "not_separable" else None
-        if pair is not None:
-            # the pair forward selection turned away only against the explanations listed: one more of them
-            listed.append(pair)
-            verdict += (f"; or {pair['explanation']}, within the margin of them too (removes "
-                        f"{pair['held_out_shrink'] * 100:.0f} %, leaves {pair['held_out_gap']:.2f} noise units; "
-                        f"not named because {'; '.join(pair['turned_away_because'])})")
+        if rivals:
+            listed = [pair_listed(fw) for fw in [forward_] + rivals]
+        elif confidence == "not_separable":
+            for _, fw in tried:
+                pair = pair_explanation(fw, alternatives)
+                if pair is None or any(set(p["effects"]) == set(pair["effects"]) for p in listed):
+                    continue
+                # a pair forward selection turned away only against the explanations listed: one more of them
+                listed.append(pair)
+                verdict += (f"; or {pair['explanation']}, within the margin of them too (removes "
+                            f"{pair['held_out_shrink'] * 100:.0f} %, leaves {pair['held_out_gap']:.2f} noise units; "
+                            f"not named because {'; '.join(pair['turned_away_because'])})")
         if lattice:
             # named beside whatever explains the mean
             named_set = sorted(named_set + ["sensor_quantisation"])
@@ -220,7 +245,11 @@ class Diagnosis:
                       "not_separable": listed,
                       "separate_by": separate[0] if separate else None,
                       "separate_by_pairs": separate,
-                      "nuisances": nuisances, "forward": forward_, "unobservable": unobservable,
+                      "nuisances": nuisances, "forward": forward_,
+                      "forward_firsts": [{k: fw.get(k) for k in ("first", "first_form", "second", "second_form",
+                                                                 "accepted", "own_tests_passed", "rejected_because",
+                                                                 "pair_held_out_shrink", "pair_held_out_gap")}
+                                         for _, fw in tried], "unobservable": unobservable,
                       "failed_candidates": failed,
                       "calibration": grade_line(confidence, read_calibration()),
                       "quantiser": lattice,

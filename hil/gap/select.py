@@ -64,6 +64,7 @@ FORWARD_MAX_SHARE = 0.9    # ... below this, or (a form that differs from its ca
 FORWARD_MIN_LEFT = 1.0     # ... second may take) leaving at least this many noise units: twice NOISE_GAP
 FORWARD_MIN_REMAINDER = 0.5  # accepts a second one removing at least this fraction of what the first left
 FORWARD_JOINT = 3          # pairs fitted together: the best this many forms of a plant first, or plant seconds
+FORWARD_FIRSTS = 2         # other classes' best singles forward selection also starts from (``other_firsts``)
 MIN_SCORE_GAIN = 25.0      # held-out NLL + BIC penalty improvement over the nominal model
 TIME_MIN_PERIODS = 40      # the veto's span held out in time: the serious stage when it holds this many periods
 QUANTUM_OVER_SCENARIO = 1.5  # a lattice of speeds this many times the scenario's own quantum is a quantiser to name
@@ -535,6 +536,37 @@ def forward(ctx: Context, nom_fit: Fit, base: dict, first: Fit, first_row: dict,
     return out
 
 
+def other_firsts(ranking, best) -> list[dict]:
+    """Forward selection's other starts, tried when the pair built on the best single candidate is not
+    accepted: the best single of each other class that the best does not beat by the margin (``beats``)
+    and that would itself start forward selection (it removes ``FORWARD_MIN_SHARE`` and leaves more than
+    the noise), best score first, at most ``FORWARD_FIRSTS``.  Greedy selection builds only on the best
+    single, and the best single need not be the first of the true pair: where a form stands for a
+    held-out one (a delay for a low-pass), another class may explain as much alone and take what would
+    be the second's evidence, so the true first is among those the best did not beat
+    (docs/design/gap-diagnosis.md)."""
+    return [r for r in explanations(ranking, None)
+            if r["effect"] != best["effect"] and not beats(best, r)
+            and r["held_out_shrink"] >= FORWARD_MIN_SHARE and r["held_out_gap"] > NOISE_GAP][:FORWARD_FIRSTS]
+
+
+def pair_row(fw: dict) -> dict:
+    """A pair forward selection found, as a row ``beats`` compares."""
+    return {"score_gain": fw["pair_score_gain"], "held_out_gap": fw["pair_held_out_gap"]}
+
+
+def choose_pair(tried: list) -> tuple:
+    """(first_row, fw, rivals) among forward selections from several firsts (``tried``: (first's ranking
+    row, ``forward``'s answer) pairs, the best single's first): the accepted pair with the best held-out
+    score, and the other accepted pairs it does not beat by the margin (``beats``), which make the
+    answer "not_separable"; (None, None, []) when none was accepted."""
+    won = sorted((t for t in tried if t[1]["accepted"]), key=lambda t: -t[1]["pair_score_gain"])
+    if not won:
+        return None, None, []
+    row, fw = won[0]
+    return row, fw, [f for _, f in won[1:] if not beats(pair_row(fw), pair_row(f))]
+
+
 def time_split(ctx: Context):
     """(train, held, what) for the veto from data held out in time: ``held`` the serious stage of the
     analysis window (the last stage: a model fitted on what came before must forecast it) when it holds
@@ -673,6 +705,18 @@ def rejudge(named, named_set, verdict, confidence, best, fw, ranking=()):
                                             f"removes {best['share'] * 100:.0f} % alone; {pair}"), "confident"
 
 
+def pair_label(fw: dict) -> str:
+    """A pair forward selection found, as the verdict names it."""
+    return f"{fw['first']} ({fw['first_form']}) with {fw['second']} ({fw['second_form']})"
+
+
+def pair_listed(fw: dict) -> dict:
+    """A pair forward selection found, as one explanation a "not_separable" answer lists."""
+    return {"explanation": pair_label(fw), "effect": fw["first"], "effects": sorted({fw["first"], fw["second"]}),
+            "form": fw["first_form"], "held_out_shrink": fw["pair_held_out_shrink"],
+            "held_out_gap": fw["pair_held_out_gap"], "score_gain": fw["pair_score_gain"]}
+
+
 def pair_explanation(fw: dict | None, listed: list) -> dict | None:
     """The pair forward selection found, as one more explanation of a "not_separable" answer (issue 35
     item 2: every explanation within the margin of the others is listed): when the second passed its own
@@ -683,13 +727,9 @@ def pair_explanation(fw: dict | None, listed: list) -> dict | None:
     the answer's explanations (ranking rows, best first)."""
     if not fw or fw["accepted"] or not fw.get("own_tests_passed") or not listed:
         return None
-    row = {"score_gain": fw["pair_score_gain"], "held_out_gap": fw["pair_held_out_gap"]}
-    if beats(listed[0], row):
+    if beats(listed[0], pair_row(fw)):
         return None
-    return {"explanation": f"{fw['first']} ({fw['first_form']}) with {fw['second']} ({fw['second_form']})",
-            "effect": fw["first"], "effects": sorted({fw["first"], fw["second"]}), "form": fw["first_form"],
-            "held_out_shrink": fw["pair_held_out_shrink"], "held_out_gap": fw["pair_held_out_gap"],
-            "score_gain": fw["pair_score_gain"], "turned_away_because": fw["rejected_because"]}
+    return dict(pair_listed(fw), turned_away_because=fw["rejected_because"])
 
 
 def what(effect: str) -> str:
