@@ -267,6 +267,8 @@ def run_case(scenario, kind: str, effects: dict, run_seed: int, out_dir: Path, i
            "not_separable": ["+".join(a.get("effects") or [a["effect"]]) for a in which.get("not_separable") or []],
            "forward": {k: (which["forward"] or {}).get(k) for k in ("first", "second", "accepted", "rejected_because")}
            if which["forward"] else None,
+           "forward_firsts": [f"{f['first']}+{f['second']}: {'accepted' if f['accepted'] else 'turned away'}"
+                              for f in which.get("forward_firsts") or []],
            "veto_in_time": ((which["forward"] or {}).get("held_out_in_time") or {}).get("pair_wins")}
     rec["member_class"] = FAMILY[rec["member"]][0] if rec["member"] else None
     if kind == "outside" or rec["member_class"] == "outside":
