@@ -736,6 +736,37 @@ def test_without_a_c_compiler_the_step_runs_on_the_virtual_machine(tmp_path):
     r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
     assert r.returncode == 0 and r.stdout.strip() == "True", r.stderr[-2000:]
 
+def test_other_firsts_are_the_classes_the_best_does_not_beat_and_accepted_pairs_within_the_margin_are_rivals():
+    """Forward selection's other starts and the choice among their pairs, on rows written by hand: the
+    margin is 25 in score and half the remaining gap (``beats``)."""
+    from hil.gap.select import FORWARD_FIRSTS, choose_pair, other_firsts
+
+    def row(effect, candidate, score, gap, shrink):
+        return {"effect": effect, "candidate": candidate, "score_gain": score, "held_out_gap": gap,
+                "held_out_shrink": shrink}
+    ranking = [row("compliance", "drivetrain_damping", 1000, 2.9, 0.80),
+               row("compliance", "gear_efficiency", 999, 2.9, 0.80),      # the best's own class: never a start
+               row("sensor_delay", "sensor_delay", 990, 3.0, 0.79),       # within the margin
+               row("sensor_delay", "motor_delay", 980, 3.0, 0.79),        # its class's second form
+               row("adhesion_lag", "adhesion_lag", 900, 4.2, 0.71),       # gap 2.9 > half of 4.2: not beaten
+               row("resistance", "resistance", 500, 6.4, 0.56),           # beaten: 2.9 <= 3.2, 1000 >= 525
+               row("torque_lag", "torque_lag", -7, 14.7, 0.0)]
+    assert FORWARD_FIRSTS == 2
+    assert [r["candidate"] for r in other_firsts(ranking, ranking[0])] == ["sensor_delay", "adhesion_lag"]
+    # a class within the margin but removing less than forward selection starts from is no start
+    low = [ranking[0], row("can", "can", 990, 3.0, 0.10)]
+    assert other_firsts(low, low[0]) == []
+
+    def fw(score, gap, accepted=True):
+        return {"pair_score_gain": score, "pair_held_out_gap": gap, "accepted": accepted}
+    a, b, c = fw(2000, 1.0), fw(1990, 1.1), fw(3000, 0.3, accepted=False)
+    first_row, won, rivals = choose_pair([(ranking[0], c), (ranking[2], b), (ranking[4], a)])
+    assert first_row is ranking[4] and won is a and rivals == [b]        # b within the margin of a
+    first_row, won, rivals = choose_pair([(ranking[2], fw(2000, 0.4)), (ranking[4], fw(1500, 1.0))])
+    assert first_row is ranking[2] and rivals == []                       # beaten by the margin
+    assert choose_pair([(ranking[0], c)]) == (None, None, [])
+
+
 def test_sparse_description_of_known_residuals():
     """hil/gap/sparse.py on residuals made here: a gain on the motor speed is described by the motor
     speed with its coefficient; a creep-proportional term by the creep; noise is not described; a sine

@@ -188,6 +188,7 @@ class Diagnosis:
                 forward_ = won
                 named, named_set, verdict, confidence = rejudge(named, named_set, verdict, confidence, first_row,
                                                                 won, ranking)
+                alternatives, separate = [], []       # the pair settles what the singles left open
             elif won is not None:
                 # pairs on different firsts, each accepted, none beating the others by the margin
                 forward_ = won

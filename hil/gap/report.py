@@ -47,6 +47,12 @@ def text_summary(out: dict) -> str:
             lines.append(f"    separate by: {sb['between'][0]} vs {sb['between'][1]} differ most on {sb['signal']} in "
                          f"the {sb['stage']} stage ({sb['difference_noise_units']:.2f} noise units over "
                          f"{sb['periods']} periods)")
+    tried = which.get("forward_firsts") or []
+    if tried:
+        lines.append("    PAIRS TRIED (forward selection, each first's best second): " + "; ".join(
+            f"{f['second']} on {f['first']} removes {f['pair_held_out_shrink'] * 100:.1f} %: "
+            + ("accepted" if f["accepted"] else "turned away (" + "; ".join(f["rejected_because"]) + ")")
+            for f in tried))
     failed = which.get("failed_candidates") or []
     if failed:
         lines.append(f"    FAILED FITS ({len(failed)}; a candidate is not judged where its fit failed): " + "; ".join(

@@ -36,7 +36,9 @@ on a lattice coarser than the scenario's own name it beside whatever explains th
 (q^2 / 12) joins every model's noise floor.  No noise-floor test: an effect written with other
 equations than its candidate leaves a remainder above the noise and is still the right answer when it
 beats every alternative.  Two effects: ``forward`` (a second effect on top of the first, pairs fitted
-together; the pair must also win on data held out in time, ``time_veto``) and ``rejudge``.
+together; the pair must also win on data held out in time, ``time_veto``), from the best single and,
+when its pair is not accepted, from the other classes it does not beat (``other_firsts``,
+``choose_pair``), and ``rejudge``.
 
 A candidate whose fit fails is never dropped silently: each failure (a least-squares start the model
 cannot be evaluated at, a model that diverges, a CasADi evaluation error: ``FIT_ERRORS``) is appended
