@@ -174,15 +174,14 @@ class Diagnosis:
                 not within_noise(rail) and \
                 (best["held_out_shrink"] < FORWARD_MAX_SHARE or best["held_out_gap"] >= FORWARD_MIN_LEFT):
             alone = {f.name: f for f in fits}
-            firsts = [best]
             forward_ = forward(ctx, nom_fit, base, best_fit, best, rail_fit, ranking, exclude, failed, say, alone=alone)
+            tried = [(best, forward_)] if forward_ is not None else []
             if forward_ is None or not forward_["accepted"]:
-                firsts += other_firsts(ranking, best)      # the true first need not be the best alone
-            for i, row in enumerate(firsts):
-                fw = forward_ if i == 0 else forward(ctx, nom_fit, base, alone[row["candidate"]], row, rail_fit,
-                                                     ranking, exclude, failed, say, alone=alone)
-                if fw is not None:
-                    tried.append((row, fw))
+                for row in other_firsts(ranking, best):      # the true first need not be the best alone
+                    fw = forward(ctx, nom_fit, base, alone[row["candidate"]], row, rail_fit, ranking, exclude, failed,
+                                 say, alone=alone)
+                    if fw is not None:
+                        tried.append((row, fw))
             first_row, won, rivals = choose_pair(tried)
             if won is not None and not rivals:
                 forward_ = won

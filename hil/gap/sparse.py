@@ -182,16 +182,13 @@ def view_targets(meas_motor, nominal_motor, period_s, ahead_motor=None) -> dict[
 def fitted(description: dict, meas_motor, train_ms, creep_kmh, torque_nm, period_s) -> np.ndarray:
     """The description's sum along the run: its intercept plus each term times its coefficient (a
     periodic term as coef x sin(2 pi f t + phase), times the torque for ``torque*periodic``)."""
-    line_hz = description.get("line_hz")
-    terms = library(meas_motor, train_ms, creep_kmh, torque_nm, period_s, line_hz)
+    terms = library(meas_motor, train_ms, creep_kmh, torque_nm, period_s, description.get("line_hz"))
     y = np.full(meas_motor.shape, float(description.get("intercept") or 0.0))
-    phase = 2 * np.pi * (line_hz or 0.0) * period_s * np.arange(meas_motor.size)
     for t in description["terms"]:
-        if "phase_rad" in t:
-            wave = np.sin(phase + t["phase_rad"])
-            y = y + t["coef"] * (torque_nm * wave if t["term"].startswith("torque") else wave)
-        else:
-            y = y + t["coef"] * terms[t["term"]]
+        col = terms[t["term"]]
+        if "phase_rad" in t:      # A sin(x + phase) = A cos(phase) sin(x) + A sin(phase) cos(x): the (sin, cos) columns
+            col = col @ np.array([np.cos(t["phase_rad"]), np.sin(t["phase_rad"])])
+        y = y + t["coef"] * col
     return y
 
 
