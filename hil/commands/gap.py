@@ -22,6 +22,7 @@ def register(sub) -> None:
 
 def cmd_gap(args) -> int:
     from ..gap import diagnose, read_real_log
+    from ..benchmarks.terminal import wrap_lines
     from ..gap.report import text_summary, write_report
 
     if args.block < 2:
@@ -41,7 +42,7 @@ def cmd_gap(args) -> int:
     if args.json:
         print(json.dumps(out))
     else:
-        print(text_summary(out))
+        print(wrap_lines(text_summary(out)))      # the report's copy keeps whole lines
         if args.report:
             print(f"  report: {out['report']}")
     return 0
