@@ -11,7 +11,7 @@ import sys
 import threading
 
 from . import commands
-from .errors import EXIT_INTERRUPTED, HilError, caused_by_interrupt
+from .errors import EXIT_INTERRUPTED, HilError, caused_by_interrupt, remember_unraisable_interrupts
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -40,8 +40,17 @@ class _Interrupts:
 
 def main(argv=None) -> int:
     interrupts = _Interrupts()
-    if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGINT, interrupts)
+    if threading.current_thread() is not threading.main_thread():
+        return _main(argv, interrupts)
+    signal.signal(signal.SIGINT, interrupts)
+    previous = remember_unraisable_interrupts(lambda: setattr(interrupts, "interrupted", True))
+    try:
+        return _main(argv, interrupts)
+    finally:
+        sys.unraisablehook = previous
+
+
+def _main(argv, interrupts: _Interrupts) -> int:
     try:
         # the imports (numpy, scipy, casadi ...) take about a second: a Ctrl-C then is an interrupt too
         parser = build_parser()

@@ -18,6 +18,8 @@ message and exits with ``exit_code``.  Nothing here imports anything else of the
 """
 from __future__ import annotations
 
+import sys
+
 EXIT_OK = 0
 EXIT_USAGE = 2
 EXIT_SILENT = 3
@@ -104,3 +106,18 @@ def caused_by_interrupt(error: BaseException) -> bool:
         seen.add(id(error))
         error = error.__cause__ or error.__context__
     return False
+
+
+def remember_unraisable_interrupts(remember):
+    """Install (and return the hook it replaces) a ``sys.unraisablehook`` under which an interrupt raised where Python cannot pass it on
+    (a signal handler's ``KeyboardInterrupt`` landing inside a ctypes callback, such as llvmlite's
+    object-cache hook while numba compiles, or in a ``__del__``) calls ``remember()`` instead of
+    printing "Exception ignored in ... Traceback"; any other unraisable error goes to the default hook.
+    The command then ends as interrupted from what ``remember`` recorded."""
+    def hook(hook_args) -> None:
+        if isinstance(hook_args.exc_value, KeyboardInterrupt):
+            remember()
+            return
+        sys.__unraisablehook__(hook_args)
+    previous, sys.unraisablehook = sys.unraisablehook, hook
+    return previous

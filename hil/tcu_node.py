@@ -29,7 +29,7 @@ import can
 from identifier import DEFAULT_STRATEGY, STRATEGIES, TractionIdentifier
 
 from .errors import (EXIT_INTERRUPTED, EXIT_OK, BusError, ConfigError, HilError, PeerSilent, PlantFault,
-                     caused_by_interrupt)
+                     caused_by_interrupt, remember_unraisable_interrupts)
 from .bus.frames import (PLANT_IDS, STATE_FAULT, STATE_FINISHED, STATE_NAMES, STATE_RUNNING, STATE_STARTING,
                      FrameCodec, RejectCounter, SampleReport)
 from .bus.mapping import codec_for
@@ -414,6 +414,9 @@ def _terminate(signum, frame):
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     signal.signal(signal.SIGTERM, _terminate)
+    # a SIGTERM landing inside a ctypes callback (numba compiling) cannot unwind: it is recorded by
+    # _terminate and not printed as a traceback; the plant kills a TCU that does not then end
+    remember_unraisable_interrupts(lambda: None)
     try:
         return run_tcu(args)
     except HilError as e:

@@ -196,6 +196,38 @@ def test_an_interrupt_swallowed_during_a_run_still_ends_the_command_as_interrupt
         signal.signal(signal.SIGINT, old)
 
 
+def test_an_interrupt_raised_inside_a_ctypes_callback_is_remembered_not_printed():
+    """SIGINT landing while numba compiles runs the handler inside llvmlite's ctypes callback, where
+    Python cannot pass the KeyboardInterrupt on: it went to ``sys.unraisablehook``, which printed
+    "Exception ignored ... Traceback" on a run's stderr (seen in CI, Ctrl-C 0.7 s into ``hil run``).
+    Under the hook the commands install it is remembered instead; any other unraisable error is
+    still printed.  A real ctypes callback in a fresh interpreter."""
+    script = """
+import ctypes, os, signal
+from hil.errors import remember_unraisable_interrupts
+seen = []
+remember_unraisable_interrupts(lambda: seen.append("interrupt"))
+def handler(signum, frame):
+    raise KeyboardInterrupt
+signal.signal(signal.SIGINT, handler)
+def callback():
+    os.kill(os.getpid(), signal.SIGINT)
+    sum(range(100000))              # the handler runs here, inside the callback
+ctypes.CFUNCTYPE(None)(callback)()
+class Broken:
+    def __del__(self):
+        raise ValueError("a real unraisable error")
+Broken()
+print(seen)
+"""
+    r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=subprocess_env(),
+                       timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip() == "['interrupt']", (r.stdout, r.stderr)
+    assert "KeyboardInterrupt" not in r.stderr, r.stderr
+    assert "ValueError: a real unraisable error" in r.stderr, r.stderr
+
+
 @pytest.mark.parametrize("name, refused", [("../../elsewhere/pwned", False), ("{tmp}/abs/pwned", False),
                                            ("a\\u0000b", True), ("../" * 100, True), ("x" * 300, False),
                                            ("/../..", True)])

@@ -58,9 +58,16 @@ def cmd_run(args) -> int:
     from ..errors import PeerSilent
     from ..exchange import check_deadlines, run
     from ..plants import make_plant, plant_label
+    from ..log.record import prepare_out_dir
     from ..progress import compile_kernels
 
-    plant = make_plant(scenario, args.plant)   # None: the CasADi model
+    plant = make_plant(scenario, args.plant)   # None: the CasADi model; a refused FMU creates no --out
+    try:
+        prepare_out_dir(args.out)              # a bad --out is told now, not after a first-run compile
+    except ConfigError:
+        if plant is not None:
+            plant.close()
+        raise
     if args.tcu != "external":
         compile_kernels("hil run")             # the first run on a machine: shown, not a silent wait
     try:
