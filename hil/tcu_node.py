@@ -192,9 +192,12 @@ def newest_sensor_only(bus: can.BusABC, first: can.Message, node: TcuNode, limit
 
 
 def serve(bus: can.BusABC, node: TcuNode, *, silence_s: float, heartbeat_period_s: float,
-          startup_timeout_s: float, realtime: bool = False, spin_s: float = 0.0, log=None) -> None:
+          startup_timeout_s: float, realtime: bool = False, spin_s: float = 0.0, log=None,
+          stop_requested=lambda: False) -> None:
     """Answer frames until the plant says it finished; raises PeerSilent when the plant goes quiet
-    for longer than ``silence_s`` (or never shows up within ``startup_timeout_s``).  ``spin_s``
+    for longer than ``silence_s`` (or never shows up within ``startup_timeout_s``), and
+    KeyboardInterrupt at the next frame or wait once ``stop_requested()`` (a SIGTERM whose interrupt
+    could not be raised where it landed, e.g. inside a ctypes callback).  ``spin_s``
     (lockstep): poll the bus this long after each frame before sleeping in it, so the next sensor
     frame finds the node awake (``[bus] lockstep_spin_s``).
 
@@ -236,6 +239,8 @@ def serve(bus: can.BusABC, node: TcuNode, *, silence_s: float, heartbeat_period_
     try:
         spinning = spin_s > 0.0 and not realtime
         while not node.finished:
+            if stop_requested():
+                raise KeyboardInterrupt
             msg = poll_until(bus, time.perf_counter() + spin_s) if spinning else None
             if msg is None:
                 due = sent["at"] + heartbeat_period_s - time.monotonic()
@@ -349,7 +354,8 @@ def run_tcu(args) -> int:
         serve(GuardedBus(handle.bus, handle.name), node, silence_s=silence_limit_s(settings, args.mode, period),
               heartbeat_period_s=heartbeat_period_s(settings, args.mode),
               startup_timeout_s=settings.startup_timeout_s if args.wait is None else args.wait,
-              realtime=args.mode == "realtime", spin_s=settings.lockstep_spin_s)
+              realtime=args.mode == "realtime", spin_s=settings.lockstep_spin_s,
+              stop_requested=lambda: bool(_terminated))
         if node.plant_state == STATE_FAULT:
             error = PlantFault(f"the plant reported a fault after step {node.last_step}")
     except PeerSilent as e:
@@ -414,8 +420,8 @@ def _terminate(signum, frame):
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     signal.signal(signal.SIGTERM, _terminate)
-    # a SIGTERM landing inside a ctypes callback (numba compiling) cannot unwind: it is recorded by
-    # _terminate and not printed as a traceback; the plant kills a TCU that does not then end
+    # a SIGTERM landing inside a ctypes callback (numba compiling) cannot unwind there: _terminate
+    # recorded it, the hook keeps the traceback off the run's stderr, and serve stops at its next turn
     remember_unraisable_interrupts(lambda: None)
     try:
         return run_tcu(args)

@@ -46,6 +46,15 @@ SUMMARY_KEYS = ("adhesion_utilisation", "adhesion_utilisation_low", "macro_slip_
                 "reaction_ms", "recovery_s", "torque_ripple_percent", "traction_energy_mj", "distance_m")
 
 
+def reaction_text(reaction_ms) -> str:
+    """The reaction figure as the summaries print it, saying what its sign means."""
+    if reaction_ms is None or not math.isfinite(reaction_ms):
+        return "reaction n/a"
+    if reaction_ms < 0:
+        return f"reaction {reaction_ms:.1f} ms (torque cut before the creep passed the peak)"
+    return f"reaction {reaction_ms:.1f} ms"
+
+
 class TruthTrack:
     """Per step: the true state, the rail's truth and the demand (module docstring)."""
 

@@ -152,6 +152,50 @@ def test_sigterm_of_the_tcu_process_is_one_line_not_a_traceback(tmp_path, delay_
         assert err.strip().splitlines()[-1].startswith("hil tcu: interrupted"), err
 
 
+TCU_TERMINATED_IN_A_CALLBACK = """
+import ctypes, os, signal, sys, time
+import hil.tcu_node as tcu_node
+serve = tcu_node.serve
+class Bus:                          # the TCU's bus, unchanged but for one wait
+    def __init__(self, bus):
+        self.bus, self.t0, self.sent = bus, time.monotonic(), False
+    def __getattr__(self, name):
+        return getattr(self.bus, name)
+    def recv(self, timeout=None):
+        if not self.sent and time.monotonic() > self.t0 + 0.3:
+            self.sent = True
+            def callback():         # the SIGTERM lands in here: its interrupt cannot be raised
+                os.kill(os.getpid(), signal.SIGTERM)
+                sum(range(100000))
+            ctypes.CFUNCTYPE(None)(callback)()
+            print("after the callback", time.monotonic(), file=sys.stderr, flush=True)
+        return self.bus.recv(timeout)
+tcu_node.serve = lambda bus, node, **kw: serve(Bus(bus), node, **kw)
+sys.exit(tcu_node.main(sys.argv[1:]))
+"""
+
+
+def test_a_sigterm_the_tcu_could_not_raise_inside_a_callback_still_ends_it_as_interrupted(tmp_path):
+    """The plant's SIGTERM landing while the TCU's main thread is inside a ctypes callback (numba
+    compiling): the interrupt cannot unwind there.  The TCU still ends at its loop's next turn, with the
+    one line and exit 130, not a traceback and not after waiting out its start-up timeout (60 s here)."""
+    from hil.bus.localbus import create_channel, remove_channel
+
+    channel = create_channel()
+    try:
+        t0 = time.monotonic()
+        r = subprocess.run([sys.executable, "-c", TCU_TERMINATED_IN_A_CALLBACK, str(SCENARIOS / "ffcc_a.toml"),
+                            "--bus", f"localbus:{channel}", "--wait", "60"], cwd=tmp_path, capture_output=True,
+                           text=True, env=subprocess_env(), timeout=120)
+        took_s = time.monotonic() - t0
+    finally:
+        remove_channel(channel)
+    assert "after the callback" in r.stderr, r.stderr         # the interrupt did not unwind the callback
+    assert r.returncode == 130, r.stderr
+    assert "Traceback" not in r.stderr and r.stderr.strip().splitlines()[-1] == "hil tcu: interrupted", r.stderr
+    assert took_s < 50, took_s
+
+
 def test_an_interrupt_something_swallowed_still_stops_the_run():
     """A Ctrl-C that a library swallows while hil imports (an optional import that catches the
     ImportError the interrupt became: seen once in CI, exit 0 after a full run) is remembered by the
