@@ -451,15 +451,15 @@ def test_two_effects_at_once_found_by_forward_selection(tmp_path, scenario):
     assert out["where"]["summary"].startswith("first significant in the")
 
 
-def _bench_case(tmp_path, scenario, seed: int, i: int, mix: str):
+def _bench_case(tmp_path, scenario, seed: int, i: int, mix: str, identify: bool = False):
     """Case ``i`` of ``hil bench gap --seed SEED --mix MIX``, recorded and diagnosed as the bench does
-    (the truth's own forms held out of the candidates)."""
+    (the truth's own forms held out of the candidates; ``identify``: with the model replays too)."""
     from hil.benchmarks.gap import HELD_OUT
     from hil.effects import with_reality
     kind, effects, run_seed = draw_case(seed, i, parse_mix(mix))
     s = run(with_reality(scenario, effects), "nlls", run_seed, bus="inprocess", out_dir=tmp_path, progress=False,
             log=print)
-    out, result = diagnose(read_real_log(s["mcap"]), scenario, identify=False,
+    out, result = diagnose(read_real_log(s["mcap"]), scenario, identify=identify,
                            exclude=sorted(n for n in effects if n in HELD_OUT))
     print(f"bench seed {seed}, case {i}: {effects} ->", out["which"]["named_set"], out["which"]["confidence"])
     return effects, out, result
@@ -604,7 +604,7 @@ def test_a_pair_whose_first_is_not_the_best_alone_is_found_from_another_first(tm
     sensor delay that stands for the low-pass, and the pair built on them finds no second effect; the
     pair built on the delay, the other class the best single does not beat by the margin
     (``other_firsts``), finds the resistance and is named with its factor."""
-    effects, out, _ = _bench_case(tmp_path, scenario, 179275234, 109, "two_effect=1")
+    effects, out, _ = _bench_case(tmp_path, scenario, 179275234, 109, "two_effect=1", identify=True)
     assert set(effects) == {"resistance", "sensor_lowpass"}
     which = out["which"]
     tried = which["forward_firsts"]
@@ -616,6 +616,16 @@ def test_a_pair_whose_first_is_not_the_best_alone_is_found_from_another_first(tm
     assert fw["first"] == "sensor_delay" and fw["second"] == "resistance" and fw["held_out_in_time"]["pair_wins"]
     factor = fw["second_params"]["factor"]
     assert abs(factor - effects["resistance"]["factor"]) < 0.1 * effects["resistance"]["factor"], factor
+    # HOW FAR is the named pair's, not the best single's, which removes less
+    best = which["ranking"][0]
+    sh = out["shrink"]
+    print(sh["effect"], sh["held_out_gap_shrink_percent"], best["effect"], best["held_out_shrink"] * 100)
+    assert sh["effect"] == "sensor_delay + resistance"
+    assert sh["held_out_gap_shrink_percent"] > best["held_out_shrink"] * 100 + 5
+    # and the model replay is of an effect named (the delay, named first), not of the best single
+    source = out["identification"]["augmented_replay"]["source"]
+    delay = next(r for r in which["ranking"] if r["effect"] == "sensor_delay")
+    assert source == f"nominal + {delay['candidate']} replay" and best["candidate"] not in source, source
 
 
 def test_the_veto_in_time_rejects_a_pair_that_removes_next_to_none_of_a_large_gap(tmp_path, scenario):

@@ -223,8 +223,15 @@ class Diagnosis:
                 verdict = f"{said}; beyond it, {verdict}"
             else:
                 verdict = f"{verdict}; and {said}"
-        shrink_table = {s: {"rmse_before": base["per_signal"][s]["rmse"], "rmse_after": best["per_signal"][s]["rmse"],
-                            "gap_before": base["per_signal"][s]["gap"], "gap_after": best["per_signal"][s]["gap"],
+        # HOW FAR: the explanation named (a pair, or the named class's best single), else the best single
+        if forward_ is not None and forward_["accepted"] and set(named_set) - {"sensor_quantisation"} == \
+                {forward_["first"], forward_["second"]}:
+            far = {"effect": f"{forward_['first']} + {forward_['second']}",
+                   "held_out_shrink": forward_["pair_held_out_shrink"], "per_signal": forward_["pair_per_signal"]}
+        else:
+            far = next((r for r in ranking if r["effect"] == named), best)
+        shrink_table = {s: {"rmse_before": base["per_signal"][s]["rmse"], "rmse_after": far["per_signal"][s]["rmse"],
+                            "gap_before": base["per_signal"][s]["gap"], "gap_after": far["per_signal"][s]["gap"],
                             "noise_floor": sigma[s], "unit": UNITS[s]} for s in SIGNALS}
         unobservable = observability(where_["input_constant"])
         # what the nominal model leaves, described by a sparse regression (when there is a gap)
@@ -257,14 +264,17 @@ class Diagnosis:
                       "rule": {"min_shrink": MIN_SHRINK, "min_score_gain": MIN_SCORE_GAIN,
                                "margin_score": MIN_MARGIN, "margin_gap_ratio": MARGIN_GAP_RATIO,
                                "min_gap": MIN_GAP, "within_noise_gap": NOISE_GAP}},
-            "shrink": {"effect": best["effect"], "named": named, "held_out_gap_shrink_percent":
-                       best["held_out_shrink"] * 100, "per_signal": shrink_table},
+            "shrink": {"effect": far["effect"], "named": named, "held_out_gap_shrink_percent":
+                       far["held_out_shrink"] * 100, "per_signal": shrink_table},
         }
         if named == "sensor_quantisation":      # the quantiser alone: its share of the gap is the shrink
             out["shrink"].update(effect="sensor_quantisation", held_out_gap_shrink_percent=lattice["share"] * 100)
         if self.identify:
             say("identification on the real run and on the model replays")
-            augmented = quantiser_fit if named == "sensor_quantisation" else best_fit if named != NONE else None
+            # the named class's best single (of a pair: the effect named first, alone)
+            named_row = next((r for r in ranking if r["effect"] == named), best)
+            named_fit = next(f for f in fits if f.name == named_row["candidate"])
+            augmented = quantiser_fit if named == "sensor_quantisation" else named_fit if named != NONE else None
             out["identification"] = identification(ctx, nom_fit, augmented, creep_meas)
         return DiagnosisResult(clean(out), d, sc, ctx, nominal, best_fit, fits, base, rail, ranking, creep_meas,
                                failed, ahead)

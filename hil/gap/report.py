@@ -247,7 +247,8 @@ def write_report(out: dict, result, directory) -> Path:
                "| candidate | form | step | error |", "|---|---|---|---|"]
         for f_ in out["which"]["failed_candidates"]:
             md.append(f"| {f_['name']} | {f_['form']} | {f_['step']} | {f_['error'].replace('|', '/')} |")
-    md += ["", "## How far it shrinks (held-out blocks)", "",
+    md += ["", f"## How far it shrinks (held-out blocks): nominal + {out['shrink']['effect']}"
+           f"{'' if out['shrink']['named'] != 'none' else ' (the best single, not named)'}", "",
            "| signal | RMSE before | RMSE after | gap before | gap after | noise floor |", "|---|---|---|---|---|---|"]
     for s, v in out["shrink"]["per_signal"].items():
         md.append(f"| {s} [{v['unit']}] | {_f(v['rmse_before'], '.4g')} | {_f(v['rmse_after'], '.4g')} | "

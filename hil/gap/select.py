@@ -483,7 +483,7 @@ def forward(ctx: Context, nom_fit: Fit, base: dict, first: Fit, first_row: dict,
            "pair_held_out_shrink": second["held_out_shrink"],
            "second_removes_of_remainder": removed, "accepted": bool(accepted), "rejected_because": why,
            "own_tests_passed": not own, "pair_score_gain": second["score_gain"],
-           "pair_held_out_gap": second["held_out_gap"],
+           "pair_held_out_gap": second["held_out_gap"], "pair_per_signal": second["per_signal"],
            "ranking": [{k: r[k] for k in ("effect", "form", "params", "score_gain", "held_out_shrink",
                                           "held_out_gap", "at_bound")} for r in rows]}
     if accepted and rail_fit is not None:
