@@ -46,13 +46,14 @@ SUMMARY_KEYS = ("adhesion_utilisation", "adhesion_utilisation_low", "macro_slip_
                 "reaction_ms", "recovery_s", "torque_ripple_percent", "traction_energy_mj", "distance_m")
 
 
-def reaction_text(reaction_ms) -> str:
-    """The reaction figure as the summaries print it, saying what its sign means."""
-    if reaction_ms is None or not math.isfinite(reaction_ms):
-        return "reaction n/a"
-    if reaction_ms < 0:
-        return f"reaction {reaction_ms:.1f} ms (torque cut before the creep passed the peak)"
-    return f"reaction {reaction_ms:.1f} ms"
+def response_text(reaction_ms, recovery_s) -> str:
+    """Reaction and recovery as the summaries print them ("n/a" where a run has no drop or rail
+    change), saying what a negative reaction means."""
+    def given(x):
+        return x is not None and math.isfinite(x)
+    reaction = "reaction n/a" if not given(reaction_ms) else f"reaction {reaction_ms:.1f} ms" + (
+        " (torque cut before the creep passed the peak)" if reaction_ms < 0 else "")
+    return reaction + (f", recovery {recovery_s:.3f} s" if given(recovery_s) else ", recovery n/a")
 
 
 class TruthTrack:

@@ -39,7 +39,7 @@ import numpy as np
 
 from .log.read import LogError, read_log, scenario_from_log
 from .bus.verdicts import REJECTED, kind
-from .traction import reaction_text
+from .traction import response_text
 
 CREEP_TIMELINE = "creep_m_per_h"
 TIME_TIMELINE = "sim_time"
@@ -361,7 +361,7 @@ def build_recording(head: LogHead, rec):
     if m is not None:
         texts.append((m.t_s, "INFO", f"control {m.control}: adhesion utilisation {m.adhesion_utilisation:.3f} "
                       f"(low {m.adhesion_utilisation_low:.3f}), macro-slip {m.macro_slip_s:.3f} s "
-                      f"({m.macro_slip_count}x), {reaction_text(m.reaction_ms)}, recovery {m.recovery_s:.3f} s, "
+                      f"({m.macro_slip_count}x), {response_text(m.reaction_ms, m.recovery_s)}, "
                       f"ripple {m.torque_ripple_percent:.2f} %"))
     if not log.complete:
         texts.append((t_hi, "ERROR", f"log incomplete: {log.problem()}"))

@@ -9,7 +9,7 @@ from identifier import DEFAULT_STRATEGY, STRATEGIES
 from ..config import load_scenario, parse_set
 from ..errors import ConfigError
 from ..trace import fmt as _fmt
-from ..traction import reaction_text
+from ..traction import response_text
 
 
 def register(sub) -> None:
@@ -159,7 +159,7 @@ def print_summary(s: dict, file=sys.stdout, heading: str | None = None) -> None:
         print(f"  traction ({s.get('control')}): adhesion utilisation {_fmt(s['adhesion_utilisation'], '.3f')}, "
               f"where it matters {_fmt(s.get('adhesion_utilisation_low'), '.3f')}; macro-slip "
               f"{_fmt(s.get('macro_slip_s'), '.3f')} s ({s.get('macro_slip_count')}x)", file=file)
-        print(f"    {reaction_text(s.get('reaction_ms'))}, recovery {_fmt(s.get('recovery_s'), '.3f')} s, "
+        print(f"    {response_text(s.get('reaction_ms'), s.get('recovery_s'))}, "
               f"ripple {_fmt(s.get('torque_ripple_percent'), '.2f')} %", file=file)
     if s.get("mode") in ("lockstep", "realtime"):
         line = f"  {s['mode']} over {s['bus']}: round trip p50 {_fmt(s.get('round_trip_p50_us'), '.0f')} us"
