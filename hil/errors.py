@@ -109,11 +109,12 @@ def caused_by_interrupt(error: BaseException) -> bool:
 
 
 def remember_unraisable_interrupts(remember):
-    """Install (and return the hook it replaces) a ``sys.unraisablehook`` under which an interrupt raised where Python cannot pass it on
-    (a signal handler's ``KeyboardInterrupt`` landing inside a ctypes callback, such as llvmlite's
-    object-cache hook while numba compiles, or in a ``__del__``) calls ``remember()`` instead of
-    printing "Exception ignored in ... Traceback"; any other unraisable error goes to the default hook.
-    The command then ends as interrupted from what ``remember`` recorded."""
+    """Install a ``sys.unraisablehook`` and return the hook it replaces.  Under it an interrupt raised
+    where Python cannot pass it on (a signal handler's ``KeyboardInterrupt`` landing inside a ctypes
+    callback, such as llvmlite's object-cache hook while numba compiles, or in a ``__del__``) calls
+    ``remember()`` instead of printing "Exception ignored in ... Traceback"; any other unraisable
+    error goes to the default hook.  The command then ends as interrupted from what ``remember``
+    recorded."""
     def hook(hook_args) -> None:
         if isinstance(hook_args.exc_value, KeyboardInterrupt):
             remember()
