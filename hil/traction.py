@@ -48,11 +48,12 @@ SUMMARY_KEYS = ("adhesion_utilisation", "adhesion_utilisation_low", "macro_slip_
 
 def response_text(reaction_ms, recovery_s) -> str:
     """Reaction and recovery as the summaries print them ("n/a" where a run has no drop or rail
-    change), saying what a negative reaction means."""
+    change), saying what a negative reaction means: the torque was cut before the creep passed the
+    current peak creep."""
     def given(x):
         return x is not None and math.isfinite(x)
     reaction = "reaction n/a" if not given(reaction_ms) else f"reaction {reaction_ms:.1f} ms" + (
-        " (torque cut before the creep passed the peak)" if reaction_ms < 0 else "")
+        " (torque cut before the peak)" if reaction_ms < 0 else "")
     return reaction + (f", recovery {recovery_s:.3f} s" if given(recovery_s) else ", recovery n/a")
 
 

@@ -223,13 +223,15 @@ class Diagnosis:
                 verdict = f"{said}; beyond it, {verdict}"
             else:
                 verdict = f"{verdict}; and {said}"
-        # HOW FAR: the explanation named (a pair, or the named class's best single), else the best single
+        # the named class's best single (of a pair, the effect named first; the best single when none is)
+        named_row = next((r for r in ranking if r["effect"] == named), best)
+        # HOW FAR: the explanation named (a pair, or that single), else the best single
         if forward_ is not None and forward_["accepted"] and set(named_set) - {"sensor_quantisation"} == \
                 {forward_["first"], forward_["second"]}:
             far = {"effect": f"{forward_['first']} + {forward_['second']}",
                    "held_out_shrink": forward_["pair_held_out_shrink"], "per_signal": forward_["pair_per_signal"]}
         else:
-            far = next((r for r in ranking if r["effect"] == named), best)
+            far = named_row
         shrink_table = {s: {"rmse_before": base["per_signal"][s]["rmse"], "rmse_after": far["per_signal"][s]["rmse"],
                             "gap_before": base["per_signal"][s]["gap"], "gap_after": far["per_signal"][s]["gap"],
                             "noise_floor": sigma[s], "unit": UNITS[s]} for s in SIGNALS}
@@ -271,8 +273,6 @@ class Diagnosis:
             out["shrink"].update(effect="sensor_quantisation", held_out_gap_shrink_percent=lattice["share"] * 100)
         if self.identify:
             say("identification on the real run and on the model replays")
-            # the named class's best single (of a pair: the effect named first, alone)
-            named_row = next((r for r in ranking if r["effect"] == named), best)
             named_fit = next(f for f in fits if f.name == named_row["candidate"])
             augmented = quantiser_fit if named == "sensor_quantisation" else named_fit if named != NONE else None
             out["identification"] = identification(ctx, nom_fit, augmented, creep_meas)
