@@ -18,6 +18,7 @@ Every problem is one ``ConfigError`` (alias ``ScenarioError``) line naming the f
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import tomllib
 from dataclasses import dataclass, field
@@ -31,7 +32,7 @@ from plant.rail import DemandProfile, RailSchedule, RailSegment, Recovery
 from .errors import ConfigError, ScenarioError
 
 __all__ = ["BusSettings", "ConfigError", "RunConfig", "Scenario", "ScenarioError", "load_scenario", "parse_scenario",
-           "parse_set"]
+           "parse_set", "resolved_table", "scenario_digest", "scenario_from_handover"]
 
 
 @dataclass(frozen=True)
@@ -135,6 +136,17 @@ class Scenario:
     @property
     def steps(self) -> int:
         return int(round(self.run.duration_s / self.run.exchange_period_s))
+
+    @functools.cached_property
+    def digest(self) -> str:
+        """SHA-256 (hex) of the resolved scenario (``scenario_digest``): equal on both sides of a run."""
+        return scenario_digest(self.source_text, self.path, self.overrides)
+
+    def handover(self) -> dict:
+        """What a TCU process needs to run exactly this scenario (``scenario_from_handover``): the text, its
+        path (a ``[bus] dbc`` is found beside it), the overrides, and the digest they resolve to.  JSON."""
+        return {"format": HANDOVER_FORMAT, "path": self.path, "text": self.source_text,
+                "overrides": dict(self.overrides), "digest": self.digest}
 
 
 # -- validation ---------------------------------------------------------------------------------
@@ -335,10 +347,9 @@ def _polach_curve(path, t, key, where, polach_speed) -> PolachCurve:
     return PolachCurve(**v, name=key)
 
 
-def parse_scenario(text: str, path: str = "<scenario>", overrides: dict | None = None, *,
-                   check_dbc: bool = True) -> Scenario:
-    """The scenario in ``text`` (read from ``path``), checked; ``check_dbc`` False: a ``[bus] dbc`` is not
-    opened (a log's scenario: the run is over, the log keeps the DBC it ran with)."""
+def resolved_table(text: str, path: str = "<scenario>", overrides: dict | None = None) -> dict:
+    """The scenario's TOML table with ``overrides`` (``--set`` items, ``parse_set``) applied: what both the
+    plant and the TCU run (``scenario_digest``).  ``ScenarioError``/``ConfigError`` naming the field."""
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
@@ -362,6 +373,56 @@ def parse_scenario(text: str, path: str = "<scenario>", overrides: dict | None =
             raise ConfigError(f"--set {dotted}: {'.'.join(tables)} is a list of segments in {path}; name one "
                               f"(e.g. {'.'.join(tables)}.0.{key})")
         node[key] = value
+    return data
+
+
+#: ``[bus]`` keys a run's session hands the TCU process itself (its frame key, its CPUs): plumbing of this
+#: run, not part of the scenario both sides must agree on
+SESSION_BUS_KEYS = ("auth", "auth_key_file", "cpu_affinity_tcu", "cpu_affinity_plant")
+#: the hand-over file's format (``Scenario.handover``)
+HANDOVER_FORMAT = 1
+
+
+def scenario_digest(text: str, path: str = "<scenario>", overrides: dict | None = None) -> str:
+    """SHA-256 (hex) of the resolved scenario: ``resolved_table`` as canonical JSON (sorted keys, no
+    whitespace), less ``SESSION_BUS_KEYS``.  Two sides run the same scenario exactly when their digests are
+    equal, however they got there (a file with the value in it, or another file and ``--set``); the file's
+    path and layout, comments and key order do not count."""
+    import hashlib
+    import json
+
+    data = resolved_table(text, path, overrides)
+    bus = data.get("bus")
+    if isinstance(bus, dict):
+        data["bus"] = {k: v for k, v in bus.items() if k not in SESSION_BUS_KEYS}
+        if not data["bus"]:          # a [bus] made by those keys alone is no table of the scenario's
+            del data["bus"]
+    canonical = json.dumps(data, sort_keys=True, separators=(",", ":"), ensure_ascii=False, default=str)
+    return hashlib.sha256(canonical.encode("utf-8")).hexdigest()
+
+
+def scenario_from_handover(data: dict, where: str = "hand-over") -> "Scenario":
+    """The scenario a ``Scenario.handover`` dict describes, checked against the digest it carries (a
+    hand-over file cut or edited on the way is one ``ConfigError``)."""
+    try:
+        fmt, path, text, overrides, digest = (data["format"], data["path"], data["text"], data["overrides"],
+                                              data["digest"])
+    except (KeyError, TypeError):
+        raise ConfigError(f"{where}: not a scenario hand-over (format, path, text, overrides, digest)") from None
+    if fmt != HANDOVER_FORMAT or not isinstance(text, str) or not isinstance(overrides, dict):
+        raise ConfigError(f"{where}: a scenario hand-over of format {fmt!r}; this version reads {HANDOVER_FORMAT}")
+    scenario = parse_scenario(text, str(path), overrides)
+    if scenario.digest != digest:
+        raise ConfigError(f"{where}: the scenario resolves to digest {scenario.digest[:16]}, the hand-over says "
+                          f"{str(digest)[:16]}")
+    return scenario
+
+
+def parse_scenario(text: str, path: str = "<scenario>", overrides: dict | None = None, *,
+                   check_dbc: bool = True) -> Scenario:
+    """The scenario in ``text`` (read from ``path``), checked; ``check_dbc`` False: a ``[bus] dbc`` is not
+    opened (a log's scenario: the run is over, the log keeps the DBC it ran with)."""
+    data = resolved_table(text, path, overrides)
     known = {"name", "description", "vehicle", "curves", "run", "sensors", "identifier", *_OPTIONAL_TABLES,
              "control", "rail"}
     for key in data:

@@ -4,12 +4,14 @@ message and exits with ``exit_code``.  Nothing here imports anything else of the
 
     HilError                exit 2   something the user can fix (the base)
       ConfigError           exit 2   a scenario file, a table, a --set or --out value
+        ScenarioMismatch    exit 2   the TCU announces another scenario than the plant's (before step 0)
       BusError              exit 2   a bus that cannot be opened here
       LogError              exit 2   a file that is not a log this tool reads
       PlantError            exit 2   an FMU or plant that cannot be loaded or run
       LogWriteError         exit 2   the log cannot be written (disk full, file size limit, I/O error)
       ClusterError          exit 2   a Dask cluster that cannot be started or reached (hil sweep)
       PeerSilent            exit 3   the other side of the bus fell silent or died mid-run
+      TcuDidNotStart        exit 3   the TCU process this run watches ended before it joined the bus
         NoProgress          exit 3   (lockstep) the other side lives but the pending step gets no answer
       PlantFault            exit 4   (TCU side) the plant reported a fault
       DeadlinesMissed       exit 5   (real time) more deadlines missed than [bus] max_missed_fraction allows
@@ -35,6 +37,11 @@ class HilError(Exception):
 
 class ConfigError(HilError, ValueError):
     """A scenario, table or command-line value that cannot be used; the message names file and field."""
+
+
+class ScenarioMismatch(ConfigError):
+    """The TCU on the bus runs another scenario than the plant (their digests differ, ``TcuScenario``):
+    found before the first period; the message names both digests."""
 
 
 #: the name the scenario loader's errors have always had
@@ -64,6 +71,13 @@ class ClusterError(HilError, RuntimeError):
 
 class PeerSilent(HilError, RuntimeError):
     """The other side of the bus stopped sending (or its process ended) during a run."""
+    exit_code = EXIT_SILENT
+
+
+class TcuDidNotStart(HilError, RuntimeError):
+    """The TCU process a run started or watches ended before it sent a frame: a command that does not run
+    (a typo, a missing module), an error of the set-up rather than a failure of the unit (``hil.checks.
+    outcome``); the message gives its exit code and the last lines of its stderr."""
     exit_code = EXIT_SILENT
 
 

@@ -183,19 +183,25 @@ def exchange(node: PlantNode, steps: int, mode: str, bar: Progress | None = None
 
 def run(scenario, strategy: str = DEFAULT_STRATEGY, seed: int | None = None, *, bus: str = "auto", mode: str = "lockstep",
         external_tcu: bool = False, out_dir=None, record: bool = True, progress: bool | None = None,
-        set_args=None, plant=None, plant_label: str | None = None, log=None) -> dict:
+        set_args=None, plant=None, plant_label: str | None = None, log=None, tcu_process=None) -> dict:
     """One HIL run; returns the summary (``hil run --json``).
 
     ``bus="inprocess"``: the TCU node answers in this thread; otherwise it is a child process on the
-    bus, or (``external_tcu``) a TCU already there.  ``set_args``: the ``--set`` items that produced
-    ``scenario`` (the TCU process loads the scenario again with them).  ``plant``: a plant object
+    bus, or (``external_tcu``) a TCU already there.  A TCU process is handed ``scenario`` itself, overrides
+    and all (``Scenario.handover``), and a TCU that announces another scenario's digest is refused before
+    the first period (``ScenarioMismatch``); ``set_args`` is accepted for older callers and not read.
+    ``tcu_process``: with ``external_tcu``, the TCU's process (a ``Popen``; its ``stderr_path`` attribute,
+    when set, names the file its stderr goes to) when the caller started it: watched as the run's own
+    child, so an exit before it joins is ``TcuDidNotStart`` and a death mid-run ``PeerSilent``, each
+    within milliseconds and with its exit code and last stderr lines.  ``plant``: a plant object
     instead of the CasADi model (see ``hil.plants``; the caller closes it), named ``plant_label`` in the
     summary and the log's name.  Raises ``BusError`` for a bus that cannot be used, ``PeerSilent``
     (with ``.summary``) when the TCU falls silent or dies, ``KeyboardInterrupt`` on Ctrl-C or SIGTERM;
     the log is closed in every case (``hil.session``).
     """
     with Session(scenario, strategy, seed, bus=bus, mode=mode, external_tcu=external_tcu, out_dir=out_dir,
-                 record=record, set_args=set_args, plant=plant, plant_label=plant_label, log=log) as session:
+                 record=record, set_args=set_args, plant=plant, plant_label=plant_label, log=log,
+                 tcu_process=tcu_process) as session:
         scenario = session.scenario
         bar = Progress(scenario.steps, f"{scenario.name} {strategy} {session.tcu.handle.name} {mode}", progress)
         wall0 = time.perf_counter()

@@ -21,8 +21,9 @@ from identifier.messages import DriverDemand, SensorReading, TorqueCommand
 from plant import SensorModel, WheelsetPlant
 
 from .effects import Reality
-from .errors import NoProgress, PeerSilent
-from .bus.frames import STATE_FAULT, STATE_RUNNING, STATE_STARTING, TCU_IDS, FrameCodec, RejectCounter
+from .errors import NoProgress, PeerSilent, ScenarioMismatch, TcuDidNotStart
+from .bus.frames import (STATE_FAULT, STATE_RUNNING, STATE_STARTING, TCU_IDS, FrameCodec, RejectCounter,
+                         scenario_digest_word)
 from .bus.link import Sender, heartbeat_period_s, poll_until, silence_limit_s
 from .bus.mapping import codec_for
 from .bus.secoc import node_key
@@ -94,6 +95,40 @@ class PlantRig:
         self.plant.step(command.torque_nm)
 
 
+def describe_exit(process) -> str:
+    """How a finished process ended: 'exited with code N' or 'was killed by SIGNAME'."""
+    import signal
+
+    code = process.returncode
+    if code is not None and code < 0:
+        try:
+            return f"was killed by {signal.Signals(-code).name}"
+        except ValueError:
+            return f"was killed by signal {-code}"
+    return f"exited with code {code}"
+
+
+#: how many of its last stderr lines a dead TCU's message quotes
+STDERR_TAIL_LINES = 5
+
+
+def stderr_tail(process, lines: int = STDERR_TAIL_LINES) -> str:
+    """'; its stderr ends: ...' with the last ``lines`` non-empty lines of the file a watched process
+    writes its stderr to (``process.stderr_path``, set by whoever started it); '' when there is none."""
+    path = getattr(process, "stderr_path", None)
+    if not path:
+        return ""
+    try:
+        with open(path, "rb") as f:
+            f.seek(0, 2)
+            f.seek(max(f.tell() - 8192, 0))
+            text = f.read().decode("utf-8", "replace")
+    except OSError:
+        return ""
+    tail = [line.rstrip() for line in text.splitlines() if line.strip()][-lines:]
+    return f"; its stderr ends: {' | '.join(tail)}" if tail else "; its stderr is empty"
+
+
 class PlantNode:
     """A rig on a bus: sends sensor frames and heartbeats, receives everything, records it.
 
@@ -146,6 +181,8 @@ class PlantNode:
         self.fault_time_s = scenario.run.fault_time_s
         self.hb_counter = 0
         self.next_hb = 0.0
+        self.scenario_digest = scenario.digest
+        self.tcu_digest: int | None = None     # the TcuScenario frame's word: the scenario the TCU says it runs
 
     @property
     def t_s(self) -> float:
@@ -272,6 +309,9 @@ class PlantNode:
             self.tcu_state = v.state
             self.tcu_step = v.step
             return FRESH
+        if name == "TcuScenario":
+            self.tcu_digest = v
+            return FRESH
         if name in ("PlantSensor", "DriverDemand"):
             self.notice("sensor_from_another_node", f"a {name} frame for step {v.step} this plant did not send")
         return FOREIGN        # plant frames from another node on the bus
@@ -363,15 +403,23 @@ class PlantNode:
         if self.watch is not None and (now := time.monotonic()) >= self._next_watch:
             self._next_watch = now + WATCH_PERIOD_S
             if self.watch.poll() is not None:
-                raise PeerSilent(f"TCU process exited with code {self.watch.returncode} at step {self.awaited}")
+                if self.last_tcu_rx is None:      # it never joined: the set-up's fault (a typo, a missing module)
+                    raise TcuDidNotStart(f"the TCU process {describe_exit(self.watch)} before it joined the bus"
+                                         f"{stderr_tail(self.watch)}")
+                raise PeerSilent(f"the TCU process {describe_exit(self.watch)} at step {self.awaited}, "
+                                 f"t = {self.t_s:.4f} s (a crash){stderr_tail(self.watch)}")
         if self.tcu_state == STATE_FAULT:
             raise PeerSilent(f"TCU reported a fault at step {self.awaited}")
         if not self.watch_silence or self.last_tcu_rx is None:
             return
         quiet = time.monotonic() - self.last_tcu_rx
         if quiet > self.silence_s:
+            if self.watch is not None and self.watch.poll() is not None:
+                self._next_watch = 0.0
+                self.check_alive()         # it died: said as a crash, with its exit code
+            how = ("; its process still runs (a freeze, not a crash)" if self.watch is not None else "")
             raise PeerSilent(f"TCU silent for {quiet * 1e3:.1f} ms (limit {self.silence_s * 1e3:.1f} ms) at step "
-                             f"{self.awaited}, t = {self.t_s:.4f} s")
+                             f"{self.awaited}, t = {self.t_s:.4f} s{how}")
 
     def wait_for_tcu(self) -> None:
         """Heartbeats 'starting' until the TCU shows up.  On a mapped bus a TCU of another make sends no
@@ -397,6 +445,26 @@ class PlantNode:
             if msg is not None:
                 self.on_rx(msg)
             self.check_alive()
+        self._check_scenario()
+
+    def _check_scenario(self) -> None:
+        """The TCU runs this scenario, or the run stops here, before the first period: a TCU that
+        announces its scenario (TcuScenario, right before each of its heartbeats until the first reading)
+        with another digest is a ``ScenarioMismatch`` naming both.  A TCU heard without its announcement
+        gets a few heartbeat periods to send it (its first one may have gone out before this bus was
+        open); a TCU that never sends one (another make's) is not checked."""
+        if self.tcu_digest is None and not self.mapped:
+            until = time.monotonic() + max(3 * self.heartbeat_s, 0.02)
+            while self.tcu_digest is None and time.monotonic() < until:
+                msg = self.bus.recv(timeout=max(until - time.monotonic(), 0.0))
+                if msg is not None:
+                    self.on_rx(msg)
+            self.check_alive()
+        mine = scenario_digest_word(self.scenario_digest)
+        if self.tcu_digest is not None and self.tcu_digest != mine:
+            raise ScenarioMismatch(f"the TCU runs another scenario: its digest {self.tcu_digest:016x}, this "
+                                   f"plant's {mine:016x} ({self.rig.scenario.path}); start both on the same "
+                                   "scenario file with the same --set items")
 
     def begin(self) -> None:
         """Right before step 0: on a mapped bus a 'running' heartbeat, from which the built-in TCU counts

@@ -34,7 +34,6 @@ from __future__ import annotations
 import os
 import shlex
 import subprocess
-import time
 from pathlib import Path
 
 import pytest
@@ -87,6 +86,7 @@ class Bench:
         self.bus, self.mode, self.tcu, self.tcu_cmd = opt.hil_bus, opt.hil_mode, opt.hil_tcu, opt.hil_tcu_cmd
         self.out_opt = opt.hil_out
         self.cache: dict = {}
+        self.skipped: list[str] = []    # why runs were skipped (the bus left to auto was not available)
         self.dbcs: dict = {}           # DBC path -> (file name, SHA-256 of its text) of the runs asked for
         self._out = None
 
@@ -101,8 +101,10 @@ class Bench:
         return self._out
 
     def run(self, scenario, set=None, seed=None, strategy=None, reality=None, control=None):
-        """The run of this specification (once per session); raises what it ended with.  ``control``: the
+        """The run of this specification (once per session); raises what it ended with (the same verdict
+        for every test that asks, its traceback started anew each time: it never grows).  ``control``: the
         TCU's control law (``--set control.law=...``)."""
+        __tracebackhide__ = True
         overrides = dict(set or {})
         if control is not None:
             overrides["control.law"] = control
@@ -120,7 +122,7 @@ class Bench:
                 self.cache[key] = ("raise", e)
         how, value = self.cache[key]
         if how == "raise":
-            raise value
+            raise value.with_traceback(None)
         return value
 
     def command(self, scenario, overrides, seed, strategy, reality) -> str:
@@ -136,6 +138,7 @@ class Bench:
         return shlex.join(parts)
 
     def _run(self, scenario, overrides, seed, strategy, reality):
+        __tracebackhide__ = True
         import hil
         from hil.checks import Run
         from hil.checks.outcome import deadlines, run_error
@@ -162,23 +165,27 @@ class Bench:
         if not external:
             from hil.progress import compile_kernels
             compile_kernels("hil_run")
-        set_args = [f"{k}={_toml_value(v)}" for k, v in overrides.items()]
         command = self.command(scenario, overrides, seed, strategy, reality)
-        child = self._start_tcu(scenario, set_args) if external and self.tcu_cmd else None
+        out = self.out / f"run{len(self.cache) + 1:03d}"        # a directory per run: logs are named by
+        child = None                                               # scenario, strategy, seed
         try:
-            out = self.out / f"run{len(self.cache) + 1:03d}"        # a directory per run: logs are named by
-            summary = hil.run(sc, strategy, seed, bus=self.bus, mode=self.mode,   # scenario, strategy, seed
-                              external_tcu=external, out_dir=out, progress=False, set_args=set_args)
+            child = self._start_tcu(scenario, out) if external and self.tcu_cmd else None
+            summary = hil.run(sc, strategy, seed, bus=self.bus, mode=self.mode, external_tcu=external, out_dir=out,
+                              progress=False, tcu_process=child)
         except BusError as e:
             reason = f"bus not available: {e}"
+            if self.bus != "auto":
+                raise BenchError(f"--hil-bus {self.bus}: {e} (a bus named explicitly must open; leave it to auto "
+                                 "to skip where no bus is available)") from None
             if os.environ.get("CI") == "true":
                 raise BenchError(f"{reason} (CI=true: a missing bus is an error, not a skip)") from None
+            self.skipped.append(reason)
             pytest.skip(reason)
         except Exception as e:  # noqa: BLE001 - every run error is a fail or an error (hil.checks.outcome)
             verdict = run_error(e)
             verdict.command = command
             verdict.log = (getattr(e, "summary", None) or {}).get("mcap")
-            raise verdict from e
+            raise verdict from None          # the verdict says what happened; the run's own frames are noise
         finally:
             if child is not None:
                 _stop(child)
@@ -200,11 +207,26 @@ class Bench:
         if str(path) not in self.dbcs:
             self.dbcs[str(path)] = (path.name, hashlib.sha256(path.read_text().encode()).hexdigest())
 
-    def _start_tcu(self, scenario, set_args):
+    def _start_tcu(self, scenario, out: Path):
+        """The TCU under test started for a run, its stderr to ``out/tcu.stderr`` (quoted when it dies); a
+        command that ends at once (a typo, a missing module) is ``TcuDidNotStart`` here, and one that ends
+        later before it joins is found by the run's watch (``hil.run``'s ``tcu_process``)."""
+        __tracebackhide__ = True
+        from hil.errors import TcuDidNotStart
+        from hil.plant_node import describe_exit, stderr_tail
+
         cmd = self.tcu_cmd.format(scenario=shlex.quote(str(scenario)), bus=shlex.quote(self.bus), mode=self.mode)
-        child = subprocess.Popen(cmd, shell=True, start_new_session=True)
-        time.sleep(0.2)                 # let it open the bus; the plant waits [bus] startup_timeout_s for it
-        return child
+        out.mkdir(parents=True, exist_ok=True)
+        stderr_path = out / "tcu.stderr"
+        with open(stderr_path, "wb") as err:
+            child = subprocess.Popen(cmd, shell=True, start_new_session=True, stdin=subprocess.DEVNULL, stderr=err)
+        child.stderr_path = str(stderr_path)
+        try:
+            child.wait(0.2)             # let it open the bus; the plant waits [bus] startup_timeout_s for it
+        except subprocess.TimeoutExpired:
+            return child
+        raise TcuDidNotStart(f"--hil-tcu-cmd {cmd!r}: the TCU process {describe_exit(child)} before it joined "
+                             f"the bus{stderr_tail(child)}")
 
 
 def _stop(child, timeout_s: float = 5.0) -> None:
@@ -238,6 +260,7 @@ def hil_run(request):
     bench = request.config.stash[_BENCH]
 
     def run(scenario, set=None, seed=None, strategy=None, reality=None, control=None):
+        __tracebackhide__ = True
         runs = request.node.stash.setdefault(_RUNS, [])
         try:
             result = bench.run(scenario, set, seed, strategy, reality, control)
@@ -284,6 +307,17 @@ def pytest_sessionfinish(session):
     for name, digest in bench.dbcs.values():
         xml.add_global_property("dbc", name)
         xml.add_global_property("dbc_sha256", digest)
+
+
+def pytest_terminal_summary(terminalreporter):
+    """Why HIL runs were skipped (the bus left to ``auto`` was not available here), once, at the end."""
+    bench = terminalreporter.config.stash.get(_BENCH, None)
+    if bench is None or not bench.skipped:
+        return
+    reasons = list(dict.fromkeys(bench.skipped))
+    terminalreporter.write_line(f"hil: {len(bench.skipped)} run(s) skipped: {reasons[0]}"
+                                + (f" (and {len(reasons) - 1} other reason(s))" if len(reasons) > 1 else ""),
+                                yellow=True)
 
 
 # -- test files as data ---------------------------------------------------------------------------------

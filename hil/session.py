@@ -196,7 +196,9 @@ class Tcu:
         self.child: subprocess.Popen | None = None
         self.handle = None
 
-    def open(self, scenario, strategy, seed, bus: str, mode: str, set_args) -> None:
+    def open(self, scenario, strategy, seed, bus: str, mode: str, session_items) -> None:
+        """``session_items``: the ``--set`` items of this run's plumbing the child process gets beside the
+        scenario's hand-over (its frame key, its CPUs: ``hil.config.SESSION_BUS_KEYS``)."""
         if self.transport == "inprocess":
             self.node = TcuNode(scenario, strategy, seed, realtime=mode == "realtime")
             self.handle = open_bus("inprocess", inprocess_node=self.node)
@@ -210,9 +212,15 @@ class Tcu:
         if self.handle.peer_spec is None:
             raise BusError(f"bus {self.handle.name}: reachable only inside this process; a TCU process cannot "
                            "join it (use inprocess, hub or socketcan:<ch>)")
-        cmd = [sys.executable, "-m", "hil.tcu_node", str(scenario.path), "--bus", self.handle.peer_spec,
+        # the child runs the scenario this run resolved, overrides and all, never the file again
+        handover = self.report_path.with_name("scenario.json")
+        try:
+            handover.write_text(json.dumps(scenario.handover()))
+        except (OSError, TypeError, ValueError) as e:
+            raise ConfigError(f"{scenario.path}: cannot hand the scenario to the TCU process: {e}") from None
+        cmd = [sys.executable, "-m", "hil.tcu_node", "--handover", str(handover), "--bus", self.handle.peer_spec,
                "--strategy", strategy, "--seed", str(seed), "--mode", mode, "--report", str(self.report_path)]
-        for item in set_args or []:
+        for item in session_items or []:
             cmd += ["--set", item]
         self.child = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                                       start_new_session=True, preexec_fn=die_with_parent,
@@ -293,16 +301,19 @@ class Session:
     Raises ``BusError`` for an unknown mode or a bus that cannot be used."""
 
     def __init__(self, scenario, strategy: str, seed: int | None, *, bus: str, mode: str, external_tcu: bool,
-                 out_dir, record: bool, set_args, plant, plant_label: str | None, log):
+                 out_dir, record: bool, set_args, plant, plant_label: str | None, log, tcu_process=None):
         if mode not in MODES:
             raise BusError(f"unknown mode {mode!r}; available: {', '.join(MODES)}")
         self.log = log or (lambda text: print(text, file=sys.stderr))
         self.scenario, self.strategy, self.bus, self.mode = scenario, strategy, bus, mode
         self.seed = scenario.run.seed if seed is None else seed
         self.record, self.plant, self.plant_label = record, plant, plant_label
-        self.set_args = list(set_args or [])
+        # the scenario reaches a TCU process whole (Tcu.open's hand-over); ``set_args`` is kept for callers
+        # that still pass it and is not read.  What the child gets beside: this run's plumbing items
+        self.session_items: list[str] = []
         self.out_dir = out_dir
         self.transport = "inprocess" if bus == "inprocess" else ("external" if external_tcu else "process")
+        self.tcu_process = tcu_process if self.transport == "external" else None   # watched as our own child
         self.tcu: Tcu | None = None
         self.path: Path | None = None
         self.trace: Trace | None = None
@@ -346,7 +357,7 @@ class Session:
         scenario, auth_items = authenticate(scenario, self.bus, self.transport, key_dir, log)
         self.scenario = scenario
         settings = scenario.bus                 # as resolved: the log's bus metadata says auth on/off
-        self.set_args += auth_items
+        self.session_items += auth_items
         self.trace = Trace(scenario)
         realtime = mode == "realtime"
         self.latency = stack.enter_context(contextlib.closing(
@@ -354,7 +365,7 @@ class Session:
         every_cpu = sorted(os.sched_getaffinity(0))       # the idle spinners' CPUs, read before this process is pinned
         plant_cpus, tcu_cpus = node_cpus(settings, mode, self.transport)
         if tcu_cpus != settings.cpu_affinity_tcu:
-            self.set_args.append(f"bus.cpu_affinity_tcu={list(tcu_cpus)}")
+            self.session_items.append(f"bus.cpu_affinity_tcu={list(tcu_cpus)}")
         stack.enter_context(pinned(plant_cpus, log))
         fifo = stack.enter_context(fifo_priority(settings.rt_priority if realtime else 0, log))
         latency = self.latency
@@ -366,11 +377,12 @@ class Session:
         tcu = stack.enter_context(self.tcu)
         stack.push(self._close_log)          # the log, once started, closes after the fault is in it ...
         stack.push(self._record_fault)       # ... and before the TCU is stopped and the bus closed
-        tcu.open(scenario, self.strategy, self.seed, self.bus, mode, self.set_args)
+        tcu.open(scenario, self.strategy, self.seed, self.bus, mode, self.session_items)
         self._start_log()
         self.node = PlantNode(PlantRig(scenario, self.seed, self.trace, self.rec, plant=self.plant),
                               GuardedBus(tcu.handle.bus, tcu.handle.name), mode,
-                              strategy=self.strategy, watch=tcu.child, watch_silence=tcu.node is None)
+                              strategy=self.strategy, watch=tcu.child or self.tcu_process,
+                              watch_silence=tcu.node is None)
         if tcu.node is None:
             self.node.wait_for_tcu()
         self.node.begin()

@@ -23,6 +23,7 @@ import signal
 import sys
 import threading
 import time
+from pathlib import Path
 
 import can
 
@@ -55,6 +56,7 @@ class TcuNode:
             settings = dataclasses.replace(settings, drill_particles=0)
         self.settings = settings
         self.codec = codec or codec_for(scenario, auth=node_key(scenario.bus))
+        self.scenario_digest = scenario.digest       # announced on the bus (TcuScenario) until the first reading
         #: a TCU's own DBC (hil/bus/mapping.py): readings count from the plant's 'running' heartbeat on
         self.mapped = getattr(self.codec, "mapped", False)
         self.probes = 0              # mapped: the plant's start-up probes, not answered
@@ -215,8 +217,12 @@ def serve(bus: can.BusABC, node: TcuNode, *, silence_s: float, heartbeat_period_
     sending = threading.Lock()          # one heartbeat at a time: each takes the next freshness value
     sent = {"counter": 0, "at": -math.inf}
 
+    announce = getattr(codec, "tcu_scenario", None)      # a TCU's own DBC has no TcuScenario frame
+
     def send_heartbeat() -> None:
         with sending:
+            if announce is not None and node.last_step < 0:     # until the first reading: the scenario it runs
+                sender.send(announce(node.scenario_digest))
             sender.send(codec.tcu_heartbeat(sent["counter"], state[0], node.last_step))
             sent["counter"] += 1
             sent["at"] = time.monotonic()
@@ -289,7 +295,11 @@ def build_parser(prog="python -m hil.tcu_node") -> argparse.ArgumentParser:
 
 
 def add_arguments(p) -> None:
-    p.add_argument("scenario", help="scenario TOML (the TCU uses its vehicle model, NFCC-0 and [identifier])")
+    p.add_argument("scenario", nargs="?", default=None,
+                   help="scenario TOML (the TCU uses its vehicle model, NFCC-0 and [identifier])")
+    p.add_argument("--handover", metavar="FILE", default=None,
+                   help="instead of SCENARIO: a scenario hand-over (JSON) as hil run writes it for its TCU process: "
+                   "the resolved scenario, overrides included, and its digest")
     p.add_argument("--bus", default="auto", help="bus to listen on: auto | socketcan:<ch> | remote:<url> | "
                    "<python-can interface>:<channel> (default auto)")
     p.add_argument("--strategy", default=DEFAULT_STRATEGY, help=f"identification strategy (default {DEFAULT_STRATEGY})")
@@ -321,7 +331,6 @@ def set_cpu_affinity(cpus, who: str, log) -> bool:
 
 def run_tcu(args) -> int:
     """Shared by ``hil tcu`` and the child process; raises ``HilError`` for bad input."""
-    from .config import load_scenario, parse_set
     from .bus.link import open_bus, resolve
 
     if args.strategy not in STRATEGIES:
@@ -329,7 +338,7 @@ def run_tcu(args) -> int:
     overrides = parse_set(args.set)
     if getattr(args, "control", None) is not None:
         overrides["control.law"] = args.control        # checked by the loader: an unknown law is one line
-    scenario = load_scenario(args.scenario, overrides)
+    scenario = _scenario(args, overrides)
     settings = scenario.bus
     seed = scenario.run.seed if args.seed is None else args.seed
     bus = resolve(args.bus)
@@ -373,6 +382,30 @@ def run_tcu(args) -> int:
     if error is not None:
         raise error
     return code
+
+
+def _scenario(args, overrides: dict):
+    """The scenario this TCU runs: SCENARIO with ``overrides``, or a hand-over (``--handover``) with this
+    run's plumbing items (``hil.config.SESSION_BUS_KEYS``) over it; ``ConfigError`` for neither or both."""
+    from .config import SESSION_BUS_KEYS, load_scenario, scenario_from_handover
+
+    if (args.scenario is None) == (getattr(args, "handover", None) is None):
+        raise ConfigError("give a scenario file or --handover FILE (one of them)")
+    if args.handover is None:
+        return load_scenario(args.scenario, overrides)
+    try:
+        data = json.loads(Path(args.handover).read_text())
+    except (OSError, ValueError) as e:
+        raise ConfigError(f"--handover {args.handover}: cannot read: {e}") from None
+    scenario = scenario_from_handover(data, f"--handover {args.handover}")
+    foreign = sorted(k for k in overrides if not (k.startswith("bus.") and k[4:] in SESSION_BUS_KEYS))
+    if foreign:
+        raise ConfigError(f"--handover with --set {', '.join(foreign)}: a hand-over is the whole scenario; only "
+                          f"bus.{', bus.'.join(SESSION_BUS_KEYS)} may be set beside it")
+    if overrides:
+        from .config import parse_scenario
+        scenario = parse_scenario(scenario.source_text, scenario.path, {**scenario.overrides, **overrides})
+    return scenario
 
 
 def _clean(x):

@@ -153,7 +153,9 @@ def test_diverges(hil_run):
 
 
 @pytest.mark.parametrize("ci", ["", "true"])
-def test_a_missing_bus_skips_and_is_an_error_under_ci(pytester, monkeypatch, ci):
+def test_a_named_bus_that_cannot_open_is_an_error_never_a_skip(pytester, monkeypatch, ci):
+    """A bus named with --hil-bus that does not open here is an error of the set-up, with or without CI=true
+    (a green suite that ran nothing is worse than a red one); the line names the option and what is there."""
     monkeypatch.setenv("CI", ci)
     pytester.makepyfile(test_bus=f"""
 def test_on_a_bus(hil_run):
@@ -161,12 +163,9 @@ def test_on_a_bus(hil_run):
 """)
     result = pytester.runpytest("-p", "hil.pytest_plugin", "-p", "no:cacheprovider", "--hil-bus",
                                 "socketcan:hilnone0", "--hil-out", str(pytester.path / "out"), "-rs")
-    if ci:
-        result.assert_outcomes(errors=1)
-        assert "CI=true: a missing bus is an error, not a skip" in result.stdout.str()
-    else:
-        result.assert_outcomes(skipped=1)
-        assert "bus not available" in result.stdout.str()
+    result.assert_outcomes(errors=1)
+    assert "--hil-bus socketcan:hilnone0:" in result.stdout.str()
+    assert "a bus named explicitly must open" in result.stdout.str()
 
 
 def test_a_malformed_check_table_is_one_line_naming_the_file_and_field(pytester):

@@ -42,8 +42,10 @@ DBC_PATH = Path(__file__).parent.parent / DBC_NAME
 SENSOR_ID, COMMAND_ID, STATUS_ID, RESULT_ID, INTERVAL_ID, SAMPLE_ID = 0x100, 0x110, 0x120, 0x130, 0x131, 0x140
 DEMAND_ID = 0x108
 PLANT_HEARTBEAT_ID, TCU_HEARTBEAT_ID = 0x701, 0x702
+#: the TCU's scenario digest, sent before each heartbeat until the first reading (``FrameCodec.tcu_scenario``)
+TCU_SCENARIO_ID = 0x703
 PLANT_IDS = frozenset({SENSOR_ID, DEMAND_ID, PLANT_HEARTBEAT_ID})
-TCU_IDS = frozenset({COMMAND_ID, STATUS_ID, RESULT_ID, INTERVAL_ID, SAMPLE_ID, TCU_HEARTBEAT_ID})
+TCU_IDS = frozenset({COMMAND_ID, STATUS_ID, RESULT_ID, INTERVAL_ID, SAMPLE_ID, TCU_HEARTBEAT_ID, TCU_SCENARIO_ID})
 
 # heartbeat states
 STATE_STARTING, STATE_RUNNING, STATE_FINISHED, STATE_FAULT = 0, 1, 2, 3
@@ -163,7 +165,8 @@ class FrameCodec:
         self.period_s = period_s
         self._by_id = {m.frame_id: m for m in self.db.messages}
         expected = {SENSOR_ID: "PlantSensor", DEMAND_ID: "DriverDemand", COMMAND_ID: "TorqueCommand", STATUS_ID: "TcuStatus",
-                    RESULT_ID: "TcuResult", INTERVAL_ID: "TcuInterval", SAMPLE_ID: "TcuSample", PLANT_HEARTBEAT_ID: "PlantHeartbeat", TCU_HEARTBEAT_ID: "TcuHeartbeat"}
+                    RESULT_ID: "TcuResult", INTERVAL_ID: "TcuInterval", SAMPLE_ID: "TcuSample", PLANT_HEARTBEAT_ID: "PlantHeartbeat", TCU_HEARTBEAT_ID: "TcuHeartbeat",
+                    TCU_SCENARIO_ID: "TcuScenario"}
         for fid, name in expected.items():
             if fid not in self._by_id or self._by_id[fid].name != name:
                 raise ValueError(f"{DBC_NAME}: frame 0x{fid:X} must be {name}")
@@ -256,6 +259,10 @@ class FrameCodec:
         return self._msg(TCU_HEARTBEAT_ID, {"TcuCounter": counter & 0xFFFF, "TcuState": state,
                                             "TcuStep": max(step, 0)})
 
+    def tcu_scenario(self, digest_hex: str) -> can.Message:
+        """The TcuScenario frame: ``scenario_digest_word`` of the scenario's SHA-256 (hex)."""
+        return self._msg(TCU_SCENARIO_ID, {"ScenarioDigest": scenario_digest_word(digest_hex)})
+
     # -- decoding ------------------------------------------------------------------------------
     def upgrade(self, msg: can.Message) -> can.Message:
         """A frame recorded before the DBC had the authentication trailer (its length then ended where
@@ -339,7 +346,14 @@ class FrameCodec:
             return Heartbeat(int(v["PlantCounter"]), int(v["PlantState"]), int(v["PlantStep"]))
         if fid == TCU_HEARTBEAT_ID:
             return Heartbeat(int(v["TcuCounter"]), int(v["TcuState"]), int(v["TcuStep"]))
+        if fid == TCU_SCENARIO_ID:
+            return int(v["ScenarioDigest"])
         raise AssertionError(fid)
+
+
+def scenario_digest_word(digest_hex: str) -> int:
+    """What a TcuScenario frame carries of a SHA-256 digest (hex): its first 8 bytes, big-endian."""
+    return int(digest_hex[:16], 16)
 
 
 # -- bus load ---------------------------------------------------------------------------------
