@@ -430,7 +430,9 @@ class PlantNode:
         next_probe = time.perf_counter() + PROBE_PERIOD_S    # a TCU already there answers the heartbeat first
         while self.last_tcu_rx is None:
             if time.monotonic() - t0 > self.settings.startup_timeout_s:
-                raise PeerSilent(f"no TCU answered within {self.settings.startup_timeout_s:g} s")
+                alive = "; its process still runs (no frame from it: a freeze, or a bus it did not open)" \
+                    if self.watch is not None else ""
+                raise PeerSilent(f"no TCU answered within {self.settings.startup_timeout_s:g} s{alive}")
             now = time.perf_counter()
             if now >= self.next_hb:
                 self.heartbeat(STATE_STARTING)

@@ -51,7 +51,7 @@ def pytest_addoption(parser):
     group.addoption("--hil-tcu", default="builtin", choices=("builtin", "external"), help="builtin: the project's "
                     "TCU (default); external: the TCU under test, already on the bus or started by --hil-tcu-cmd")
     group.addoption("--hil-tcu-cmd", default=None, metavar="CMD", help="command that starts the TCU under test "
-                    "for each run ({scenario}, {bus}, {mode} filled in); stopped after the run")
+                    "for each run ({scenario}, {handover}, {bus}, {mode} filled in); stopped after the run")
     group.addoption("--hil-out", default=None, metavar="DIR", help="directory for the runs' logs and the failures' "
                     "figures (default: under pytest's temporary base)")
 
@@ -169,7 +169,7 @@ class Bench:
         out = self.out / f"run{len(self.cache) + 1:03d}"        # a directory per run: logs are named by
         child = None                                               # scenario, strategy, seed
         try:
-            child = self._start_tcu(scenario, out) if external and self.tcu_cmd else None
+            child = self._start_tcu(scenario, sc, out) if external and self.tcu_cmd else None
             summary = hil.run(sc, strategy, seed, bus=self.bus, mode=self.mode, external_tcu=external, out_dir=out,
                               progress=False, tcu_process=child)
         except BusError as e:
@@ -207,16 +207,22 @@ class Bench:
         if str(path) not in self.dbcs:
             self.dbcs[str(path)] = (path.name, hashlib.sha256(path.read_text().encode()).hexdigest())
 
-    def _start_tcu(self, scenario, out: Path):
-        """The TCU under test started for a run, its stderr to ``out/tcu.stderr`` (quoted when it dies); a
-        command that ends at once (a typo, a missing module) is ``TcuDidNotStart`` here, and one that ends
-        later before it joins is found by the run's watch (``hil.run``'s ``tcu_process``)."""
+    def _start_tcu(self, scenario, sc, out: Path):
+        """The TCU under test started for a run (``sc``: the resolved scenario, whose hand-over fills in
+        ``{handover}``), its stderr to ``out/tcu.stderr`` (quoted when it dies); a command that ends at once
+        (a typo, a missing module) is ``TcuDidNotStart`` here, and one that ends later before it joins is
+        found by the run's watch (``hil.run``'s ``tcu_process``)."""
         __tracebackhide__ = True
+        import json
+
         from hil.errors import TcuDidNotStart
         from hil.plant_node import describe_exit, stderr_tail
 
-        cmd = self.tcu_cmd.format(scenario=shlex.quote(str(scenario)), bus=shlex.quote(self.bus), mode=self.mode)
         out.mkdir(parents=True, exist_ok=True)
+        handover = out / "scenario.json"
+        handover.write_text(json.dumps(sc.handover()))
+        cmd = self.tcu_cmd.format(scenario=shlex.quote(str(scenario)), bus=shlex.quote(self.bus), mode=self.mode,
+                                  handover=shlex.quote(str(handover)))
         stderr_path = out / "tcu.stderr"
         with open(stderr_path, "wb") as err:
             child = subprocess.Popen(cmd, shell=True, start_new_session=True, stdin=subprocess.DEVNULL, stderr=err)

@@ -332,6 +332,7 @@ def set_cpu_affinity(cpus, who: str, log) -> bool:
 def run_tcu(args) -> int:
     """Shared by ``hil tcu`` and the child process; raises ``HilError`` for bad input."""
     from .bus.link import open_bus, resolve
+    from .config import parse_set
 
     if args.strategy not in STRATEGIES:
         raise ConfigError(f"unknown strategy {args.strategy!r}; available: {', '.join(sorted(STRATEGIES))}")
