@@ -38,6 +38,8 @@ _API = {
     "ClusterError": "hil.errors",
     "PeerSilent": "hil.errors",
     "NoProgress": "hil.errors",
+    "TcuDidNotStart": "hil.errors",
+    "ScenarioMismatch": "hil.errors",
     "PlantFault": "hil.errors",
     "DeadlinesMissed": "hil.errors",
     "BenchError": "hil.errors",

@@ -294,7 +294,9 @@ def pytest_collection_finish(session):
     except PackageNotFoundError:
         package = "unknown (not installed)"
     if bench.tcu == "external":
-        tcu = f"external: {bench.tcu_cmd}" if bench.tcu_cmd else "external (already on the bus)"
+        # the session's bus and mode filled in; {scenario} and {handover} stay: they change from run to run
+        cmd = (bench.tcu_cmd or "").replace("{bus}", shlex.quote(bench.bus)).replace("{mode}", bench.mode)
+        tcu = f"external: {cmd}" if bench.tcu_cmd else "external (already on the bus)"
     else:
         tcu = "builtin (hil.tcu_node)"
     for name, value in (("railway_hil_version", package), ("tcu_under_test", tcu), ("bus", f"{bench.bus} {bench.mode}")):

@@ -272,6 +272,14 @@ def _suite_in_real_time(tmp_path, tcu):
             {n: c.find("error").get("message") or "" for n, c in cases.items() if c.find("error") is not None})
 
 
+#: the suite's checks of timing: on a shared 2-core machine a CPU taken away for a tenth of a second puts a few
+#: dozen command intervals out of tolerance (CI, stop 48: 63 of 2,992 against 60 allowed), the machine's doing,
+#: not the TCU's.  A run that fails only these (beyond what the TCU must fail) is made again, at most
+#: TIMING_ATTEMPTS runs in all; the last one must give exactly the expected verdicts.
+TIMING_CHECKS = {"answers within three periods", "commands every period"}
+TIMING_ATTEMPTS = 3
+
+
 @pytest.mark.realtime
 @pytest.mark.parametrize("tcu, fails, says", [
     (None, set(), None),
@@ -287,19 +295,23 @@ def test_the_example_suite_in_real_time_on_a_local_bus(tmp_path, tcu, fails, say
     the commands came late (without step counters a late answer is a missed deadline: docs/guide/verdicts.md).
     No case errors.
 
-    The built-in TCU's run is made once more when every check failed on lateness alone: on a shared
-    2-core machine a CPU taken from the TCU for a tenth of a second is the machine's, not the suite's
-    (docs/design/ci.md has the CI run that showed it).  Any TCU's run is made once more when every check
-    errored because the bench could not judge the TCU's timing (the plant itself began periods late: the
-    plugin's own verdict that the run is no evidence).  Two such runs in a row fail the test."""
+    The run is made again (``TIMING_ATTEMPTS`` runs in all) when its only failures beyond the expected ones
+    are timing checks (``TIMING_CHECKS``), when the built-in TCU's every check failed on lateness alone, or
+    when every check errored because the bench could not judge the TCU's timing (the plant itself began
+    periods late: the plugin's own verdict that the run is no evidence): on a shared 2-core machine a CPU
+    taken from the TCU for a tenth of a second is the machine's, not the suite's (docs/design/ci.md has the
+    CI runs that showed it).  The last run's verdicts must be exactly the expected ones."""
     _sched_fifo_or_skip()
-    r, failed, errored = _suite_in_real_time(tmp_path / "run1", tcu)
-    late = set(failed) == CHECKS and all(m.startswith("the TCU's commands came late") for m in failed.values())
-    stalled = set(errored) == CHECKS and all("the bench could not judge" in m for m in errored.values())
-    if (tcu is None and late) or stalled:
+    for attempt in range(1, TIMING_ATTEMPTS + 1):
+        r, failed, errored = _suite_in_real_time(tmp_path / f"run{attempt}", tcu)
+        late = set(failed) == CHECKS and all(m.startswith("the TCU's commands came late") for m in failed.values())
+        stalled = set(errored) == CHECKS and all("the bench could not judge" in m for m in errored.values())
+        timing_only = bool(set(failed) - fails) and set(failed) - fails <= TIMING_CHECKS and not errored
+        if not ((tcu is None and late) or stalled or timing_only) or attempt == TIMING_ATTEMPTS:
+            break
         why = next(iter({**failed, **errored}.values()), "")
-        print(f"real time, {tcu or 'built-in TCU'}: every check {'errored' if stalled else 'failed'} ({why}); once more")
-        r, failed, errored = _suite_in_real_time(tmp_path / "run2", tcu)
+        print(f"real time, {tcu or 'built-in TCU'}, run {attempt}: "
+              f"{'every check errored' if stalled else 'failed ' + ', '.join(sorted(failed))} ({why}); once more")
     out = r.stdout[-3000:] + r.stderr[-2000:]
     assert not errored, out
     assert set(failed) == fails, out

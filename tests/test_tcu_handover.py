@@ -99,6 +99,8 @@ def test_answers(hil_run):
     assert "the TCU process exited with code 127 before it joined the bus" in out, out
     assert "not found" in out, out                         # the shell's own line, from the command's stderr
     assert max(_case_times(pytester.path / "j.xml")) < 10.0       # not the 60 s start-up timeout
+    props = {p.get("name"): p.get("value") for p in ET.parse(pytester.path / "j.xml").getroot().iter("property")}
+    assert props["tcu_under_test"] == f"external: hil-tuc --bus localbus:{bus}"     # the template filled in
 
 
 @pytest.mark.slow

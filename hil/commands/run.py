@@ -120,7 +120,9 @@ def apply_reality_args(scenario, items):
 
 def print_summary(s: dict, file=sys.stdout, heading: str | None = None) -> None:
     """The run summary as text; every figure prints n/a where the source lacks it (e.g. a CAN log has no truth)."""
-    print(heading or f"scenario {s['scenario']}  strategy {s['strategy']}  seed {s['seed']}  bus {s['bus']}"
+    external = s.get("transport") == "external"      # what it runs is its own: nothing to claim for it
+    strategy = "(the external TCU's own)" if external else s["strategy"]
+    print(heading or f"scenario {s['scenario']}  strategy {strategy}  seed {s['seed']}  bus {s['bus']}"
           + (f"  plant {s['plant']}" if s.get("plant") else "")
           + (f"  frames {'authenticated' if s['frame_auth'] == 'on' else 'not authenticated'}"
              if s.get("frame_auth") else ""), file=file)
@@ -137,6 +139,8 @@ def print_summary(s: dict, file=sys.stdout, heading: str | None = None) -> None:
         print(f"  UNCONFIRMED: the TCU gave up after {s['corrections']} corrections (the data did not pin the curve)",
               file=file)
         print("  its best estimate:", file=file)
+    elif external and not s.get("corrections"):
+        print("  no identification result received (an external TCU need not send TcuResult frames)", file=file)
     else:
         print(f"  NOT identified within the run ({s['corrections']} corrections)", file=file)
     if s.get("params"):
