@@ -9,7 +9,6 @@ and 3): real runs over real buses and real processes.
   code; ten failing tests print a few lines each with ``--tb=short``.
 """
 import json
-import os
 import shutil
 import subprocess
 import tempfile
