@@ -47,6 +47,29 @@ def test_the_api_hands_the_tcu_the_overrides_and_identifies_as_the_command_line(
     assert api["peak_ci_holds_truth"] is True and abs(api["peak_mu_err_percent"]) < 1.0, api
 
 
+def test_a_sweep_point_on_a_tcu_process_identifies_as_the_api(tmp_path):
+    """A one-point sweep (transport "process": plant and TCU processes on a local bus) on the same resolved
+    scenario identifies as ``hil.run`` does: the point's TCU process is handed the scenario, not a file."""
+    import hil
+
+    sweep = tmp_path / "one.toml"
+    sweep.write_text(f'name = "one"\nbase = {str(FFCC_A)!r}\ntransport = "process"\nseed = 3\n\n[set]\n'
+                     + "".join(f'"{k}" = {v}\n' for k, v in OVERRIDES.items() if k != "run.seed")
+                     + '\n[axes."run.mu_required"]\nvalues = [0.16]\n')
+    r = subprocess.run(hil_command() + ["sweep", str(sweep), "--workers", "1", "--out", str(tmp_path / "sw"),
+                                        "--json"], capture_output=True, text=True, env=subprocess_env(), timeout=600)
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    import pandas
+
+    table = pandas.read_parquet(tmp_path / "sw" / "table")
+    assert len(table) == 1 and table["error"].isna().all(), table.to_dict("records")
+    point = json.loads(table["result_json"].iloc[0])
+    api = hil.run(hil.load_scenario(FFCC_A, {**OVERRIDES, "run.mu_required": 0.16}), out_dir=tmp_path / "api",
+                  progress=False, bus="local")
+    keys = ("t_identified_s", "peak_mu", "peak_creep_kmh", "peak_mu_ci", "peak_creep_ci")
+    assert {k: point.get(k) for k in keys} == {k: api.get(k) for k in keys}
+
+
 def test_a_tcu_on_another_scenario_is_refused_before_the_first_period(tmp_path):
     bus = _bus_dir()
     env = subprocess_env()

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import os
 import socket
-import tempfile
 import time
 from pathlib import Path
 
@@ -51,8 +50,8 @@ def worker_name() -> str:
 
 
 def point_scenario(task: dict):
-    """(scenario, its text, the overrides) of the point: the base (or the family draw on it), [set] and the
-    point's field values applied, its --reality effects merged.  Raises ``ConfigError`` / ``ValueError``."""
+    """The point's scenario: the base (or the family draw on it), [set] and the point's field values
+    applied, its --reality effects merged.  Raises ``ConfigError`` / ``ValueError``."""
     from ..config import parse_scenario
     from ..effects import parse_effect, with_reality
     from .spec import reality_items
@@ -71,14 +70,7 @@ def point_scenario(task: dict):
     effects = reality_items(inputs.get("reality", ""), ValueError)
     if effects:
         scenario = with_reality(scenario, dict(parse_effect(e) for e in effects))
-    return scenario, text, overrides
-
-
-def _set_items(overrides: dict) -> list[str]:
-    """Overrides as ``--set`` items the TCU process reads back to the same values."""
-    from plant.families import to_toml
-
-    return [to_toml({"v": v}).strip().replace("v = ", f"{k}=", 1) for k, v in overrides.items()]
+    return scenario
 
 
 def _truth(scenario) -> dict:
@@ -97,9 +89,8 @@ def run_point(task: dict) -> dict:
     t0, cpu0 = time.perf_counter(), time.process_time()
     row = {"index": task["index"], "key": task["key"], "inputs": task["inputs"], "result": None, "error": None,
            "truth": None, "worker": worker_name()}
-    tmp = None
     try:
-        scenario, text, overrides = point_scenario(task)
+        scenario = point_scenario(task)
         row["truth"] = _truth(scenario)
         inputs = task["inputs"]
         strategy = inputs.get("strategy", task["strategy"])
@@ -108,14 +99,8 @@ def run_point(task: dict) -> dict:
         if task.get("keep_logs_dir"):
             out_dir = str(Path(task["keep_logs_dir"]) / f"{task['index']:07d}-{task['key']}")
         kwargs = dict(out_dir=out_dir, record=out_dir is not None, progress=False, log=lambda text: None)
-        if task["transport"] == "process":
-            import dataclasses
-
-            tmp = tempfile.TemporaryDirectory(prefix="hil-sweep-point-")
-            scenario_file = Path(tmp.name) / "scenario.toml"
-            scenario_file.write_text(text)
-            scenario = dataclasses.replace(scenario, path=str(scenario_file))
-            row["result"] = run(scenario, strategy, seed, bus="local", set_args=_set_items(overrides), **kwargs)
+        if task["transport"] == "process":        # the TCU process is handed this scenario (Scenario.handover)
+            row["result"] = run(scenario, strategy, seed, bus="local", **kwargs)
         else:
             row["result"] = run(scenario, strategy, seed, bus="inprocess", **kwargs)
     except PeerSilent as e:
@@ -125,9 +110,6 @@ def run_point(task: dict) -> dict:
         row["error"] = _one_line(e)
     except Exception as e:  # noqa: BLE001 - a point's failure is its row, never the sweep's end
         row["error"] = f"{type(e).__name__}: {_one_line(e)}"
-    finally:
-        if tmp is not None:
-            tmp.cleanup()
     row["point_wall_s"] = time.perf_counter() - t0
     row["point_cpu_s"] = time.process_time() - cpu0
     row["t_start"], row["t_end"] = t_start, time.time()
