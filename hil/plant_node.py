@@ -21,7 +21,8 @@ from identifier.messages import DriverDemand, SensorReading, TorqueCommand
 from plant import SensorModel, WheelsetPlant
 
 from .effects import Reality
-from .errors import NoProgress, PeerSilent, ScenarioMismatch, TcuDidNotStart
+from .config import DBC_MOTOR_SPEED_RAD_S, DBC_TRAIN_SPEED_MS
+from .errors import NoProgress, PeerSilent, PlantError, ScenarioMismatch, TcuDidNotStart
 from .bus.frames import (STATE_FAULT, STATE_RUNNING, STATE_STARTING, TCU_IDS, FrameCodec, RejectCounter,
                          scenario_digest_word)
 from .bus.link import Sender, heartbeat_period_s, poll_until, silence_limit_s
@@ -209,8 +210,21 @@ class PlantNode:
             return
         self.send(self.codec.demand(self.rig.demand()))
         self._sensor_reading = self.rig.sense()
+        self._check_range(self._sensor_reading)
         self._sensor_msg = self.codec.sensor(self._sensor_reading)
         self.send(self._sensor_msg)
+
+    def _check_range(self, reading: SensorReading) -> None:
+        """A reading the PlantSensor frame cannot carry ends the run here, saying why: the TCU would reject
+        it (``out_of_range``) and a lockstep run would wait ``2 x lockstep_progress_s`` to end as a silent
+        TCU.  Two comparisons a period."""
+        if abs(reading.motor_speed_rad_s) > DBC_MOTOR_SPEED_RAD_S or abs(reading.train_speed_ms) > DBC_TRAIN_SPEED_MS:
+            raise PlantError(f"{self.rig.scenario.path}: at t = {self.t_s:.4f} s the measured speeds (motor "
+                             f"{reading.motor_speed_rad_s:.1f} rad/s, train {reading.train_speed_ms:.2f} m/s) leave "
+                             f"the PlantSensor frame's range (+-{DBC_MOTOR_SPEED_RAD_S:g} rad/s, "
+                             f"+-{DBC_TRAIN_SPEED_MS:g} m/s, hil/hil.dbc): the wheel ran away (control law "
+                             f"{self.rig.scenario.control.law}); shorten run.duration_s or let a control law "
+                             "hold the creep")
 
     def resend_sensor(self) -> None:
         """The pending step's reading once more (lockstep progress deadline, ``await_command``), in a
