@@ -309,8 +309,9 @@ def _open_udp_multicast(spec, name, channel, inprocess_node=None) -> BusHandle:
                     raise
     peer = f"udp_multicast:{group}:{port}"
     return BusHandle(spec, peer if channel else "udp_multicast", bus, peer,
-                     extra={"open_to": "any process of any user on this machine can join it "
-                                       f"({group}:{port}); TTL 0 on lo, so nothing leaves the machine"})
+                     extra={"open_to": "any process of any user on this machine can join it"
+                                       f"{'' if channel else f' ({group}:{port})'}; this side sends with TTL 0 on "
+                                       "lo (nothing of it leaves the machine)"})
 
 
 def _open_local_only(spec, name, channel, inprocess_node=None) -> BusHandle:
