@@ -118,6 +118,7 @@ SLOW = {
     "tests/test_bus.py::test_inprocess_and_hub_give_identical_frames_and_identification",
     "tests/test_bus.py::test_json_keys_and_mcap_holds_every_frame_raw",
     "tests/test_bus.py::test_local_lockstep_polling_or_sleeping_gives_the_inprocess_frames[0.002]",
+    "tests/test_bus.py::test_udp_multicast_lockstep_gives_the_inprocess_frames",
     "tests/test_bus.py::test_plant_and_tcu_started_separately",
     "tests/test_bus.py::test_sigterm_ends_a_run_like_ctrl_c",
     "tests/test_bus.py::test_silent_plant_ends_a_standalone_tcu",

@@ -186,6 +186,17 @@ def test_local_lockstep_polling_or_sleeping_gives_the_inprocess_frames(tmp_path,
     assert data_streams(tmp_path / "ffcc_a-gp-1.mcap") == data_streams(path_in)
 
 
+def test_udp_multicast_lockstep_gives_the_inprocess_frames(tmp_path, inprocess_run):
+    """python-can's udp_multicast bus on lo (hil/bus/multicast.py), a group drawn for the run and handed to
+    the built-in TCU process: the frames and identification of the in-process run, nothing rejected."""
+    s_in, path_in = inprocess_run
+    s, err = run_json(FFCC_A, "udp_multicast", tmp_path)
+    assert s["bus"] == "udp_multicast" and s["frame_auth"] == "off" and s["rejected_frames"] == {}, s
+    assert "warning: bus udp_multicast: any process of any user on this machine can join it (239.255." in err, err
+    assert identification(s) == identification(s_in)
+    assert data_streams(tmp_path / "ffcc_a-gp-1.mcap") == data_streams(path_in)
+
+
 def test_a_negative_lockstep_spin_is_refused_by_name():
     r = hil_run(["scenarios/ffcc_a.toml", "--bus", "inprocess", "--set", "bus.lockstep_spin_s=-0.001"], check=False)
     assert r.returncode == 2 and "[bus] lockstep_spin_s" in r.stderr and len(r.stderr.strip().splitlines()) == 1

@@ -179,7 +179,7 @@ def test_nothing_leaves_the_machine_and_a_node_that_sends_out_is_refused(tmp_pat
         out["refused"], out
 
 
-def test_hil_tcu_and_an_external_tcu_refuse_a_group_drawn_for_the_run(tmp_path):
+def test_hil_tcu_hil_run_and_the_plugin_refuse_a_group_drawn_for_the_run(tmp_path):
     r = subprocess.run([*hil_command(), "tcu", str(ROOT / "scenarios/ffcc_a.toml"), "--bus", "udp_multicast"],
                        capture_output=True, text=True, env=subprocess_env(), timeout=120)
     assert r.returncode == 2 and "udp_multicast:GROUP:PORT" in r.stderr, r.stderr
@@ -187,3 +187,10 @@ def test_hil_tcu_and_an_external_tcu_refuse_a_group_drawn_for_the_run(tmp_path):
                         "--tcu", "external", "--out", str(tmp_path)], capture_output=True, text=True,
                        env=subprocess_env(), timeout=120)
     assert r.returncode == 2 and "a group drawn for this run has no external TCU" in r.stderr, r.stderr
+    (tmp_path / "test_join.py").write_text(f"def test_answers(hil_run):\n    hil_run({str(ROOT / 'scenarios/ffcc_a.toml')!r})\n")
+    r = subprocess.run([sys.executable, "-m", "pytest", "-p", "hil.pytest_plugin", "-p", "no:cacheprovider", "-q",
+                        "test_join.py", "--hil-bus", "udp_multicast", "--hil-tcu", "external", "--hil-tcu-cmd", "sleep 9",
+                        "--hil-out", str(tmp_path / "out")], cwd=tmp_path, capture_output=True, text=True,
+                       env=subprocess_env(), timeout=300)
+    assert "1 error" in r.stdout and "--hil-tcu-cmd with --hil-bus udp_multicast: that bus is opened anew by each run" \
+        in r.stdout and "udp_multicast:GROUP:PORT (python-can alone)" in r.stdout, r.stdout[-3000:]
