@@ -194,3 +194,20 @@ def test_hil_tcu_hil_run_and_the_plugin_refuse_a_group_drawn_for_the_run(tmp_pat
                        env=subprocess_env(), timeout=300)
     assert "1 error" in r.stdout and "--hil-tcu-cmd with --hil-bus udp_multicast: that bus is opened anew by each run" \
         in r.stdout and "udp_multicast:GROUP:PORT (python-can alone)" in r.stdout, r.stdout[-3000:]
+
+
+def test_a_node_that_does_not_read_loses_frames_and_counts_them():
+    """The sender never blocks; a member whose socket buffer is full loses datagrams, and the hil node
+    counts them (SO_RXQ_OVFL, stamped on the next datagram it queues): received + dropped = sent."""
+    group, port = new_group()
+    with LoopbackMulticastBus(group, port) as ours, LoopbackMulticastBus(group, port) as sender:
+        n = 5000
+        for i in range(n):
+            sender.send(frame(i, fd=True))
+        got = recv_all(ours, n, timeout=2.0)
+        sender.send(frame(n, fd=True))                        # after the drain: it carries the whole count
+        last = ours.recv(2.0)
+        assert last is not None and bytes(last.data) == bytes(frame(n, fd=True).data)
+        assert 0 < len(got) < n and len(got) + ours.dropped == n, (len(got), ours.dropped)
+        assert [bytes(m.data) for m in got] == [bytes(frame(i, fd=True).data) for i in
+                                                sorted(int.from_bytes(bytes(m.data)[:4], "little") for m in got)]
