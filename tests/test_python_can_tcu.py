@@ -12,12 +12,13 @@ import subprocess
 import sys
 import tomllib
 import xml.etree.ElementTree as ET
+from pathlib import Path
 
 import pytest
 
 from hil.bus.multicast import new_group
 
-from .conftest import ROOT, SCENARIOS, hil, subprocess_env
+from .conftest import ROOT, SCENARIOS, hil, once_per_session, subprocess_env
 
 EXAMPLE = ROOT / "docs" / "examples" / "python_can_tcu.py"
 THEIR_DBC = SCENARIOS / "suites" / "their.dbc"
@@ -34,8 +35,12 @@ def bare_env() -> dict:
 @pytest.fixture(scope="module")
 def their_tcu(tmp_path_factory):
     """(python, directory): a virtualenv with python-can[multicast] and cantools alone, and a directory
-    holding only the example TCU and their DBC."""
-    home = tmp_path_factory.mktemp("their-tcu")
+    holding only the example TCU and their DBC; made once per test session (under xdist too)."""
+    py, home = once_per_session(tmp_path_factory, "python_can_tcu_venv", _make_their_tcu)
+    return Path(py), Path(home)
+
+
+def _make_their_tcu(home):
     venv = home / "venv"
     py = venv / "bin" / "python"
     r = subprocess.run([sys.executable, "-m", "venv", str(venv)], capture_output=True, text=True, env=bare_env(),
@@ -58,7 +63,7 @@ def their_tcu(tmp_path_factory):
     names = {p["name"].lower() for p in json.loads(r.stdout)}
     assert {"python-can", "cantools", "msgpack"} <= names and "railway-hil" not in names, names
     print(f"their virtualenv: {', '.join(sorted(names))}")
-    return py, home
+    return [str(py), str(home)]
 
 
 def tcu_argv(their_tcu, bus, *extra) -> list[str]:
