@@ -207,8 +207,9 @@ class Tcu:
                 raise BusError("bus hub: a hub started here has no external TCU on it; start one with "
                                "python -m can_remote and give both sides --bus remote:ws://127.0.0.1:PORT/")
             if self.handle.name == "udp_multicast":       # a group drawn for this run: no TCU knows it
-                raise BusError("bus udp_multicast: a group drawn for this run has no external TCU on it; give both "
-                               "sides one group, --bus udp_multicast:GROUP:PORT (e.g. udp_multicast:239.255.42.17:43117)")
+                raise BusError("bus udp_multicast: a group drawn for this run has no external TCU on it; give "
+                               "both sides one group, --bus udp_multicast:GROUP:PORT (e.g. "
+                               "udp_multicast:239.255.42.17:43117)")
             return
         if self.handle.peer_spec is None:
             raise BusError(f"bus {self.handle.name}: reachable only inside this process; a TCU process cannot "

@@ -153,8 +153,8 @@ def test_nothing_leaves_the_machine_and_a_node_that_sends_out_is_refused(tmp_pat
     with lo and a veth pair v0/v1, the default route through v0: a hil node and python-can's node with
     hop_limit=0 exchange 20 frames each way and not one UDP datagram is transmitted on v0 (a packet socket
     on its peer v1 sees none; python-can's join of the group there sends IGMP membership reports, which are
-    not counted: docs/guide/python-can-tcu.md); python-can's node at hop_limit=1 puts its frame on v0 (seen on v1: the capture
-    works), and the hil node refuses the bus, naming the interface and the TTL."""
+    not counted: docs/guide/python-can-tcu.md); python-can's node at hop_limit=1 puts its frame on v0 (seen
+    on v1: the capture works), and the hil node refuses the bus, naming the interface and the TTL."""
     unshare, ip = shutil.which("unshare"), shutil.which("ip")
     script = tmp_path / "probe.py"
     script.write_text(NETNS_PROBE)

@@ -296,7 +296,8 @@ def _open_udp_multicast(spec, name, channel, inprocess_node=None) -> BusHandle:
         try:
             group, port = parse_channel(channel)
         except ValueError as e:
-            raise BusError(f"bus {name}: {e}; udp_multicast:GROUP:PORT, e.g. udp_multicast:239.255.42.17:43117") from None
+            raise BusError(f"bus {name}: {e}; udp_multicast:GROUP:PORT, e.g. "
+                           "udp_multicast:239.255.42.17:43117") from None
         bus = open_loopback(group, port)
     else:
         for attempt in range(5):

@@ -179,9 +179,10 @@ class LoopbackMulticastBus(can.BusABC):
                     continue
                 if ifindex is not None and ifindex != self._lo and ttl:
                     name = _interface_name(ifindex)
-                    raise BusError(f"bus udp_multicast:{self.group}:{self.port}: a frame from {source[0]}:{source[1]} "
-                                   f"came through {name} with TTL {ttl}: its sender's frames go out on {name}'s network "
-                                   "too (python-can: open it with hop_limit=0, which keeps them on this machine)")
+                    raise BusError(f"bus udp_multicast:{self.group}:{self.port}: a frame from "
+                                   f"{source[0]}:{source[1]} came through {name} with TTL {ttl}: its sender's frames "
+                                   f"go out on {name}'s network too (python-can: open it with hop_limit=0, which "
+                                   "keeps them on this machine)")
                 try:
                     msg = unpack_message(data, replace={"timestamp": time.time(), "channel": self.group}, check=True)
                 except Exception:  # noqa: BLE001 - anything on the group that is not a python-can frame
