@@ -158,10 +158,11 @@ class Bench:
         external = self.tcu == "external"
         if external and self.tcu_cmd:
             from hil.bus.link import resolve
-            if resolve(self.bus) in ("local", "inprocess", "hub"):
+            if resolve(self.bus) in ("local", "inprocess", "hub", "udp_multicast"):
                 raise BenchError(f"--hil-tcu-cmd with --hil-bus {self.bus}: that bus is opened anew by each run, so "
                                   "the TCU under test cannot join it; give one both sides open: localbus:DIR (a "
-                                  "directory of your own, mode 700), socketcan:vcan0 or a python-can adapter")
+                                  "directory of your own, mode 700), udp_multicast:GROUP:PORT (python-can alone), "
+                                  "socketcan:vcan0 or a python-can adapter")
         if not external:
             from hil.progress import compile_kernels
             compile_kernels("hil_run")

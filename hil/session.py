@@ -208,6 +208,10 @@ class Tcu:
             if self.handle.hub is not None:
                 raise BusError("bus hub: a hub started here has no external TCU on it; start one with "
                                "python -m can_remote and give both sides --bus remote:ws://127.0.0.1:PORT/")
+            if self.handle.name == "udp_multicast":       # a group drawn for this run: no TCU knows it
+                raise BusError("bus udp_multicast: a group drawn for this run has no external TCU on it; give "
+                               "both sides one group, --bus udp_multicast:GROUP:PORT (e.g. "
+                               "udp_multicast:239.255.42.17:43117)")
             return
         if self.handle.peer_spec is None:
             raise BusError(f"bus {self.handle.name}: reachable only inside this process; a TCU process cannot "
@@ -399,6 +403,9 @@ class Session:
             log(f"warning: bus hub: any process of any user on this machine can join it ({handle.hub.url}); "
                 f"frames are {'authenticated' if settings.auth == 'on' else 'not authenticated'} "
                 "(the embedded local bus is the default for a reason)")
+        if handle.extra.get("open_to"):           # udp_multicast (hil/bus/multicast.py)
+            log(f"warning: bus {handle.name}: {handle.extra['open_to']}; frames are "
+                f"{'authenticated' if settings.auth == 'on' else 'not authenticated'}")
         if load["load_percent"] > LOAD_WARN_PERCENT:
             log(f"warning: bus load {load['load_percent']:.1f} % is above {LOAD_WARN_PERCENT:g} % "
                 f"(raise [bus] bitrate/data_bitrate or the exchange period)")

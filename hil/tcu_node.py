@@ -343,10 +343,10 @@ def run_tcu(args) -> int:
     settings = scenario.bus
     seed = scenario.run.seed if args.seed is None else args.seed
     bus = resolve(args.bus)
-    if bus in ("inprocess", "hub"):
+    if bus in ("inprocess", "hub", "udp_multicast"):
         raise BusError(f"bus {args.bus}{' (no vcan0 here: hub)' if args.bus == 'auto' else ''}: the TCU alone needs "
-                       "the plant's bus (socketcan:<ch>, remote:ws://HOST:PORT/ of a running hub, or a python-can "
-                       "interface:channel)")
+                       "the plant's bus (socketcan:<ch>, remote:ws://HOST:PORT/ of a running hub, "
+                       "udp_multicast:GROUP:PORT, or a python-can interface:channel)")
     from .progress import compile_kernels
 
     compile_kernels("hil tcu")      # before the bus: a first compile is shown, not spent inside the start-up wait

@@ -118,6 +118,7 @@ SLOW = {
     "tests/test_bus.py::test_inprocess_and_hub_give_identical_frames_and_identification",
     "tests/test_bus.py::test_json_keys_and_mcap_holds_every_frame_raw",
     "tests/test_bus.py::test_local_lockstep_polling_or_sleeping_gives_the_inprocess_frames[0.002]",
+    "tests/test_bus.py::test_udp_multicast_lockstep_gives_the_inprocess_frames",
     "tests/test_bus.py::test_plant_and_tcu_started_separately",
     "tests/test_bus.py::test_sigterm_ends_a_run_like_ctrl_c",
     "tests/test_bus.py::test_silent_plant_ends_a_standalone_tcu",
@@ -167,6 +168,9 @@ SLOW = {
     "tests/test_logread.py::test_the_whole_log_reads_as_the_mcap_library_reads_it",
     "tests/test_noticed.py::test_replayed_and_forged_frames_are_counted_in_the_summary_and_warned_in_the_log",
     "tests/test_oracle.py::test_the_oracle_covers_the_truth_and_is_not_later_than_bayes",
+    # a virtualenv with python-can and cantools made from the registry (about 20 s), then two runs
+    "tests/test_python_can_tcu.py::test_a_tcu_with_python_can_alone_passes_the_example_suite_through_the_plugin",
+    "tests/test_python_can_tcu.py::test_hil_run_with_the_tcu_external_and_hil_check_judge_its_slip",
     "tests/test_reality.py::test_cli_reality_flag",
     "tests/test_replay.py::test_another_strategy_on_the_same_run",
     "tests/test_replay.py::test_bad_strategy_is_one_line",

@@ -17,7 +17,6 @@ import pytest
 from mcap.reader import make_reader
 
 from hil.testing import alive, children_of, cmdline  # noqa: F401 (alive: other tests import it here)
-from hil.errors import BusError
 from hil.bus.link import Hub, open_bus
 from hil.bus.frames import PLANT_HEARTBEAT_ID, TCU_HEARTBEAT_ID, FrameCodec, load_dbc
 from hil.log.read import read_log
@@ -114,11 +113,6 @@ def test_unavailable_socketcan_channel_names_it_and_why():
     assert "no SocketCAN" in lines[0] or "no CAN interface 'nocan7'" in lines[0]
 
 
-def test_udp_multicast_is_refused():
-    with pytest.raises(BusError, match="udp_multicast"):
-        open_bus("udp_multicast:239.0.0.1")
-
-
 def test_hub_listens_on_localhost_relays_fd_frames_and_stops():
     handle = open_bus("hub")
     port = handle.hub.port
@@ -188,6 +182,17 @@ def test_local_lockstep_polling_or_sleeping_gives_the_inprocess_frames(tmp_path,
     s_in, path_in = inprocess_run
     s, _ = run_json(FFCC_A, "local", tmp_path, "--set", f"bus.lockstep_spin_s={spin_s}")
     assert s["bus"].startswith("local") and s["identified"]
+    assert identification(s) == identification(s_in)
+    assert data_streams(tmp_path / "ffcc_a-gp-1.mcap") == data_streams(path_in)
+
+
+def test_udp_multicast_lockstep_gives_the_inprocess_frames(tmp_path, inprocess_run):
+    """python-can's udp_multicast bus on lo (hil/bus/multicast.py), a group drawn for the run and handed to
+    the built-in TCU process: the frames and identification of the in-process run, nothing rejected."""
+    s_in, path_in = inprocess_run
+    s, err = run_json(FFCC_A, "udp_multicast", tmp_path)
+    assert s["bus"] == "udp_multicast" and s["frame_auth"] == "off" and s["rejected_frames"] == {}, s
+    assert "warning: bus udp_multicast: any process of any user on this machine can join it (239.255." in err, err
     assert identification(s) == identification(s_in)
     assert data_streams(tmp_path / "ffcc_a-gp-1.mcap") == data_streams(path_in)
 

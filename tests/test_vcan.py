@@ -237,3 +237,42 @@ def test_the_example_suite_passes_on_vcan0_in_lockstep(tmp_path):
     assert schema.validate(etree.parse(str(junit))), schema.error_log
     props = {p.get("name"): p.get("value") for p in etree.parse(str(junit)).iter("property")}
     assert props["bus"] == "socketcan:vcan0 lockstep"
+
+
+def test_the_python_can_example_tcu_controls_the_wheel_on_vcan0(tmp_path):
+    """Issue 49 item 2 on SocketCAN: the docs' example TCU (docs/examples/python_can_tcu.py: python-can and
+    cantools, no import of this project; run here by this tree's Python, ``-I``, without PYTHONPATH) on vcan0
+    against ``hil run --tcu external`` in lockstep on the example suite's scenario and overrides, judged by
+    ``hil check``: no macro-slip, the wet patch's adhesion used, a command every period.  (TIM-1, a round
+    trip in wall time, is the host's: tests/test_python_can_tcu.py; a guest under User-Mode Linux is slower.)
+    The virtualenv without this project is tests/test_python_can_tcu.py's too: the guest has no registry."""
+    import sys
+    import tomllib
+
+    suite_path = ROOT / "scenarios" / "suites" / "test_their_tcu.toml"
+    suite = tomllib.loads(suite_path.read_text())
+    sets = [a for k, v in suite["set"].items() for a in ("--set", f"{k}={json.dumps(v)}")]
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    with open(tmp_path / "tcu.log", "w") as log:
+        tcu = subprocess.Popen([sys.executable, "-I", str(ROOT / "docs" / "examples" / "python_can_tcu.py"), "--dbc",
+                                str(ROOT / "scenarios" / "suites" / "their.dbc"), "--bus", "socketcan:vcan0"],
+                               cwd=tmp_path, env=env, stdin=subprocess.DEVNULL, stdout=log, stderr=log,
+                               start_new_session=True)
+    try:
+        r = subprocess.run([*hil_command(), "run", str(suite_path.parent / suite["scenario"]), "--bus", "socketcan:vcan0",
+                            "--tcu", "external", "--out", str(tmp_path), "--no-rrd", "--json", *sets],
+                           capture_output=True, text=True, env=subprocess_env(), cwd=tmp_path, timeout=900)
+    finally:
+        tcu.terminate()
+        tcu.wait(30)
+    assert r.returncode == 0, r.stderr + (tmp_path / "tcu.log").read_text()[-2000:]
+    s = json.loads(r.stdout)
+    assert (s["bus"], s["transport"], s["suspicious"], s["rejected_frames"]) == ("socketcan:vcan0", "external", {}, {}), s
+    c = subprocess.run([*hil_command(), "check", s["mcap"], str(suite_path)], capture_output=True, text=True,
+                       env=subprocess_env(), timeout=300)
+    verdicts = {line.split("[", 1)[1].split("]", 1)[0]: line.split(" ", 1)[0]
+                for line in c.stdout.splitlines() if line.startswith(("PASS [", "FAIL ["))}
+    assert {k: verdicts.get(k) for k in ("TIM-2", "ADH-1", "ADH-2")} == {"TIM-2": "PASS", "ADH-1": "PASS",
+                                                                          "ADH-2": "PASS"}, c.stdout
+    print(f"\nexample TCU on vcan0: {verdicts}; round trip p50 {s['round_trip_p50_us']:.0f} us, adhesion used on the "
+          f"wet patch {s['adhesion_utilisation_low']:.3f}")

@@ -14,6 +14,10 @@ Bus specs:
   ``remote:<url>``       an existing python-can-remote server
   ``inprocess``          no bus and no second process: the TCU node answers in the plant's thread,
                          still through the same DBC encode/decode (see ``InprocessTcuBus``)
+  ``udp_multicast``      python-can's ``udp_multicast`` bus held to this machine (``hil.bus.multicast``) on a new
+                         group and port drawn for the run; processes join it as ``udp_multicast:GROUP:PORT``
+  ``udp_multicast:GROUP[:PORT]``  a node on that group (IPv4; port 43113, python-can's, when not given): the bus
+                         a TCU joins with python-can alone (``hop_limit=0``); TTL 0, loopback interface only
   ``<interface>:<ch>``   any python-can interface (pcan:PCAN_USBBUS1, kvaser:0, vector:0 ...); bitrates
                          and timing come from python-can's own configuration (``~/.canrc``)
 
@@ -77,7 +81,7 @@ def vcan_available(channel: str = "vcan0") -> tuple[bool, str]:
 
 
 def available_here() -> str:
-    names = ["auto", "local", "hub", "inprocess"]
+    names = ["auto", "local", "hub", "inprocess", "udp_multicast[:GROUP:PORT]"]
     ok, _ = socketcan_support()
     if ok:
         names += [f"socketcan:{ch}" for ch in can_interfaces()]
@@ -283,9 +287,32 @@ def _open_localbus(spec, name, channel, inprocess_node=None) -> BusHandle:
     return BusHandle(spec, name, bus, f"localbus:{channel}")
 
 
-def _open_refused(spec, name, channel, inprocess_node=None) -> BusHandle:
-    raise BusError(f"bus {name}: udp_multicast sends through the real network interface; use hub or vcan "
-                   f"(available here: {available_here()})")
+def _open_udp_multicast(spec, name, channel, inprocess_node=None) -> BusHandle:
+    """``udp_multicast[:GROUP[:PORT]]``: a node on python-can's udp_multicast bus, on this machine only
+    (``hil.bus.multicast``); without a group, one drawn for this run (a few draws when a port is taken)."""
+    from .multicast import new_group, open_loopback, parse_channel
+
+    if channel:
+        try:
+            group, port = parse_channel(channel)
+        except ValueError as e:
+            raise BusError(f"bus {name}: {e}; udp_multicast:GROUP:PORT, e.g. "
+                           "udp_multicast:239.255.42.17:43117") from None
+        bus = open_loopback(group, port)
+    else:
+        for attempt in range(5):
+            group, port = new_group()
+            try:
+                bus = open_loopback(group, port)
+                break
+            except BusError:
+                if attempt == 4:
+                    raise
+    peer = f"udp_multicast:{group}:{port}"
+    return BusHandle(spec, peer if channel else "udp_multicast", bus, peer,
+                     extra={"open_to": "any process of any user on this machine can join it"
+                                       f"{'' if channel else f' ({group}:{port})'}; this side sends with TTL 0 on "
+                                       "lo (nothing of it leaves the machine)"})
 
 
 def _open_local_only(spec, name, channel, inprocess_node=None) -> BusHandle:
@@ -306,7 +333,7 @@ BACKENDS: dict[str, Opener] = {
     "local": _open_local,
     "localbus": _open_localbus,
     "hub": _open_hub,
-    "udp_multicast": _open_refused,
+    "udp_multicast": _open_udp_multicast,
     "virtual": _open_local_only,      # python-can's virtual bus lives inside one process
 }
 
