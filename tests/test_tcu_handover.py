@@ -16,7 +16,6 @@ import time
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
-import pytest
 
 from .conftest import SCENARIOS, hil_command, subprocess_env
 
