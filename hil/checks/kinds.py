@@ -66,7 +66,8 @@ class Result:
     def line(self) -> str:
         """One line: the failure as an engineer reads it, or the pass with its margin."""
         req = f"[{self.req}] " if self.req else ""
-        head = f"{req}{self.name}"
+        # the requirement, the check's name and the signal it judged (when the name does not say it)
+        head = f"{req}{self.name}" + (f" ({self.signal})" if self.signal and self.signal not in self.name else "")
         if self.passed:
             margin = "" if self.margin is None else f", margin {_num(self.margin)}{_u(self.margin_unit or self.unit)}"
             return (f"{head} {self.limit} {self.window}: passed ({self.samples} sample{'s' * (self.samples != 1)}"
@@ -295,6 +296,7 @@ class Limit(Check):
         if not isinstance(value, (int, float)):
             raise ConfigError(f"limit {self.key}: the summary's value is not a number ({value!r})")
         v = float(value)
+        base["plot"] = {"value": v}
         lo = -math.inf if self.lo is None else self.lo
         hi = math.inf if self.hi is None else self.hi
         margin = min(v - lo, hi - v) if not math.isnan(v) else -math.inf
@@ -371,7 +373,11 @@ class Responds(Check):
             triggers = tt[rising]
         triggers = triggers[(triggers >= t0) & (triggers <= t1)]
         ct, ctruth, cs = _truth(run, self.condition)
-        base["plot"] = {"t": cs.t_s, "v": cs.values, "triggers": triggers}
+        # the figure draws the condition's signal in its own unit, its threshold, and after each trigger the
+        # span it had to hold within (the result's values are reaction times in ms: not on this axis)
+        base["plot"] = {"t": cs.t_s, "v": cs.values, "triggers": triggers, "unit": cs.unit,
+                        "threshold": (self.condition[1], self.condition[2]), "within_s": self.within_s,
+                        "ylabel": self.condition[0], "marks": False}
         if len(triggers) == 0:
             return Result(**base, passed=False, reason=f"no {self.trigger_text} to respond to")
         true_t = np.append(ct[ctruth], np.inf)          # never: an infinite reaction
@@ -431,6 +437,15 @@ class CycleTime(Check):
         order = np.argsort(clock, kind="stable")
         t, clock = t[order], clock[order]
         dt = np.diff(clock)
+        # a frame that stops before the bus's record does (a frozen TCU whose heartbeats or whose plant's
+        # frames go on) is one interval from its last frame to the record's end, within the window
+        end_t, end_wall = run.frames_end()
+        end = min(end_wall if realtime else end_t, math.inf if math.isinf(t1) else (
+            clock[-1] + (t1 - t[-1])))
+        if end - clock[-1] > self.nominal_s + self.tolerance_s + 1e-9:
+            dt = np.append(dt, end - clock[-1])
+            t = np.append(t, t[-1] + (end - clock[-1]))
+            base["note"] += f"; no {self.frame} in the last {(end - clock[-1]) * 1e3:.0f} ms of the record"
         err = np.abs(dt - self.nominal_s)
         margin = self.tolerance_s - err
         bad = margin < -1e-9
@@ -443,7 +458,7 @@ class CycleTime(Check):
                              f"({self.max_outside_fraction * 100:g} %) allowed")
         worst = int(np.argmin(margin))
         first = int(np.argmax(bad)) if bad.any() else None
-        base["plot"] = {"t": t[1:], "v": dt * 1e3}
+        base["plot"] = {"t": t[1:], "v": dt * 1e3, "ylabel": f"{self.frame} interval"}
         base["window_s"] = None if self.window is None else (t0, t1)
         return Result(**base, passed=int(bad.sum()) <= allowed, samples=len(dt), margin=kept_margin * 1e3,
                       first=None if first is None else (float(t[first + 1]), float(dt[first] * 1e3)),
@@ -548,11 +563,15 @@ class CheckFailed(AssertionError):
 
 
 def require(run, *checks: Check) -> list[Result]:
-    """Judge every check over ``run`` (a ``Run`` or a log's path); ``CheckFailed`` (an AssertionError)
-    listing every failed one, else the results."""
+    """Judge every check over ``run`` (a ``Run`` or a log's path) under the verdict its log records, by the
+    judge ``hil check`` uses (``hil.checks.outcome.judged``: a TCU that fell silent fails every check, a run
+    the bench broke raises its ``BenchError``); ``CheckFailed`` (an AssertionError) listing every failed
+    one, else the results."""
     __tracebackhide__ = True                  # pytest: the failure points at the test's line, not here
+    from .outcome import judged, recorded
+
     run = as_run(run)
-    results = [c(run) for c in checks]
+    results = judged(checks, run, recorded(run))
     if not all(r.passed for r in results):
         raise CheckFailed(results, run)
     return results

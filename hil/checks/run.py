@@ -154,6 +154,14 @@ class Run:
         rows = self._frame_rows().get(message.frame_id, [])
         return np.array([r[0] for r in rows], dtype=float), self._wall_s(rows)
 
+    def frames_end(self) -> tuple[float, float]:
+        """(t_s, wall_s) of the log's last accepted frame of any id: where the bus's record ends (a frame
+        that stops before it fell silent)."""
+        rows = [r for rr in self._frame_rows().values() for r in rr]
+        if not rows:
+            return 0.0, 0.0
+        return max(r[0] for r in rows), (max(r[1] for r in rows) - self._wall0) * 1e-9
+
     def _wall_s(self, rows) -> np.ndarray:
         """Receive wall times in s since the log's first frame (from integer ns: seconds since the epoch
         as doubles would keep only 0.4 us)."""

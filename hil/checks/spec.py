@@ -147,16 +147,13 @@ def _check(path: str, i: int, table: dict) -> Check:
     return check
 
 
-def judge(suite: Suite, run) -> list:
-    """Every check of ``suite`` judged over ``run``: the results, in the file's order.  A check naming a
+def judge(suite: Suite, run, verdict=None) -> list:
+    """Every check of ``suite`` judged over ``run`` under the run's own ``verdict``
+    (``hil.checks.outcome.judged``, the one judge): the results, in the file's order.  A check naming a
     signal, frame or event the run does not have is a ConfigError naming the file and the check."""
-    results = []
-    for check in suite.checks:
-        try:
-            results.append(check(run))
-        except ConfigError as e:
-            raise ConfigError(f"{check.where}: {e}") from None
-    return results
+    from .outcome import judged
+
+    return judged(suite.checks, run, verdict)
 
 
 def load_checks(path) -> Suite:
