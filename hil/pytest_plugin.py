@@ -127,7 +127,8 @@ class Bench:
         """The ``hil run`` command line that repeats this run."""
         parts = ["hil", "run", str(scenario), "--bus", self.bus, "--mode", self.mode]
         parts += ["--seed", str(seed)] if seed is not None else []
-        parts += ["--strategy", strategy] if strategy else []
+        # the strategy is the built-in TCU's: an external TCU identifies (or not) as it does
+        parts += ["--strategy", strategy] if strategy and self.tcu != "external" else []
         for k, v in overrides.items():
             parts += ["--set", f"{k}={_toml_value(v)}"]
         for r in reality:
@@ -314,6 +315,36 @@ class ChecksFile(pytest.File):
         return super().repr_failure(excinfo)
 
 
+def _failed_run(error):
+    """(the log of a run whose TCU failed it, opened once and kept on the error; its verdict) or (None,
+    None): a ``TcuFailed`` with a log is judged check by check as ``hil check`` judges that log."""
+    from hil.checks import Run
+    from hil.checks.outcome import TcuFailed, recorded
+    from hil.errors import HilError
+
+    log = getattr(error, "log", None)
+    if not isinstance(error, TcuFailed) or not log:
+        return None, None
+    run = getattr(error, "hil_log_run", None)
+    if run is None:
+        try:
+            run = Run.open(log)
+            error.hil_log_run = run
+        except (HilError, OSError):
+            return None, None
+    try:
+        return run, recorded(run) or error
+    except HilError:
+        return None, None
+
+
+def _judge_one(check, run, verdict):
+    """One check of a checks file, by the judge ``hil check`` and ``require`` use (``outcome.judged``)."""
+    from hil.checks.outcome import judged
+
+    return judged([check], run, verdict)[0]
+
+
 class CheckItem(pytest.Item):
     def __init__(self, *, suite, check, **kw):
         super().__init__(**kw)
@@ -321,7 +352,6 @@ class CheckItem(pytest.Item):
 
     def runtest(self):
         from hil.checks import CheckFailed
-        from hil.errors import ConfigError
 
         bench = self.config.stash[_BENCH]
         runs = self.stash.setdefault(_RUNS, [])
@@ -329,12 +359,13 @@ class CheckItem(pytest.Item):
             run = bench.run(self.suite.scenario, self.suite.set, self.suite.seed, self.suite.strategy)
         except Exception as e:
             runs.append(e)
-            raise
-        runs.append(run)
-        try:
-            result = self.check(run)
-        except ConfigError as e:
-            raise ConfigError(f"{self.check.where}: {e}") from None
+            run, verdict = _failed_run(e)
+            if run is None:
+                raise
+        else:
+            runs.append(run)
+            verdict = None
+        result = _judge_one(self.check, run, verdict)
         if not result.passed:
             raise CheckFailed([result], run)
 
@@ -391,17 +422,61 @@ def _failure_output(item, error) -> list[str]:
     runs = list(item.stash.get(_RUNS, []))
     if isinstance(error, CheckFailed) and error.run is not None and error.run not in runs:
         runs.append(error.run)              # require() over a log's path, no hil_run
+    logs = []
     for run in runs:
         log = getattr(run, "path", None) or getattr(run, "log", None)
-        command = getattr(run, "command", None)
         if log:
+            logs.append(str(log))
             lines.append(f"log: {log}")
             rrd = _recording(log)
             if rrd:
                 lines.append(f"recording: {rrd}")
-        if command:
-            lines.append(f"reproduce: {command}")
+    lines.append(f"reproduce: {_reproduce_command(item, bench)}")
+    lines += _rejudge_lines(item, error, logs)
     return list(dict.fromkeys(lines))
+
+
+def _reproduce_command(item, bench) -> str:
+    """The command that runs this test again as it ran: pytest on its node id (the file's absolute path,
+    so from any directory) with the session's ``-p`` plugins and every ``--hil-*`` option but the output
+    directory (the scenario, its overrides, the seed and the strategy are the test's own)."""
+    args = list(item.config.invocation_params.args)
+    plugins = []
+    for i, a in enumerate(args):
+        if a == "-p" and i + 1 < len(args):
+            plugins += ["-p", str(args[i + 1])]
+        elif a.startswith("-p") and len(a) > 2 and not a.startswith("--"):
+            plugins += ["-p", a[2:]]
+    node = str(item.path) + (item.nodeid[item.nodeid.index("::"):] if "::" in item.nodeid else "")
+    parts = ["pytest", node, *plugins, "--hil-bus", bench.bus, "--hil-mode", bench.mode, "--hil-tcu", bench.tcu]
+    parts += ["--hil-tcu-cmd", bench.tcu_cmd] if bench.tcu_cmd else []
+    return shlex.join(parts)
+
+
+def _rejudge_lines(item, error, logs) -> list[str]:
+    """``hil check LOG CHECKS.toml`` for each log the test's checks judged, to the same verdict (the one judge,
+    ``hil.checks.outcome.judged``): a checks file's test names its file; checks written in Python are written
+    as a checks file beside the log (``hil.checks.spec.dump_checks``)."""
+    import re
+
+    from hil.checks import CheckFailed
+
+    if not logs:
+        return []
+    if isinstance(item, CheckItem):
+        toml = str(item.path)
+    elif isinstance(error, CheckFailed) and error.checks:
+        from hil.checks.spec import dump_checks
+
+        name = re.sub(r"[^A-Za-z0-9_.-]+", "_", item.name)[:120]
+        try:
+            toml = str(dump_checks(error.checks, Path(logs[-1]).parent / f"{name}.checks.toml",
+                                   comment=f"the checks of {item.nodeid}, written by the pytest plugin"))
+        except Exception as e:  # noqa: BLE001 - the verdict stands without its re-judge file
+            return [f"  (no checks file: {type(e).__name__}: {e})"]
+    else:
+        return []
+    return [f"re-judge: {shlex.join(['hil', 'check', log, toml])}" for log in dict.fromkeys(logs)]
 
 
 def _recording(log) -> str | None:

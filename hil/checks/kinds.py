@@ -143,6 +143,17 @@ class Check:
     def judge(self, run: Run) -> Result:
         raise NotImplementedError
 
+    def fields(self) -> dict:
+        """The check's fields as a ``[[check]]`` table has them (``hil.checks.spec``): what ``dump_checks``
+        writes so that ``hil check`` judges a check written in Python the same."""
+        raise NotImplementedError
+
+    def table(self) -> dict:
+        """``fields`` with the kind, name and requirement: a ``[[check]]`` table (None values left out)."""
+        out = {"kind": self.kind, **({"name": self._name} if self._name else {}),
+               **({"req": self.req} if self.req else {}), **self.fields()}
+        return {k: v for k, v in out.items() if v is not None}
+
     def __repr__(self) -> str:
         return f"<{self.kind} {self.name}>"
 
@@ -161,6 +172,16 @@ def parse_window(during) -> tuple | None:
             raise ConfigError(f"during {list(during)!r}: the window ends before it starts")
         return (during[0], a, b)
     raise ConfigError(f"during {during!r}: expected an event name or (event, start_s, end_s), e.g. ('fault', 0.0, 0.3)")
+
+
+def window_field(window):
+    """A parsed window back as a checks file writes it: None, ``"event"`` or ``[event, start_s, end_s]``."""
+    if window is None:
+        return None
+    event, a, b = window
+    if b is None:
+        return event if a == 0 else [event, a]
+    return [event, a, b]
 
 
 def window_text(window) -> str:
@@ -222,6 +243,10 @@ class InRange(Check):
     def default_name(self) -> str:
         return self.signal
 
+    def fields(self) -> dict:
+        return {"signal": self.signal, "lo": self.lo, "hi": self.hi, "during": window_field(self.window),
+                "valid": self.valid}
+
     def judge(self, run: Run) -> Result:
         s = run.signal(self.signal)
         base = dict(name=self.name, kind=self.kind, signal=self.signal, unit=s.unit, req=self.req,
@@ -270,6 +295,9 @@ class Limit(Check):
 
     def default_name(self) -> str:
         return self.key
+
+    def fields(self) -> dict:
+        return {"key": self.key, "lo": self.lo, "hi": self.hi}
 
     def judge(self, run: Run) -> Result:
         base = dict(name=self.name, kind=self.kind, signal=self.key, unit=_summary_unit(self.key), req=self.req,
@@ -352,6 +380,10 @@ class Responds(Check):
     def default_name(self) -> str:
         return self.condition_text
 
+    def fields(self) -> dict:
+        return {"trigger": self.trigger_text, "condition": self.condition_text, "within_s": self.within_s,
+                "during": window_field(self.window)}
+
     def judge(self, run: Run) -> Result:
         base = dict(name=self.name, kind=self.kind, signal=self.condition[0], unit="ms", req=self.req,
                     window=f"after each {self.trigger_text}" + ("" if self.window is None else
@@ -416,6 +448,10 @@ class CycleTime(Check):
 
     def default_name(self) -> str:
         return f"{self.frame} cycle time"
+
+    def fields(self) -> dict:
+        return {"frame": self.frame, "nominal_s": self.nominal_s, "tolerance_s": self.tolerance_s,
+                "during": window_field(self.window), "max_outside_fraction": self.max_outside_fraction or None}
 
     def judge(self, run: Run) -> Result:
         realtime = run.mode == "realtime"
@@ -496,6 +532,13 @@ class Settles(Check):
     def default_name(self) -> str:
         return f"{self.signal} settles"
 
+    def fields(self) -> dict:
+        after = None if self.window is None else (self.window[0] if not self.window[1] else
+                                                  [self.window[0], self.window[1]])
+        band = [-math.inf if self.lo is None else self.lo, math.inf if self.hi is None else self.hi]
+        return {"signal": self.signal, "band": band, "within_s": self.within_s,
+                "hold_s": self.hold_s, "after": after, "valid": self.valid}
+
     def judge(self, run: Run) -> Result:
         s = run.signal(self.signal)
         after = "the start" if self.window is None else f"{self.window[0]}" + (
@@ -555,8 +598,8 @@ class CheckFailed(AssertionError):
     """One or more checks failed; ``results`` holds every result (passed ones too), the message one line
     per failed check."""
 
-    def __init__(self, results: list[Result], run: Run | None = None):
-        self.results, self.run = results, run
+    def __init__(self, results: list[Result], run: Run | None = None, checks: tuple = ()):
+        self.results, self.run, self.checks = results, run, tuple(checks)
         failed = [r for r in results if not r.passed]
         lines = [f"{len(failed)} of {len(results)} checks failed:"] + [f"  {r.line()}" for r in failed]
         super().__init__("\n".join(lines))
@@ -573,5 +616,5 @@ def require(run, *checks: Check) -> list[Result]:
     run = as_run(run)
     results = judged(checks, run, recorded(run))
     if not all(r.passed for r in results):
-        raise CheckFailed(results, run)
+        raise CheckFailed(results, run, checks)
     return results
