@@ -184,6 +184,48 @@ def test_each_faulty_tcu_fails_exactly_its_checks_and_the_built_in_one_passes(py
     assert passed == CHECKS - fails, result.stdout.str()
 
 
+def test_a_frozen_tcus_log_gets_the_same_verdict_per_check_from_pytest_and_hil_check(pytester, _loaded):
+    """Issue 49 item 8, one judge: a TCU on their.dbc that freezes after 300 readings (tests/data/freezes_tcu.py)
+    under the example suite (lockstep on a local bus, 1 s of silence allowed: the run ends 0.3 s in).  pytest fails every check
+    (the TCU fell silent); ``hil check`` on the log it left fails every check too, each saying why, and exits 1
+    -- where it once passed the cycle time judged on the frames up to the freeze.  That check alone, judged
+    without the run's verdict, fails too: its frame stops long before the record does."""
+    import subprocess
+
+    from hil.checks import Run, cycle_time
+    from hil.testing import hil_command, subprocess_env
+
+    suite = pytester.path / "test_frozen.toml"
+    suite.write_text(SUITE.read_text().replace('scenario = "../wet_patch.toml"', f'scenario = "{SCENARIOS / "wet_patch.toml"}"')
+                     .replace('"bus.lockstep_silence_s" = 5.0', '"bus.lockstep_silence_s" = 1.0'))
+    os.environ.setdefault("PYTHONPATH", str(ROOT))
+    with tempfile.TemporaryDirectory(prefix="hil-bus-test-") as tmp:
+        out = pytester.path / "junit.xml"
+        result = pytester.runpytest("-p", "hil.pytest_plugin", "-p", "no:cacheprovider", "--hil-bus", f"localbus:{tmp}",
+                                    "--hil-out", str(pytester.path / "hil-out"), "--junitxml", str(out),
+                                    "--hil-tcu", "external", "--hil-tcu-cmd",
+                                    f"{sys.executable} {ROOT / 'tests' / 'data' / 'freezes_tcu.py'} --bus {{bus}} --after 300",
+                                    str(suite))
+    root = ET.parse(str(out)).getroot()
+    by_pytest = {c.get("name").split("-", 1)[1]: ("failure" if c.find("failure") is not None else
+                                                  "error" if c.find("error") is not None else "pass")
+                 for c in root.iter("testcase")}
+    assert by_pytest == {name: "failure" for name in CHECKS}, result.stdout.str()
+    assert "the TCU fell silent or died" in result.stdout.str()
+    log = next((pytester.path / "hil-out").rglob("*.mcap"))
+    r = subprocess.run(hil_command() + ["check", str(log), str(suite), "--junitxml", str(pytester.path / "check.xml")],
+                       capture_output=True, text=True, env=subprocess_env(), timeout=120)
+    assert r.returncode == 1, r.stdout + r.stderr
+    by_check = {c.get("name"): ("failure" if c.find("failure") is not None else
+                                "error" if c.find("error") is not None else "pass")
+                for c in ET.parse(str(pytester.path / "check.xml")).getroot().iter("testcase")}
+    assert by_check == by_pytest, r.stdout
+    assert "0 of 4 checks passed" in r.stdout and r.stdout.count("the TCU fell silent or died") >= 5, r.stdout
+    alone = cycle_time("TcuCmd", 0.001, 0.0005, max_outside_fraction=0.02)(Run.open(log))
+    assert not alone.passed and "no TcuCmd in the last" in alone.note, alone.line()
+    print(alone.line())
+
+
 def test_hil_run_says_a_mapping_problem_in_one_line_with_exit_2(tmp_path):
     from hil.testing import run_hil
 

@@ -185,8 +185,9 @@ def test_diverges(hil_run):
                        capture_output=True, text=True, env=subprocess_env(), timeout=120)
     assert r.returncode == 2 and "the run did not finish" in r.stderr and "Traceback" not in r.stderr, r.stderr
     suite = _validated(pytester.path / "check.xml")[0]
-    assert suite.get("errors") == "1" and suite.get("failures") == "0"
-    assert "the run did not finish" in next(suite.iter("error")).get("message")
+    # one judge (issue 49 item 8): each of the file's five checks an error, as the plugin reports each
+    assert suite.get("errors") == "5" and suite.get("failures") == "0" and suite.get("tests") == "5"
+    assert all("the run did not finish" in e.get("message") for e in suite.iter("error"))
 
 
 @pytest.mark.parametrize("ci", ["", "true"])
@@ -234,7 +235,7 @@ def test_answers(hil_run):
     root = _validated(pytester.path / "j.xml")
     case = next(root.iter("testcase"))
     assert case.find("failure") is not None and case.find("error") is None
-    assert "--tcu external" in case.findtext("system-out")
+    assert f"--hil-tcu external --hil-tcu-cmd 'sleep {marker}'" in case.findtext("system-out")
     props = {p.get("name"): p.get("value") for p in root.iter("property")}
     assert props["tcu_under_test"] == f"external: sleep {marker}"
     sleeping = [p for p in Path("/proc").glob("[0-9]*") if _cmdline(p) == f"sleep {marker}"]

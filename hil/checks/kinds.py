@@ -473,30 +473,35 @@ class CycleTime(Check):
         order = np.argsort(clock, kind="stable")
         t, clock = t[order], clock[order]
         dt = np.diff(clock)
-        # a frame that stops before the bus's record does (a frozen TCU whose heartbeats or whose plant's
-        # frames go on) is one interval from its last frame to the record's end, within the window
-        end_t, end_wall = run.frames_end()
-        end = min(end_wall if realtime else end_t, math.inf if math.isinf(t1) else (
-            clock[-1] + (t1 - t[-1])))
-        if end - clock[-1] > self.nominal_s + self.tolerance_s + 1e-9:
+        # a frame that stops before the run does is one more interval, from its last frame to the run's end
+        # within the window: in real time the bus's record (the plant's frames go on until it gives up on a
+        # frozen TCU), in lockstep the steps the run was to make (the plant waits at the frozen TCU's step)
+        end = run.frames_end()[1] if realtime else run.planned_duration_s
+        if not math.isinf(t1):
+            end = min(end, clock[-1] + (t1 - t[-1]))
+        silent = 0                          # the cycles a frame that stopped early left out, beyond the one
+        if end - clock[-1] > self.nominal_s + self.tolerance_s + run.period_s + 1e-9:
+            silent = max(int((end - clock[-1]) / self.nominal_s) - 1, 0)
             dt = np.append(dt, end - clock[-1])
             t = np.append(t, t[-1] + (end - clock[-1]))
-            base["note"] += f"; no {self.frame} in the last {(end - clock[-1]) * 1e3:.0f} ms of the record"
+            base["note"] += f"; no {self.frame} in the last {(end - clock[-1]) * 1e3:.0f} ms of the run"
         err = np.abs(dt - self.nominal_s)
         margin = self.tolerance_s - err
         bad = margin < -1e-9
         # the intervals that may lie outside: the worst floor(fraction * n); the margin is that of the worst
         # interval beyond them (with no allowance, of the worst interval)
-        allowed = math.floor(self.max_outside_fraction * len(dt) + 1e-9)
-        kept_margin = float(np.sort(margin)[min(allowed, len(dt) - 1)])
+        # a silence counts as the cycles it left out: each of them an interval outside
+        n_out, n = int(bad.sum()) + silent, len(dt) + silent
+        allowed = math.floor(self.max_outside_fraction * n + 1e-9)
+        kept_margin = float(np.sort(margin)[min(max(allowed - silent, 0), len(dt) - 1)])
         if self.max_outside_fraction:
-            base["note"] += (f"; {int(bad.sum())} of {len(dt)} intervals outside, at most {allowed} "
+            base["note"] += (f"; {n_out} of {n} intervals outside, at most {allowed} "
                              f"({self.max_outside_fraction * 100:g} %) allowed")
         worst = int(np.argmin(margin))
         first = int(np.argmax(bad)) if bad.any() else None
         base["plot"] = {"t": t[1:], "v": dt * 1e3, "ylabel": f"{self.frame} interval"}
         base["window_s"] = None if self.window is None else (t0, t1)
-        return Result(**base, passed=int(bad.sum()) <= allowed, samples=len(dt), margin=kept_margin * 1e3,
+        return Result(**base, passed=n_out <= allowed, samples=n, margin=kept_margin * 1e3,
                       first=None if first is None else (float(t[first + 1]), float(dt[first] * 1e3)),
                       worst=(float(t[worst + 1]), float(dt[worst] * 1e3)) if bad.any() else None,
                       violation_s=float(dt[bad].sum()))

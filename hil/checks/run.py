@@ -110,6 +110,13 @@ class Run:
     def duration_s(self) -> float:
         return float(self.summary.get("sim_s") or _scenario_value(self.log, "run", "duration_s") or 0.0)
 
+    @property
+    def planned_duration_s(self) -> float:
+        """The simulated time the run was to last (its scenario's ``run.duration_s``, overrides applied):
+        more than ``duration_s`` for a run that ended early."""
+        planned = _scenario_value(self.log, "run", "duration_s")
+        return max(float(planned), self.duration_s) if planned else self.duration_s
+
     def event(self, name: str) -> float | None:
         """The time (s) of event ``name`` (module docstring), None when it did not happen; ConfigError for
         a name that is no event."""
