@@ -92,12 +92,42 @@ def signal_span(sig) -> tuple[float, float]:
     return a, b
 
 
+#: the database attributes that name a bus's bit rates: the arbitration rate (Vector's ``Baudrate``), and the
+#: CAN FD data-phase rate (``BaudrateCANFD`` as CANdb++ writes it; the other spellings seen in the wild)
+BITRATE_ATTRIBUTES = ("Baudrate",)
+DATA_BITRATE_ATTRIBUTES = ("BaudrateCANFD", "BaudRateCANFD", "DataBaudrate", "FDBaudrate", "BaudrateFD")
+
+
+def dbc_bitrates(db) -> tuple[int | None, int | None]:
+    """(arbitration bit rate, CAN FD data bit rate) in bit/s that a DBC's database attributes name, each None
+    where it names none (or a value that is no positive integer)."""
+    attrs = getattr(getattr(db, "dbc", None), "attributes", None) or {}
+
+    def rate(names):
+        for name in names:
+            if name in attrs:
+                try:
+                    value = int(attrs[name].value)
+                except (TypeError, ValueError):
+                    continue
+                if value > 0:
+                    return value
+        return None
+
+    return rate(BITRATE_ATTRIBUTES), rate(DATA_BITRATE_ATTRIBUTES)
+
+
 @dataclass(frozen=True)
 class Mapping:
     """A loaded mapping: their database, and per quantity (message, signal)."""
     dbc_path: str
     db: object
     where: dict          # quantity -> (message, signal name)
+
+    @property
+    def bitrates(self) -> tuple[int | None, int | None]:
+        """The bus's bit rates as their DBC names them (``dbc_bitrates``): they set the bus-load figures."""
+        return dbc_bitrates(self.db)
 
     @property
     def plant_messages(self) -> list:
@@ -184,7 +214,9 @@ def load_mapping(scenario_path, dbc: str, table: dict, period_s: float, needs: d
                        f"{RESERVED_IDS[m.frame_id]} frame, which still travels on a mapped bus")
         if m.cycle_time and abs(m.cycle_time * 1e-3 - period_s) > 1e-9:
             raise fail(key, f"message {mname} of {path.name} has a cycle time of {m.cycle_time} ms (GenMsgCycleTime); "
-                       f"the scenario's exchange period is {period_s * 1e3:g} ms")
+                       f"the scenario's exchange period is {period_s * 1e3:g} ms: set run.exchange_period_s = "
+                       f"{m.cycle_time * 1e-3:g} (--set run.exchange_period_s={m.cycle_time * 1e-3:g}) or the "
+                       "message's GenMsgCycleTime to the period")
         if needs is not None:
             lo, hi = signal_span(s)
             need = needs[q]
