@@ -24,6 +24,8 @@ THEIR = {"bus.dbc": "suites/their.dbc", "bus.mapping.motor_speed_rad_s": "Sensor
          "bus.mapping.train_speed_ms": "Sensors.TrainSpeed", "bus.mapping.demand_torque_nm": "Notch.DemandTorque",
          "bus.mapping.torque_command_nm": "TcuCmd.TorqueRequest"}
 SUITE = SCENARIOS / "suites" / "test_their_tcu.toml"
+#: their DBC with a TcuState (0x201) and a TcuDiag (0x202) beside the command, and a TcuVersion (0x310)
+STATUS_DBC = {**THEIR, "bus.dbc": "../tests/data/their_with_status.dbc"}
 FAULTY = SCENARIOS / "suites" / "faulty_tcus"
 CHECKS = {"answers within three periods", "commands every period", "no macro-slip", "uses the wet patch's adhesion"}
 
@@ -37,6 +39,9 @@ CHECKS = {"answers within three periods", "commands every period", "no macro-sli
     ({"bus.mapping.train_speed_ms": 3}, "[bus.mapping] train_speed_ms", "Message.Signal"),
     ({"bus.dbc": "suites/nowhere.dbc"}, "[bus] dbc", "no such file"),
     ({"bus.auth": "on"}, "[bus] auth", "unauthenticated"),
+    ({**STATUS_DBC, "bus.mapping.tcu_frames": ["TcuStatus"]}, "[bus.mapping] tcu_frames", "no message 'TcuStatus'"),
+    ({**STATUS_DBC, "bus.mapping.tcu_frames": ["TcuCmd"]}, "[bus.mapping] tcu_frames", "carries torque_command_nm"),
+    ({**STATUS_DBC, "bus.mapping.tcu_frames": "TcuState"}, "[bus.mapping] tcu_frames", "must be a list"),
     ({"run.exchange_period_s": 2e-3}, "[bus.mapping] ", "cycle time of 1 ms (GenMsgCycleTime); the scenario's "
      "exchange period is 2 ms: set run.exchange_period_s = 0.001"),
 ])
@@ -228,6 +233,64 @@ def test_a_frozen_tcus_log_gets_the_same_verdict_per_check_from_pytest_and_hil_c
     alone = cycle_time("TcuCmd", 0.001, 0.0005, max_outside_fraction=0.02)(Run.open(log))
     assert not alone.passed and "no TcuCmd in the last" in alone.note and alone.violation_s > 2.5, alone.line()
     print(alone.line())
+
+
+def test_two_tcu_frames_with_their_own_ids_are_logged_range_checked_and_checkable(tmp_path):
+    """Issue 49 item 7: a TCU (tests/data/status_tcu.py, python-can and cantools) that sends, besides its
+    command TcuCmd (0x200), TcuState (0x201) and TcuDiag (0x202), both named by ``tcu_frames``, and frames of
+    ids the mapping does not name (TcuVersion 0x310 of its DBC, 0x7FF of none).  ffcc_a, 1 s, lockstep on a
+    local bus.  What the TCU says it sent is the oracle: the summary counts the unmapped ids frame for frame
+    and the hot TcuState frames (200 degC, past the DBC's 150) under ``out_of_range_signals`` (every signal
+    of a frame received listed, 0 included); the run still runs (an unmapped signal out of range rejects no
+    frame); the log keeps both frames, whose signals the checks decode; the text summary lists the ids."""
+    import signal as sig
+    import subprocess
+
+    from hil.checks import Run, cycle_time, in_range, limit
+    from hil.commands.run import print_summary
+    from hil.testing import hil_command, run_hil, subprocess_env
+
+    sets = [a for k, v in STATUS_DBC.items() for a in ("--set", f'{k}="{v}"')]
+    sets += ["--set", 'bus.mapping.tcu_frames=["TcuState", "TcuDiag"]']
+    report = tmp_path / "sent.json"
+    with tempfile.TemporaryDirectory(prefix="hil-bus-test-") as bus:
+        tcu = subprocess.Popen([sys.executable, str(ROOT / "tests" / "data" / "status_tcu.py"), "--bus",
+                                f"localbus:{bus}", "--report", str(report), "--hot", "100:110"],
+                               env=subprocess_env(), stderr=subprocess.PIPE, text=True)
+        try:
+            r = run_hil("run", str(SCENARIOS / "ffcc_a.toml"), "--set", "run.duration_s=1.0", *sets, "--json",
+                        "--no-rrd", "--out", str(tmp_path / "out"), "--bus", f"localbus:{bus}", "--tcu", "external")
+        finally:
+            tcu.send_signal(sig.SIGTERM)
+            _, err = tcu.communicate(timeout=30)
+    assert r.returncode == 0, r.stderr[-3000:]
+    sent = json.loads(report.read_text())
+    s = json.loads(r.stdout)
+    assert sent["TcuVersion"] >= 10 and sent["TcuState_hot"] == 10, sent
+    assert s["unmapped_ids"] == {"0x310": sent["TcuVersion"], "0x7FF": sent["0x7FF"]}, s["unmapped_ids"]
+    assert s["rejected_frames"] == {}, s["rejected_frames"]
+    oor = s["out_of_range_signals"]
+    assert oor["TcuState.Temperature"] == sent["TcuState_hot"] == 10, oor
+    assert {k for k, n in oor.items() if n} == {"TcuState.Temperature"}, oor
+    assert {"TcuCmd.TorqueRequest", "TcuCmd.MuEstimate", "TcuState.SlipStage", "TcuDiag.Counter"} <= set(oor), oor
+
+    run = Run.open(s["mcap"])
+    temperature = run.signal("TcuState.Temperature")
+    assert temperature.unit == "degC" and int((temperature.values > 150).sum()) == 10
+    assert len(temperature.values) == sent["TcuState"]              # every TcuState frame logged and decoded
+    assert len(run.signal("TcuDiag.Counter").values) == sent["TcuDiag"]
+    assert not in_range("TcuState.Temperature", hi=150.0)(run).passed
+    assert not limit("out_of_range_signals.TcuState.Temperature", hi=0)(run).passed
+    assert limit("out_of_range_signals.TcuCmd.TorqueRequest", hi=0)(run).passed
+    assert limit("unmapped_ids.0x7FF", lo=1)(run).passed
+    assert cycle_time("TcuState", 0.001, 0.0005, during=("start", 0.0, 1.0))(run).passed
+    import io
+
+    text = io.StringIO()
+    print_summary(s, file=text)
+    assert f"frames of ids the mapping does not name (not acted on): 0x310 x{sent['TcuVersion']}, 0x7FF x" in \
+        text.getvalue(), text.getvalue()
+    assert "signals outside their DBC range: TcuState.Temperature x10" in text.getvalue()
 
 
 def test_hil_run_says_a_mapping_problem_in_one_line_with_exit_2(tmp_path):

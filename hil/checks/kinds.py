@@ -303,13 +303,7 @@ class Limit(Check):
         base = dict(name=self.name, kind=self.kind, signal=self.key, unit=_summary_unit(self.key), req=self.req,
                     window="in the run's summary", limit=_bounds(self.lo, self.hi), lo=self.lo,
                     hi=self.hi)
-        value, found = run.summary, True
-        for part in self.key.split("."):
-            if isinstance(value, dict) and part in value:
-                value = value[part]
-            else:
-                found = False
-                break
+        value, found = _lookup(run.summary, self.key)
         if not found:
             import difflib
             close = difflib.get_close_matches(self.key, list(run.summary), n=3)
@@ -331,6 +325,23 @@ class Limit(Check):
         passed = margin >= 0
         return Result(**base, passed=passed, samples=1, margin=margin,
                       first=None if passed else (None, v), worst=None if passed else (None, v))
+
+
+def _lookup(summary: dict, key: str) -> tuple:
+    """(value, found) of ``key`` in the summary: ``a.b`` reaches into table ``a``; a key of a table may hold
+    dots itself (``out_of_range_signals.TcuCmd.MuEstimate``): the longest one that matches is taken."""
+    parts, value, i = key.split("."), summary, 0
+    while i < len(parts):
+        if not isinstance(value, dict):
+            return None, False
+        for j in range(len(parts), i, -1):
+            k = ".".join(parts[i:j])
+            if k in value:
+                value, i = value[k], j
+                break
+        else:
+            return None, False
+    return value, True
 
 
 def _summary_unit(key: str) -> str:
