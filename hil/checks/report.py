@@ -44,21 +44,32 @@ def attachment(path) -> str:
     return f"[[ATTACHMENT|{Path(path).resolve()}]]"
 
 
-def figure(result, out_dir, stem: str = "") -> Path | None:
+def figure(result, out_dir, stem: str = "") -> Path:
     """A PNG of a failed ``result`` in ``out_dir`` (its name from the check's): the signal over the run in
     its unit, the limit or threshold drawn, the window shaded, the first violation and the worst marked.
     A ``limit`` draws the summary's value against its bounds; a check that found no samples draws its
     bounds and says why.  ``responds`` draws the condition's signal with its threshold and, after each
     trigger, the span the condition had to hold within."""
+    import matplotlib.pyplot as plt
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    name = re.sub(r"[^A-Za-z0-9_.-]+", "_", f"{stem}{'-' if stem else ''}{result.name}")[:120] + ".png"
+    fig = draw(result)
+    path = out_dir / name
+    fig.savefig(path)
+    plt.close(fig)
+    return path
+
+
+def draw(result):
+    """The matplotlib figure of ``figure`` (one axes), not saved."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     import numpy as np
 
     plot = result.plot or {}
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    name = re.sub(r"[^A-Za-z0-9_.-]+", "_", f"{stem}{'-' if stem else ''}{result.name}")[:120] + ".png"
     fig, ax = plt.subplots(figsize=(8, 3.2), dpi=90)
     unit = plot.get("unit", result.unit)
     t, v = plot.get("t", ()), plot.get("v", ())
@@ -104,10 +115,7 @@ def figure(result, out_dir, stem: str = "") -> Path | None:
     ax.set_title(result.line(), fontsize=7, loc="left", wrap=True)
     ax.legend(fontsize=7, loc="best")
     fig.tight_layout()
-    path = out_dir / name
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return fig
 
 
 def junit_xml(suite_name: str, results: list, props: dict, path, verdict=None, attachments: dict | None = None,
