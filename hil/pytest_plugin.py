@@ -20,7 +20,10 @@ Outcomes (``hil.checks.outcome``): a failed check, a TCU that fell silent or cam
 that could not judge (``hil.errors.BenchError``) is reported as an *error* (JUnit ``<error>``; this
 plugin marks the report as pytest marks a broken fixture's); a bus not available here *skips*, and is
 an error under ``CI=true``.  A failure's output holds one line per failed check, ``[[ATTACHMENT|png]]``
-lines (a figure per failed check), the log, the recording and the command that reproduces the run;
+lines (a figure per failed check), the log, the recording, the command that repeats the test (``reproduce:``,
+its node id with every ``--hil-*`` option) and the one that judges its log again (``re-judge: hil check``,
+checks written in Python exported beside the log); the checks of ``test_*.toml`` files are judged by the
+judge ``hil check`` uses (``hil.checks.outcome.judged``), a run the TCU's failure ended included;
 the plugin sets ``junit_logging = system-out`` (unless the project sets another value than ``no``) so
 that the JUnit XML keeps them.  Suite properties (``--junitxml``): the package version, the TCU under test,
 the bus and mode, and for each DBC the session's runs spoke (the scenario's ``[bus] dbc`` or ``hil/hil.dbc``)
