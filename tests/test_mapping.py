@@ -229,6 +229,11 @@ def test_a_frozen_tcus_log_gets_the_same_verdict_per_check_from_pytest_and_hil_c
                                 "error" if c.find("error") is not None else "pass")
                 for c in ET.parse(str(pytester.path / "check.xml")).getroot().iter("testcase")}
     assert by_check == by_pytest, r.stdout
+    from lxml import etree
+
+    schema = etree.XMLSchema(etree.parse(str(ROOT / "tests" / "data" / "junit-10.xsd")))
+    for xml in (out, pytester.path / "check.xml"):              # both still Jenkins' JUnit
+        assert schema.validate(etree.parse(str(xml))), schema.error_log
     assert "0 of 4 checks passed" in r.stdout and r.stdout.count("the TCU fell silent or died") >= 5, r.stdout
     alone = cycle_time("TcuCmd", 0.001, 0.0005, max_outside_fraction=0.02)(Run.open(log))
     assert not alone.passed and "no TcuCmd in the last" in alone.note and alone.violation_s > 2.5, alone.line()
@@ -248,7 +253,7 @@ def test_two_tcu_frames_with_their_own_ids_are_logged_range_checked_and_checkabl
 
     from hil.checks import Run, cycle_time, in_range, limit
     from hil.commands.run import print_summary
-    from hil.testing import hil_command, run_hil, subprocess_env
+    from hil.testing import run_hil, subprocess_env
 
     sets = [a for k, v in STATUS_DBC.items() for a in ("--set", f'{k}="{v}"')]
     sets += ["--set", 'bus.mapping.tcu_frames=["TcuState", "TcuDiag"]']
