@@ -298,6 +298,45 @@ def test_two_tcu_frames_with_their_own_ids_are_logged_range_checked_and_checkabl
     assert "signals outside their DBC range: TcuState.Temperature x10" in text.getvalue()
 
 
+def test_an_external_tcus_printed_reproduce_and_re_judge_commands_give_its_verdicts_again(pytester, _loaded):
+    """Issue 49 item 4 with a TCU of another make: the example suite (lockstep, local bus) on keeps_demand.py,
+    which fails ADH-1 and ADH-2.  The ``reproduce:`` line of a failed check carries the TCU command; run as
+    printed (a new pytest process, the same bus) it fails that check again with the same FAIL line; the
+    ``re-judge:`` line (``hil check`` on the log by the suite's file) gives each of the four checks the
+    verdict pytest gave it."""
+    import shlex
+    import subprocess
+
+    from hil.testing import hil_command, subprocess_env
+
+    os.environ.setdefault("PYTHONPATH", str(ROOT))
+    with tempfile.TemporaryDirectory(prefix="hil-bus-test-") as tmp:
+        result, failed, errors, passed = _suite(pytester, tmp, ["--hil-tcu", "external", "--hil-tcu-cmd",
+                                                                f"{sys.executable} {FAULTY}/keeps_demand.py --bus {{bus}}"])
+        assert failed == {"no macro-slip", "uses the wet patch's adhesion"} and not errors, result.stdout.str()
+        root = ET.parse(str(pytester.path / "junit.xml")).getroot()
+        case = next(c for c in root.iter("testcase") if c.get("name").endswith("-no macro-slip"))
+        text = case.findtext("system-out")
+        fail = [ln for ln in text.splitlines() if ln.startswith("FAIL ")]
+        assert len(fail) == 1 and fail[0].startswith("FAIL [ADH-1] no macro-slip (macro_slip_s) = "), text
+        line = next(ln for ln in text.splitlines() if ln.startswith("reproduce: "))
+        argv = shlex.split(line.split(": ", 1)[1])
+        assert argv[0] == "pytest" and argv[1] == f"{SUITE}::3-no macro-slip", argv
+        assert argv[argv.index("--hil-tcu-cmd") + 1] == f"{sys.executable} {FAULTY}/keeps_demand.py --bus {{bus}}"
+        assert argv[argv.index("--hil-bus") + 1] == f"localbus:{tmp}" and "--strategy" not in line
+        again = subprocess.run([sys.executable, "-m", "pytest", *argv[1:], "--hil-out", str(pytester.path / "again")],
+                               capture_output=True, text=True, env=subprocess_env(), timeout=300, cwd="/")
+    assert again.returncode == 1 and "1 failed" in again.stdout, again.stdout[-3000:] + again.stderr[-2000:]
+    assert [ln.strip() for ln in again.stdout.splitlines() if ln.strip().startswith("FAIL ")] == fail, again.stdout
+    rejudge = shlex.split(next(ln for ln in text.splitlines() if ln.startswith("re-judge: ")).split(": ", 1)[1])
+    assert rejudge[:2] == ["hil", "check"] and rejudge[3] == str(SUITE), rejudge
+    r = subprocess.run(hil_command() + rejudge[1:], capture_output=True, text=True, env=subprocess_env(), timeout=120)
+    assert r.returncode == 1, r.stdout + r.stderr
+    by_check = {ln.split("] ", 1)[1].split(" (")[0]: ln[:4] for ln in r.stdout.splitlines()
+                if ln.startswith(("PASS [", "FAIL ["))}
+    assert by_check == {**{n: "PASS" for n in passed}, **{n: "FAIL" for n in failed}}, r.stdout
+
+
 def test_hil_run_says_a_mapping_problem_in_one_line_with_exit_2(tmp_path):
     from hil.testing import run_hil
 
