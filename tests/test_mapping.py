@@ -284,6 +284,8 @@ def test_two_tcu_frames_with_their_own_ids_are_logged_range_checked_and_checkabl
     assert temperature.unit == "degC" and int((temperature.values > 150).sum()) == 10
     assert len(temperature.values) == sent["TcuState"]              # every TcuState frame logged and decoded
     assert len(run.signal("TcuDiag.Counter").values) == sent["TcuDiag"]
+    build = run.signal("TcuVersion.Build")             # unmapped, but in the log's DBC: logged, decoded, checkable
+    assert len(build.values) == sent["TcuVersion"] and set(build.values) == {49.0}
     assert not in_range("TcuState.Temperature", hi=150.0)(run).passed
     assert not limit("out_of_range_signals.TcuState.Temperature", hi=0)(run).passed
     assert limit("out_of_range_signals.TcuCmd.TorqueRequest", hi=0)(run).passed
