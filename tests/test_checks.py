@@ -144,6 +144,29 @@ def test_every_failure_names_requirement_and_signal_and_draws_its_limit(log, raw
     assert figure(absent, tmp_path, "a").exists()                          # no value: its bound and why
 
 
+def test_one_judge_fails_every_check_of_a_run_the_tcu_failed_and_errors_every_check_of_a_broken_one(log):
+    """``hil.checks.outcome.judged`` under a run's own verdict: none, each check as found; a TCU's failure,
+    every check failed with it as the reason (the note says what the check found on the recorded part, a
+    check naming what the partial record lacks included); the bench's error, raised before any check."""
+    from hil.checks.outcome import TcuFailed, judged
+    from hil.errors import BenchError, ConfigError
+
+    checks = [limit("t_identified_s", hi=10.0, req="ID-1"), limit("t_identified_s", hi=0.0, req="ID-2"),
+              in_range("TcuStatus.MuHat", 0.0, 1.0, during="nonesuch", req="ID-3")]
+    with pytest.raises(ConfigError, match="unknown event 'nonesuch'"):
+        judged(checks, log)
+    assert [r.passed for r in judged(checks[:2], log)] == [True, False]
+    dead = judged(checks, log, TcuFailed("the TCU fell silent or died: no TCU answered within 2 s"))
+    assert [r.passed for r in dead] == [False, False, False]
+    assert all(r.reason == "the TCU fell silent or died: no TCU answered within 2 s" for r in dead)
+    assert [r.note.split(";")[0] for r in dead] == ["on the part recorded it held", "on the part recorded it failed too",
+                                                   "on the part recorded it could not be judged: unknown event "
+                                                   "'nonesuch'"]
+    assert dead[2].line().startswith("[ID-3] TcuStatus.MuHat: the TCU fell silent or died")
+    with pytest.raises(BenchError):
+        judged(checks, log, BenchError("the bench could not judge: the plant failed"))
+
+
 def test_cycle_time_counts_steps_in_lockstep_and_says_so(log):
     ok = cycle_time("TcuStatus", nominal_s=1e-3, tolerance_s=2e-4)(log)
     assert ok.passed and ok.samples == 999 and "lockstep: counted in exchange steps of 1 ms" in ok.note

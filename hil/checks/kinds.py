@@ -73,7 +73,8 @@ class Result:
             return (f"{head} {self.limit} {self.window}: passed ({self.samples} sample{'s' * (self.samples != 1)}"
                     f"{margin})" + _note(self.note))
         if self.reason:
-            return f"{head} {self.verb} {self.limit} {self.window}: {self.reason}" + _note(self.note)
+            return " ".join(p for p in (head, self.verb, self.limit, self.window) if p) + f": {self.reason}" \
+                + _note(self.note)
         if self.first is not None and self.first[0] is None:          # one value (a summary's)
             return f"{head} = {_num(self.first[1])}{_u(self.unit)} {self.verb} {self.limit} {self.window}"
         parts = []

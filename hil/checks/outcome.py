@@ -88,6 +88,8 @@ def judged(checks, run, verdict=None) -> list:
 
     from ..errors import ConfigError
 
+    from .kinds import Result
+
     if isinstance(verdict, BenchError):
         raise verdict
     results = []
@@ -95,7 +97,16 @@ def judged(checks, run, verdict=None) -> list:
         try:
             r = check(run)
         except ConfigError as e:
-            raise ConfigError(f"{check.where}: {e}" if check.where else str(e)) from None
+            if verdict is None:
+                raise ConfigError(f"{check.where}: {e}" if check.where else str(e)) from None
+            # the part recorded lacks what the check names (an event of a summary the run never wrote): the
+            # run's verdict stands, as it does for every check of that run
+            fields = check.fields()
+            r = Result(check.name, check.kind, next((str(fields[k]) for k in ("signal", "key", "frame", "condition")
+                                                    if fields.get(k)), ""), "", "", "", passed=False, req=check.req, verb="",
+                       reason=str(verdict), note=f"on the part recorded it could not be judged: {e}")
+            results.append(r)
+            continue
         if verdict is not None:
             seen = "held" if r.passed else "failed too"
             r = dataclasses.replace(r, passed=False, reason=str(verdict),

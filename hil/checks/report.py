@@ -113,7 +113,8 @@ def draw(result):
             ax.plot([result.worst[0]], [result.worst[1]], "x", color="C3", ms=7, label="worst")
     ax.set_ylabel(f"{plot.get('ylabel', result.signal)}" + (f" ({unit})" if unit else ""))
     ax.set_title(result.line(), fontsize=7, loc="left", wrap=True)
-    ax.legend(fontsize=7, loc="best")
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(fontsize=7, loc="best")
     fig.tight_layout()
     return fig
 
