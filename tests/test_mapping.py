@@ -61,6 +61,23 @@ def test_a_mapping_without_its_dbc_and_a_missing_quantity_are_refused():
         load_scenario(SCENARIOS / "ffcc_a.toml", partial)
 
 
+def test_a_dbcs_bit_rates_are_read_from_its_attributes():
+    """``Baudrate`` (their.dbc: 500 kbit/s) and a CAN FD data rate (``BaudrateCANFD``, as CANdb++ writes it);
+    None where the DBC names none."""
+    import cantools
+
+    from hil.bus.mapping import dbc_bitrates
+
+    text = (SCENARIOS / "suites" / "their.dbc").read_text()
+    assert dbc_bitrates(cantools.database.load_string(text, database_format="dbc")) == (500_000, None)
+    fd = text.replace('BA_DEF_ "Baudrate" INT 1 1000000;', 'BA_DEF_ "Baudrate" INT 1 1000000;\n'
+                      'BA_DEF_ "BaudrateCANFD" INT 1 16000000;').replace('BA_ "Baudrate" 500000;',
+                                                                     'BA_ "Baudrate" 500000;\nBA_ "BaudrateCANFD" 2000000;')
+    assert dbc_bitrates(cantools.database.load_string(fd, database_format="dbc")) == (500_000, 2_000_000)
+    bare = "\n".join(ln for ln in text.splitlines() if "Baudrate" not in ln)
+    assert dbc_bitrates(cantools.database.load_string(bare, database_format="dbc")) == (None, None)
+
+
 def test_the_mapped_codec_quantises_to_their_scale_and_saturates():
     """Values come back within half their signal's scale; a speed beyond the signal's range is sent as
     its end; the frames are classical CAN of 8 bytes, the trigger (the motor speed's message) last; a
