@@ -370,7 +370,7 @@ class CheckItem(pytest.Item):
             verdict = None
         result = _judge_one(self.check, run, verdict)
         if not result.passed:
-            raise CheckFailed([result], run)
+            raise CheckFailed([result], run, (self.check,), verdict)
 
     def repr_failure(self, excinfo):
         from hil.checks import CheckFailed

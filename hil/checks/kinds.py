@@ -615,10 +615,12 @@ class CheckFailed(AssertionError):
     """One or more checks failed; ``results`` holds every result (passed ones too), the message one line
     per failed check."""
 
-    def __init__(self, results: list[Result], run: Run | None = None, checks: tuple = ()):
-        self.results, self.run, self.checks = results, run, tuple(checks)
+    def __init__(self, results: list[Result], run: Run | None = None, checks: tuple = (), verdict=None):
+        self.results, self.run, self.checks, self.verdict = results, run, tuple(checks), verdict
         failed = [r for r in results if not r.passed]
-        lines = [f"{len(failed)} of {len(results)} checks failed:"] + [f"  {r.line()}" for r in failed]
+        # a run the TCU failed: its verdict first (every check failed with it, hil.checks.outcome.judged)
+        head = str(verdict) if verdict is not None else f"{len(failed)} of {len(results)} checks failed:"
+        lines = [head] + [f"  {r.line()}" for r in failed]
         super().__init__("\n".join(lines))
 
 
@@ -631,7 +633,8 @@ def require(run, *checks: Check) -> list[Result]:
     from .outcome import judged, recorded
 
     run = as_run(run)
-    results = judged(checks, run, recorded(run))
+    verdict = recorded(run)
+    results = judged(checks, run, verdict)
     if not all(r.passed for r in results):
-        raise CheckFailed(results, run, checks)
+        raise CheckFailed(results, run, checks, verdict)
     return results
