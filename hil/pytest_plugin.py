@@ -23,7 +23,7 @@ an error under ``CI=true``.  A failure's output holds one line per failed check,
 lines (a figure per failed check), the log, the recording, the command that repeats the test (``reproduce:``,
 its node id with every ``--hil-*`` option) and the one that judges its log again (``re-judge: hil check``,
 checks written in Python exported beside the log); the checks of ``test_*.toml`` files are judged by the
-judge ``hil check`` uses (``hil.checks.outcome.judged``), a run the TCU's failure ended included;
+judge ``hil check`` uses (``hil.checks.judge.judged``), a run the TCU's failure ended included;
 the plugin sets ``junit_logging = system-out`` (unless the project sets another value than ``no``) so
 that the JUnit XML keeps them.  Suite properties (``--junitxml``): the package version, the TCU under test,
 the bus and mode, and for each DBC the session's runs spoke (the scenario's ``[bus] dbc`` or ``hil/hil.dbc``)
@@ -342,8 +342,8 @@ def _failed_run(error):
 
 
 def _judge_one(check, run, verdict):
-    """One check of a checks file, by the judge ``hil check`` and ``require`` use (``outcome.judged``)."""
-    from hil.checks.outcome import judged
+    """One check of a checks file, by the judge ``hil check`` and ``require`` use (``judge.judged``)."""
+    from hil.checks.judge import judged
 
     return judged([check], run, verdict)[0]
 
@@ -458,7 +458,7 @@ def _reproduce_command(item, bench) -> str:
 
 def _rejudge_lines(item, error, logs) -> list[str]:
     """``hil check LOG CHECKS.toml`` for each log the test's checks judged, to the same verdict (the one judge,
-    ``hil.checks.outcome.judged``): a checks file's test names its file; checks written in Python are written
+    ``hil.checks.judge.judged``): a checks file's test names its file; checks written in Python are written
     as a checks file beside the log (``hil.checks.spec.dump_checks``)."""
     import re
 

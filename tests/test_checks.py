@@ -145,10 +145,11 @@ def test_every_failure_names_requirement_and_signal_and_draws_its_limit(log, raw
 
 
 def test_one_judge_fails_every_check_of_a_run_the_tcu_failed_and_errors_every_check_of_a_broken_one(log):
-    """``hil.checks.outcome.judged`` under a run's own verdict: none, each check as found; a TCU's failure,
+    """``hil.checks.judge.judged`` under a run's own verdict: none, each check as found; a TCU's failure,
     every check failed with it as the reason (the note says what the check found on the recorded part, a
     check naming what the partial record lacks included); the bench's error, raised before any check."""
-    from hil.checks.outcome import TcuFailed, judged
+    from hil.checks.judge import judged
+    from hil.checks.outcome import TcuFailed
     from hil.errors import BenchError, ConfigError
 
     checks = [limit("t_identified_s", hi=10.0, req="ID-1"), limit("t_identified_s", hi=0.0, req="ID-2"),

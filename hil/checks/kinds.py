@@ -608,33 +608,3 @@ def settles(signal: str, band, within_s: float, hold_s: float, after=None, *, va
     s); the run's start by default) and then stays in it for ``hold_s``.  Its margin is the time to spare
     in ms."""
     return Settles(signal, band, within_s, hold_s, after, valid, name, req)
-
-
-# -- require -----------------------------------------------------------------------------------------------
-class CheckFailed(AssertionError):
-    """One or more checks failed; ``results`` holds every result (passed ones too), the message one line
-    per failed check."""
-
-    def __init__(self, results: list[Result], run: Run | None = None, checks: tuple = (), verdict=None):
-        self.results, self.run, self.checks, self.verdict = results, run, tuple(checks), verdict
-        failed = [r for r in results if not r.passed]
-        # a run the TCU failed: its verdict first (every check failed with it, hil.checks.outcome.judged)
-        head = str(verdict) if verdict is not None else f"{len(failed)} of {len(results)} checks failed:"
-        lines = [head] + [f"  {r.line()}" for r in failed]
-        super().__init__("\n".join(lines))
-
-
-def require(run, *checks: Check) -> list[Result]:
-    """Judge every check over ``run`` (a ``Run`` or a log's path) under the verdict its log records, by the
-    judge ``hil check`` uses (``hil.checks.outcome.judged``: a TCU that fell silent fails every check, a run
-    the bench broke raises its ``BenchError``); ``CheckFailed`` (an AssertionError) listing every failed
-    one, else the results."""
-    __tracebackhide__ = True                  # pytest: the failure points at the test's line, not here
-    from .outcome import judged, recorded
-
-    run = as_run(run)
-    verdict = recorded(run)
-    results = judged(checks, run, verdict)
-    if not all(r.passed for r in results):
-        raise CheckFailed(results, run, checks, verdict)
-    return results

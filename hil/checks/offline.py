@@ -2,7 +2,7 @@
 
 The log is read once (``Run.open``), its recorded verdict taken first (``outcome.recorded``), then every
 check of the file is judged under it by the one judge the pytest plugin and ``require`` use too
-(``outcome.judged``): a TCU that fell silent, died or came late fails every check; a run the bench broke
+(``judge.judged``): a TCU that fell silent, died or came late fails every check; a run the bench broke
 is an error for every check and is not judged further.  With a
 JUnit path, the XML is written and each failed check gets its figure beside it (``NAME-figures/``).
 """

@@ -12,11 +12,8 @@ ErrorInTestSystem, JUnit's ``<failure>`` vs ``<error>``):
 - *skip*: the asked bus is not available here (``BusError`` at the start; the plugin makes it an error
   under ``CI=true``).
 
-One judge (``judged``): ``hil check``, ``require`` and the pytest plugin's checks files give each check its
-verdict through the same function, so a log gets the same verdict per check whoever judges it.  A run
-whose own verdict is a fail (the TCU fell silent, died or came late) fails *every* check, whatever the
-check found on the part that was recorded (a cycle time measured on a TCU's frames up to its freeze says
-nothing about the rest of the run); a run the bench broke is an error for every check.
+``hil.checks.judge`` judges checks under these verdicts: one judge for ``hil check``, ``require`` and the
+pytest plugin.
 
 ``hil run``'s exit codes 3 and 5 each hold both sides; ``deadlines`` splits 5 by the summary's count of
 periods the plant started late, ``run_error`` splits the exceptions of a run.  A silent TCU and a dead
@@ -76,40 +73,3 @@ def recorded(run) -> TcuFailed | BenchError | None:
         return BenchError(f"{run.path}: the run did not finish ({log.ended_early}): nothing to judge the TCU by")
     return deadlines(run.summary)
 
-
-def judged(checks, run, verdict=None) -> list:
-    """Every check's result over ``run`` under the run's own ``verdict`` (``recorded`` of its log, or what the
-    run raised): the one judge of ``hil check``, ``require`` and the pytest plugin.
-
-    ``verdict`` None: each check as it found.  ``TcuFailed``: each check fails with the verdict as its reason
-    (its note says what it found on what was recorded).  ``BenchError``: raised, nothing is judged.  A
-    ``ConfigError`` of a check (a signal the log does not have) names the check where it was written."""
-    import dataclasses
-
-    from ..errors import ConfigError
-
-    from .kinds import Result
-
-    if isinstance(verdict, BenchError):
-        raise verdict
-    results = []
-    for check in checks:
-        try:
-            r = check(run)
-        except ConfigError as e:
-            if verdict is None:
-                raise ConfigError(f"{check.where}: {e}" if check.where else str(e)) from None
-            # the part recorded lacks what the check names (an event of a summary the run never wrote): the
-            # run's verdict stands, as it does for every check of that run
-            fields = check.fields()
-            r = Result(check.name, check.kind, next((str(fields[k]) for k in ("signal", "key", "frame", "condition")
-                                                    if fields.get(k)), ""), "", "", "", passed=False, req=check.req, verb="",
-                       reason=str(verdict), note=f"on the part recorded it could not be judged: {e}")
-            results.append(r)
-            continue
-        if verdict is not None:
-            seen = "held" if r.passed else "failed too"
-            r = dataclasses.replace(r, passed=False, reason=str(verdict),
-                                    note=f"on the part recorded it {seen}" + (f"; {r.note}" if r.note else ""))
-        results.append(r)
-    return results

@@ -122,7 +122,7 @@ def draw(result):
 def junit_xml(suite_name: str, results: list, props: dict, path, verdict=None, attachments: dict | None = None,
               seconds: float = 0.0, errored=()) -> None:
     """Write the JUnit XML of one judged log: a test case per check (``<failure>`` with its line; a run the
-    TCU's verdict failed has each check failed with it, ``outcome.judged``), and for a run the bench broke
+    TCU's verdict failed has each check failed with it, ``judge.judged``), and for a run the bench broke
     (``verdict`` a ``BenchError``) each check named in ``errored`` an ``<error>``, as the pytest plugin
     reports them."""
     attachments = attachments or {}

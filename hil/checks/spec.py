@@ -149,9 +149,9 @@ def _check(path: str, i: int, table: dict) -> Check:
 
 def judge(suite: Suite, run, verdict=None) -> list:
     """Every check of ``suite`` judged over ``run`` under the run's own ``verdict``
-    (``hil.checks.outcome.judged``, the one judge): the results, in the file's order.  A check naming a
+    (``hil.checks.judge.judged``, the one judge): the results, in the file's order.  A check naming a
     signal, frame or event the run does not have is a ConfigError naming the file and the check."""
-    from .outcome import judged
+    from .judge import judged
 
     return judged(suite.checks, run, verdict)
 
