@@ -715,7 +715,7 @@ def _bus(path, data) -> BusSettings:
         if key == "mapping":
             if not isinstance(value, dict):
                 raise _fail(path, "[bus.mapping]", "must be a table of QUANTITY = \"Message.Signal\"")
-            values[key] = tuple(sorted(value.items()))
+            values[key] = tuple(sorted((k, tuple(v) if isinstance(v, list) else v) for k, v in value.items()))
             continue
         if key == "auth_key_file":
             if not isinstance(value, str):

@@ -32,7 +32,10 @@ from .log.record import (Recorder, write_command, write_frame, write_identificat
                          write_rail_truth, write_sensor, write_status)
 from .traction import TruthTrack
 from .trace import Trace
-from .bus.verdicts import ANSWERED_TWICE, BAD_SEQUENCE, DUPLICATE, FOREIGN, FRESH, LATE, NOT_REJECTED, PROBE
+from .bus.verdicts import (ANSWERED_TWICE, BAD_SEQUENCE, DUPLICATE, FOREIGN, FRESH, LATE, NOT_REJECTED, PROBE,
+                           REJECTED, kind)
+
+UNMAPPED = "unmapped_id:"          # a mapped bus: a frame of an id the mapping does not name (hil/bus/mapping.py)
 
 
 #: the longest the plant node writes log rows in line before it looks at the bus again
@@ -148,7 +151,9 @@ class PlantNode:
         self._plain_codec = FrameCodec(self.period_s, self.codec.db)     # checks own frames, no freshness
         #: a TCU's own DBC (hil/bus/mapping.py): no step counters, the first command after the period's frames counts
         self.mapped = getattr(self.codec, "mapped", False)
-        self.tcu_ids = TCU_IDS | ({self.codec.command_id} if self.mapped else set())
+        self.tcu_ids = TCU_IDS | (self.codec.tcu_ids if self.mapped else set())
+        #: mapped: frames of ids the mapping does not name, by id ("0x300" -> count)
+        self.unmapped: dict[str, int] = {}
         self._new_command: TorqueCommand | None = None    # mapped: the command that answers the period
         self._waiting = False                              # mapped: between the period's frames and its deadline
         self._started = False                              # mapped: step 0's frames went out (probes before)
@@ -258,8 +263,11 @@ class PlantNode:
         frame, status = self.codec.classify(msg)
         if frame is not None:
             status = self._accept(frame)
-        if status not in NOT_REJECTED:
+        if status not in NOT_REJECTED and kind(status) == REJECTED:
             self.rejected[status] += 1
+        elif status.startswith(UNMAPPED):
+            key = status[len(UNMAPPED):]
+            self.unmapped[key] = self.unmapped.get(key, 0) + 1
         elif msg.arbitration_id in self.tcu_ids:
             self.last_tcu_rx = time.monotonic()
         if self.rec:
@@ -270,6 +278,8 @@ class PlantNode:
         name, v, rec, current = frame.name, frame.value, self.rec, self.awaited
         if name == "TorqueCommand" and self.mapped:
             return self._accept_mapped_command(v)
+        if name == "TcuFrame":               # mapped: the TCU's other messages (tcu_frames): logged, not acted on
+            return FRESH
         if name == "TorqueCommand":
             if v.step < current:
                 if v.step < len(self.answered) and self.answered[v.step]:
@@ -563,5 +573,7 @@ class PlantNode:
                f"reach it or was rejected there{here}"
 
     def counters(self) -> dict:
+        mapped = {"unmapped_ids": dict(sorted(self.unmapped.items())),
+                  "out_of_range_signals": dict(sorted(self.codec.out_of_range.items()))} if self.mapped else {}
         return {"frames_tx": self.frames_tx, "frames_rx": self.frames_rx, "rejected_frames": dict(self.rejected),
-                "late_commands": self.late_commands, "suspicious": dict(self.suspicious)}
+                "late_commands": self.late_commands, "suspicious": dict(self.suspicious), **mapped}

@@ -20,7 +20,10 @@ Outcomes (``hil.checks.outcome``): a failed check, a TCU that fell silent or cam
 that could not judge (``hil.errors.BenchError``) is reported as an *error* (JUnit ``<error>``; this
 plugin marks the report as pytest marks a broken fixture's); a bus not available here *skips*, and is
 an error under ``CI=true``.  A failure's output holds one line per failed check, ``[[ATTACHMENT|png]]``
-lines (a figure per failed check), the log, the recording and the command that reproduces the run;
+lines (a figure per failed check), the log, the recording, the command that repeats the test (``reproduce:``,
+its node id with every ``--hil-*`` option) and the one that judges its log again (``re-judge: hil check``,
+checks written in Python exported beside the log); the checks of ``test_*.toml`` files are judged by the
+judge ``hil check`` uses (``hil.checks.judge.judged``), a run the TCU's failure ended included;
 the plugin sets ``junit_logging = system-out`` (unless the project sets another value than ``no``) so
 that the JUnit XML keeps them.  Suite properties (``--junitxml``): the package version, the TCU under test,
 the bus and mode, and for each DBC the session's runs spoke (the scenario's ``[bus] dbc`` or ``hil/hil.dbc``)
@@ -129,7 +132,8 @@ class Bench:
         """The ``hil run`` command line that repeats this run."""
         parts = ["hil", "run", str(scenario), "--bus", self.bus, "--mode", self.mode]
         parts += ["--seed", str(seed)] if seed is not None else []
-        parts += ["--strategy", strategy] if strategy else []
+        # the strategy is the built-in TCU's: an external TCU identifies (or not) as it does
+        parts += ["--strategy", strategy] if strategy and self.tcu != "external" else []
         for k, v in overrides.items():
             parts += ["--set", f"{k}={_toml_value(v)}"]
         for r in reality:
@@ -357,6 +361,36 @@ class ChecksFile(pytest.File):
         return super().repr_failure(excinfo)
 
 
+def _failed_run(error):
+    """(the log of a run whose TCU failed it, opened once and kept on the error; its verdict) or (None,
+    None): a ``TcuFailed`` with a log is judged check by check as ``hil check`` judges that log."""
+    from hil.checks import Run
+    from hil.checks.outcome import TcuFailed, recorded
+    from hil.errors import HilError
+
+    log = getattr(error, "log", None)
+    if not isinstance(error, TcuFailed) or not log:
+        return None, None
+    run = getattr(error, "hil_log_run", None)
+    if run is None:
+        try:
+            run = Run.open(log)
+            error.hil_log_run = run
+        except (HilError, OSError):
+            return None, None
+    try:
+        return run, recorded(run) or error
+    except HilError:
+        return None, None
+
+
+def _judge_one(check, run, verdict):
+    """One check of a checks file, by the judge ``hil check`` and ``require`` use (``judge.judged``)."""
+    from hil.checks.judge import judged
+
+    return judged([check], run, verdict)[0]
+
+
 class CheckItem(pytest.Item):
     def __init__(self, *, suite, check, **kw):
         super().__init__(**kw)
@@ -364,7 +398,6 @@ class CheckItem(pytest.Item):
 
     def runtest(self):
         from hil.checks import CheckFailed
-        from hil.errors import ConfigError
 
         bench = self.config.stash[_BENCH]
         runs = self.stash.setdefault(_RUNS, [])
@@ -372,14 +405,15 @@ class CheckItem(pytest.Item):
             run = bench.run(self.suite.scenario, self.suite.set, self.suite.seed, self.suite.strategy)
         except Exception as e:
             runs.append(e)
-            raise
-        runs.append(run)
-        try:
-            result = self.check(run)
-        except ConfigError as e:
-            raise ConfigError(f"{self.check.where}: {e}") from None
+            run, verdict = _failed_run(e)
+            if run is None:
+                raise
+        else:
+            runs.append(run)
+            verdict = None
+        result = _judge_one(self.check, run, verdict)
         if not result.passed:
-            raise CheckFailed([result], run)
+            raise CheckFailed([result], run, (self.check,), verdict)
 
     def repr_failure(self, excinfo):
         from hil.checks import CheckFailed
@@ -434,17 +468,61 @@ def _failure_output(item, error) -> list[str]:
     runs = list(item.stash.get(_RUNS, []))
     if isinstance(error, CheckFailed) and error.run is not None and error.run not in runs:
         runs.append(error.run)              # require() over a log's path, no hil_run
+    logs = []
     for run in runs:
         log = getattr(run, "path", None) or getattr(run, "log", None)
-        command = getattr(run, "command", None)
         if log:
+            logs.append(str(log))
             lines.append(f"log: {log}")
             rrd = _recording(log)
             if rrd:
                 lines.append(f"recording: {rrd}")
-        if command:
-            lines.append(f"reproduce: {command}")
+    lines.append(f"reproduce: {_reproduce_command(item, bench)}")
+    lines += _rejudge_lines(item, error, logs)
     return list(dict.fromkeys(lines))
+
+
+def _reproduce_command(item, bench) -> str:
+    """The command that runs this test again as it ran: pytest on its node id (the file's absolute path,
+    so from any directory) with the session's ``-p`` plugins and every ``--hil-*`` option but the output
+    directory (the scenario, its overrides, the seed and the strategy are the test's own)."""
+    args = list(item.config.invocation_params.args)
+    plugins = []
+    for i, a in enumerate(args):
+        if a == "-p" and i + 1 < len(args):
+            plugins += ["-p", str(args[i + 1])]
+        elif a.startswith("-p") and len(a) > 2 and not a.startswith("--"):
+            plugins += ["-p", a[2:]]
+    node = str(item.path) + (item.nodeid[item.nodeid.index("::"):] if "::" in item.nodeid else "")
+    parts = ["pytest", node, *plugins, "--hil-bus", bench.bus, "--hil-mode", bench.mode, "--hil-tcu", bench.tcu]
+    parts += ["--hil-tcu-cmd", bench.tcu_cmd] if bench.tcu_cmd else []
+    return shlex.join(parts)
+
+
+def _rejudge_lines(item, error, logs) -> list[str]:
+    """``hil check LOG CHECKS.toml`` for each log the test's checks judged, to the same verdict (the one judge,
+    ``hil.checks.judge.judged``): a checks file's test names its file; checks written in Python are written
+    as a checks file beside the log (``hil.checks.spec.dump_checks``)."""
+    import re
+
+    from hil.checks import CheckFailed
+
+    if not logs:
+        return []
+    if isinstance(item, CheckItem):
+        toml = str(item.path)
+    elif isinstance(error, CheckFailed) and error.checks:
+        from hil.checks.spec import dump_checks
+
+        name = re.sub(r"[^A-Za-z0-9_.-]+", "_", item.name)[:120]
+        try:
+            toml = str(dump_checks(error.checks, Path(logs[-1]).parent / f"{name}.checks.toml",
+                                   comment=f"the checks of {item.nodeid}, written by the pytest plugin"))
+        except Exception as e:  # noqa: BLE001 - the verdict stands without its re-judge file
+            return [f"  (no checks file: {type(e).__name__}: {e})"]
+    else:
+        return []
+    return [f"re-judge: {shlex.join(['hil', 'check', log, toml])}" for log in dict.fromkeys(logs)]
 
 
 def _recording(log) -> str | None:

@@ -346,11 +346,15 @@ class Session:
         scenario, mode, log = self.scenario, self.mode, self.log
         settings = scenario.bus
         period = scenario.run.exchange_period_s
-        self.load = bus_load(FrameCodec(period).db, period, settings.heartbeat_period_s, settings.bitrate,
-                             settings.data_bitrate)
         self.mapping = codec_for(scenario).mapping if settings.dbc else None
+        # a mapped DBC's bit rates (Baudrate, a CAN FD data rate) are the bus's; [bus] bitrate/data_bitrate where
+        # it names none
+        dbc_rate, dbc_data_rate = self.mapping.bitrates if self.mapping is not None else (None, None)
+        bitrate, data_bitrate = dbc_rate or settings.bitrate, dbc_data_rate or settings.data_bitrate
+        self.load = bus_load(FrameCodec(period).db, period, settings.heartbeat_period_s, bitrate, data_bitrate)
         if self.mapping is not None:      # the mapped frames on a classical bus; the HIL frames beside them
-            self.load["mapped_load_percent"] = mapped_bus_load(self.mapping, period, settings.bitrate)
+            self.load["mapped_load_percent"] = mapped_bus_load(self.mapping, period, bitrate)
+            self.load["bitrate_from"] = Path(self.mapping.dbc_path).name if dbc_rate else "[bus] bitrate"
         if self.record:
             self.path = _log_path(scenario, self.strategy, self.seed, self.out_dir, self.plant_label)
         stack.enter_context(interrupts_between_writes())   # SIGTERM ends a run like Ctrl-C, never mid-write
@@ -396,7 +400,8 @@ class Session:
         scenario, settings, load, handle, log = self.scenario, self.scenario.bus, self.load, self.tcu.handle, self.log
         if self.mapping is not None:
             log(f"mapped bus ({Path(self.mapping.dbc_path).name}): its frames load a classical bus at "
-                f"{settings.bitrate / 1e3:g} kbit/s to {load['mapped_load_percent']:.1f} %; no step counters, "
+                f"{load['bitrate'] / 1e3:g} kbit/s ({load['bitrate_from']}) to {load['mapped_load_percent']:.1f} %; "
+                "no step counters, "
                 "not authenticated")
         log(format_bus_load(load) + f" on {handle.name}")
         if handle.hub is not None:
@@ -438,7 +443,8 @@ class Session:
             extra={"mode": self.mode, "transport": tcu.transport, "plant": self.plant_label or "casadi",
                    "reality": self.scenario.extra.get("reality") or None, "wall_s": wall,
                    "sim_s": node.t_s if node else 0.0, "sim_s_per_wall_s": node.t_s / wall if node and wall else None,
-                   "bus_load_percent": load["load_percent"],
+                   "bus_load_percent": load["load_percent"], "bus_bitrate": load["bitrate"],
+                   "mapped_bus_load_percent": load.get("mapped_load_percent"),
                    "frame_auth": self.scenario.bus.auth, "cpu_latency_us": self.latency.held_us, "idle_cpus": self.idle,
                    **(node.counters() if node else {}),
                    **(timing.summary(node.late_commands) if timing else {}),

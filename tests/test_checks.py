@@ -102,6 +102,72 @@ def test_responds_measures_the_reaction_after_the_fault(log, raw):
     assert not never.passed and "never" in never.line()
 
 
+def _hlines(ax) -> set:
+    """The y of every horizontal line drawn on ``ax`` (a bound, a threshold)."""
+    import numpy as np
+
+    return {float(ln.get_ydata()[0]) for ln in ax.lines if len(ln.get_ydata()) == 2
+            and np.ptp(np.asarray(ln.get_ydata(), dtype=float)) == 0}
+
+
+def test_every_failure_names_requirement_and_signal_and_draws_its_limit(log, raw, tmp_path):
+    """Issue 49 item 5: a named check's FAIL line names the requirement, the name and the signal; a failed
+    ``limit`` has a figure with its bound drawn, the value in the key's unit; a failed ``responds`` draws the
+    condition's signal in its own unit (not the reaction's ms) with its threshold and a span per trigger."""
+    import matplotlib.pyplot as plt
+
+    from hil.checks.report import draw, figure
+
+    t_id = raw["summary"]["t_identified_s"]
+    late = limit("t_identified_s", hi=t_id - 0.01, req="ID-1", name="identified in time")(log)
+    assert late.line().startswith(f"[ID-1] identified in time (t_identified_s) = {t_id:.4g} s outside [-inf, "), late.line()
+    fig = draw(late)
+    ax = fig.axes[0]
+    assert sorted(_hlines(ax)) == [pytest.approx(t_id - 0.01)] and ax.get_ylabel() == "t_identified_s (s)"
+    assert [float(y) for ln in ax.lines if ln.get_marker() == "o" for y in ln.get_ydata()] == [pytest.approx(t_id)]
+    plt.close(fig)
+    png = figure(late, tmp_path, "t")
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+    slow = responds("fault", "TcuStatus.Stage >= 1", within_s=1e-3, req="DET-1", name="detects at once")(log)
+    assert not slow.passed and slow.line().startswith("[DET-1] detects at once (TcuStatus.Stage) later than 1 ms")
+    fig = draw(slow)
+    ax = fig.axes[0]
+    assert ax.get_ylabel() == "TcuStatus.Stage" and "ms" not in ax.get_ylabel()
+    assert _hlines(ax) == {1.0}                                            # the condition's threshold
+    spans = [p for p in ax.patches if p.get_width() > 0]
+    assert len(spans) == 1 and spans[0].get_x() == pytest.approx(raw["summary"]["t_fault_s"])
+    assert spans[0].get_width() == pytest.approx(1e-3)
+    plt.close(fig)
+
+    absent = limit("no_such_figure", lo=0.5, req="X-1")(log)
+    assert figure(absent, tmp_path, "a").exists()                          # no value: its bound and why
+
+
+def test_one_judge_fails_every_check_of_a_run_the_tcu_failed_and_errors_every_check_of_a_broken_one(log):
+    """``hil.checks.judge.judged`` under a run's own verdict: none, each check as found; a TCU's failure,
+    every check failed with it as the reason (the note says what the check found on the recorded part, a
+    check naming what the partial record lacks included); the bench's error, raised before any check."""
+    from hil.checks.judge import judged
+    from hil.checks.outcome import TcuFailed
+    from hil.errors import BenchError, ConfigError
+
+    checks = [limit("t_identified_s", hi=10.0, req="ID-1"), limit("t_identified_s", hi=0.0, req="ID-2"),
+              in_range("TcuStatus.MuHat", 0.0, 1.0, during="nonesuch", req="ID-3")]
+    with pytest.raises(ConfigError, match="unknown event 'nonesuch'"):
+        judged(checks, log)
+    assert [r.passed for r in judged(checks[:2], log)] == [True, False]
+    dead = judged(checks, log, TcuFailed("the TCU fell silent or died: no TCU answered within 2 s"))
+    assert [r.passed for r in dead] == [False, False, False]
+    assert all(r.reason == "the TCU fell silent or died: no TCU answered within 2 s" for r in dead)
+    assert [r.note.split(";")[0] for r in dead] == ["on the part recorded it held", "on the part recorded it failed too",
+                                                   "on the part recorded it could not be judged: unknown event "
+                                                   "'nonesuch'"]
+    assert dead[2].line().startswith("[ID-3] TcuStatus.MuHat: the TCU fell silent or died")
+    with pytest.raises(BenchError):
+        judged(checks, log, BenchError("the bench could not judge: the plant failed"))
+
+
 def test_cycle_time_counts_steps_in_lockstep_and_says_so(log):
     ok = cycle_time("TcuStatus", nominal_s=1e-3, tolerance_s=2e-4)(log)
     assert ok.passed and ok.samples == 999 and "lockstep: counted in exchange steps of 1 ms" in ok.note

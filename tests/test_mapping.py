@@ -24,6 +24,8 @@ THEIR = {"bus.dbc": "suites/their.dbc", "bus.mapping.motor_speed_rad_s": "Sensor
          "bus.mapping.train_speed_ms": "Sensors.TrainSpeed", "bus.mapping.demand_torque_nm": "Notch.DemandTorque",
          "bus.mapping.torque_command_nm": "TcuCmd.TorqueRequest"}
 SUITE = SCENARIOS / "suites" / "test_their_tcu.toml"
+#: their DBC with a TcuState (0x201) and a TcuDiag (0x202) beside the command, and a TcuVersion (0x310)
+STATUS_DBC = {**THEIR, "bus.dbc": "../tests/data/their_with_status.dbc"}
 FAULTY = SCENARIOS / "suites" / "faulty_tcus"
 CHECKS = {"answers within three periods", "commands every period", "no macro-slip", "uses the wet patch's adhesion"}
 
@@ -37,7 +39,11 @@ CHECKS = {"answers within three periods", "commands every period", "no macro-sli
     ({"bus.mapping.train_speed_ms": 3}, "[bus.mapping] train_speed_ms", "Message.Signal"),
     ({"bus.dbc": "suites/nowhere.dbc"}, "[bus] dbc", "no such file"),
     ({"bus.auth": "on"}, "[bus] auth", "unauthenticated"),
-    ({"run.exchange_period_s": 2e-3}, "[bus.mapping] ", "cycle time of 1 ms"),
+    ({**STATUS_DBC, "bus.mapping.tcu_frames": ["TcuStatus"]}, "[bus.mapping] tcu_frames", "no message 'TcuStatus'"),
+    ({**STATUS_DBC, "bus.mapping.tcu_frames": ["TcuCmd"]}, "[bus.mapping] tcu_frames", "carries torque_command_nm"),
+    ({**STATUS_DBC, "bus.mapping.tcu_frames": "TcuState"}, "[bus.mapping] tcu_frames", "must be a list"),
+    ({"run.exchange_period_s": 2e-3}, "[bus.mapping] ", "cycle time of 1 ms (GenMsgCycleTime); the scenario's "
+     "exchange period is 2 ms: set run.exchange_period_s = 0.001"),
 ])
 def test_each_mapping_problem_is_one_line_naming_the_file_and_the_key(change, key, words):
     with pytest.raises(ConfigError) as e:
@@ -53,6 +59,23 @@ def test_a_mapping_without_its_dbc_and_a_missing_quantity_are_refused():
     partial = {k: v for k, v in THEIR.items() if k != "bus.mapping.demand_torque_nm"}
     with pytest.raises(ConfigError, match=r"\[bus.mapping\] demand_torque_nm: missing"):
         load_scenario(SCENARIOS / "ffcc_a.toml", partial)
+
+
+def test_a_dbcs_bit_rates_are_read_from_its_attributes():
+    """``Baudrate`` (their.dbc: 500 kbit/s) and a CAN FD data rate (``BaudrateCANFD``, as CANdb++ writes it);
+    None where the DBC names none."""
+    import cantools
+
+    from hil.bus.mapping import dbc_bitrates
+
+    text = (SCENARIOS / "suites" / "their.dbc").read_text()
+    assert dbc_bitrates(cantools.database.load_string(text, database_format="dbc")) == (500_000, None)
+    fd = text.replace('BA_DEF_ "Baudrate" INT 1 1000000;', 'BA_DEF_ "Baudrate" INT 1 1000000;\n'
+                      'BA_DEF_ "BaudrateCANFD" INT 1 16000000;').replace('BA_ "Baudrate" 500000;',
+                                                                     'BA_ "Baudrate" 500000;\nBA_ "BaudrateCANFD" 2000000;')
+    assert dbc_bitrates(cantools.database.load_string(fd, database_format="dbc")) == (500_000, 2_000_000)
+    bare = "\n".join(ln for ln in text.splitlines() if "Baudrate" not in ln)
+    assert dbc_bitrates(cantools.database.load_string(bare, database_format="dbc")) == (None, None)
 
 
 def test_the_mapped_codec_quantises_to_their_scale_and_saturates():
@@ -134,6 +157,9 @@ def test_the_built_in_tcu_identifies_over_their_classical_can_dbc(tmp_path):
     assert report["rejected_frames"] == {} and report["sensor_frames"] == 1000
     assert proc["frame_auth"] == "off" and proc["rejected_frames"] == {} and proc["tcu_rejected_frames"] == {}
     assert 0.5 <= proc["t_detected_s"] <= 0.55 and proc["t_identified_s"] <= 0.7
+    # their DBC's Baudrate (500 kbit/s) sets the load: three 8-byte classical frames a 1 ms period, each at worst
+    # 44 + 64 bits and (34 + 64 - 1) // 4 = 24 stuff bits: 396 bits of the 500 a millisecond carries
+    assert proc["bus_bitrate"] == 500_000 and abs(proc["mapped_bus_load_percent"] - 79.2) < 1e-9, proc
     assert proc["peak_mu_err_percent"] < 2.0 and proc["peak_creep_err_percent"] < 5.0
     run = Run.open(proc["mcap"])
     assert run.log.metadata["dbc"]["name"] == "their.dbc"
@@ -182,6 +208,153 @@ def test_each_faulty_tcu_fails_exactly_its_checks_and_the_built_in_one_passes(py
     assert not errors, result.stdout.str()
     assert failed == fails, result.stdout.str()
     assert passed == CHECKS - fails, result.stdout.str()
+
+
+def test_a_frozen_tcus_log_gets_the_same_verdict_per_check_from_pytest_and_hil_check(pytester, _loaded):
+    """Issue 49 item 8, one judge: a TCU on their.dbc that freezes after 300 readings (tests/data/freezes_tcu.py)
+    under the example suite (lockstep on a local bus, 1 s of silence allowed: the run ends 0.3 s in).  pytest fails every check
+    (the TCU fell silent); ``hil check`` on the log it left fails every check too, each saying why, and exits 1
+    -- where it once passed the cycle time judged on the frames up to the freeze.  That check alone, judged
+    without the run's verdict, fails too: its frame stops long before the record does."""
+    import subprocess
+
+    from hil.checks import Run, cycle_time
+    from hil.testing import hil_command, subprocess_env
+
+    suite = pytester.path / "test_frozen.toml"
+    suite.write_text(SUITE.read_text().replace('scenario = "../wet_patch.toml"', f'scenario = "{SCENARIOS / "wet_patch.toml"}"')
+                     .replace('"bus.lockstep_silence_s" = 5.0', '"bus.lockstep_silence_s" = 1.0'))
+    os.environ.setdefault("PYTHONPATH", str(ROOT))
+    with tempfile.TemporaryDirectory(prefix="hil-bus-test-") as tmp:
+        out = pytester.path / "junit.xml"
+        result = pytester.runpytest("-p", "hil.pytest_plugin", "-p", "no:cacheprovider", "--hil-bus", f"localbus:{tmp}",
+                                    "--hil-out", str(pytester.path / "hil-out"), "--junitxml", str(out),
+                                    "--hil-tcu", "external", "--hil-tcu-cmd",
+                                    f"{sys.executable} {ROOT / 'tests' / 'data' / 'freezes_tcu.py'} --bus {{bus}} --after 300",
+                                    str(suite))
+    root = ET.parse(str(out)).getroot()
+    by_pytest = {c.get("name").split("-", 1)[1]: ("failure" if c.find("failure") is not None else
+                                                  "error" if c.find("error") is not None else "pass")
+                 for c in root.iter("testcase")}
+    assert by_pytest == {name: "failure" for name in CHECKS}, result.stdout.str()
+    messages = [c.find("failure").get("message") for c in root.iter("testcase")]
+    assert all(m.startswith("the TCU fell silent or died") for m in messages), messages
+    log = next((pytester.path / "hil-out").rglob("*.mcap"))
+    r = subprocess.run(hil_command() + ["check", str(log), str(suite), "--junitxml", str(pytester.path / "check.xml")],
+                       capture_output=True, text=True, env=subprocess_env(), timeout=120)
+    assert r.returncode == 1, r.stdout + r.stderr
+    by_check = {c.get("name"): ("failure" if c.find("failure") is not None else
+                                "error" if c.find("error") is not None else "pass")
+                for c in ET.parse(str(pytester.path / "check.xml")).getroot().iter("testcase")}
+    assert by_check == by_pytest, r.stdout
+    from lxml import etree
+
+    schema = etree.XMLSchema(etree.parse(str(ROOT / "tests" / "data" / "junit-10.xsd")))
+    for xml in (out, pytester.path / "check.xml"):              # both still Jenkins' JUnit
+        assert schema.validate(etree.parse(str(xml))), schema.error_log
+    assert "0 of 4 checks passed" in r.stdout and r.stdout.count("the TCU fell silent or died") >= 5, r.stdout
+    alone = cycle_time("TcuCmd", 0.001, 0.0005, max_outside_fraction=0.02)(Run.open(log))
+    assert not alone.passed and "no TcuCmd in the last" in alone.note and alone.violation_s > 2.5, alone.line()
+    print(alone.line())
+
+
+def test_two_tcu_frames_with_their_own_ids_are_logged_range_checked_and_checkable(tmp_path):
+    """Issue 49 item 7: a TCU (tests/data/status_tcu.py, python-can and cantools) that sends, besides its
+    command TcuCmd (0x200), TcuState (0x201) and TcuDiag (0x202), both named by ``tcu_frames``, and frames of
+    ids the mapping does not name (TcuVersion 0x310 of its DBC, 0x7FF of none).  ffcc_a, 1 s, lockstep on a
+    local bus.  What the TCU says it sent is the oracle: the summary counts the unmapped ids frame for frame
+    and the hot TcuState frames (200 degC, past the DBC's 150) under ``out_of_range_signals`` (every signal
+    of a frame received listed, 0 included); the run still runs (an unmapped signal out of range rejects no
+    frame); the log keeps both frames, whose signals the checks decode; the text summary lists the ids."""
+    import signal as sig
+    import subprocess
+
+    from hil.checks import Run, cycle_time, in_range, limit
+    from hil.commands.run import print_summary
+    from hil.testing import run_hil, subprocess_env
+
+    sets = [a for k, v in STATUS_DBC.items() for a in ("--set", f'{k}="{v}"')]
+    sets += ["--set", 'bus.mapping.tcu_frames=["TcuState", "TcuDiag"]']
+    report = tmp_path / "sent.json"
+    with tempfile.TemporaryDirectory(prefix="hil-bus-test-") as bus:
+        tcu = subprocess.Popen([sys.executable, str(ROOT / "tests" / "data" / "status_tcu.py"), "--bus",
+                                f"localbus:{bus}", "--report", str(report), "--hot", "100:110"],
+                               env=subprocess_env(), stderr=subprocess.PIPE, text=True)
+        try:
+            r = run_hil("run", str(SCENARIOS / "ffcc_a.toml"), "--set", "run.duration_s=1.0", *sets, "--json",
+                        "--no-rrd", "--out", str(tmp_path / "out"), "--bus", f"localbus:{bus}", "--tcu", "external")
+        finally:
+            tcu.send_signal(sig.SIGTERM)
+            _, err = tcu.communicate(timeout=30)
+    assert r.returncode == 0, r.stderr[-3000:]
+    sent = json.loads(report.read_text())
+    s = json.loads(r.stdout)
+    assert sent["TcuVersion"] >= 10 and sent["TcuState_hot"] == 10, sent
+    assert s["unmapped_ids"] == {"0x310": sent["TcuVersion"], "0x7FF": sent["0x7FF"]}, s["unmapped_ids"]
+    assert s["rejected_frames"] == {}, s["rejected_frames"]
+    oor = s["out_of_range_signals"]
+    assert oor["TcuState.Temperature"] == sent["TcuState_hot"] == 10, oor
+    assert {k for k, n in oor.items() if n} == {"TcuState.Temperature"}, oor
+    assert {"TcuCmd.TorqueRequest", "TcuCmd.MuEstimate", "TcuState.SlipStage", "TcuDiag.Counter"} <= set(oor), oor
+
+    run = Run.open(s["mcap"])
+    temperature = run.signal("TcuState.Temperature")
+    assert temperature.unit == "degC" and int((temperature.values > 150).sum()) == 10
+    assert len(temperature.values) == sent["TcuState"]              # every TcuState frame logged and decoded
+    assert len(run.signal("TcuDiag.Counter").values) == sent["TcuDiag"]
+    build = run.signal("TcuVersion.Build")             # unmapped, but in the log's DBC: logged, decoded, checkable
+    assert len(build.values) == sent["TcuVersion"] and set(build.values) == {49.0}
+    assert not in_range("TcuState.Temperature", hi=150.0)(run).passed
+    assert not limit("out_of_range_signals.TcuState.Temperature", hi=0)(run).passed
+    assert limit("out_of_range_signals.TcuCmd.TorqueRequest", hi=0)(run).passed
+    assert limit("unmapped_ids.0x7FF", lo=1)(run).passed
+    assert cycle_time("TcuState", 0.001, 0.0005, during=("start", 0.0, 1.0))(run).passed
+    import io
+
+    text = io.StringIO()
+    print_summary(s, file=text)
+    assert f"frames of ids the mapping does not name (not acted on): 0x310 x{sent['TcuVersion']}, 0x7FF x" in \
+        text.getvalue(), text.getvalue()
+    assert "signals outside their DBC range: TcuState.Temperature x10" in text.getvalue()
+
+
+def test_an_external_tcus_printed_reproduce_and_re_judge_commands_give_its_verdicts_again(pytester, _loaded):
+    """Issue 49 item 4 with a TCU of another make: the example suite (lockstep, local bus) on keeps_demand.py,
+    which fails ADH-1 and ADH-2.  The ``reproduce:`` line of a failed check carries the TCU command; run as
+    printed (a new pytest process, the same bus) it fails that check again with the same FAIL line; the
+    ``re-judge:`` line (``hil check`` on the log by the suite's file) gives each of the four checks the
+    verdict pytest gave it."""
+    import shlex
+    import subprocess
+
+    from hil.testing import hil_command, subprocess_env
+
+    os.environ.setdefault("PYTHONPATH", str(ROOT))
+    with tempfile.TemporaryDirectory(prefix="hil-bus-test-") as tmp:
+        result, failed, errors, passed = _suite(pytester, tmp, ["--hil-tcu", "external", "--hil-tcu-cmd",
+                                                                f"{sys.executable} {FAULTY}/keeps_demand.py --bus {{bus}}"])
+        assert failed == {"no macro-slip", "uses the wet patch's adhesion"} and not errors, result.stdout.str()
+        root = ET.parse(str(pytester.path / "junit.xml")).getroot()
+        case = next(c for c in root.iter("testcase") if c.get("name").endswith("-no macro-slip"))
+        text = case.findtext("system-out")
+        fail = [ln for ln in text.splitlines() if ln.startswith("FAIL ")]
+        assert len(fail) == 1 and fail[0].startswith("FAIL [ADH-1] no macro-slip (macro_slip_s) = "), text
+        line = next(ln for ln in text.splitlines() if ln.startswith("reproduce: "))
+        argv = shlex.split(line.split(": ", 1)[1])
+        assert argv[0] == "pytest" and argv[1] == f"{SUITE}::3-no macro-slip", argv
+        assert argv[argv.index("--hil-tcu-cmd") + 1] == f"{sys.executable} {FAULTY}/keeps_demand.py --bus {{bus}}"
+        assert argv[argv.index("--hil-bus") + 1] == f"localbus:{tmp}" and "--strategy" not in line
+        again = subprocess.run([sys.executable, "-m", "pytest", *argv[1:], "--hil-out", str(pytester.path / "again")],
+                               capture_output=True, text=True, env=subprocess_env(), timeout=300, cwd="/")
+    assert again.returncode == 1 and "1 failed" in again.stdout, again.stdout[-3000:] + again.stderr[-2000:]
+    assert [ln.strip() for ln in again.stdout.splitlines() if ln.strip().startswith("FAIL ")] == fail, again.stdout
+    rejudge = shlex.split(next(ln for ln in text.splitlines() if ln.startswith("re-judge: ")).split(": ", 1)[1])
+    assert rejudge[:2] == ["hil", "check"] and rejudge[3] == str(SUITE), rejudge
+    r = subprocess.run(hil_command() + rejudge[1:], capture_output=True, text=True, env=subprocess_env(), timeout=120)
+    assert r.returncode == 1, r.stdout + r.stderr
+    by_check = {ln.split("] ", 1)[1].split(" (")[0]: ln[:4] for ln in r.stdout.splitlines()
+                if ln.startswith(("PASS [", "FAIL ["))}
+    assert by_check == {**{n: "PASS" for n in passed}, **{n: "FAIL" for n in failed}}, r.stdout
 
 
 def test_hil_run_says_a_mapping_problem_in_one_line_with_exit_2(tmp_path):

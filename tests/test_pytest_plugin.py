@@ -124,8 +124,45 @@ def test_a_failing_suite_lists_every_failed_check_with_figures_log_and_command(p
     pngs = re.findall(r"\[\[ATTACHMENT\|(.+?)\]\]", text)
     assert len(pngs) == 2 and all(open(p, "rb").read(8) == b"\x89PNG\r\n\x1a\n" for p in pngs), text
     assert re.search(r"^log: .+\.mcap$", text, re.M) and re.search(r"^recording: .+\.rrd$", text, re.M), text
-    command = re.search(r"^reproduce: (hil run .+)$", text, re.M).group(1)
-    assert f"{FFCC_A} --bus inprocess --mode lockstep --strategy gp --set run.duration_s=1.0" in command
+    command = re.search(r"^reproduce: (pytest .+)$", text, re.M).group(1)
+    assert command.startswith(f"pytest {pytester.path / 'test_fails.py'}::test_slip_is_held -p hil.pytest_plugin")
+    assert command.endswith("--hil-bus inprocess --hil-mode lockstep --hil-tcu builtin"), command
+    assert re.search(r"^re-judge: hil check \S+\.mcap \S+/test_slip_is_held\.checks\.toml$", text, re.M), text
+
+
+def _printed(text, label):
+    """The command printed on a ``label:`` line of a failure's output, as argv (``pytest``/``hil`` made the
+    interpreter's own)."""
+    import shlex
+
+    argv = shlex.split(re.search(rf"^{label}: (.+)$", text, re.M).group(1))
+    return ([sys.executable, "-m", "pytest"] if argv[0] == "pytest" else hil_command()) + argv[1:]
+
+
+def test_the_printed_reproduce_and_re_judge_commands_give_the_same_verdicts(pytester):
+    """Issue 49 item 4: the failure's ``reproduce:`` command, run as printed (a new pytest process), fails the
+    same test with the same FAIL lines; its ``re-judge:`` command (``hil check`` on the log, by the checks the
+    test wrote in Python, exported beside the log) gives each check the verdict pytest gave it."""
+    pytester.makepyfile(test_fails=FAILING)
+    result = _session(pytester)
+    result.assert_outcomes(passed=1, failed=1)
+    root = _validated(pytester.path / "junit.xml")
+    text = next(c for c in root.iter("testcase") if c.get("name") == "test_slip_is_held").findtext("system-out")
+    fails = sorted(ln for ln in text.splitlines() if ln.startswith("FAIL "))
+    assert len(fails) == 2, text
+
+    again = subprocess.run(_printed(text, "reproduce") + ["-p", "no:cacheprovider", "--hil-out",
+                                                          str(pytester.path / "again"), "-rf"],
+                           capture_output=True, text=True, env=subprocess_env(), timeout=300, cwd="/")
+    assert again.returncode == 1 and "1 failed" in again.stdout, again.stdout[-3000:] + again.stderr[-2000:]
+    assert "test_same_run_again" not in again.stdout                     # the one test, by its node id
+    assert sorted(ln.strip() for ln in again.stdout.splitlines() if ln.strip().startswith("FAIL ")) == fails
+
+    judged = subprocess.run(_printed(text, "re-judge"), capture_output=True, text=True, env=subprocess_env(),
+                            timeout=120)
+    assert judged.returncode == 1, judged.stdout + judged.stderr
+    assert sorted(ln for ln in judged.stdout.splitlines() if ln.startswith("FAIL ")) == fails, judged.stdout
+    assert "1 of 3 checks passed" in judged.stdout
 
 
 def test_a_bench_error_is_an_error_not_a_failure(pytester):
@@ -148,8 +185,9 @@ def test_diverges(hil_run):
                        capture_output=True, text=True, env=subprocess_env(), timeout=120)
     assert r.returncode == 2 and "the run did not finish" in r.stderr and "Traceback" not in r.stderr, r.stderr
     suite = _validated(pytester.path / "check.xml")[0]
-    assert suite.get("errors") == "1" and suite.get("failures") == "0"
-    assert "the run did not finish" in next(suite.iter("error")).get("message")
+    # one judge (issue 49 item 8): each of the file's five checks an error, as the plugin reports each
+    assert suite.get("errors") == "5" and suite.get("failures") == "0" and suite.get("tests") == "5"
+    assert all("the run did not finish" in e.get("message") for e in suite.iter("error"))
 
 
 @pytest.mark.parametrize("ci", ["", "true"])
@@ -196,7 +234,7 @@ def test_answers(hil_run):
     root = _validated(pytester.path / "j.xml")
     case = next(root.iter("testcase"))
     assert case.find("failure") is not None and case.find("error") is None
-    assert "--tcu external" in case.findtext("system-out")
+    assert f"--hil-tcu external --hil-tcu-cmd 'sleep {marker}'" in case.findtext("system-out")
     props = {p.get("name"): p.get("value") for p in root.iter("property")}
     assert props["tcu_under_test"] == f"external: sleep {marker}"
     sleeping = [p for p in Path("/proc").glob("[0-9]*") if _cmdline(p) == f"sleep {marker}"]

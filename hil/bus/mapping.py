@@ -22,6 +22,16 @@ exchange period is refused.  Without step counters the steps are counted: the TC
 trigger frames it receives, the plant side takes the first command frame after its frames of a period
 as that period's answer (``hil.plant_node``).
 
+A TCU sends more than its command: ``tcu_frames = ["TcuStatus", "TcuDiag"]`` in ``[bus.mapping]`` names
+its other messages (status, diagnostics), any number, each with its own id.  The plant accepts them
+(logged with status ``ok``: checks name their signals) and acts on none.  Every signal of every mapped
+message received is range-checked against its DBC minimum and maximum on receipt and counted per
+signal (``MappedCodec.out_of_range``; the run summary's ``out_of_range_signals``, "Message.Signal" ->
+count, every signal of a message received listed, 0 included, so a ``limit`` can require 0); a mapped
+quantity's signal out of range rejects its frame (``out_of_range:Signal``), another signal's does not.
+A frame whose id the mapping does not name and that is no HIL frame is counted by id
+(``unmapped_id:0x123``, passed, not acted on; the summary's ``unmapped_ids``).
+
 The HIL's own frames (heartbeats both ways and the built-in TCU's identification frames TcuStatus,
 TcuResult, TcuInterval, TcuSample: CAN FD, ``hil/hil.dbc``) still travel beside the mapped ones; a
 TCU of another make sends none and ignores them.  Their ids are therefore reserved: a mapped message
@@ -47,6 +57,8 @@ from .frames import (COMMAND_ID, DBC_PATH, DEMAND_ID, INTERVAL_ID, PLANT_HEARTBE
 SENT = ("motor_speed_rad_s", "train_speed_ms", "demand_torque_nm")
 RECEIVED = ("torque_command_nm",)
 QUANTITIES = SENT + RECEIVED
+#: the key of [bus.mapping] that names the TCU's other messages (status, diagnostics)
+TCU_FRAMES = "tcu_frames"
 #: the HIL frames that still travel on a mapped bus (heartbeats, the built-in TCU's identification frames)
 RESERVED_IDS = {PLANT_HEARTBEAT_ID: "PlantHeartbeat", TCU_HEARTBEAT_ID: "TcuHeartbeat", STATUS_ID: "TcuStatus",
                 RESULT_ID: "TcuResult", INTERVAL_ID: "TcuInterval", SAMPLE_ID: "TcuSample"}
@@ -92,12 +104,43 @@ def signal_span(sig) -> tuple[float, float]:
     return a, b
 
 
+#: the database attributes that name a bus's bit rates: the arbitration rate (Vector's ``Baudrate``), and the
+#: CAN FD data-phase rate (``BaudrateCANFD`` as CANdb++ writes it; the other spellings seen in the wild)
+BITRATE_ATTRIBUTES = ("Baudrate",)
+DATA_BITRATE_ATTRIBUTES = ("BaudrateCANFD", "BaudRateCANFD", "DataBaudrate", "FDBaudrate", "BaudrateFD")
+
+
+def dbc_bitrates(db) -> tuple[int | None, int | None]:
+    """(arbitration bit rate, CAN FD data bit rate) in bit/s that a DBC's database attributes name, each None
+    where it names none (or a value that is no positive integer)."""
+    attrs = getattr(getattr(db, "dbc", None), "attributes", None) or {}
+
+    def rate(names):
+        for name in names:
+            if name in attrs:
+                try:
+                    value = int(attrs[name].value)
+                except (TypeError, ValueError):
+                    continue
+                if value > 0:
+                    return value
+        return None
+
+    return rate(BITRATE_ATTRIBUTES), rate(DATA_BITRATE_ATTRIBUTES)
+
+
 @dataclass(frozen=True)
 class Mapping:
     """A loaded mapping: their database, and per quantity (message, signal)."""
     dbc_path: str
     db: object
     where: dict          # quantity -> (message, signal name)
+    tcu_frames: tuple = ()   # the TCU's other messages (``tcu_frames``), in the mapping's order
+
+    @property
+    def bitrates(self) -> tuple[int | None, int | None]:
+        """The bus's bit rates as their DBC names them (``dbc_bitrates``): they set the bus-load figures."""
+        return dbc_bitrates(self.db)
 
     @property
     def plant_messages(self) -> list:
@@ -156,8 +199,9 @@ def load_mapping(scenario_path, dbc: str, table: dict, period_s: float, needs: d
     if not isinstance(table, dict):
         raise fail("[bus.mapping]", "must be a table of QUANTITY = \"Message.Signal\"")
     for key in table:
-        if key not in QUANTITIES:
-            raise fail(f"[bus.mapping] {key}", f"unknown quantity (known: {', '.join(QUANTITIES)})")
+        if key not in QUANTITIES and key != TCU_FRAMES:
+            raise fail(f"[bus.mapping] {key}", f"unknown quantity (known: {', '.join(QUANTITIES)}; and {TCU_FRAMES}, "
+                       "the TCU's other messages)")
     where = {}
     for q in QUANTITIES:
         key = f"[bus.mapping] {q}"
@@ -184,7 +228,9 @@ def load_mapping(scenario_path, dbc: str, table: dict, period_s: float, needs: d
                        f"{RESERVED_IDS[m.frame_id]} frame, which still travels on a mapped bus")
         if m.cycle_time and abs(m.cycle_time * 1e-3 - period_s) > 1e-9:
             raise fail(key, f"message {mname} of {path.name} has a cycle time of {m.cycle_time} ms (GenMsgCycleTime); "
-                       f"the scenario's exchange period is {period_s * 1e3:g} ms")
+                       f"the scenario's exchange period is {period_s * 1e3:g} ms: set run.exchange_period_s = "
+                       f"{m.cycle_time * 1e-3:g} (--set run.exchange_period_s={m.cycle_time * 1e-3:g}) or the "
+                       "message's GenMsgCycleTime to the period")
         if needs is not None:
             lo, hi = signal_span(s)
             need = needs[q]
@@ -196,7 +242,35 @@ def load_mapping(scenario_path, dbc: str, table: dict, period_s: float, needs: d
     if any(where[q][0] is command for q in SENT):
         raise fail("[bus.mapping] torque_command_nm", f"message {command.name} also carries a quantity the plant "
                    "sends; the command needs a message of its own")
-    return Mapping(str(path), db, where)
+    return Mapping(str(path), db, where, _tcu_frames(table.get(TCU_FRAMES, ()), db, where, path, fail))
+
+
+def _tcu_frames(names, db, where, path, fail) -> tuple:
+    """The messages ``tcu_frames`` names, checked: each a message of the DBC, once, not multiplexed, not the
+    command or a message the plant sends, not on a HIL frame's id (each has its own id: a DBC names each id
+    once)."""
+    key = f"[bus.mapping] {TCU_FRAMES}"
+    if isinstance(names, str) or not isinstance(names, (list, tuple)) or not all(isinstance(n, str) for n in names):
+        raise fail(key, f"must be a list of message names of {path.name}, got {names!r}")
+    taken = {m.name: q for q, (m, _) in where.items()}
+    out = []
+    for name in names:
+        try:
+            m = db.get_message_by_name(name)
+        except KeyError:
+            raise fail(key, f"no message {name!r} in {path.name} (messages: "
+                       f"{', '.join(x.name for x in db.messages) or 'none'})") from None
+        if name in taken:
+            raise fail(key, f"message {name} carries {taken[name]} already: a TCU frame is another message")
+        if m in out:
+            raise fail(key, f"message {name} is named twice")
+        if m.is_multiplexed() or m.is_container:
+            raise fail(key, f"message {name} of {path.name} is multiplexed: not supported")
+        if m.frame_id in RESERVED_IDS and not m.is_extended_frame:
+            raise fail(key, f"message {name} of {path.name} has id 0x{m.frame_id:X}, the id of the HIL's "
+                       f"{RESERVED_IDS[m.frame_id]} frame, which still travels on a mapped bus")
+        out.append(m)
+    return tuple(out)
 
 
 def _clip(sig, value: float) -> float:
@@ -224,9 +298,15 @@ class MappedCodec:
         self.auth = None
         self._sent = mapping.plant_messages
         self._trigger = self._sent[-1]
-        self._by_id = {m.frame_id: m for m in [*self._sent, mapping.command_message]}
+        self._by_id = {m.frame_id: m for m in [*self._sent, mapping.command_message, *mapping.tcu_frames]}
         self._by_key = {(bool(m.is_extended_frame), m.frame_id): m for m in self._by_id.values()}
         self.command_id = mapping.command_message.frame_id
+        #: the ids of the TCU's frames: its command and its other messages (``tcu_frames``)
+        self.tcu_ids = frozenset([self.command_id, *(m.frame_id for m in mapping.tcu_frames)])
+        self._tcu_frames = frozenset(m.frame_id for m in mapping.tcu_frames)
+        #: "Message.Signal" -> frames received with that signal outside its DBC range (every signal of a
+        #: message received listed, from its first frame on)
+        self.out_of_range: dict[str, int] = {}
         self.plant_ids = frozenset(m.frame_id for m in self._sent)
         self._fill = {m.frame_id: {s.name: _clip(s, s.initial if s.initial is not None else 0.0) for s in m.signals}
                       for m in self._by_id.values()}
@@ -284,7 +364,10 @@ class MappedCodec:
         if m is None or msg.is_error_frame or msg.is_remote_frame:
             if msg.arbitration_id in (SENSOR_ID, DEMAND_ID, COMMAND_ID) and not msg.is_extended_id:
                 return None, "unknown_id"          # the HIL frames a mapped bus replaces
-            return self.hil.classify(msg)
+            frame, status = self.hil.classify(msg)
+            if status == "unknown_id" and not (msg.is_error_frame or msg.is_remote_frame):
+                return None, unmapped_status(msg)  # an id the mapping does not name: counted by id
+            return frame, status
         data = bytes(msg.data)
         if len(data) != m.length:
             return None, "bad_length"
@@ -292,10 +375,12 @@ class MappedCodec:
             v = m.decode(data, decode_choices=False, scaling=True)
         except Exception as e:  # noqa: BLE001 - a frame must never crash a node
             return None, f"undecodable:{type(e).__name__}"
+        outside = self._range_check(m, v)
         for sname in self._mapped[m.frame_id]:
-            sig = m.get_signal_by_name(sname)
-            if (sig.minimum is not None and v[sname] < sig.minimum) or (sig.maximum is not None and v[sname] > sig.maximum):
+            if sname in outside:
                 return None, f"out_of_range:{sname}"
+        if m.frame_id in self._tcu_frames:
+            return Frame("TcuFrame", (m.name, v)), "ok"
         if m is self.mapping.command_message:
             return Frame("TorqueCommand", TorqueCommand(-1, float(v[self.mapping.where["torque_command_nm"][1]]))), "ok"
         for q in SENT:
@@ -312,6 +397,27 @@ class MappedCodec:
         reading = SensorReading(self._step, self._values["motor_speed_rad_s"], self._values["train_speed_ms"])
         self._step += 1
         return Frame("PlantSensor", reading, demand), "ok"
+
+
+    def _range_check(self, m, values: dict) -> set:
+        """The signals of message ``m`` whose decoded ``values`` lie outside their DBC minimum .. maximum,
+        each counted in ``out_of_range`` (every signal of ``m`` listed there from its first frame on)."""
+        outside = set()
+        for sig in m.signals:
+            key = f"{m.name}.{sig.name}"
+            x = values.get(sig.name)
+            n = self.out_of_range.setdefault(key, 0)
+            if isinstance(x, (int, float)) and ((sig.minimum is not None and x < sig.minimum)
+                                                 or (sig.maximum is not None and x > sig.maximum)):
+                self.out_of_range[key] = n + 1
+                outside.add(sig.name)
+        return outside
+
+
+def unmapped_status(msg) -> str:
+    """The status of a frame whose id a mapping does not name: ``unmapped_id:0x123`` (extended ids with 8
+    hex digits), counted by id in the run summary's ``unmapped_ids``."""
+    return f"unmapped_id:0x{msg.arbitration_id:08X}" if msg.is_extended_id else f"unmapped_id:0x{msg.arbitration_id:X}"
 
 
 def codec_for(scenario, period_s: float | None = None, auth=None, dbc_text: str | None = None):

@@ -54,6 +54,8 @@ VERDICTS: dict[str, tuple[str, str]] = {
     "undecodable": (REJECTED, "cantools could not decode it"),
     "non_finite": (REJECTED, "a signal that must be finite is not"),
     "out_of_range": (REJECTED, "a signal outside the DBC's range"),
+    "unmapped_id": (PASSED, "a mapped bus (hil/bus/mapping.py): an id its mapping does not name and no HIL frame's: "
+                            "counted by id (the summary's unmapped_ids), not acted on"),
     "incomplete_reading": (REJECTED, "a mapped bus (hil/bus/mapping.py): the motor speed's message before any "
                                      "with the train speed"),
 }

@@ -66,13 +66,15 @@ class Result:
     def line(self) -> str:
         """One line: the failure as an engineer reads it, or the pass with its margin."""
         req = f"[{self.req}] " if self.req else ""
-        head = f"{req}{self.name}"
+        # the requirement, the check's name and the signal it judged (when the name does not say it)
+        head = f"{req}{self.name}" + (f" ({self.signal})" if self.signal and self.signal not in self.name else "")
         if self.passed:
             margin = "" if self.margin is None else f", margin {_num(self.margin)}{_u(self.margin_unit or self.unit)}"
             return (f"{head} {self.limit} {self.window}: passed ({self.samples} sample{'s' * (self.samples != 1)}"
                     f"{margin})" + _note(self.note))
         if self.reason:
-            return f"{head} {self.verb} {self.limit} {self.window}: {self.reason}" + _note(self.note)
+            return " ".join(p for p in (head, self.verb, self.limit, self.window) if p) + f": {self.reason}" \
+                + _note(self.note)
         if self.first is not None and self.first[0] is None:          # one value (a summary's)
             return f"{head} = {_num(self.first[1])}{_u(self.unit)} {self.verb} {self.limit} {self.window}"
         parts = []
@@ -142,6 +144,17 @@ class Check:
     def judge(self, run: Run) -> Result:
         raise NotImplementedError
 
+    def fields(self) -> dict:
+        """The check's fields as a ``[[check]]`` table has them (``hil.checks.spec``): what ``dump_checks``
+        writes so that ``hil check`` judges a check written in Python the same."""
+        raise NotImplementedError
+
+    def table(self) -> dict:
+        """``fields`` with the kind, name and requirement: a ``[[check]]`` table (None values left out)."""
+        out = {"kind": self.kind, **({"name": self._name} if self._name else {}),
+               **({"req": self.req} if self.req else {}), **self.fields()}
+        return {k: v for k, v in out.items() if v is not None}
+
     def __repr__(self) -> str:
         return f"<{self.kind} {self.name}>"
 
@@ -160,6 +173,16 @@ def parse_window(during) -> tuple | None:
             raise ConfigError(f"during {list(during)!r}: the window ends before it starts")
         return (during[0], a, b)
     raise ConfigError(f"during {during!r}: expected an event name or (event, start_s, end_s), e.g. ('fault', 0.0, 0.3)")
+
+
+def window_field(window):
+    """A parsed window back as a checks file writes it: None, ``"event"`` or ``[event, start_s, end_s]``."""
+    if window is None:
+        return None
+    event, a, b = window
+    if b is None:
+        return event if a == 0 else [event, a]
+    return [event, a, b]
 
 
 def window_text(window) -> str:
@@ -221,6 +244,10 @@ class InRange(Check):
     def default_name(self) -> str:
         return self.signal
 
+    def fields(self) -> dict:
+        return {"signal": self.signal, "lo": self.lo, "hi": self.hi, "during": window_field(self.window),
+                "valid": self.valid}
+
     def judge(self, run: Run) -> Result:
         s = run.signal(self.signal)
         base = dict(name=self.name, kind=self.kind, signal=self.signal, unit=s.unit, req=self.req,
@@ -270,17 +297,14 @@ class Limit(Check):
     def default_name(self) -> str:
         return self.key
 
+    def fields(self) -> dict:
+        return {"key": self.key, "lo": self.lo, "hi": self.hi}
+
     def judge(self, run: Run) -> Result:
         base = dict(name=self.name, kind=self.kind, signal=self.key, unit=_summary_unit(self.key), req=self.req,
                     window="in the run's summary", limit=_bounds(self.lo, self.hi), lo=self.lo,
                     hi=self.hi)
-        value, found = run.summary, True
-        for part in self.key.split("."):
-            if isinstance(value, dict) and part in value:
-                value = value[part]
-            else:
-                found = False
-                break
+        value, found = _lookup(run.summary, self.key)
         if not found:
             import difflib
             close = difflib.get_close_matches(self.key, list(run.summary), n=3)
@@ -295,12 +319,30 @@ class Limit(Check):
         if not isinstance(value, (int, float)):
             raise ConfigError(f"limit {self.key}: the summary's value is not a number ({value!r})")
         v = float(value)
+        base["plot"] = {"value": v}
         lo = -math.inf if self.lo is None else self.lo
         hi = math.inf if self.hi is None else self.hi
         margin = min(v - lo, hi - v) if not math.isnan(v) else -math.inf
         passed = margin >= 0
         return Result(**base, passed=passed, samples=1, margin=margin,
                       first=None if passed else (None, v), worst=None if passed else (None, v))
+
+
+def _lookup(summary: dict, key: str) -> tuple:
+    """(value, found) of ``key`` in the summary: ``a.b`` reaches into table ``a``; a key of a table may hold
+    dots itself (``out_of_range_signals.TcuCmd.MuEstimate``): the longest one that matches is taken."""
+    parts, value, i = key.split("."), summary, 0
+    while i < len(parts):
+        if not isinstance(value, dict):
+            return None, False
+        for j in range(len(parts), i, -1):
+            k = ".".join(parts[i:j])
+            if k in value:
+                value, i = value[k], j
+                break
+        else:
+            return None, False
+    return value, True
 
 
 def _summary_unit(key: str) -> str:
@@ -350,6 +392,10 @@ class Responds(Check):
     def default_name(self) -> str:
         return self.condition_text
 
+    def fields(self) -> dict:
+        return {"trigger": self.trigger_text, "condition": self.condition_text, "within_s": self.within_s,
+                "during": window_field(self.window)}
+
     def judge(self, run: Run) -> Result:
         base = dict(name=self.name, kind=self.kind, signal=self.condition[0], unit="ms", req=self.req,
                     window=f"after each {self.trigger_text}" + ("" if self.window is None else
@@ -371,7 +417,11 @@ class Responds(Check):
             triggers = tt[rising]
         triggers = triggers[(triggers >= t0) & (triggers <= t1)]
         ct, ctruth, cs = _truth(run, self.condition)
-        base["plot"] = {"t": cs.t_s, "v": cs.values, "triggers": triggers}
+        # the figure draws the condition's signal in its own unit, its threshold, and after each trigger the
+        # span it had to hold within (the result's values are reaction times in ms: not on this axis)
+        base["plot"] = {"t": cs.t_s, "v": cs.values, "triggers": triggers, "unit": cs.unit,
+                        "threshold": (self.condition[1], self.condition[2]), "within_s": self.within_s,
+                        "ylabel": self.condition[0], "marks": False}
         if len(triggers) == 0:
             return Result(**base, passed=False, reason=f"no {self.trigger_text} to respond to")
         true_t = np.append(ct[ctruth], np.inf)          # never: an infinite reaction
@@ -411,6 +461,10 @@ class CycleTime(Check):
     def default_name(self) -> str:
         return f"{self.frame} cycle time"
 
+    def fields(self) -> dict:
+        return {"frame": self.frame, "nominal_s": self.nominal_s, "tolerance_s": self.tolerance_s,
+                "during": window_field(self.window), "max_outside_fraction": self.max_outside_fraction or None}
+
     def judge(self, run: Run) -> Result:
         realtime = run.mode == "realtime"
         base = dict(name=self.name, kind=self.kind, signal=self.frame, unit="ms", req=self.req,
@@ -431,21 +485,35 @@ class CycleTime(Check):
         order = np.argsort(clock, kind="stable")
         t, clock = t[order], clock[order]
         dt = np.diff(clock)
+        # a frame that stops before the run does is one more interval, from its last frame to the run's end
+        # within the window: in real time the bus's record (the plant's frames go on until it gives up on a
+        # frozen TCU), in lockstep the steps the run was to make (the plant waits at the frozen TCU's step)
+        end = run.frames_end()[1] if realtime else run.planned_duration_s
+        if not math.isinf(t1):
+            end = min(end, clock[-1] + (t1 - t[-1]))
+        silent = 0                          # the cycles a frame that stopped early left out, beyond the one
+        if end - clock[-1] > self.nominal_s + self.tolerance_s + run.period_s + 1e-9:
+            silent = max(int((end - clock[-1]) / self.nominal_s) - 1, 0)
+            dt = np.append(dt, end - clock[-1])
+            t = np.append(t, t[-1] + (end - clock[-1]))
+            base["note"] += f"; no {self.frame} in the last {(end - clock[-1]) * 1e3:.0f} ms of the run"
         err = np.abs(dt - self.nominal_s)
         margin = self.tolerance_s - err
         bad = margin < -1e-9
         # the intervals that may lie outside: the worst floor(fraction * n); the margin is that of the worst
         # interval beyond them (with no allowance, of the worst interval)
-        allowed = math.floor(self.max_outside_fraction * len(dt) + 1e-9)
-        kept_margin = float(np.sort(margin)[min(allowed, len(dt) - 1)])
+        # a silence counts as the cycles it left out: each of them an interval outside
+        n_out, n = int(bad.sum()) + silent, len(dt) + silent
+        allowed = math.floor(self.max_outside_fraction * n + 1e-9)
+        kept_margin = float(np.sort(margin)[min(max(allowed - silent, 0), len(dt) - 1)])
         if self.max_outside_fraction:
-            base["note"] += (f"; {int(bad.sum())} of {len(dt)} intervals outside, at most {allowed} "
+            base["note"] += (f"; {n_out} of {n} intervals outside, at most {allowed} "
                              f"({self.max_outside_fraction * 100:g} %) allowed")
         worst = int(np.argmin(margin))
         first = int(np.argmax(bad)) if bad.any() else None
-        base["plot"] = {"t": t[1:], "v": dt * 1e3}
+        base["plot"] = {"t": t[1:], "v": dt * 1e3, "ylabel": f"{self.frame} interval"}
         base["window_s"] = None if self.window is None else (t0, t1)
-        return Result(**base, passed=int(bad.sum()) <= allowed, samples=len(dt), margin=kept_margin * 1e3,
+        return Result(**base, passed=n_out <= allowed, samples=n, margin=kept_margin * 1e3,
                       first=None if first is None else (float(t[first + 1]), float(dt[first] * 1e3)),
                       worst=(float(t[worst + 1]), float(dt[worst] * 1e3)) if bad.any() else None,
                       violation_s=float(dt[bad].sum()))
@@ -480,6 +548,13 @@ class Settles(Check):
 
     def default_name(self) -> str:
         return f"{self.signal} settles"
+
+    def fields(self) -> dict:
+        after = None if self.window is None else (self.window[0] if not self.window[1] else
+                                                  [self.window[0], self.window[1]])
+        band = [-math.inf if self.lo is None else self.lo, math.inf if self.hi is None else self.hi]
+        return {"signal": self.signal, "band": band, "within_s": self.within_s,
+                "hold_s": self.hold_s, "after": after, "valid": self.valid}
 
     def judge(self, run: Run) -> Result:
         s = run.signal(self.signal)
@@ -533,26 +608,3 @@ def settles(signal: str, band, within_s: float, hold_s: float, after=None, *, va
     s); the run's start by default) and then stays in it for ``hold_s``.  Its margin is the time to spare
     in ms."""
     return Settles(signal, band, within_s, hold_s, after, valid, name, req)
-
-
-# -- require -----------------------------------------------------------------------------------------------
-class CheckFailed(AssertionError):
-    """One or more checks failed; ``results`` holds every result (passed ones too), the message one line
-    per failed check."""
-
-    def __init__(self, results: list[Result], run: Run | None = None):
-        self.results, self.run = results, run
-        failed = [r for r in results if not r.passed]
-        lines = [f"{len(failed)} of {len(results)} checks failed:"] + [f"  {r.line()}" for r in failed]
-        super().__init__("\n".join(lines))
-
-
-def require(run, *checks: Check) -> list[Result]:
-    """Judge every check over ``run`` (a ``Run`` or a log's path); ``CheckFailed`` (an AssertionError)
-    listing every failed one, else the results."""
-    __tracebackhide__ = True                  # pytest: the failure points at the test's line, not here
-    run = as_run(run)
-    results = [c(run) for c in checks]
-    if not all(r.passed for r in results):
-        raise CheckFailed(results, run)
-    return results

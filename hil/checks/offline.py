@@ -1,8 +1,9 @@
 """Judging a recorded log against a checks file, apart from the run (``hil check LOG CHECKS.toml``).
 
-The log is read once (``Run.open``), its recorded verdict taken first (``outcome.recorded``: a TCU that
-fell silent fails, a run the bench broke is an error and is not judged further), then every check of the
-file is judged.  With a
+The log is read once (``Run.open``), its recorded verdict taken first (``outcome.recorded``), then every
+check of the file is judged under it by the one judge the pytest plugin and ``require`` use too
+(``judge.judged``): a TCU that fell silent, died or came late fails every check; a run the bench broke
+is an error for every check and is not judged further.  With a
 JUnit path, the XML is written and each failed check gets its figure beside it (``NAME-figures/``).
 """
 from __future__ import annotations
@@ -47,8 +48,7 @@ def check_log(log_path, checks_path, junitxml=None, dbc=None) -> Judgement:
         if dbc is not None:
             raise ConfigError(f"--dbc {dbc}: only for a rig's CAN log; an MCAP log of hil run keeps its own DBC")
     verdict = recorded(run)
-    # a run the TCU's silence ended is judged on what it recorded; one the bench broke is not judged
-    results = [] if isinstance(verdict, BenchError) else judge(suite, run)
+    results = [] if isinstance(verdict, BenchError) else judge(suite, run, verdict)
     seconds = time.perf_counter() - t0
     out = Judgement(results, verdict, seconds=seconds)
     if junitxml is not None:
@@ -59,7 +59,8 @@ def check_log(log_path, checks_path, junitxml=None, dbc=None) -> Judgement:
                 png = figure(r, junit.with_name(f"{junit.stem}-figures"), stem)
                 if png is not None:
                     out.figures[id(r)] = png
-        junit_xml(stem, results, properties(run), junit, verdict, out.figures, seconds)
+        junit_xml(stem, results, properties(run), junit, verdict, out.figures, seconds,
+                  errored=[c.name for c in suite.checks] if isinstance(verdict, BenchError) else ())
     return out
 
 

@@ -12,6 +12,9 @@ ErrorInTestSystem, JUnit's ``<failure>`` vs ``<error>``):
 - *skip*: the asked bus is not available here (``BusError`` at the start; the plugin makes it an error
   under ``CI=true``).
 
+``hil.checks.judge`` judges checks under these verdicts: one judge for ``hil check``, ``require`` and the
+pytest plugin.
+
 ``hil run``'s exit codes 3 and 5 each hold both sides; ``deadlines`` splits 5 by the summary's count of
 periods the plant started late, ``run_error`` splits the exceptions of a run.  A silent TCU and a dead
 bus look alike from the plant (both are silence): silence is blamed on the TCU.
@@ -69,3 +72,4 @@ def recorded(run) -> TcuFailed | BenchError | None:
     if log.ended_early:
         return BenchError(f"{run.path}: the run did not finish ({log.ended_early}): nothing to judge the TCU by")
     return deadlines(run.summary)
+

@@ -1,8 +1,8 @@
 """What a person sees of a judged run: a figure per failed check, the suite's properties, and the JUnit
 XML of ``hil check`` (the pytest plugin leaves its XML to pytest's ``--junitxml``).
 
-A failed check's figure shows the signal over the run, its band (lo, hi), the window shaded and the first
-violation marked; a ``limit`` (one value of the summary) has none.  CI servers show a file named in a
+A failed check's figure shows the signal over the run in its unit, its band (lo, hi) or threshold, the window
+shaded and the first violation marked; a ``limit`` shows the summary's value against its bounds.  CI servers show a file named in a
 ``[[ATTACHMENT|path]]`` line of a test case's output (GitLab, Jenkins' JUnit attachments plugin).
 """
 from __future__ import annotations
@@ -44,60 +44,89 @@ def attachment(path) -> str:
     return f"[[ATTACHMENT|{Path(path).resolve()}]]"
 
 
-def figure(result, out_dir, stem: str = "") -> Path | None:
-    """A PNG of a failed ``result`` in ``out_dir`` (its name from the check's); None for a check without
-    a signal over time (``limit``) or without samples."""
-    plot = result.plot
-    if not plot or len(plot.get("t", ())) == 0:
-        return None
-    import matplotlib
-    matplotlib.use("Agg")
+def figure(result, out_dir, stem: str = "") -> Path:
+    """A PNG of a failed ``result`` in ``out_dir`` (its name from the check's): the signal over the run in
+    its unit, the limit or threshold drawn, the window shaded, the first violation and the worst marked.
+    A ``limit`` draws the summary's value against its bounds; a check that found no samples draws its
+    bounds and says why.  ``responds`` draws the condition's signal with its threshold and, after each
+    trigger, the span the condition had to hold within."""
     import matplotlib.pyplot as plt
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     name = re.sub(r"[^A-Za-z0-9_.-]+", "_", f"{stem}{'-' if stem else ''}{result.name}")[:120] + ".png"
-    fig, ax = plt.subplots(figsize=(8, 3.2), dpi=90)
-    t, v = plot["t"], plot["v"]
-    keep = plot.get("keep")
-    ax.plot(t, v, lw=0.8, color="0.6" if keep is not None else "C0", label=result.signal)
-    if keep is not None:
-        import numpy as np
-        ax.plot(t, np.where(keep, v, np.nan), lw=1.0, color="C0", label="judged")
-    for bound in (result.lo, result.hi):
-        if bound is not None and math.isfinite(bound):
-            ax.axhline(bound, color="C2", ls="--", lw=0.9)
-    if result.window_s is not None:
-        t0, t1 = result.window_s
-        ax.axvspan(t0, min(t1, float(t[-1])) if math.isfinite(t1) else float(t[-1]), color="C1", alpha=0.12,
-                   label="window")
-    for tt in plot.get("triggers", ()):
-        ax.axvline(tt, color="C1", lw=0.8)
-    if result.first is not None and result.first[0] is not None and math.isfinite(result.first[1]):
-        ax.plot([result.first[0]], [result.first[1]], "o", color="C3", ms=6, label="first violation")
-    if result.worst is not None and result.worst[0] is not None and math.isfinite(result.worst[1]):
-        ax.plot([result.worst[0]], [result.worst[1]], "x", color="C3", ms=7, label="worst")
-    ax.set_xlabel("t (s)")
-    ax.set_ylabel(f"{result.signal}" + (f" ({result.unit})" if result.unit else ""))
-    ax.set_title(result.line(), fontsize=7, loc="left", wrap=True)
-    ax.legend(fontsize=7, loc="best")
-    fig.tight_layout()
+    fig = draw(result)
     path = out_dir / name
     fig.savefig(path)
     plt.close(fig)
     return path
 
 
-def junit_xml(suite_name: str, results: list, props: dict, path, verdict=None, attachments: dict | None = None,
-              seconds: float = 0.0) -> None:
-    """Write the JUnit XML of one judged log: a test case per check (``<failure>`` with its line), and a
-    ``run`` case for a verdict outside the checks (``TcuFailed``: a failure; ``BenchError``: an error)."""
-    from .outcome import TcuFailed
+def draw(result):
+    """The matplotlib figure of ``figure`` (one axes), not saved."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
 
+    plot = result.plot or {}
+    fig, ax = plt.subplots(figsize=(8, 3.2), dpi=90)
+    unit = plot.get("unit", result.unit)
+    t, v = plot.get("t", ()), plot.get("v", ())
+    bounds = [(b, lab) for b, lab in ((result.lo, "lo"), (result.hi, "hi")) if b is not None and math.isfinite(b)]
+    if "value" in plot:                       # a limit: one value of the run's summary against its bounds
+        ax.plot([0.0], [plot["value"]], "o", color="C3" if not result.passed else "C0", ms=8,
+                label=f"{result.signal} = {plot['value']:.6g}" + (f" {unit}" if unit else ""))
+        ax.set_xlim(-1.0, 1.0)
+        ax.set_xticks([])
+        ax.set_xlabel("the run's summary")
+    elif len(t):
+        keep = plot.get("keep")
+        ax.plot(t, v, lw=0.8, color="0.6" if keep is not None else "C0", label=plot.get("ylabel", result.signal))
+        if keep is not None:
+            ax.plot(t, np.where(keep, v, np.nan), lw=1.0, color="C0", label="judged")
+        ax.set_xlabel("t (s)")
+    else:                                     # nothing to draw but the bounds and why
+        ax.text(0.5, 0.5, result.reason or "no samples", transform=ax.transAxes, ha="center", va="center",
+                fontsize=8)
+        ax.set_xlabel("t (s)")
+    for bound, lab in bounds:
+        ax.axhline(bound, color="C2", ls="--", lw=0.9, label=f"{lab} {bound:g}" + (f" {result.unit}" if result.unit else ""))
+    if "threshold" in plot:                   # responds: the condition's threshold, the span after each trigger
+        op, value = plot["threshold"]
+        ax.axhline(value, color="C2", ls="--", lw=0.9, label=f"condition {op} {value:g}" + (f" {unit}" if unit else ""))
+        for tt in plot.get("triggers", ()):
+            ax.axvspan(tt, tt + plot["within_s"], color="C1", alpha=0.15)
+        if len(plot.get("triggers", ())):
+            ax.axvspan(np.nan, np.nan, color="C1", alpha=0.15, label=f"within {plot['within_s'] * 1e3:g} ms")
+    else:
+        for tt in plot.get("triggers", ()):
+            ax.axvline(tt, color="C1", lw=0.8)
+    if result.window_s is not None and len(t):
+        t0, t1 = result.window_s
+        ax.axvspan(t0, min(t1, float(t[-1])) if math.isfinite(t1) else float(t[-1]), color="C1", alpha=0.12,
+                   label="window")
+    if plot.get("marks", True) and len(t):
+        if result.first is not None and result.first[0] is not None and math.isfinite(result.first[1]):
+            ax.plot([result.first[0]], [result.first[1]], "o", color="C3", ms=6, label="first violation")
+        if result.worst is not None and result.worst[0] is not None and math.isfinite(result.worst[1]):
+            ax.plot([result.worst[0]], [result.worst[1]], "x", color="C3", ms=7, label="worst")
+    ax.set_ylabel(f"{plot.get('ylabel', result.signal)}" + (f" ({unit})" if unit else ""))
+    ax.set_title(result.line(), fontsize=7, loc="left", wrap=True)
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(fontsize=7, loc="best")
+    fig.tight_layout()
+    return fig
+
+
+def junit_xml(suite_name: str, results: list, props: dict, path, verdict=None, attachments: dict | None = None,
+              seconds: float = 0.0, errored=()) -> None:
+    """Write the JUnit XML of one judged log: a test case per check (``<failure>`` with its line; a run the
+    TCU's verdict failed has each check failed with it, ``judge.judged``), and for a run the bench broke
+    (``verdict`` a ``BenchError``) each check named in ``errored`` an ``<error>``, as the pytest plugin
+    reports them."""
     attachments = attachments or {}
-    cases = []
-    if verdict is not None:
-        cases.append(("run", "failure" if isinstance(verdict, TcuFailed) else "error", str(verdict), None))
+    cases = [(name, "error", str(verdict), None) for name in errored]
     for r in results:
         cases.append((r.name, None if r.passed else "failure", r.line(), attachments.get(id(r))))
     failures = sum(1 for _, k, _, _ in cases if k == "failure")

@@ -110,6 +110,13 @@ class Run:
     def duration_s(self) -> float:
         return float(self.summary.get("sim_s") or _scenario_value(self.log, "run", "duration_s") or 0.0)
 
+    @property
+    def planned_duration_s(self) -> float:
+        """The simulated time the run was to last (its scenario's ``run.duration_s``, overrides applied):
+        more than ``duration_s`` for a run that ended early."""
+        planned = _scenario_value(self.log, "run", "duration_s")
+        return max(float(planned), self.duration_s) if planned else self.duration_s
+
     def event(self, name: str) -> float | None:
         """The time (s) of event ``name`` (module docstring), None when it did not happen; ConfigError for
         a name that is no event."""
@@ -153,6 +160,14 @@ class Run:
         message = self._message(frame)
         rows = self._frame_rows().get(message.frame_id, [])
         return np.array([r[0] for r in rows], dtype=float), self._wall_s(rows)
+
+    def frames_end(self) -> tuple[float, float]:
+        """(t_s, wall_s) of the log's last accepted frame of any id: where the bus's record ends (a frame
+        that stops before it fell silent)."""
+        rows = [r for rr in self._frame_rows().values() for r in rr]
+        if not rows:
+            return 0.0, 0.0
+        return max(r[0] for r in rows), (max(r[1] for r in rows) - self._wall0) * 1e-9
 
     def _wall_s(self, rows) -> np.ndarray:
         """Receive wall times in s since the log's first frame (from integer ns: seconds since the epoch

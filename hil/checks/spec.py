@@ -147,16 +147,45 @@ def _check(path: str, i: int, table: dict) -> Check:
     return check
 
 
-def judge(suite: Suite, run) -> list:
-    """Every check of ``suite`` judged over ``run``: the results, in the file's order.  A check naming a
+def judge(suite: Suite, run, verdict=None) -> list:
+    """Every check of ``suite`` judged over ``run`` under the run's own ``verdict``
+    (``hil.checks.judge.judged``, the one judge): the results, in the file's order.  A check naming a
     signal, frame or event the run does not have is a ConfigError naming the file and the check."""
-    results = []
-    for check in suite.checks:
-        try:
-            results.append(check(run))
-        except ConfigError as e:
-            raise ConfigError(f"{check.where}: {e}") from None
-    return results
+    from .judge import judged
+
+    return judged(suite.checks, run, verdict)
+
+
+def _toml(value) -> str:
+    """A field's value in TOML (strings, numbers, booleans and lists of them: what ``FIELDS`` take)."""
+    import json
+    import math
+
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return json.dumps(value)          # a JSON string is a TOML basic string
+    if isinstance(value, (int, float)):
+        return ("inf" if value > 0 else "-inf") if isinstance(value, float) and math.isinf(value) else repr(value)
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_toml(v) for v in value) + "]"
+    raise ConfigError(f"cannot write {value!r} in a checks file")
+
+
+def dump_checks(checks, path, scenario: str | None = None, comment: str = "") -> Path:
+    """Write ``checks`` (checks built in Python or read from a file) as a checks file at ``path``, the
+    ``[[check]]`` tables ``parse_checks`` reads back to the same checks: ``hil check LOG path`` then judges
+    a log by the checks a test wrote in Python.  ``scenario``: the run's scenario (informative; ``hil
+    check`` ignores it)."""
+    lines = [f"# {line}".rstrip() for line in comment.splitlines()]
+    if scenario:
+        lines.append(f"scenario = {_toml(str(scenario))}")
+    for check in checks:
+        lines += ["", "[[check]]"] + [f"{k} = {_toml(v)}" for k, v in check.table().items()]
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text("\n".join(lines).lstrip("\n") + "\n", encoding="utf-8")
+    return out
 
 
 def load_checks(path) -> Suite:

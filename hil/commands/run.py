@@ -177,6 +177,12 @@ def print_summary(s: dict, file=sys.stdout, heading: str | None = None) -> None:
         if bad or bad_tcu:
             line += f"; rejected frames: plant {bad}, TCU {bad_tcu}"
         print(line, file=file)
+    if s.get("unmapped_ids"):
+        print("  frames of ids the mapping does not name (not acted on): "
+              + ", ".join(f"{k} x{n}" for k, n in s["unmapped_ids"].items()), file=file)
+    outside = {k: n for k, n in (s.get("out_of_range_signals") or {}).items() if n}
+    if outside:
+        print("  signals outside their DBC range: " + ", ".join(f"{k} x{n}" for k, n in outside.items()), file=file)
     if s.get("suspicious"):
         print("  suspicious frames (another node on the bus?): "
               + ", ".join(f"{k} x{n}" for k, n in sorted(s["suspicious"].items())), file=file)
