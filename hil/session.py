@@ -356,7 +356,9 @@ class Session:
             self.load["mapped_load_percent"] = mapped_bus_load(self.mapping, period, bitrate)
             self.load["bitrate_from"] = Path(self.mapping.dbc_path).name if dbc_rate else "[bus] bitrate"
         if self.record:
-            self.path = _log_path(scenario, self.strategy, self.seed, self.out_dir, self.plant_label)
+            # an external TCU's strategy is its own: its log is named <scenario>-external-<seed>
+            named = "external" if self.transport == "external" else self.strategy
+            self.path = _log_path(scenario, named, self.seed, self.out_dir, self.plant_label)
         stack.enter_context(interrupts_between_writes())   # SIGTERM ends a run like Ctrl-C, never mid-write
         report_dir = (stack.enter_context(temporary_directory("hil-tcu-", "the TCU's report"))
                       if self.transport == "process" else None)
