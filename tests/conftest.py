@@ -3,6 +3,7 @@ import hashlib
 import json
 import os
 import secrets
+import shutil
 import signal
 import subprocess
 import sys
@@ -17,7 +18,7 @@ ROOT = Path(__file__).resolve().parents[1]
 SCENARIOS = ROOT / "scenarios"
 
 # what tests import from here
-__all__ = ["ROOT", "SCENARIOS", "case_seed", "hil", "hil_command", "once_per_session", "subprocess_env"]
+__all__ = ["ROOT", "SCENARIOS", "bare_env", "case_seed", "hil", "hil_command", "once_per_session", "subprocess_env"]
 
 # -- seeds of generated cases --------------------------------------------------------------------------
 # HIL_TEST_SEED unset: the fixed base seed below (a run is reproducible); an integer: that base seed;
@@ -278,3 +279,48 @@ def kill_run_when_log_reaches(args, log_path: Path, min_bytes: int, timeout_s: f
     proc.send_signal(signal.SIGKILL)
     proc.wait(timeout=30)
     assert proc.returncode == -signal.SIGKILL
+
+
+# -- a TCU maker's virtualenv: python-can and cantools alone (tests/test_python_can_tcu.py, test_tcu_variants.py)
+EXAMPLE = ROOT / "docs" / "examples" / "python_can_tcu.py"
+THEIR_DBC = SCENARIOS / "suites" / "their.dbc"
+INSTALL_TIMEOUT_S = 900
+
+
+def bare_env() -> dict:
+    """This environment without anything that points Python at this project or at another virtualenv."""
+    return {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME", "VIRTUAL_ENV")}
+
+
+@pytest.fixture(scope="module")
+def their_tcu(tmp_path_factory):
+    """(python, directory): a virtualenv with python-can[multicast] and cantools alone, and a directory
+    holding only the example TCU and their DBC; made once per test session (under xdist too)."""
+    py, home = once_per_session(tmp_path_factory, "python_can_tcu_venv", _make_their_tcu)
+    return Path(py), Path(home)
+
+
+def _make_their_tcu(home):
+    venv = home / "venv"
+    py = venv / "bin" / "python"
+    r = subprocess.run([sys.executable, "-m", "venv", str(venv)], capture_output=True, text=True, env=bare_env(),
+                       timeout=300)
+    assert r.returncode == 0, r.stderr
+    r = subprocess.run([str(py), "-m", "pip", "install", "-q", "--disable-pip-version-check", "python-can[multicast]",
+                        "cantools"], capture_output=True, text=True, env=bare_env(), cwd=home, timeout=INSTALL_TIMEOUT_S)
+    if r.returncode != 0:
+        why = f"pip could not install python-can and cantools from the registry: {r.stderr.strip()[-500:]}"
+        assert os.environ.get("CI") != "true", f"CI=true: this test must run, but {why}"
+        pytest.skip(why)
+    shutil.copy(EXAMPLE, home)
+    shutil.copy(THEIR_DBC, home)
+    for module in ("hil", "identifier", "plant"):          # nothing of this project there
+        r = subprocess.run([str(py), "-c", f"import {module}"], capture_output=True, text=True, env=bare_env(),
+                           cwd=home, timeout=60)
+        assert r.returncode != 0 and f"No module named '{module}'" in r.stderr, (module, r.stderr)
+    r = subprocess.run([str(py), "-m", "pip", "list", "--format", "json"], capture_output=True, text=True,
+                       env=bare_env(), timeout=120)
+    names = {p["name"].lower() for p in json.loads(r.stdout)}
+    assert {"python-can", "cantools", "msgpack"} <= names and "railway-hil" not in names, names
+    print(f"their virtualenv: {', '.join(sorted(names))}")
+    return [str(py), str(home)]

@@ -6,65 +6,18 @@ lockstep: through the pytest plugin (it passes the example suite's four checks) 
 --tcu external`` and ``hil check`` (with its creep set-point raised out of reach it slips: the two adhesion
 checks fail, the two timing checks pass).  Real processes, a real bus; under CI=true it never skips."""
 import json
-import os
-import shutil
 import subprocess
 import sys
 import tomllib
 import xml.etree.ElementTree as ET
-from pathlib import Path
 
-import pytest
 
 from hil.bus.multicast import new_group
 
-from .conftest import ROOT, SCENARIOS, hil, once_per_session, subprocess_env
+from .conftest import SCENARIOS, bare_env, hil, subprocess_env
 
-EXAMPLE = ROOT / "docs" / "examples" / "python_can_tcu.py"
-THEIR_DBC = SCENARIOS / "suites" / "their.dbc"
 SUITE = SCENARIOS / "suites" / "test_their_tcu.toml"
 CHECKS = {"TIM-1", "TIM-2", "ADH-1", "ADH-2"}
-INSTALL_TIMEOUT_S = 900
-
-
-def bare_env() -> dict:
-    """This environment without anything that points Python at this project or at another virtualenv."""
-    return {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME", "VIRTUAL_ENV")}
-
-
-@pytest.fixture(scope="module")
-def their_tcu(tmp_path_factory):
-    """(python, directory): a virtualenv with python-can[multicast] and cantools alone, and a directory
-    holding only the example TCU and their DBC; made once per test session (under xdist too)."""
-    py, home = once_per_session(tmp_path_factory, "python_can_tcu_venv", _make_their_tcu)
-    return Path(py), Path(home)
-
-
-def _make_their_tcu(home):
-    venv = home / "venv"
-    py = venv / "bin" / "python"
-    r = subprocess.run([sys.executable, "-m", "venv", str(venv)], capture_output=True, text=True, env=bare_env(),
-                       timeout=300)
-    assert r.returncode == 0, r.stderr
-    r = subprocess.run([str(py), "-m", "pip", "install", "-q", "--disable-pip-version-check", "python-can[multicast]",
-                        "cantools"], capture_output=True, text=True, env=bare_env(), cwd=home, timeout=INSTALL_TIMEOUT_S)
-    if r.returncode != 0:
-        why = f"pip could not install python-can and cantools from the registry: {r.stderr.strip()[-500:]}"
-        assert os.environ.get("CI") != "true", f"CI=true: this test must run, but {why}"
-        pytest.skip(why)
-    shutil.copy(EXAMPLE, home)
-    shutil.copy(THEIR_DBC, home)
-    for module in ("hil", "identifier", "plant"):          # nothing of this project there
-        r = subprocess.run([str(py), "-c", f"import {module}"], capture_output=True, text=True, env=bare_env(),
-                           cwd=home, timeout=60)
-        assert r.returncode != 0 and f"No module named '{module}'" in r.stderr, (module, r.stderr)
-    r = subprocess.run([str(py), "-m", "pip", "list", "--format", "json"], capture_output=True, text=True,
-                       env=bare_env(), timeout=120)
-    names = {p["name"].lower() for p in json.loads(r.stdout)}
-    assert {"python-can", "cantools", "msgpack"} <= names and "railway-hil" not in names, names
-    print(f"their virtualenv: {', '.join(sorted(names))}")
-    return [str(py), str(home)]
-
 
 def tcu_argv(their_tcu, bus, *extra) -> list[str]:
     py, home = their_tcu

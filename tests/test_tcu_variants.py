@@ -1,0 +1,106 @@
+"""Issue 49's seven TCU variants end to end (tests/data/variant_tcu.py: the docs' example TCU of another make,
+python-can and cantools alone, with one fault each, on tests/data/variants.dbc: a Motorola signed torque, an
+offset signal, a value table): the pytest plugin runs the variant's own checks (tests/data/test_variants.toml)
+over a lockstep run, starting the variant with ``--hil-tcu-cmd``, and each variant fails exactly its checks:
+
+- on the local bus (the variant from this project's virtualenv: the bus is this package's python-can
+  interface), and
+- on python-can's udp_multicast bus held to this machine, the variant run from a virtualenv with only
+  python-can and cantools (tests/test_python_can_tcu.py makes it and checks ``import hil`` fails there).
+
+A frozen and a crashed unit fail every check (the run fails as a whole: one judge); the crash's message gives
+its exit code and its last stderr line.  Real processes, real buses, JUnit validated against junit-10.xsd."""
+import os
+import random
+import shutil
+import subprocess
+import sys
+import tempfile
+import xml.etree.ElementTree as ET
+
+import pytest
+
+from .conftest import ROOT, subprocess_env
+
+DATA = ROOT / "tests" / "data"
+SUITE = DATA / "test_variants.toml"
+ALL = {"TIM-2", "ADH-1", "ADH-2", "ADH-3", "STG-1", "RNG-1", "SGN-1"}
+#: what each variant must fail (tests/data/variant_tcu.py's docstring says why)
+FAILS = {"none": set(), "sign": {"SGN-1", "ADH-1", "ADH-2", "ADH-3"}, "saturate": {"ADH-3", "STG-1"},
+         "stage0": {"STG-1"}, "range": {"RNG-1"}, "freeze": ALL, "crash": ALL}
+
+
+def _verdicts(junit) -> tuple[dict, dict]:
+    """({req: failure message} of the failed checks, {req: error message} of the errored ones) of a JUnit file,
+    every case one of the suite's checks."""
+    from lxml import etree
+
+    schema = etree.XMLSchema(etree.parse(str(DATA / "junit-10.xsd")))
+    assert schema.validate(etree.parse(str(junit))), schema.error_log
+    cases = list(ET.parse(str(junit)).getroot().iter("testcase"))
+    assert len(cases) == len(ALL), [c.get("name") for c in cases]
+    failed, errored = {}, {}
+    for c in cases:
+        out = c.findtext("system-out") or ""
+        req = next((line.split("[", 1)[1].split("]", 1)[0] for line in out.splitlines()
+                    if line.startswith("FAIL [")), c.get("name"))
+        if c.find("failure") is not None:
+            failed[req] = c.find("failure").get("message") or ""
+        if c.find("error") is not None:
+            errored[c.get("name")] = c.find("error").get("message") or ""
+    return failed, errored
+
+
+def _session(tmp_path, bus: str, tcu_cmd: str):
+    junit = tmp_path / "junit.xml"
+    r = subprocess.run([sys.executable, "-m", "pytest", "-p", "hil.pytest_plugin", "-p", "no:cacheprovider", "-q",
+                        str(SUITE), "--hil-bus", bus, "--hil-tcu", "external", "--hil-tcu-cmd", tcu_cmd,
+                        "--hil-out", str(tmp_path / "out"), "--junitxml", str(junit)],
+                       cwd=tmp_path, env=subprocess_env(), capture_output=True, text=True, timeout=600)
+    return r, junit
+
+
+def _check(r, junit, fault):
+    out = r.stdout[-4000:] + r.stderr[-2000:]
+    failed, errored = _verdicts(junit)
+    assert not errored, out
+    named = {k for k in failed if k in ALL}
+    if FAILS[fault] == ALL:            # the run failed as a whole: every check fails with the run's verdict
+        assert len(failed) == len(ALL), out
+        assert all("the TCU fell silent or died" in m for m in failed.values()), failed
+    else:
+        assert named == FAILS[fault], out
+    if fault == "crash":
+        assert all("exited with code 3" in m and "(a crash)" in m for m in failed.values()), failed
+    if fault == "freeze":
+        assert all("its process still runs" in m for m in failed.values()), failed
+    print(f"{fault}: failed {sorted(named) if FAILS[fault] != ALL else 'every check (run failed)'}")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("fault", list(FAILS))
+def test_each_variant_fails_exactly_its_checks_on_the_local_bus(tmp_path, fault):
+    bus = tempfile.mkdtemp(prefix="hil-bus-")
+    try:
+        r, junit = _session(tmp_path, f"localbus:{bus}",
+                            f"{sys.executable} {DATA / 'variant_tcu.py'} --bus {{bus}} --fault {fault}")
+    finally:
+        shutil.rmtree(bus, ignore_errors=True)
+    _check(r, junit, fault)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("fault", list(FAILS))
+def test_each_variant_fails_exactly_its_checks_with_python_can_alone(tmp_path, their_tcu, fault):
+    py, home = their_tcu
+    mine = tmp_path / "tcu"                   # the variant and its DBC beside the example, in a directory of its own
+    mine.mkdir()
+    for f in (home / "python_can_tcu.py", DATA / "variant_tcu.py", DATA / "variants.dbc"):
+        shutil.copy(f, mine)
+    seed = int.from_bytes(os.urandom(4), "little")
+    rng = random.Random(seed)
+    bus = f"udp_multicast:239.255.{rng.randrange(1, 255)}.{rng.randrange(1, 255)}:{rng.randrange(40000, 60000)}"
+    print(f"bus {bus} (drawn, seed {seed})")
+    r, junit = _session(tmp_path, bus, f"{py} {mine / 'variant_tcu.py'} --dbc {mine / 'variants.dbc'} --bus {{bus}} "
+                                       f"--fault {fault}")
+    _check(r, junit, fault)
