@@ -11,8 +11,8 @@ The checks are pure functions over the run (numpy over the decoded log); ``hil c
 against a checks file (``hil.checks.spec``), the pytest plugin (``hil.pytest_plugin``) inside a test.
 """
 from .judge import CheckFailed, require  # noqa: F401
-from .kinds import Check, Result, cycle_time, in_range, limit, responds, settles  # noqa: F401
+from .kinds import Check, Result, cycle_time, in_range, limit, responds, settles, torque_sign  # noqa: F401
 from .run import Run, Series  # noqa: F401
 
 __all__ = ["Check", "CheckFailed", "Result", "Run", "Series", "cycle_time", "in_range", "limit", "require",
-           "responds", "settles"]
+           "responds", "settles", "torque_sign"]
