@@ -18,13 +18,13 @@ from mcap.reader import make_reader
 
 from hil.testing import alive, children_of, cmdline  # noqa: F401 (alive: other tests import it here)
 from hil.bus.link import Hub, open_bus
-from hil.bus.frames import PLANT_HEARTBEAT_ID, TCU_HEARTBEAT_ID, FrameCodec, load_dbc
+from hil.bus.frames import TCU_HEARTBEAT_ID, WALL_CLOCK_IDS, FrameCodec, load_dbc
 from hil.log.read import read_log
 from identifier.messages import SensorReading
 
 from .conftest import ROOT, hil, hil_command, once_per_session, subprocess_env
 
-HEARTBEATS = {PLANT_HEARTBEAT_ID, TCU_HEARTBEAT_ID}
+HEARTBEATS = WALL_CLOCK_IDS          # heartbeats and the TCU's TcuScenario: sent by the wall clock
 #: where each frame's authentication trailer starts, from the DBC
 TRAILER_AT = {m.frame_id: m.get_signal_by_name("AuthFreshness").start // 8 for m in load_dbc().messages}
 IDENT_KEYS = ("identified", "t_identified_s", "t_detected_s", "t_serious_s", "corrections", "params", "samples",

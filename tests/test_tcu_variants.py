@@ -1,12 +1,13 @@
-"""Issue 49's seven TCU variants end to end (tests/data/variant_tcu.py: the docs' example TCU of another make,
-python-can and cantools alone, with one fault each, on tests/data/variants.dbc: a Motorola signed torque, an
-offset signal, a value table): the pytest plugin runs the variant's own checks (tests/data/test_variants.toml)
-over a lockstep run, starting the variant with ``--hil-tcu-cmd``, and each variant fails exactly its checks:
+"""Issue 49's seven TCU variants end to end (scenarios/variants/variant_tcu.py: the docs' example TCU of
+another make, python-can and cantools alone, with one fault each, on scenarios/variants/variants.dbc: a Motorola
+signed torque, an offset signal, a value table): the pytest plugin runs the variant's own checks
+(scenarios/variants/test_variants.toml) over a lockstep run, starting the variant with ``--hil-tcu-cmd``, and each
+variant fails exactly its checks:
 
 - on the local bus (the variant from this project's virtualenv: the bus is this package's python-can
   interface), and
 - on python-can's udp_multicast bus held to this machine, the variant run from a virtualenv with only
-  python-can and cantools (tests/test_python_can_tcu.py makes it and checks ``import hil`` fails there).
+  python-can and cantools (tests/conftest.py's ``their_tcu`` makes it and checks ``import hil`` fails there).
 
 A frozen and a crashed unit fail every check (the run fails as a whole: one judge); the crash's message gives
 its exit code and its last stderr line.  Real processes, real buses, JUnit validated against junit-10.xsd."""
@@ -23,9 +24,11 @@ import pytest
 from .conftest import ROOT, subprocess_env
 
 DATA = ROOT / "tests" / "data"
-SUITE = DATA / "test_variants.toml"
+SUITES = ROOT / "scenarios" / "variants"
+SUITE = SUITES / "test_variants.toml"
+VARIANT = SUITES / "variant_tcu.py"
 ALL = {"TIM-2", "ADH-1", "ADH-2", "ADH-3", "STG-1", "RNG-1", "SGN-1"}
-#: what each variant must fail (tests/data/variant_tcu.py's docstring says why)
+#: what each variant must fail (variant_tcu.py's docstring says why)
 FAILS = {"none": set(), "sign": {"SGN-1", "ADH-1", "ADH-2", "ADH-3"}, "saturate": {"ADH-3", "STG-1"},
          "stage0": {"STG-1"}, "range": {"RNG-1"}, "freeze": ALL, "crash": ALL}
 
@@ -83,7 +86,7 @@ def test_each_variant_fails_exactly_its_checks_on_the_local_bus(tmp_path, fault)
     bus = tempfile.mkdtemp(prefix="hil-bus-")
     try:
         r, junit = _session(tmp_path, f"localbus:{bus}",
-                            f"{sys.executable} {DATA / 'variant_tcu.py'} --bus {{bus}} --fault {fault}")
+                            f"{sys.executable} {VARIANT} --bus {{bus}} --fault {fault}")
     finally:
         shutil.rmtree(bus, ignore_errors=True)
     _check(r, junit, fault)
@@ -95,7 +98,7 @@ def test_each_variant_fails_exactly_its_checks_with_python_can_alone(tmp_path, t
     py, home = their_tcu
     mine = tmp_path / "tcu"                   # the variant and its DBC beside the example, in a directory of its own
     mine.mkdir()
-    for f in (home / "python_can_tcu.py", DATA / "variant_tcu.py", DATA / "variants.dbc"):
+    for f in (home / "python_can_tcu.py", VARIANT, SUITES / "variants.dbc"):
         shutil.copy(f, mine)
     seed = int.from_bytes(os.urandom(4), "little")
     rng = random.Random(seed)

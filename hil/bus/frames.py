@@ -44,6 +44,9 @@ DEMAND_ID = 0x108
 PLANT_HEARTBEAT_ID, TCU_HEARTBEAT_ID = 0x701, 0x702
 #: the TCU's scenario digest, sent before each heartbeat until the first reading (``FrameCodec.tcu_scenario``)
 TCU_SCENARIO_ID = 0x703
+#: frames sent by the wall clock, not by the exchange (heartbeats, the TCU's scenario announcement before its first
+#: reading): how many a run holds depends on timing, so comparisons of runs' frame streams leave them out
+WALL_CLOCK_IDS = frozenset({PLANT_HEARTBEAT_ID, TCU_HEARTBEAT_ID, TCU_SCENARIO_ID})
 PLANT_IDS = frozenset({SENSOR_ID, DEMAND_ID, PLANT_HEARTBEAT_ID})
 TCU_IDS = frozenset({COMMAND_ID, STATUS_ID, RESULT_ID, INTERVAL_ID, SAMPLE_ID, TCU_HEARTBEAT_ID, TCU_SCENARIO_ID})
 

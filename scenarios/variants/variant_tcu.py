@@ -1,10 +1,10 @@
 """Issue 49's TCU variants: the example TCU of another make (docs/examples/python_can_tcu.py: python-can and
-cantools alone, nothing of railway-hil) on ``tests/data/variants.dbc``, with one fault of choice.
+cantools alone, nothing of railway-hil) on ``scenarios/variants/variants.dbc``, with one fault of choice.
 
-    python tests/data/variant_tcu.py --bus udp_multicast:239.255.42.17:43117 --fault sign
+    python scenarios/variants/variant_tcu.py --bus udp_multicast:239.255.42.17:43117 --fault sign
 
 Faults (``--fault``), each a unit a real TCU maker ships by mistake, and the checks of
-``tests/data/test_variants.toml`` it must fail (every other check passes):
+``scenarios/variants/test_variants.toml`` it must fail (every other check passes):
 
 - ``none``: the example as it is (creep held below the rail's peak): fails nothing;
 - ``sign``: the torque it sends is the negative of the one it means (a sign error in its CAN layer): the
@@ -53,7 +53,7 @@ def _example():
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--bus", required=True, help="INTERFACE:CHANNEL, as the example TCU")
-    p.add_argument("--dbc", default=str(Path(__file__).with_name("variants.dbc")))
+    p.add_argument("--dbc", default=str(HERE / "variants.dbc"), help="the DBC (default: variants.dbc beside it)")
     p.add_argument("--fault", choices=FAULTS, default="none")
     args = p.parse_args()
     example = _example()
