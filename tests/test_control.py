@@ -433,7 +433,7 @@ def test_in_closed_loop_gps_interval_holds_the_peak_the_law_holds_the_creep_at(t
     from hil.benchmarks.control import BASE, draw_text
     from hil.config import parse_scenario
 
-    text, drawn = draw_text((ROOT / BASE).read_text(), 1885060422, 37, 30.0)
+    text, drawn = draw_text((ROOT / BASE).read_text(), 1885060422, 37, 30.0, "narrow")   # issue 36's family
     assert 0.45 < drawn["patches"][-1]["peak_creep_kmh"] < 0.55
 
     def confirmed(overrides):
