@@ -7,7 +7,8 @@ turns such arrays (from a run, or read back from a log's ``/plant/state`` and ``
     F_x = mu N,   F_d = mu_d N,   F_cap = min(F_d, mu_peak N)                  N: the axle's normal force
     eta      = sum(F_x) / sum(F_cap)                                          adhesion utilisation, whole run
     eta_low  = the same over the steps where mu_d > mu_peak, and the ``AFTER_CHANGE_S`` after each rail change
-    macro-slip: v_s > 2 v_peak for longer than ``MACRO_SLIP_MIN_S`` in a row: the time in such episodes, their count
+    macro-slip: |v_s| > 2 v_peak (either direction: a wheel sliding backwards under a torque of the wrong sign
+        too) for longer than ``MACRO_SLIP_MIN_S`` in a row: the time in such episodes, their count
     reaction (per drop: a rail change to a lower peak that the demand exceeds, judged at the segment's end): from the first step the true creep exceeds
         the current peak creep to the first step the applied torque is below ``REDUCED_FRACTION`` of the demand,
         both searched from the drop's start (negative: the torque was cut before the creep crossed the peak;
@@ -33,7 +34,7 @@ import numpy as np
 
 #: eta_low also covers this long after each rail change (where controllers differ)
 AFTER_CHANGE_S = 1.0
-#: macro-slip: creep above MACRO_SLIP_FACTOR x the current peak creep for longer than this
+#: macro-slip: |creep| above MACRO_SLIP_FACTOR x the current peak creep for longer than this
 MACRO_SLIP_FACTOR = 2.0
 MACRO_SLIP_MIN_S = 0.05
 #: a torque below this fraction of the demand counts as a reduction (reaction time)
@@ -181,7 +182,7 @@ def metrics(c: dict, changes_s, period_s: float, normal_force_n: float, torque_p
     eta_low = float(f_x[low].sum() / f_cap[low].sum()) if low.any() and f_cap[low].sum() > 0 else None
 
     min_steps = int(round(MACRO_SLIP_MIN_S / period_s))
-    episodes = [(a, b) for a, b in _runs(creep > MACRO_SLIP_FACTOR * p_creep) if b - a > min_steps]
+    episodes = [(a, b) for a, b in _runs(np.abs(creep) > MACRO_SLIP_FACTOR * p_creep) if b - a > min_steps]
     macro_s = sum(b - a for a, b in episodes) * period_s
 
     ends = changes[1:] + [t[-1] + period_s]

@@ -285,3 +285,21 @@ def test_hil_check_judges_a_rigs_can_log_with_its_dbc(log, raw, tmp_path, suffix
     r = subprocess.run(hil_command() + ["check", str(path), str(checks), "--dbc", str(bad)], capture_output=True,
                        text=True, env=subprocess_env(), cwd=ROOT, timeout=120)
     assert r.returncode == 2 and r.stderr.strip().count("\n") == 0 and "--dbc" in r.stderr
+
+
+def test_torque_sign_judges_the_tcus_torque_against_the_drivers_demand(log, raw):
+    """Every TorqueCommand of the run has the demand's sign (both positive: traction); a negative tolerance is
+    one ConfigError line."""
+    from hil.checks import torque_sign
+
+    contents = hil.read_log(log)
+    db = cantools.database.load_string(contents.metadata["dbc"]["text"], database_format="dbc")
+    cmd = db.get_message_by_name("TorqueCommand")
+    torques = [cmd.decode(f.data)["TorqueCmd"] for f in contents.topic("/can/frames")
+               if f.arbitration_id == cmd.frame_id and f.status == "ok"]
+    assert torques and min(torques) > 0
+    r = torque_sign("TorqueCommand.TorqueCmd", "DriverDemand.DemandTorque")(log)
+    assert r.passed and r.kind == "torque_sign" and r.samples == len(torques)
+    assert r.margin == pytest.approx(min(torques))
+    with pytest.raises(ConfigError, match="tolerance"):
+        torque_sign("TorqueCommand.TorqueCmd", "DriverDemand.DemandTorque", tolerance=-1.0)

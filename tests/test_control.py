@@ -542,3 +542,19 @@ def test_the_control_bench_reports_every_law_with_the_oracle_on_top_and_the_iden
     assert "| 60 s logged run >= 10 x real time | not measured |" in report      # --speed-s 0: no speed run
     assert f"the identifier confirmed {len(confirmed)} of {len(rows)} drops" in report
     assert (tmp_path / "control-eta-low.png").stat().st_size > 1000
+
+
+def test_macro_slip_counts_a_wheel_sliding_backwards():
+    """|creep| against twice the peak creep: a wheel at -48 km/h for 0.2 s under a torque of the wrong sign is
+    0.2 s of macro-slip, one episode (issue 50)."""
+    from hil.traction import metrics
+
+    n = 1000
+    t = np.arange(n) * 1e-3
+    creep = np.full(n, 0.5)
+    creep[400:600] = -48.0
+    c = {"t_s": t, "creep_speed_kmh": creep, "mu": np.full(n, 0.2), "torque_nm": np.full(n, 100.0),
+         "demand_mu": np.full(n, 0.2), "peak_mu": np.full(n, 0.3), "peak_creep_kmh": np.full(n, 1.0),
+         "train_speed_ms": np.full(n, 10.0)}
+    m = metrics(c, (), 1e-3, 1.3e5, 1000.0)
+    assert m["macro_slip_count"] == 1 and m["macro_slip_s"] == pytest.approx(0.2)

@@ -11,8 +11,8 @@ The checks are pure functions over the run (numpy over the decoded log); ``hil c
 against a checks file (``hil.checks.spec``), the pytest plugin (``hil.pytest_plugin``) inside a test.
 """
 from .kinds import (Check, CheckFailed, Result, cycle_time, in_range, limit, require, responds,  # noqa: F401
-                    settles)
+                    settles, torque_sign)
 from .run import Run, Series  # noqa: F401
 
 __all__ = ["Check", "CheckFailed", "Result", "Run", "Series", "cycle_time", "in_range", "limit", "require",
-           "responds", "settles"]
+           "responds", "settles", "torque_sign"]

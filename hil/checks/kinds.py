@@ -257,6 +257,53 @@ def in_range(signal: str, lo: float | None = None, hi: float | None = None, duri
     return InRange(signal, lo, hi, during, valid, name, req)
 
 
+# -- torque_sign -----------------------------------------------------------------------------------------
+class TorqueSign(Check):
+    kind = "torque_sign"
+
+    def __init__(self, torque, demand, during=None, tolerance=0.0, name=None, req=None):
+        super().__init__(name, req)
+        if tolerance is None or not tolerance >= 0:
+            raise ConfigError(f"torque_sign {torque}: tolerance must be >= 0")
+        self.signal, self.demand, self.tolerance = torque, demand, float(tolerance)
+        self.window = parse_window(during)
+
+    def default_name(self) -> str:
+        return f"{self.signal} has {self.demand}'s sign"
+
+    def judge(self, run: Run) -> Result:
+        s = run.signal(self.signal)
+        base = dict(name=self.name, kind=self.kind, signal=self.signal, unit=s.unit, req=self.req,
+                    window=window_text(self.window), limit=f"sign of {self.demand} (tolerance {self.tolerance:g})",
+                    verb="against")
+        span = resolve_window(run, self.window)
+        if isinstance(span, str):
+            return Result(**base, passed=False, reason=span)
+        t0, t1 = span
+        keep = (s.t_s >= t0) & (s.t_s <= t1)
+        t, v = s.t_s[keep], s.values[keep]
+        if len(t) == 0:
+            return Result(**base, passed=False, reason=f"no samples of {self.signal} to judge")
+        d = run.signal(self.demand).at(t)
+        with np.errstate(invalid="ignore"):
+            margin = np.sign(d) * v + self.tolerance        # < 0: the torque opposes the demand
+        margin = np.where(np.isnan(margin), -np.inf, margin)
+        bad = margin < 0
+        worst = int(np.argmin(margin))
+        first = int(np.argmax(bad)) if bad.any() else None
+        return Result(**base, passed=not bad.any(), samples=len(t), margin=float(margin[worst]),
+                      first=None if first is None else (float(t[first]), float(v[first])),
+                      worst=(float(t[worst]), float(v[worst])) if bad.any() else None,
+                      violation_s=float(_hold(s.t_s)[keep][bad].sum()))
+
+
+def torque_sign(torque: str, demand: str, during=None, *, tolerance: float = 0.0, name: str | None = None,
+                req: str | None = None) -> TorqueSign:
+    """A TCU's ``torque`` never opposes the driver's ``demand``: sign(demand) x torque >= -``tolerance`` at each
+    sample of ``torque`` (the demand held at its times) in the window ``during``."""
+    return TorqueSign(torque, demand, during, tolerance, name, req)
+
+
 # -- limit -------------------------------------------------------------------------------------------------
 class Limit(Check):
     kind = "limit"

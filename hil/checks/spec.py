@@ -6,7 +6,7 @@
     seed = 1                             # optional; strategy = "gp" optional
 
     [[check]]
-    kind = "in_range"                    # in_range | limit | responds | cycle_time | settles
+    kind = "in_range"                    # in_range | limit | responds | cycle_time | settles | torque_sign
     signal = "TcuStatus.MuHat"
     lo = 0.0
     hi = 0.35
@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..errors import ConfigError
-from .kinds import Check, cycle_time, in_range, limit, responds, settles
+from .kinds import Check, cycle_time, in_range, limit, responds, settles, torque_sign
 
 _NUM, _STR, _WINDOW, _PAIR = "a number", "a string", "a window", "a pair of numbers"
 
@@ -40,6 +40,8 @@ FIELDS: dict[str, tuple] = {
                                 "during": (_WINDOW, False), "max_outside_fraction": (_NUM, False)}),
     "settles": (settles, {"signal": (_STR, True), "band": (_PAIR, True), "within_s": (_NUM, True),
                           "hold_s": (_NUM, True), "after": (_WINDOW, False), "valid": (_STR, False)}),
+    "torque_sign": (torque_sign, {"torque": (_STR, True), "demand": (_STR, True), "during": (_WINDOW, False),
+                                  "tolerance": (_NUM, False)}),
 }
 #: the keys a file may hold outside its [[check]] tables
 TOP = {"scenario": _STR, "set": "a table", "seed": "an integer", "strategy": _STR, "description": _STR,
