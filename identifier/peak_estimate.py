@@ -69,6 +69,13 @@ class PeakEstimate:
     samples: int                               # samples since it
 
 
+def prior_peak_creep_quantile_kmh(q: float) -> float:
+    """The ``q`` quantile of the estimate's prior of the peak creep (log-uniform on the grid): what it says of a
+    rail before any sample of it."""
+    g = np.log(PEAK_CREEP_GRID_KMH)
+    return float(np.exp(g[0] + q * (g[-1] - g[0])))
+
+
 def shape(x: np.ndarray, k: np.ndarray) -> np.ndarray:
     """h_k(x) (module docstring), x >= 0."""
     return (1.0 + k) * x / (k + x ** (1.0 + k))

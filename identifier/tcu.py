@@ -139,6 +139,7 @@ class TractionIdentifier:
         self.estimator = PeakEstimator(settings.period_s, settings.options.get("peak_estimate"))
         self.estimate = None
         self.estimates: list | None = None
+        self.events_log: list | None = None    # every identification event, when a benchmark asks for them
         self.drill = (Drill(settings, strategy, settings.drill_particles, seed)
                       if settings.drill_particles > 0 and self.strategy.keeps_warm
                       and (self._wants_readings or not self._observer_aware) else None)
@@ -263,6 +264,8 @@ class TractionIdentifier:
                 events = self.strategy.add_sample(Sample(reading.step, t_s, paired_creep, observer.mu_hat))
         if events:
             self.latest_event = events[-1]
+            if self.events_log is not None:
+                self.events_log.extend(events)
         return TcuOutput(command, self._status(reading.step), observer, events, self.estimate)
 
     def _status(self, step: int) -> TcuStatus:

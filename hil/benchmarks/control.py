@@ -352,21 +352,27 @@ def prior_set_point_kmh(family: RailFamily = DEFAULT_FAMILY) -> float:
 
 
 def run_point(item: dict) -> dict:
-    """One (draw, law) run in-process, lockstep, no log: its closed-loop figures."""
+    """One (draw, law) run in-process, lockstep, no log: its closed-loop figures, the identifier's peak estimates
+    against the truth (``hil.traction.estimate_figures``) and its confirmations judged against the rail then.
+    ``blind`` is ``identified`` with the estimate withheld (its option ``blind``)."""
     from ..config import parse_scenario
     from ..exchange import exchange
     from ..session import Session
+    from ..traction import estimate_figures
 
     from ..errors import PeerSilent
 
     law = item["law"]
+    sets = {"control.options.identified.blind": 1} if law == BLIND else {}
     # a wheel that runs away (open loop on a patch) leaves the sensor frame's range and the TCU rejects it: the
     # run then ends as a fault after lockstep_progress_s twice, its figures up to there kept (PeerSilent.summary)
     scenario = parse_scenario(item["text"], f"{BASE} draw {item['index']}",
-                              {"control.law": "demand" if law in (ORACLE, PRIOR) else law,
-                               "bus.lockstep_progress_s": 0.2, **item.get("set", {})})
+                              {"control.law": "demand" if law in (ORACLE, PRIOR) else
+                               "identified" if law == BLIND else law,
+                               "bus.lockstep_progress_s": 0.2, **sets, **item.get("set", {})})
     t0 = time.perf_counter()
     out_dir = item.get("out_dir")
+    est = {}
     try:
         with Session(scenario, "gp", item["run_seed"], bus="inprocess", mode="lockstep", external_tcu=False,
                      out_dir=out_dir, record=out_dir is not None, set_args=None, plant=None, plant_label=None,
@@ -375,8 +381,14 @@ def run_point(item: dict) -> dict:
             if law in (ORACLE, PRIOR):
                 ident.use_controller(Oracle(session.node.rig, ident.settings.vehicle) if law == ORACLE else
                                      FixedCreep(ident.settings.vehicle, item["prior_kmh"]))
-            timing = exchange(session.node, scenario.steps, "lockstep")
-            summary = session.finish(timing, time.perf_counter() - t0)
+            ident.estimates, ident.events_log = [], []
+            try:
+                timing = exchange(session.node, scenario.steps, "lockstep")
+                summary = session.finish(timing, time.perf_counter() - t0)
+            finally:
+                truth = session.node.rig.truth
+                est = estimate_figures(truth.cols, truth.changes_s(), ident.estimates)
+                est["confirmations"] = confirmation_figures(truth.cols, ident.events_log)
     except PeerSilent as e:
         summary = {**(getattr(e, "summary", None) or {}), "fault": str(e)}
         summary["macro_slip_count"] = max(summary.get("macro_slip_count") or 0, 1)
@@ -385,7 +397,32 @@ def run_point(item: dict) -> dict:
             "recovery_s", "torque_ripple_percent", "drops", "sim_s_per_wall_s", "tcu_rearms", "fault")
     ident = [{k: d.get(k) for k in ("t_s", "t_identified_s", "peak_creep_err_percent", "interval_holds_truth")}
              for d in summary.get("drop_identification") or []]
-    return {"index": item["index"], "law": law, **{k: summary.get(k) for k in keys}, "drop_identification": ident}
+    conf = est.get("confirmations") or {"confirmations": 0, "wrong": 0, "zero_width": 0}
+    return {"index": item["index"], "law": law, **{k: summary.get(k) for k in keys}, "drop_identification": ident,
+            "estimate_coverage": est.get("coverage_peak_creep"), "estimate_coverage_peak_mu": est.get("coverage_peak_mu"),
+            "lead_times_ms": [r["lead_time_ms"] for r in est.get("per_change", [])],
+            "confirmations": conf["confirmations"], "wrong_confirmations": conf["wrong"],
+            "zero_width_confirmations": conf["zero_width"]}
+
+
+def confirmation_figures(c: dict, events) -> dict:
+    """The identifier's ``confirmed`` events judged against the rail under the wheel when each was published (the
+    truth at its time, ``c`` = ``TruthTrack.cols``): wrong when its 90 % peak mu or peak creep interval misses the
+    true peak, is open, or has zero width."""
+    t, p_mu, p_creep = c["t_s"], c["peak_mu"], c["peak_creep_kmh"]
+    n = wrong = zero = 0
+    for e in events:
+        if e.kind != "confirmed" or t.size == 0:
+            continue
+        n += 1
+        i = int(np.clip(np.searchsorted(t, e.t_s), 0, t.size - 1))
+        mu_ci, v_ci = tuple(e.peak_mu_ci), tuple(e.peak_creep_ci)
+        flat = not (mu_ci[1] > mu_ci[0] and v_ci[1] > v_ci[0])
+        zero += bool(flat)
+        holds = (not getattr(e, "peak_open", False) and mu_ci[0] <= p_mu[i] <= mu_ci[1]
+                 and v_ci[0] <= p_creep[i] <= v_ci[1])
+        wrong += bool(flat or not holds)
+    return {"confirmations": n, "wrong": wrong, "zero_width": zero}
 
 
 def identification_counts(runs: list[dict]) -> dict:
@@ -410,6 +447,15 @@ def _identification_line(out: dict) -> str | None:
             f"claimed a peak creep within 10 % of the true one.")
 
 
+def _median_none_last(xs):
+    """The median of ``xs`` with None (never) above every number; None when that median is a never."""
+    if not xs:
+        return None
+    v = sorted(math.inf if x is None else x for x in xs)
+    m = float(np.percentile(v, 50)) if len(v) % 2 or v[len(v) // 2] < math.inf else math.inf
+    return m if math.isfinite(m) else None
+
+
 def _stat(xs, q=50):
     xs = [x for x in xs if x is not None and math.isfinite(x)]
     return float(np.percentile(xs, q)) if xs else None
@@ -419,6 +465,10 @@ def summarise(runs: list[dict], laws) -> dict:
     out = {}
     for law in laws:
         rs = [r for r in runs if r["law"] == law]
+        leads = [x for r in rs for x in r.get("lead_times_ms") or []]
+        covs = [r["estimate_coverage"] for r in rs if r.get("estimate_coverage") is not None]
+        covs_mu = [r["estimate_coverage_peak_mu"] for r in rs if r.get("estimate_coverage_peak_mu") is not None]
+        n_conf = sum(r.get("confirmations") or 0 for r in rs)
         out[law] = {"eta_low_median": _stat([r["adhesion_utilisation_low"] for r in rs]),
                     "eta_low_p5": _stat([r["adhesion_utilisation_low"] for r in rs], 5),
                     "eta_median": _stat([r["adhesion_utilisation"] for r in rs]),
@@ -429,8 +479,43 @@ def summarise(runs: list[dict], laws) -> dict:
                     "torque_ripple_median_percent": _stat([r["torque_ripple_percent"] for r in rs]),
                     "speed_median_x_realtime": _stat([r["sim_s_per_wall_s"] for r in rs]),
                     "identification": identification_counts(rs),
+                    "confirmations": n_conf,
+                    "wrong_confirmation_fraction": (sum(r.get("wrong_confirmations") or 0 for r in rs) / n_conf
+                                                    if n_conf else None),
+                    "zero_width_confirmations": sum(r.get("zero_width_confirmations") or 0 for r in rs),
+                    "estimate_coverage": float(np.mean(covs)) if covs else None,
+                    "estimate_coverage_peak_mu": float(np.mean(covs_mu)) if covs_mu else None,
+                    "lead_time_median_ms": _median_none_last(leads),
+                    "lead_time_within_100ms_fraction": (sum(1 for x in leads if x is not None and x <= 100.0)
+                                                        / len(leads) if leads else None),
                     "runs": sorted(rs, key=lambda r: r["index"])}
+    if "identified" in out and BLIND in out:
+        contribution(out)
     return out
+
+
+def contribution(out: dict) -> None:
+    """What identification adds (``identified`` minus ``blind``, the same law with the estimate withheld, on the same
+    draws): per draw (into ``identified``'s runs) and in ``identified``'s summary."""
+    blind = {r["index"]: r for r in out[BLIND]["runs"]}
+    d_eta, d_slip, worse = [], [], 0
+    for r in out["identified"]["runs"]:
+        b = blind.get(r["index"])
+        if b is None:
+            continue
+        r["blind_eta_low"] = b["adhesion_utilisation_low"]
+        if r["adhesion_utilisation_low"] is not None and b["adhesion_utilisation_low"] is not None:
+            r["contribution_eta_low"] = r["adhesion_utilisation_low"] - b["adhesion_utilisation_low"]
+            d_eta.append(r["contribution_eta_low"])
+        r["contribution_macro_slip_s"] = (r["macro_slip_s"] or 0.0) - (b["macro_slip_s"] or 0.0)
+        d_slip.append(r["contribution_macro_slip_s"])
+        worse += r["contribution_macro_slip_s"] > 0.0
+    s = out["identified"]
+    s["blind_eta_low_median"] = out[BLIND]["eta_low_median"]
+    s["contribution_eta_low_median"] = _stat(d_eta)
+    s["contribution_eta_low_p5"] = _stat(d_eta, 5)
+    s["contribution_macro_slip_s_median"] = _stat(d_slip)
+    s["draws_macro_slip_worse_than_blind"] = worse
 
 
 def register(sub) -> None:
@@ -462,11 +547,11 @@ def cmd_control_bench(args) -> int:
     from ..progress import Progress, compile_kernels
     from ..sweep.engine import map_in_order
 
-    laws = list(LAWS) + [PRIOR, ORACLE] if args.laws is None else \
+    laws = list(LAWS) + [BLIND, PRIOR, ORACLE] if args.laws is None else \
         [x.strip() for x in args.laws.split(",") if x.strip()]
     for law in laws:
-        if law not in LAWS and law not in (ORACLE, PRIOR):
-            raise ConfigError(f"--laws {law!r}: unknown control law (known: {', '.join([*LAWS, PRIOR, ORACLE])})")
+        if law not in LAWS and law not in (ORACLE, PRIOR, BLIND):
+            raise ConfigError(f"--laws {law!r}: unknown control law (known: {', '.join([*LAWS, BLIND, PRIOR, ORACLE])})")
     if args.draws < 1:
         raise ConfigError(f"--draws {args.draws}: must be >= 1")
     fam = RAIL_FAMILIES[args.family]

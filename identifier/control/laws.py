@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from ..peak_estimate import prior_peak_creep_quantile_kmh
 from .base import ControlInput, Controller, CreepLoop
 
 _LOOP_DEFAULTS = {"bandwidth_rad_s": 150.0, "integral_rad_s": 20.0}
@@ -113,6 +114,7 @@ class ExtremumSeeking(Controller):
         self.v_hat = nominal_peak_creep_kmh
         self._mu_mean = None
         self._slope = 0.0
+        self.max_now = self.options["max_kmh"]     # the set-point's bound this period (``Identified``: its ceiling)
 
     def torque_nm(self, x: ControlInput) -> float:
         o = self.options
@@ -129,7 +131,7 @@ class ExtremumSeeking(Controller):
             self.v_hat += o["gain"] * self._slope * x.period_s
         else:                       # the demand limits: keep v^ just above the creep it carries
             self.v_hat = max(min(self.v_hat, x.creep_speed_kmh + o["carry_kmh"]), o["min_kmh"])
-        self.v_hat = min(max(self.v_hat, o["min_kmh"]), o["max_kmh"])
+        self.v_hat = min(max(self.v_hat, o["min_kmh"]), self.max_now)
         return self.loop.torque_nm(x, self.v_hat + o["dither_kmh"] * math.sin(phase))
 
 
@@ -202,12 +204,15 @@ class Identified(ExtremumSeeking):
     proportion (480 against 300), so the set-point moves as fast per unit of slope: the scan makes the
     large moves, the dither only the corrections, and a smaller dither ripples the torque less."""
     name = "identified"
-    defaults = {"hold_fraction": 0.98, "jump_ratio": 1.5, "rearm_s": 0.3, "drop_fraction": 1.0,
-                "change_mu": 0.02, "cap_kmh": 0.7, "scan_kmh_per_s": 4.0, "scan_settle_s": 0.03,
+    defaults = {"hold_fraction": 0.98, "jump_ratio": 1.5, "rearm_s": 0.3, "drop_fraction": 0.0,
+                "change_mu": 0.02, "cap_kmh": 0.0, "scan_kmh_per_s": 4.0, "scan_settle_s": 0.03,
                 "scan_filter_s": 0.01, "scan_drop_mu": 0.004, "scan_flat_kmh": 0.25,
-                "past_slope": 0.02, "past_s": 0.05, "rise_mu": 0.008, **ExtremumSeeking.defaults,
-                "dither_kmh": 0.05, "gain": 480.0, "max_kmh": 1.6}
+                "past_slope": 0.02, "past_s": 0.05, "rise_mu": 0.008, "risk_margin": 0.9, "jump_width": 2.0,
+                "ceiling_width": 4.0, "stale_s": 0.1, "blind": 0, **ExtremumSeeking.defaults,
+                "dither_kmh": 0.05, "gain": 480.0}
     ranges = {"hold_fraction": (0.1, 2.0), "jump_ratio": (0.0, 100.0), "rearm_s": (0.001, 60.0),
+              "risk_margin": (0.1, 1.0), "jump_width": (1.0, 100.0), "ceiling_width": (1.0, 1000.0),
+              "stale_s": (0.0, 10.0), "blind": (0, 1),
               "drop_fraction": (0.0, 20.0), "change_mu": (0.0, 1.0), "cap_kmh": (0.0, 30.0),
               "scan_kmh_per_s": (0.0, 1000.0), "scan_settle_s": (0.0, 10.0), "scan_filter_s": (0.0, 10.0),
               "scan_drop_mu": (0.0, 1.0), "scan_flat_kmh": (0.0, 30.0), "past_slope": (0.0, 10.0),
@@ -223,6 +228,12 @@ class Identified(ExtremumSeeking):
         self._past_for_s = 0.0         # how long the slope estimate has said "past a peak"
         self._mu_filtered: float | None = None      # mu^ filtered over scan_filter_s (the rise test) ...
         self._level_mu: float | None = None     # ... and its lowest value while the creep is held
+        o = self.options
+        # the bound at a change of rail: what the estimate allows with no sample of the new rail yet (its prior)
+        self.cap_kmh = o["cap_kmh"] or 2.0 * o["risk_margin"] * prior_peak_creep_quantile_kmh(0.05)
+        self.cap_kmh = max(self.cap_kmh, o["min_kmh"])
+        self._changed_t_s = -math.inf       # the last change of rail the law acted on
+        self._jumped = False
 
     def _target_kmh(self, x: ControlInput) -> float | None:
         """hold_fraction x the confirmed peak creep, clipped to its interval (class docstring), or None."""
@@ -250,16 +261,16 @@ class Identified(ExtremumSeeking):
                 scan.rise = (scan.mu, x.creep_speed_kmh)
             passed = scan.mu < scan.best_mu - o["scan_drop_mu"] or \
                 x.creep_speed_kmh > scan.rise[1] + o["scan_flat_kmh"]
-            if passed or not self.loop.limited or self.v_hat >= o["max_kmh"]:
+            if passed or not self.loop.limited or self.v_hat >= self.max_now:
                 if passed:
-                    self.v_hat = min(max(scan.best_kmh, o["min_kmh"]), o["max_kmh"])
+                    self.v_hat = min(max(scan.best_kmh, o["min_kmh"]), self.max_now)
                 elif not self.loop.limited:        # the rail carries the demand: v^ just above its creep
-                    self.v_hat = min(max(x.creep_speed_kmh + o["carry_kmh"], o["min_kmh"]), o["max_kmh"])
+                    self.v_hat = min(max(x.creep_speed_kmh + o["carry_kmh"], o["min_kmh"]), self.max_now)
                 self._scan = None
                 self._mu_mean = x.mu_hat
                 self._slope = 0.0
                 return self.loop.torque_nm(x, self.v_hat)
-            self.v_hat = min(self.v_hat + o["scan_kmh_per_s"] * x.period_s, o["max_kmh"])
+            self.v_hat = min(self.v_hat + o["scan_kmh_per_s"] * x.period_s, self.max_now)
         return self.loop.torque_nm(x, self.v_hat)
 
     def _past_a_peak(self, x: ControlInput) -> bool:
@@ -267,7 +278,7 @@ class Identified(ExtremumSeeking):
         while the creep loop limited the torque above ``cap_kmh`` (class docstring)."""
         o = self.options
         falling = (o["past_slope"] > 0.0 and o["dither_kmh"] > 0.0 and self.loop.limited
-                   and x.creep_speed_kmh > o["cap_kmh"] and 2.0 * self._slope / o["dither_kmh"] < -o["past_slope"])
+                   and x.creep_speed_kmh > self.cap_kmh and 2.0 * self._slope / o["dither_kmh"] < -o["past_slope"])
         self._past_for_s = self._past_for_s + x.period_s if falling else 0.0
         return self._past_for_s >= o["past_s"]
 
@@ -278,7 +289,7 @@ class Identified(ExtremumSeeking):
         a = x.period_s / (o["scan_filter_s"] + x.period_s)
         f = self._mu_filtered
         f = self._mu_filtered = x.mu_hat if f is None else f + a * (x.mu_hat - f)
-        if not o["rise_mu"] or self._scan is not None or not self.loop.limited or x.creep_speed_kmh <= o["cap_kmh"]:
+        if not o["rise_mu"] or self._scan is not None or not self.loop.limited or x.creep_speed_kmh <= self.cap_kmh:
             self._level_mu = None
             return False
         self._level_mu = f if self._level_mu is None else min(self._level_mu, f)
@@ -287,23 +298,58 @@ class Identified(ExtremumSeeking):
             return True
         return False
 
+    def _estimate(self, x: ControlInput):
+        """The identifier's estimate of the current rail (``x.estimate``) when the law may act on it: not blind,
+        and dated (its change of rail) no earlier than ``stale_s`` before the last change the law acted on."""
+        e = x.estimate
+        if self.options["blind"] or e is None:
+            return None
+        if e.since_step * x.period_s < self._changed_t_s - self.options["stale_s"]:
+            return None
+        return e
+
+    def _bounds(self, e) -> tuple[float, float] | None:
+        """(the creep maximising the lower bound of mu over the estimate's peak-creep interval [lo, hi], the
+        creep bound 2 risk_margin lo) from estimate ``e``.  With mu = mu_p h(v / v_p) and h(x) = h(1 / x) (the
+        estimate's k = 1 shape), min over v_p in [lo, hi] of h(v / v_p) is largest at v = sqrt(lo hi); the bound
+        keeps P(v > 2 v_p) below the interval's 5 % (the ``risk_margin`` to spare for the loop's overshoot)."""
+        lo, hi = e.peak_creep_ci
+        if not (math.isfinite(lo) and math.isfinite(hi) and lo > 0.0):
+            return None
+        bound = 2.0 * self.options["risk_margin"] * lo
+        return min(math.sqrt(lo * hi), bound), bound
+
     def torque_nm(self, x: ControlInput) -> float:
         o = self.options
+        e = self._estimate(x)
+        b = self._bounds(e) if e is not None else None
+        lo_hi = e.peak_creep_ci if b is not None else None
+        # the ceiling: the estimate's creep bound once its interval is narrow enough to mean it, else max_kmh
+        self.max_now = max(min(o["max_kmh"], b[1]), o["min_kmh"]) \
+            if b is not None and lo_hi[1] <= o["ceiling_width"] * lo_hi[0] else o["max_kmh"]
         rose = self._rose(x)
         changed = rose or (self._rail_changed(x) if self._scan is None else False)
         if self._scan is None and self._past_a_peak(x):
             changed, self._past_for_s = True, 0.0
-        if changed and o["cap_kmh"] > 0.0:
-            self.v_hat = min(self.v_hat, max(o["cap_kmh"], o["min_kmh"]))
+        if changed:
+            self._changed_t_s, self._jumped = x.t_s, False
+            self.v_hat = min(self.v_hat, self.cap_kmh)
             if o["scan_kmh_per_s"] > 0.0:
                 self._scan = _Scan()
+        # the estimate of the new rail narrow enough: to the creep it says is best, once per change of rail
+        if b is not None and not self._jumped and lo_hi[1] <= o["jump_width"] * lo_hi[0] \
+                and (self._scan is not None or x.t_s - self._changed_t_s < o["stale_s"] + 1.0):
+            self._jumped = True
+            self.v_hat = min(max(b[0], o["min_kmh"]), self.max_now)
+            self._scan = None
+            self._mu_mean, self._slope = x.mu_hat, 0.0
         if x.slipping and not self._was_slipping and o["drop_fraction"] > 0.0 and self._scan is None:
             self.v_hat = min(self.v_hat, max(o["drop_fraction"] * self.nominal_peak_creep_kmh, o["min_kmh"]))
         self._was_slipping = x.slipping
         if x.confirmed and not self._was_confirmed:
             target = self._target_kmh(x)
             if target is not None and x.creep_speed_kmh >= o["jump_ratio"] * target:
-                self.v_hat = min(max(target, o["min_kmh"]), o["max_kmh"])
+                self.v_hat = min(max(target, o["min_kmh"]), self.max_now)
                 self._scan = None
         self._was_confirmed = x.confirmed
         torque = self._scan_step(x) if self._scan is not None else super().torque_nm(x)
