@@ -208,11 +208,11 @@ class Identified(ExtremumSeeking):
                 "change_mu": 0.02, "cap_kmh": 0.0, "scan_kmh_per_s": 4.0, "scan_settle_s": 0.03,
                 "scan_filter_s": 0.01, "scan_drop_mu": 0.004, "scan_flat_kmh": 0.25,
                 "past_slope": 0.02, "past_s": 0.05, "rise_mu": 0.008, "risk_margin": 0.9, "jump_width": 2.0,
-                "ceiling_width": 4.0, "stale_s": 0.1, "blind": 0, **ExtremumSeeking.defaults,
+                "ceiling_width": 4.0, "stale_s": 0.1, "startup_s": 0.2, "new_rail_s": 1.0, "blind": 0, **ExtremumSeeking.defaults,
                 "dither_kmh": 0.05, "gain": 480.0}
     ranges = {"hold_fraction": (0.1, 2.0), "jump_ratio": (0.0, 100.0), "rearm_s": (0.001, 60.0),
               "risk_margin": (0.1, 1.0), "jump_width": (1.0, 100.0), "ceiling_width": (1.0, 1000.0),
-              "stale_s": (0.0, 10.0), "blind": (0, 1),
+              "stale_s": (0.0, 10.0), "startup_s": (0.0, 60.0), "new_rail_s": (0.0, 60.0), "blind": (0, 1),
               "drop_fraction": (0.0, 20.0), "change_mu": (0.0, 1.0), "cap_kmh": (0.0, 30.0),
               "scan_kmh_per_s": (0.0, 1000.0), "scan_settle_s": (0.0, 10.0), "scan_filter_s": (0.0, 10.0),
               "scan_drop_mu": (0.0, 1.0), "scan_flat_kmh": (0.0, 30.0), "past_slope": (0.0, 10.0),
@@ -244,9 +244,12 @@ class Identified(ExtremumSeeking):
         return self.options["hold_fraction"] * peak if math.isfinite(peak) else None
 
     def _rail_changed(self, x: ControlInput) -> bool:
-        """The change test (class docstring), against extremum seeking's mean of mu^ (its ``torque_nm`` updates it)."""
+        """The change test (class docstring), against extremum seeking's mean of mu^ (its ``torque_nm`` updates it),
+        only while the creep loop, not the demand, set the torque (a move of the demand moves mu^ too) and not in
+        the observer's first ``startup_s``."""
         o = self.options
-        return bool(o["change_mu"]) and self._mu_mean is not None and abs(x.mu_hat - self._mu_mean) > o["change_mu"]
+        return bool(o["change_mu"]) and self._mu_mean is not None and self.loop.limited \
+            and x.t_s >= o["startup_s"] and abs(x.mu_hat - self._mu_mean) > o["change_mu"]
 
     def _scan_step(self, x: ControlInput) -> float:
         """One period of the scan (class docstring); ends it when mu^ has passed its best."""
@@ -324,16 +327,24 @@ class Identified(ExtremumSeeking):
         e = self._estimate(x)
         b = self._bounds(e) if e is not None else None
         lo_hi = e.peak_creep_ci if b is not None else None
-        # the ceiling: the estimate's creep bound once its interval is narrow enough to mean it, else max_kmh
+        narrow = b is not None and lo_hi[1] <= o["ceiling_width"] * lo_hi[0]
+        # the ceiling: the estimate's creep bound while the rail is new to it or once its interval is narrow
+        # enough to mean it (a wide interval of a rail the demand carries says little), else max_kmh
         self.max_now = max(min(o["max_kmh"], b[1]), o["min_kmh"]) \
-            if b is not None and lo_hi[1] <= o["ceiling_width"] * lo_hi[0] else o["max_kmh"]
+            if b is not None and (narrow or x.t_s - self._changed_t_s < o["new_rail_s"]) else o["max_kmh"]
         rose = self._rose(x)
         changed = rose or (self._rail_changed(x) if self._scan is None else False)
         if self._scan is None and self._past_a_peak(x):
-            changed, self._past_for_s = True, 0.0
+            # not past the peak when a narrow estimate puts it above the creep
+            if not (narrow and x.creep_speed_kmh < e.peak_creep_kmh):
+                changed = True
+            self._past_for_s = 0.0
         if changed:
+            # down to what the estimate allows: its creep bound while it holds a narrow interval (a new rail's
+            # estimate takes over as soon as it has dated the change: the ceiling above), else its prior's
+            cap = max(self.cap_kmh, b[1]) if narrow and not o["cap_kmh"] else self.cap_kmh
             self._changed_t_s, self._jumped = x.t_s, False
-            self.v_hat = min(self.v_hat, self.cap_kmh)
+            self.v_hat = min(self.v_hat, cap)
             if o["scan_kmh_per_s"] > 0.0:
                 self._scan = _Scan()
         # the estimate of the new rail narrow enough: to the creep it says is best, once per change of rail
