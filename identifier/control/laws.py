@@ -208,11 +208,12 @@ class Identified(ExtremumSeeking):
                 "change_mu": 0.02, "cap_kmh": 0.0, "scan_kmh_per_s": 4.0, "scan_settle_s": 0.03,
                 "scan_filter_s": 0.01, "scan_drop_mu": 0.004, "scan_flat_kmh": 0.25,
                 "past_slope": 0.02, "past_s": 0.05, "rise_mu": 0.008, "risk_margin": 0.9, "jump_width": 2.0,
-                "ceiling_width": 4.0, "stale_s": 0.1, "startup_s": 0.2, "new_rail_s": 1.0, "blind": 0, **ExtremumSeeking.defaults,
+                "ceiling_width": 4.0, "stale_s": 0.1, "startup_s": 0.2, "new_rail_s": 1.0, "change_limited": 1, "blind": 0, **ExtremumSeeking.defaults,
                 "dither_kmh": 0.05, "gain": 480.0}
     ranges = {"hold_fraction": (0.1, 2.0), "jump_ratio": (0.0, 100.0), "rearm_s": (0.001, 60.0),
               "risk_margin": (0.1, 1.0), "jump_width": (1.0, 100.0), "ceiling_width": (1.0, 1000.0),
-              "stale_s": (0.0, 10.0), "startup_s": (0.0, 60.0), "new_rail_s": (0.0, 60.0), "blind": (0, 1),
+              "stale_s": (0.0, 10.0), "startup_s": (0.0, 60.0), "new_rail_s": (0.0, 60.0), "change_limited": (0, 1),
+              "blind": (0, 1),
               "drop_fraction": (0.0, 20.0), "change_mu": (0.0, 1.0), "cap_kmh": (0.0, 30.0),
               "scan_kmh_per_s": (0.0, 1000.0), "scan_settle_s": (0.0, 10.0), "scan_filter_s": (0.0, 10.0),
               "scan_drop_mu": (0.0, 1.0), "scan_flat_kmh": (0.0, 30.0), "past_slope": (0.0, 10.0),
@@ -248,8 +249,8 @@ class Identified(ExtremumSeeking):
         only while the creep loop, not the demand, set the torque (a move of the demand moves mu^ too) and not in
         the observer's first ``startup_s``."""
         o = self.options
-        return bool(o["change_mu"]) and self._mu_mean is not None and self.loop.limited \
-            and x.t_s >= o["startup_s"] and abs(x.mu_hat - self._mu_mean) > o["change_mu"]
+        return bool(o["change_mu"]) and self._mu_mean is not None \
+            and (self.loop.limited or not o["change_limited"]) and x.t_s >= o["startup_s"] and abs(x.mu_hat - self._mu_mean) > o["change_mu"]
 
     def _scan_step(self, x: ControlInput) -> float:
         """One period of the scan (class docstring); ends it when mu^ has passed its best."""
