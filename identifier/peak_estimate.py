@@ -48,11 +48,11 @@ from dataclasses import dataclass
 import numpy as np
 
 PEAK_CREEP_GRID_KMH = np.geomspace(0.08, 10.0, 40)
-SHAPES = (0.5, 1.0, 2.5)
+SHAPES = (0.3, 0.6, 1.0, 1.8, 3.5)
 _Z90 = 1.6448536269514722
 _LOG_2PI = math.log(2.0 * math.pi)
 
-DEFAULTS = {"noise_mu": 0.002, "correlation": 10.0, "memory_s": 0.3, "creep_noise_kmh": 0.002, "filter_s": 0.01, "every": 5, "prior_mu": 0.2, "prior_mu_sd": 0.2, "hazard_s": 2.0,
+DEFAULTS = {"noise_mu": 0.004, "correlation": 10.0, "memory_s": 0.3, "creep_noise_kmh": 0.002, "filter_s": 0.01, "every": 5, "prior_mu": 0.2, "prior_mu_sd": 0.2, "hazard_s": 2.0,
             "hypotheses": 4, "min_creep_kmh": 0.02}
 
 

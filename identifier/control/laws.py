@@ -208,11 +208,12 @@ class Identified(ExtremumSeeking):
                 "change_mu": 0.02, "cap_kmh": 0.0, "scan_kmh_per_s": 4.0, "scan_settle_s": 0.03,
                 "scan_filter_s": 0.01, "scan_drop_mu": 0.004, "scan_flat_kmh": 0.25,
                 "past_slope": 0.02, "past_s": 0.05, "rise_mu": 0.008, "risk_margin": 0.9, "jump_width": 2.0,
-                "ceiling_width": 4.0, "stale_s": 0.1, "startup_s": 0.2, "new_rail_s": 1.0, "change_limited": 1, "blind": 0, **ExtremumSeeking.defaults,
+                "ceiling_width": 4.0, "stale_s": 0.1, "startup_s": 0.2, "new_rail_s": 0.0, "track_kmh_per_s": 1.0, "track_band": 0.1, "change_limited": 1, "blind": 0, **ExtremumSeeking.defaults,
                 "dither_kmh": 0.05, "gain": 480.0}
     ranges = {"hold_fraction": (0.1, 2.0), "jump_ratio": (0.0, 100.0), "rearm_s": (0.001, 60.0),
               "risk_margin": (0.1, 1.0), "jump_width": (1.0, 100.0), "ceiling_width": (1.0, 1000.0),
-              "stale_s": (0.0, 10.0), "startup_s": (0.0, 60.0), "new_rail_s": (0.0, 60.0), "change_limited": (0, 1),
+              "stale_s": (0.0, 10.0), "startup_s": (0.0, 60.0), "new_rail_s": (0.0, 60.0), "track_kmh_per_s": (0.0, 100.0),
+              "track_band": (0.0, 10.0), "change_limited": (0, 1),
               "blind": (0, 1),
               "drop_fraction": (0.0, 20.0), "change_mu": (0.0, 1.0), "cap_kmh": (0.0, 30.0),
               "scan_kmh_per_s": (0.0, 1000.0), "scan_settle_s": (0.0, 10.0), "scan_filter_s": (0.0, 10.0),
@@ -355,6 +356,12 @@ class Identified(ExtremumSeeking):
             self.v_hat = min(max(b[0], o["min_kmh"]), self.max_now)
             self._scan = None
             self._mu_mean, self._slope = x.mu_hat, 0.0
+        # holding a creep far from the one a narrow estimate says is best: move towards it (extremum seeking's
+        # dither still corrects; the estimate's interval, not the dither's slope, sets where it goes)
+        elif b is not None and self._scan is None and o["track_kmh_per_s"] > 0.0 and self.loop.limited \
+                and lo_hi[1] <= o["jump_width"] * lo_hi[0] and abs(self.v_hat - b[0]) > o["track_band"] * b[0]:
+            step = o["track_kmh_per_s"] * x.period_s
+            self.v_hat += max(min(b[0] - self.v_hat, step), -step)
         if x.slipping and not self._was_slipping and o["drop_fraction"] > 0.0 and self._scan is None:
             self.v_hat = min(self.v_hat, max(o["drop_fraction"] * self.nominal_peak_creep_kmh, o["min_kmh"]))
         self._was_slipping = x.slipping
