@@ -558,3 +558,101 @@ def test_macro_slip_counts_a_wheel_sliding_backwards():
          "train_speed_ms": np.full(n, 10.0)}
     m = metrics(c, (), 1e-3, 1.3e5, 1000.0)
     assert m["macro_slip_count"] == 1 and m["macro_slip_s"] == pytest.approx(0.2)
+
+
+# -- issue 50: the peak estimate and the law acting on it --------------------------------------------------------
+def _rail_run(tmp_path_factory, name, overrides, law="identified"):
+    return _run(tmp_path_factory, law, {"run.duration_s": 6.0, **overrides})
+
+
+def test_identified_holds_the_creep_near_a_heavy_haul_rails_peak(tmp_path_factory):
+    """A heavy-haul dry rail (peak creep 3.2 km/h, flat top) around a wet patch, the driver asking more than the
+    dry rail carries: over the last second, on dry rail again, ``identified`` holds the creep within 10 % of the
+    true peak creep (the estimate's interval puts the peak there; the dither alone creeps towards it slowly)."""
+    _, summary, log = _rail_run(tmp_path_factory, "heavy", {
+        "rail.0.peak_creep_kmh": 3.2, "rail.2.peak_creep_kmh": 3.2, "control.demand_mu": [[0.0, 0.26], [0.5, 0.34]]})
+    a = _arrays(log)
+    last = a["t"] >= a["t"][-1] - 1.0
+    assert np.all(a["demand_mu"][last] > a["peak_mu"][last])       # the law, not the demand, sets the creep
+    creep = float(np.median(a["creep"][last]))
+    peak = float(np.median(a["peak_creep"][last]))
+    print("heavy haul: creep held", creep, "true peak creep", peak, summary["adhesion_utilisation_low"])
+    assert peak == pytest.approx(3.2, rel=0.02)
+    assert abs(creep - peak) <= 0.10 * peak
+
+
+def test_identified_keeps_a_leaf_patch_out_of_macro_slip(tmp_path_factory):
+    """A leaf patch (peak mu 0.05 at 0.3 km/h) after a dry rail held near 1.4 km/h: no macro-slip, in either
+    direction (|creep| above twice the peak creep for 50 ms)."""
+    _, summary, log = _rail_run(tmp_path_factory, "leaf", {"rail.1.peak_mu": 0.05, "rail.1.peak_creep_kmh": 0.3})
+    a = _arrays(log)
+    on_patch = (a["t"] > 2.1) & (a["t"] < 3.9)
+    assert float(np.median(a["peak_creep"][on_patch])) == pytest.approx(0.3, rel=0.05)
+    print("leaf:", summary["macro_slip_s"], summary["adhesion_utilisation_low"])
+    assert summary["macro_slip_s"] == 0.0 and summary["macro_slip_count"] == 0
+
+
+def test_the_estimate_agrees_with_its_numpy_reference():
+    """The compiled recursion (identifier/kernels.py) and the numpy reference give the same estimates, through
+    a change of rail (the run length pruned, the change dated)."""
+    from identifier.peak_estimate import PeakEstimator
+
+    rng = np.random.default_rng(50)
+    a, b = PeakEstimator(1e-3), PeakEstimator(1e-3, compiled=False)
+    for k in range(3000):
+        v = 0.6 + 0.4 * math.sin(k / 60.0)
+        m = (0.25 if k < 1500 else 0.1) * 2 * v / (1 + v * v) + 0.001 * rng.standard_normal()
+        ea, eb = a.add(k, k * 1e-3, v, m), b.add(k, k * 1e-3, v, m)
+        assert ea.peak_creep_ci == pytest.approx(eb.peak_creep_ci, rel=1e-9)
+        assert ea.peak_mu == pytest.approx(eb.peak_mu, rel=1e-9) and ea.since_step == eb.since_step
+    assert 1500 <= ea.since_step < 1600                      # the change dated, the dry samples forgotten
+    assert ea.peak_mu_ci[0] < 0.1 < ea.peak_mu_ci[1]
+
+
+def test_the_estimates_90_percent_intervals_cover_drawn_curves():
+    """300 curves of the ``default`` fault family (seed printed), each swept from 0.05 km/h to 1.5 x its peak creep
+    over 0.6 s with the sensors' noise: the final 90 % peak-creep interval holds the true peak creep in at least
+    70 % of them and at most 98 % (measured 85 %: issue 50's 85-95 % target on static rails; a correct
+    implementation at 85 % falls below 70 % of 300 with probability < 1e-5)."""
+    from plant.families import sample_curves
+    from identifier.peak_estimate import PeakEstimator
+
+    from .conftest import case_seed
+
+    seed = case_seed("estimate coverage")
+    print("seed", seed)
+    rng = np.random.default_rng(seed)
+    batch = sample_curves("default", 300, rng, 10.0)
+    hits = 0
+    for i in range(300):
+        v = np.linspace(0.05, 1.5 * batch.peak_creep_kmh[i], 600)
+        mu = batch.mu(v)[i]
+        e = PeakEstimator(1e-3)
+        for k in range(600):
+            est = e.add(k, k * 1e-3, v[k] + 0.0075 * rng.standard_normal(), mu[k] + 0.001 * rng.standard_normal())
+        hits += est.peak_creep_ci[0] <= batch.peak_creep_kmh[i] <= est.peak_creep_ci[1]
+    print("coverage", hits / 300)
+    assert 0.70 * 300 <= hits <= 0.98 * 300
+
+
+@pytest.mark.slow
+def test_blind_differs_from_identified_where_the_estimate_came_in_time():
+    """On drawn bench cases (seed printed), the first draw where an estimate held the true peak creep within 10 %
+    inside 100 ms of a change of rail: ``identified`` and ``blind`` (the same law, the estimate withheld) do not
+    score the same."""
+    from hil.benchmarks.control import BASE, draw_text, run_point
+
+    from .conftest import case_seed
+
+    seed = case_seed("blind")
+    print("seed", seed)
+    for index in range(6):
+        text, _ = draw_text((ROOT / BASE).read_text(), seed, index, 13.0)
+        item = {"index": index, "text": text, "run_seed": seed % 1000 + index}
+        ident = run_point({**item, "law": "identified"})
+        if any(x is not None and x <= 100.0 for x in ident["lead_times_ms"]):
+            blind = run_point({**item, "law": "blind"})
+            print(index, ident["adhesion_utilisation_low"], blind["adhesion_utilisation_low"])
+            assert ident["adhesion_utilisation_low"] != blind["adhesion_utilisation_low"]
+            return
+    pytest.fail(f"no estimate in time on 6 draws of seed {seed}")
