@@ -9,11 +9,11 @@
 ``extremum_seeking``  perturbation-based peak tracking: a sine dither on the creep set-point, the observer's
                       mu^ demodulated by it gives the slope d mu / d v_s, the set-point climbs it (Ariyur and
                       Krstic's scheme; J. Adv. Transp. 2019, 6270515 for its use on a locomotive).
-``identified``        extremum seeking placed by what the TCU learns of the rail: at each change of rail mu^
-                      shows (a drop or a recovery) the creep falls to a bound safe on every rail of the
-                      prior family and climbs from there until mu^ stops rising; a confirmed curve whose
-                      peak creep the creep has passed well beyond moves the set-point to it (kept inside the
-                      90 % peak-creep interval); the dither corrects both and carries on alone otherwise.
+``identified``        extremum seeking placed by what the TCU learns of the rail: its peak estimate
+                      (identifier/peak_estimate.py) sets the bound the creep falls to at each change of rail
+                      mu^ shows, the ceiling, and the set-point (the creep maximising the lower bound of mu
+                      over the estimate's interval); a climb finds the peak while the estimate is wide; the
+                      dither corrects and carries on alone otherwise.
 """
 from __future__ import annotations
 
@@ -146,63 +146,49 @@ class _Scan:
 
 
 class Identified(ExtremumSeeking):
-    """Extremum seeking placed by what the TCU learns of the rail (module docstring).
+    """Extremum seeking placed by what the TCU learns of the rail (module docstring): its peak estimate
+    (identifier/peak_estimate.py: the current rail's peak creep v_p with a 90 % interval [lo, hi], every period,
+    ``x.estimate``) sets its bound, its ceiling and its set-point; no default is a rail family's extreme.
 
-    **A change of rail** (mu^ leaves its mean, extremum seeking's first-order filter of ``filter_s``, by
-    more than ``change_mu``, up or down, while the creep is held): the set-point drops to at most ``cap_kmh`` and,
-    ``scan_settle_s`` later, climbs at ``scan_kmh_per_s`` while mu^ (filtered over ``scan_filter_s``) keeps
-    rising; once it has fallen ``scan_drop_mu`` below the best seen, the set-point returns to the creep
-    where the best was seen and extremum seeking takes over from there (its estimate restarted).  The
-    scan also ends when the demand, not the creep loop, limits the torque (the rail carries the demand).
-    Why: with the peak creep of the new rail unknown, the creep the old rail carried may be past twice
-    it (macro-slip) on a wet patch after a dry rail, and on a dry rail after a patch whose peak lay far
-    out; ``cap_kmh`` = 0.7 km/h is below twice the lowest peak creep of the TCU's prior family
-    (``default``: 0.4 km/h) by the dither's amplitude and the creep loop's overshoot (about 0.05 km/h
-    each): on a patch whose peak is the lowest, the climb from the cap ends near it and the dither rides
-    on top.  A climb at 4 km/h/s finds a peak the dither would take seconds to reach.  During a scan the
+    **The estimate's creep and bound.**  With the estimate's curve mu = mu_p h(v / v_p) and h(x) = h(1 / x) (its
+    k = 1 shape), min over v_p in [lo, hi] of h(v / v_p) is largest at v* = sqrt(lo hi): the creep that maximises
+    the lower bound of mu over the interval.  The bound 2 ``risk_margin`` lo keeps the chance of passing twice the
+    peak creep below the interval's 5 % (``risk_margin`` 0.9 leaves room for the dither and the loop's overshoot).
+    An estimate is of the current rail when it dates its change of rail no earlier than ``stale_s`` before the
+    last change the law acted on; ``blind`` = 1 withholds it (the bench's ablation).  An estimate is *narrow*
+    when hi <= ``jump_width`` lo.
+
+    **A change of rail** (mu^ leaves its mean, extremum seeking's first-order filter of ``filter_s``, by more than
+    ``change_mu``, up or down, while the creep loop and not the demand sets the torque (``change_limited``: a move
+    of the demand moves mu^ too) and after ``startup_s``): the set-point drops to the bound of the estimate held
+    then if it is narrow (hi <= ``ceiling_width`` lo), else to the bound of the estimate's prior (0.2 km/h; with no
+    sample of the new rail that is what the estimate allows; ``cap_kmh`` > 0 replaces both), and, ``scan_settle_s``
+    later, climbs at ``scan_kmh_per_s`` while mu^ (filtered over ``scan_filter_s``) keeps rising; once it has
+    fallen ``scan_drop_mu`` below the best seen (or risen less than that over ``scan_flat_kmh``), the set-point
+    returns to the creep where the best was seen and extremum seeking takes over from there.  The scan also ends
+    when the demand, not the creep loop, limits the torque.  As soon as the estimate of the new rail is narrow the
+    set-point goes to v* (never above the bound) and the climb ends, once per change of rail.  During a scan the
     change test is off: the scan itself moves mu^.
 
-    **Past a peak**: a change of rail can leave mu^ almost where it was (a dry rail after a patch whose
-    peak lay far out: the dry curve's tail, at the creep the patch carried, gives about the patch's peak
-    mu).  The dither then sees the fall: when its slope estimate 2 LPF(demod) / a stays below
-    -``past_slope`` (per km/h) for ``past_s`` while the creep loop holds a creep above ``cap_kmh``, the
-    set-point drops and climbs as at a change of rail, instead of the dither walking it down at
-    ``gain`` x its slope (docs/design/control.md has the macro-slip that showed it).  Without a dither
-    (``dither_kmh`` 0) there is no slope estimate and no such drop.
+    **The ceiling and the tracking.**  While the estimate is narrow enough (hi <= ``ceiling_width`` lo), or for
+    ``new_rail_s`` after a change of rail, its bound caps the set-point (else ``max_kmh``, extremum seeking's).
+    Outside a climb, while the creep loop sets the torque and the estimate is narrow, a set-point more than
+    ``track_band`` x v* from v* moves towards it at ``track_kmh_per_s`` (the dither still corrects it).
 
-    **A better rail**: a rail that recovers over a transition can raise mu^ too slowly for the change test
-    (mu^ stays near its own mean) and too little at the creep held (a dry rail whose peak lies far below
-    that creep, after a patch whose peak lay far out).  While the creep loop holds a
-    creep above ``cap_kmh`` outside a scan, mu^ filtered over ``scan_filter_s`` is compared with its lowest
-    value since then: a rise of more than ``rise_mu`` drops the set-point and climbs as at a change of rail
-    (0: off; docs/design/control.md has the macro-slip that showed it and the A/B).
+    **Past a peak**: when the dither's slope estimate 2 LPF(demod) / a stays below -``past_slope`` (per km/h) for
+    ``past_s`` while the creep loop holds a creep above the bound, the set-point drops and climbs as at a change of
+    rail, unless a narrow estimate puts the peak above the creep held.  **A better rail**: while the creep loop
+    holds a creep above the bound outside a scan, mu^ filtered over ``scan_filter_s`` rising more than ``rise_mu``
+    above its lowest value since then drops the set-point and climbs as at a change of rail (0: off).  Both were
+    shown necessary by the macro-slips docs/design/control.md measures.
 
-    **A bound on the creep held**: ``max_kmh`` is 1.6 km/h here (extremum seeking's 12), twice the lowest peak
-    creep of a dry rail in the TCU's prior (0.8 km/h: hil/benchmarks/control.py's dry rails).  Why: on a
-    patch whose peak lies far out (up to 3 km/h in the ``default`` family) a return to dry rail within
-    about 0.1 s puts the creep held past twice the dry peak creep before mu^ at that creep has moved by
-    more than its noise, so no test above can act in time; below the bound the return cannot make a
-    macro-slip.  It costs such patches the mu between the bound and their peak (docs/design/control.md
-    measures both).
+    **A confirmed curve** whose peak creep the creep has passed ``jump_ratio``-fold moves the set-point to
+    ``hold_fraction`` x that peak creep (clipped to its 90 % interval).  Once the demand has passed through for
+    ``rearm_s`` after a slip, the identifier is re-armed.  At each drop the slip detector flags outside a scan,
+    v^ starts from no higher than ``drop_fraction`` x the nominal curve's peak creep (0, the default: off).
 
-    **A confirmed curve** whose peak creep the creep has passed ``jump_ratio``-fold moves the set-point
-    to ``hold_fraction`` x that peak creep (clipped to its 90 % interval); the dither corrects it.  Why
-    the condition: in closed loop a drop's samples straddle the change of rail while the loop holds the
-    creep, and a fall of mu that the rail made looks, to an identifier of one static curve, like the fall
-    past a peak at the newest creeps; ``gp`` dates the change and drops the samples before it
-    (identifier/strategies/gp.py), but a strategy that does not would claim a peak just below the creep
-    reached, and an ``unconfirmed`` best estimate may be the working range's bound (docs/design/control.md
-    measures both).  Only the peak *creep* is used: the peak mu of a curve fitted across two rails is
-    the least reliable part of it.  Once the demand has passed through for ``rearm_s`` after a slip (the
-    rail carries it again), the identifier is re-armed, so the next drop is identified afresh.
-
-    At each drop the identifier's slip detector flags (``slipping`` rising, the first after a re-arm)
-    outside a scan, v^ starts from no higher than ``drop_fraction`` x the nominal curve's peak creep v_N
-    (0: off).
-
-    The dither is smaller than extremum seeking's (0.05 km/h against 0.08) with the gain raised in
-    proportion (480 against 300), so the set-point moves as fast per unit of slope: the scan makes the
-    large moves, the dither only the corrections, and a smaller dither ripples the torque less."""
+    The dither is smaller than extremum seeking's (0.05 km/h against 0.08) with the gain raised in proportion (480
+    against 300): the scan and the estimate make the large moves, the dither the corrections."""
     name = "identified"
     defaults = {"hold_fraction": 0.98, "jump_ratio": 1.5, "rearm_s": 0.3, "drop_fraction": 0.0,
                 "change_mu": 0.02, "cap_kmh": 0.0, "scan_kmh_per_s": 4.0, "scan_settle_s": 0.03,
