@@ -108,12 +108,17 @@ class TruthTrack:
         """Where the rail changes: each segment's start after the first (the paper's runs: the fault)."""
         return self.rail.transitions_s if self.rail is not None else (self.scenario.run.fault_time_s,)
 
-    def metrics(self, events=()) -> dict:
+    def metrics(self, events=(), estimates=None) -> dict:
         """The run's figures (module docstring); ``events``: the TCU's identification events, for the per-drop
-        identification figures (``drop_identification``)."""
+        identification figures (``drop_identification``); ``estimates``: the built-in TCU's peak estimates (a
+        trace of them), for ``peak_estimate`` per rail change (``estimate_figures``; None: an external TCU)."""
         c = self.cols
         out = metrics(c, self.changes_s(), self.period_s, self.normal_force_n, self.torque_per_mu_nm)
         out["drop_identification"] = drop_figures(c, self.changes_s(), events)
+        if estimates is not None and self.rail is not None:
+            fig = estimate_figures(c, self.changes_s(), estimates, every=1)
+            out["peak_estimate"] = [{"change_s": r["t_s"], "lead_time_ms": r["lead_time_ms"],
+                                     **(r["peak_estimate"] or {})} for r in fig["per_change"]]
         return out
 
 

@@ -27,6 +27,8 @@ from .settings import IdentifierSettings
 from .strategies import DEFAULT_STRATEGY, Sample, make_strategy
 
 KMH_PER_MS = 3.6
+#: the run keeps one estimate in this many periods for its summary (identifier/peak_estimate.py)
+ESTIMATE_TRACE_STEPS = 10
 
 
 def creep_speed_kmh(reading: SensorReading, vehicle) -> float:
@@ -139,6 +141,8 @@ class TractionIdentifier:
         self.estimator = PeakEstimator(settings.period_s, settings.options.get("peak_estimate"))
         self.estimate = None
         self.estimates: list | None = None
+        #: every ``ESTIMATE_TRACE_STEPS``-th estimate, always (the run summary's ``peak_estimate`` per rail change)
+        self.estimate_trace: list = []
         self.events_log: list | None = None    # every identification event, when a benchmark asks for them
         self.drill = (Drill(settings, strategy, settings.drill_particles, seed)
                       if settings.drill_particles > 0 and self.strategy.keeps_warm
@@ -243,6 +247,8 @@ class TractionIdentifier:
             self.estimate = self.estimator.add(reading.step, t_s, paired_creep, observer.mu_hat)
             if self.estimates is not None:
                 self.estimates.append(self.estimate)
+            if reading.step % ESTIMATE_TRACE_STEPS == 0:
+                self.estimate_trace.append(self.estimate)
         if self.drill is not None and (self.detector.detected_step is None or (
                 not self._observer_aware and reading.step - self.detector.detected_step < self._settle_steps - 1)):
             self.drill.tick()       # monitoring, or settling: the strategy's first sample is still ahead
