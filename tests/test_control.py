@@ -263,13 +263,14 @@ def test_identified_drops_when_a_recovering_rail_raises_mu_hat_a_little_at_the_c
     assert min(off) > 1.8
 
 
-def test_identified_holds_no_creep_a_quick_return_to_dry_rail_would_put_in_macro_slip(tmp_path_factory):
+def test_a_bound_on_the_creep_held_keeps_a_quick_return_to_dry_rail_out_of_macro_slip(tmp_path_factory):
     """tests/data/far_patch.toml: a patch peaking at 2.81 km/h, the demand just above its peak, then a dry
-    rail peaking at 0.89 km/h within 79 ms.  With ``max_kmh`` at extremum seeking's 12 the law holds the
-    creep near the patch's peak (above 2 km/h) and the return puts it past twice the dry peak creep for
-    more than 50 ms before mu^ has moved (the judged macro-slip of docs/design/control.md); with the
-    default bound (1.6 km/h) the creep on the patch stays within the bound plus the dither and no
-    macro-slip follows.  Both from the log's true states."""
+    rail peaking at 0.89 km/h within 79 ms.  With today's defaults (issue 50: no bound taken from a family's
+    extreme; the estimate bounds the creep by the *current* rail's peak) the law holds the creep near the
+    patch's peak (above 2 km/h) and the return puts it past twice the dry peak creep for more than 50 ms
+    before mu^ has moved: the estimate cannot know the next rail (docs/design/control.md).  With the family's
+    bound given as an option (``max_kmh`` 1.6 km/h, issue 36's default) the creep on the patch stays within the
+    bound plus the dither and no macro-slip follows.  Both from the log's true states."""
     far = ROOT / "tests" / "data" / "far_patch.toml"
 
     def longest_over_and_patch_creep(overrides):
@@ -283,10 +284,11 @@ def test_identified_holds_no_creep_a_quick_return_to_dry_rail_would_put_in_macro
         patch = (a["t"] >= 2.5) & (a["t"] < 5.3)
         return summary, longest, float(np.median(a["creep"][patch])), float(np.max(a["creep"][patch]))
 
-    summary, longest, median_kmh, top_kmh = longest_over_and_patch_creep({})
+    summary, longest, median_kmh, top_kmh = longest_over_and_patch_creep({"control.options.identified.max_kmh": 1.6})
     assert longest <= 50 and summary["macro_slip_count"] == 0, (longest, summary["macro_slip_s"])
     assert top_kmh < 1.6 + 0.15 and median_kmh > 1.3, (median_kmh, top_kmh)
-    summary, longest, median_kmh, top_kmh = longest_over_and_patch_creep({"control.options.identified.max_kmh": 12.0})
+    summary, longest, median_kmh, top_kmh = longest_over_and_patch_creep({})
+    print("defaults:", longest, summary["macro_slip_s"], median_kmh)
     assert longest > 50 and summary["macro_slip_count"] >= 1, (longest, summary["macro_slip_s"])
     assert median_kmh > 2.0, median_kmh
 
@@ -517,7 +519,8 @@ def test_the_control_bench_reports_every_law_with_the_oracle_on_top_and_the_iden
 
     seed = case_seed("control bench")
     r = run_hil("bench", "control", "--draws", "1", "--duration-s", "12", "--speed-s", "0", "--seed", str(seed),
-                "--laws", "extremum_seeking,identified,oracle", "--json", "--doc", str(tmp_path), timeout=600)
+                "--family", "narrow", "--laws", "extremum_seeking,identified,blind,oracle", "--json", "--doc",
+                str(tmp_path), timeout=900)
     assert r.returncode == 0, r.stderr[-2000:]
     out = json.loads(r.stdout)
     assert out["seed"] == seed and out["draws"] == 1
@@ -527,6 +530,16 @@ def test_the_control_bench_reports_every_law_with_the_oracle_on_top_and_the_iden
                     "recovery_median_s", "torque_ripple_median_percent", "runs"):
             assert key in res, (law, key)
         assert len(res["runs"]) == 1
+        for key in ("confirmations", "wrong_confirmation_fraction", "estimate_coverage", "lead_time_median_ms",
+                    "lead_time_within_100ms_fraction"):
+            assert key in res, (law, key)
+    ident, blind = out["results"]["identified"], out["results"]["blind"]
+    assert out["family"]["name"] == "narrow"
+    assert ident["blind_eta_low_median"] == blind["eta_low_median"]
+    assert ident["contribution_eta_low_median"] == pytest.approx(
+        ident["runs"][0]["adhesion_utilisation_low"] - blind["runs"][0]["adhesion_utilisation_low"])
+    assert ident["contribution_eta_low_p5"] == pytest.approx(ident["contribution_eta_low_median"])
+    assert 0.0 <= ident["estimate_coverage"] <= 1.0
     oracle = out["results"]["oracle"]
     assert oracle["macro_slip_fraction"] == 0.0 and oracle["eta_low_median"] > 0.9, oracle
     a = out["results"]["identified"]["runs"][0]
