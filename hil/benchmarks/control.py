@@ -531,6 +531,8 @@ def register(sub) -> None:
     p.add_argument("--laws", default=None, help="comma-separated laws (default: all, and the oracle)")
     p.add_argument("--doc", metavar="DIR", default=None, help="write control.md, control.json and plots into DIR "
                    "(e.g. docs/benchmarks)")
+    p.add_argument("--doc-name", default=None, help="the report's file names in --doc DIR (default: control, or "
+                   "control-FAMILY for another family than the default)")
     p.add_argument("--json", action="store_true", help="print exactly one JSON object on stdout")
     p.add_argument("--scheduler", metavar="ADDRESS", default=None, help="run on this Dask cluster (tcp://HOST:PORT)")
     p.add_argument("--workers", type=int, default=None, help="run on a local Dask cluster of this many workers "
@@ -581,8 +583,10 @@ def cmd_control_bench(args) -> int:
            "prior_set_point_kmh": prior_kmh,
            "drawn": [d for _, d in draws], "results": results, "speed": speed_pair(base_text, seed, args.speed_s)}
     out["written"] = provenance(args, seed, load_before)
+    out["pooled"] = pooled(results)
     if args.doc:
-        write_report(out, Path(args.doc), draws)
+        write_report(out, Path(args.doc), draws, args.doc_name or ("control" if fam.name == "default"
+                                                                    else f"control-{fam.name}"))
     if args.json:
         print(json.dumps(out))
         return 0
@@ -604,6 +608,18 @@ def cmd_control_bench(args) -> int:
     line = _identification_line(out)
     if line:
         print(wrap(line.replace("`", ""), "  "))
+    r, a = results.get("identified") or {}, out["pooled"]
+    if "contribution_eta_low_median" in r:
+        print(wrap(f"identification's contribution (identified - blind): median eta_low "
+                   f"{_fmt(r['contribution_eta_low_median'], '+.4f')}, p5 {_fmt(r['contribution_eta_low_p5'], '+.4f')}; "
+                   f"draws with more macro-slip than blind {r['draws_macro_slip_worse_than_blind']}", "  "))
+    if r:
+        print(wrap(f"estimate: lead time median {_fmt(r.get('lead_time_median_ms'), '.0f')} ms, within 100 ms "
+                   f"{_fmt(r.get('lead_time_within_100ms_fraction'), '.1%')}; coverage (all laws) "
+                   f"{_fmt(a['estimate_coverage'], '.1%')}; confirmations (all laws) {a['confirmations']}, wrong "
+                   f"{_fmt(a['wrong_confirmation_fraction'], '.1%')}", "  "))
+    for target, verdict in verdicts_50(results):
+        print(f"  {verdict:12s} {target}")
     print(wrap("Columns: medians over the draws (p5: eta_low's 5th percentile; slip: runs with macro-slip; "
                "x RT: simulated seconds per wall second).  "
                "eta_low: adhesion utilisation where the demand exceeds the true peak and 1 s after each change "
@@ -689,6 +705,53 @@ SPEED_TARGETS = (("60 s logged run >= 10 x real time", lambda sp: sp["identified
                  ("its speed >= 0.8 x demand's", lambda sp: sp["identified_over_demand"] >= 0.8))
 
 
+BASELINES = ("extremum_seeking", "constant_creep", "readhesion", PRIOR)
+
+
+def pooled(results: dict) -> dict:
+    """Over every law's runs (open and closed loop): the confirmations judged against the rail under the wheel
+    (``confirmation_figures``) and the estimate's coverage (the mean over runs)."""
+    runs = [r for res in results.values() for r in res.get("runs", [])]
+    n = sum(r.get("confirmations") or 0 for r in runs)
+    covs = [r["estimate_coverage"] for r in runs if r.get("estimate_coverage") is not None]
+    return {"confirmations": n, "wrong_confirmation_fraction": (sum(r.get("wrong_confirmations") or 0 for r in runs)
+                                                               / n if n else None),
+            "zero_width_confirmations": sum(r.get("zero_width_confirmations") or 0 for r in runs),
+            "estimate_coverage": float(np.mean(covs)) if covs else None}
+
+
+#: issue 50's targets (the report's second table), on ``results`` and ``pooled(results)``
+TARGETS_50 = (
+    ("identified: eta_low median within 0.01 of the oracle's",
+     lambda r, a: r["identified"]["eta_low_median"] >= r[ORACLE]["eta_low_median"] - 0.01),
+    ("identified: eta_low p5 >= 0.93", lambda r, a: r["identified"]["eta_low_p5"] >= 0.93),
+    ("identified: macro-slip in 0 runs", lambda r, a: r["identified"]["macro_slip_fraction"] == 0.0),
+    ("median eta_low ahead of every baseline by >= 0.005", lambda r, a: all(
+        r["identified"]["eta_low_median"] >= r[b]["eta_low_median"] + 0.005 for b in BASELINES)),
+    ("eta_low p5 not below any baseline's", lambda r, a: all(
+        r["identified"]["eta_low_p5"] >= r[b]["eta_low_p5"] for b in BASELINES)),
+    ("contribution (identified - blind) >= +0.01 in median eta_low",
+     lambda r, a: r["identified"]["contribution_eta_low_median"] >= 0.01),
+    ("macro-slip never worse than blind", lambda r, a: r["identified"]["draws_macro_slip_worse_than_blind"] == 0),
+    ("lead time: within 100 ms in >= 80 % of changes",
+     lambda r, a: r["identified"]["lead_time_within_100ms_fraction"] >= 0.8),
+    ("wrong confirmations <= 2 % (all laws)", lambda r, a: a["wrong_confirmation_fraction"] <= 0.02),
+    ("no zero-width interval (all laws)", lambda r, a: a["zero_width_confirmations"] == 0),
+    ("estimate coverage 85-95 % (all laws)", lambda r, a: 0.85 <= a["estimate_coverage"] <= 0.95),
+)
+
+
+def verdicts_50(results: dict) -> list[tuple[str, str]]:
+    a = pooled(results)
+    out = []
+    for name, test in TARGETS_50:
+        try:
+            out.append((name, "met" if test(results, a) else "missed"))
+        except (KeyError, TypeError):
+            out.append((name, "not measured"))
+    return out
+
+
 def verdicts(results: dict, speed: dict | None = None) -> list[tuple[str, str]]:
     """(target, "met" / "missed" / "not measured") for each of ``TARGETS`` and ``SPEED_TARGETS`` (those only on a
     60 s speed run, the issue's)."""
@@ -708,7 +771,7 @@ def _fmt(x, spec):
     return "-" if x is None else format(x, spec)
 
 
-def worst_case_traces(out: dict, draws, doc: Path) -> str | None:
+def worst_case_traces(out: dict, draws, doc: Path, name: str = "control") -> str | None:
     """The draw where ``identified`` scored its lowest eta_low, run again logged with ``identified`` and the
     oracle: creep and torque against the true peak creep and the demand, in control-worst.png."""
     import tempfile
@@ -746,15 +809,15 @@ def worst_case_traces(out: dict, draws, doc: Path) -> str | None:
     fig.suptitle(f"identified's worst draw ({worst['index']}, eta_low {worst['adhesion_utilisation_low']:.3f}) "
                  "against the oracle")
     fig.tight_layout()
-    fig.savefig(doc / "control-worst.png", dpi=110)
+    fig.savefig(doc / f"{name}-worst.png", dpi=110)
     plt.close(fig)
-    return "control-worst.png"
+    return f"{name}-worst.png"
 
 
-def write_report(out: dict, doc: Path, draws=None) -> None:
-    """control.json, control.md and control-eta-low.png (and, given the draws, control-worst.png) into ``doc``."""
+def write_report(out: dict, doc: Path, draws=None, name: str = "control") -> None:
+    """NAME.json, NAME.md and NAME-eta-low.png (and, given the draws, NAME-worst.png) into ``doc``."""
     doc.mkdir(parents=True, exist_ok=True)
-    (doc / "control.json").write_text(json.dumps(out, indent=1) + "\n")
+    (doc / f"{name}.json").write_text(json.dumps(out, indent=1) + "\n")
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -769,14 +832,17 @@ def write_report(out: dict, doc: Path, draws=None) -> None:
     ax.set_title(f"hil bench control, seed {out['seed']}, {out['draws']} draws")
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    fig.savefig(doc / "control-eta-low.png", dpi=110)
+    fig.savefig(doc / f"{name}-eta-low.png", dpi=110)
     plt.close(fig)
     w = out.get("written") or {}
     lines = [f"# hil bench control (seed {out['seed']}, {out['draws']} draws)", "",
              f"Written by `{w.get('command', 'hil bench control')} --doc {doc}` (seed drawn at run time: "
              f"{w.get('seed_drawn')}) on {w.get('utc')} UTC, commit {w.get('commit')}, {w.get('machine')} with "
              f"{w.get('cores')} cores, load average {w.get('load_before')} before / {w.get('load_after')} after; wall "
-             f"{out['wall_s']:.0f} s. The family is documented in `hil/benchmarks/control.py`.", "",
+             f"{out['wall_s']:.0f} s. The family (`{(out.get('family') or {}).get('name', 'default')}`) is documented "
+             "in `hil/benchmarks/control.py`.", "",
+             "| target (issue 50) | verdict |", "|---|---|",
+             *(f"| {t} | {v} |" for t, v in verdicts_50(out["results"])), "",
              "| target for `identified` (issue 36) | verdict |", "|---|---|",
              *(f"| {name} | {v} |" for name, v in verdicts(out["results"], out.get("speed"))), "",
              "| law | eta_low median | eta_low p5 | eta median | runs with macro-slip | reaction median ms | "
@@ -798,8 +864,23 @@ def write_report(out: dict, doc: Path, draws=None) -> None:
         lines += ["", line]
     if out.get("prior_set_point_kmh") is not None:
         lines += ["", f"The prior law held {out['prior_set_point_kmh']:.2f} km/h."]
-    lines += ["", "![eta_low per law](control-eta-low.png)", ""]
-    worst = worst_case_traces(out, draws, doc) if draws else None
+    r, a = out["results"].get("identified") or {}, pooled(out["results"])
+    if "contribution_eta_low_median" in r:
+        lines += ["", f"Identification's contribution (`identified` minus `blind`, the estimate withheld, same draws): "
+                  f"median eta_low {_fmt(r['contribution_eta_low_median'], '+.4f')}, p5 "
+                  f"{_fmt(r['contribution_eta_low_p5'], '+.4f')}; `blind` {_fmt(r['blind_eta_low_median'], '.3f')}; "
+                  f"draws where `identified` macro-slipped longer: {r['draws_macro_slip_worse_than_blind']}."]
+    if r:
+        lines += ["", f"The estimate under `identified`: lead time median {_fmt(r.get('lead_time_median_ms'), '.0f')} ms "
+                  f"(a change never reached: above every number), within 100 ms in "
+                  f"{_fmt(r.get('lead_time_within_100ms_fraction'), '.1%')} of changes; coverage of its 90 % peak-creep "
+                  f"interval {_fmt(r.get('estimate_coverage'), '.1%')} (peak mu "
+                  f"{_fmt(r.get('estimate_coverage_peak_mu'), '.1%')}). Over every law's runs: coverage "
+                  f"{_fmt(a['estimate_coverage'], '.1%')}; {a['confirmations']} confirmations, "
+                  f"{_fmt(a['wrong_confirmation_fraction'], '.1%')} wrong against the rail under the wheel, "
+                  f"{a['zero_width_confirmations']} with a zero-width interval."]
+    lines += ["", f"![eta_low per law]({name}-eta-low.png)", ""]
+    worst = worst_case_traces(out, draws, doc, name) if draws else None
     if worst:
         lines += [f"![identified's worst draw against the oracle]({worst})", ""]
-    (doc / "control.md").write_text("\n".join(lines))
+    (doc / f"{name}.md").write_text("\n".join(lines))
