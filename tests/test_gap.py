@@ -454,13 +454,13 @@ def test_two_effects_at_once_found_by_forward_selection(tmp_path, scenario):
 def _bench_case(tmp_path, scenario, seed: int, i: int, mix: str, identify: bool = False):
     """Case ``i`` of ``hil bench gap --seed SEED --mix MIX``, recorded and diagnosed as the bench does
     (the truth's own forms held out of the candidates; ``identify``: with the model replays too)."""
-    from hil.benchmarks.gap import HELD_OUT
+    from hil.benchmarks.gap import held_out
     from hil.effects import with_reality
     kind, effects, run_seed = draw_case(seed, i, parse_mix(mix))
     s = run(with_reality(scenario, effects), "nlls", run_seed, bus="inprocess", out_dir=tmp_path, progress=False,
             log=print)
     out, result = diagnose(read_real_log(s["mcap"]), scenario, identify=identify,
-                           exclude=sorted(n for n in effects if n in HELD_OUT))
+                           exclude=sorted(n for n in effects if n in held_out()))
     print(f"bench seed {seed}, case {i}: {effects} ->", out["which"]["named_set"], out["which"]["confidence"])
     return effects, out, result
 
@@ -901,10 +901,10 @@ def test_a_held_out_bristle_is_not_named_as_another_class(tmp_path, scenario):
     answers are its class or "none", never another class; and the truth itself, scored as the bench's
     oracle, explains more of the gap than any remaining form of its class (what is missing is a form,
     not information in the log)."""
-    from hil.benchmarks.gap import HELD_OUT, oracle
+    from hil.benchmarks.gap import held_out, oracle
     from hil.effects import with_reality
     g = np.random.default_rng(fresh_seed())
-    effects = {"bristle": HELD_OUT["bristle"](g)}
+    effects = {"bristle": held_out()["bristle"](g)}
     real = with_reality(scenario, effects)
     s = run(real, "nlls", int(g.integers(1, 1 << 30)), bus="inprocess", out_dir=tmp_path, progress=False, log=print)
     out, dg = diagnose(read_real_log(s["mcap"]), scenario, identify=False, exclude=["bristle"])
@@ -974,12 +974,12 @@ def test_a_creep_stretched_rail_is_the_nuisance_and_nothing_more_is_named(tmp_pa
     drawn as the bench's out-of-library family draws it.  The rail curve leaves the held-out gap within
     the noise, so the answer is the nuisance with nothing named, and no second effect is fitted on top of
     anything (before, compliance plus an adhesion lag on top was named "confident")."""
-    from hil.benchmarks.gap import FAMILY
+    from hil.benchmarks.gap import family
     from hil.effects import with_reality
     from hil.gap.select import NOISE_GAP
     seed = fresh_seed()
     g = np.random.default_rng(seed)
-    cls, effect, sampler = FAMILY["rail_stretch"]
+    cls, effect, sampler = family()["rail_stretch"]
     assert cls == "nuisance" and not EFFECTS[effect].candidate
     effects = {effect: sampler(g)}
     real = with_reality(scenario, effects)
@@ -1007,13 +1007,13 @@ def test_a_constant_power_limit_is_never_the_rail_nor_a_name(tmp_path, scenario)
     1.66 noise units and the answer was "nuisance", wrong for an effect outside the library).  Never a
     name and never "nuisance" (before, a second effect on top of one of them was named "confident"),
     and no second effect accepted."""
-    from hil.benchmarks.gap import FAMILY
+    from hil.benchmarks.gap import family
     from hil.effects import with_reality
     from hil.gap.report import text_summary
     from hil.gap.select import NOISE_GAP
     seed = fresh_seed()
     g = np.random.default_rng(seed)
-    cls, effect, sampler = FAMILY["power_limit"]
+    cls, effect, sampler = family()["power_limit"]
     assert cls == "outside" and not EFFECTS[effect].candidate
     effects = {effect: sampler(g)}
     assert 1.005 <= effects[effect]["power_ratio"] <= 1.05
@@ -1083,3 +1083,63 @@ def test_grades_are_scored_and_the_calibration_is_read_back(tmp_path):
     path.write_text(json.dumps({"seed": 7, "cases": 10, "grades": table}))
     line = grade_line("none", read_calibration(path))
     assert line["sentence"] == "none: right in 2 of 3 bench cases" and line["seed"] == 7
+
+
+@pytest.mark.slow
+def test_an_effect_added_as_one_record_and_its_equations_is_simulated_fitted_ranked_and_drawn(tmp_path, scenario):
+    """A newcomer's effect (issue 51): an inverter whose torque runs ``offset_nm`` above the command, added
+    as one ``EffectSpec`` (parameters, units, fit settings, bench draw) with its ``Equations``; nothing
+    else changes.  The plant integrates it (the motor's initial acceleration is offset / J_eq), the
+    candidate list offers it, a diagnosis of a run with it recovers its offset and ranks it first, and
+    the bench draws it among the candidates' own forms."""
+    from hil.benchmarks.gap import draw_case, library, parse_mix
+    from hil.effects import Draw, EffectSpec, PlantFit, add_effect, remove_effect, with_reality
+    from hil.gap.candidates import candidates
+    from plant import WheelsetPlant
+    from plant.reality import Equations, RealityModel, RealityPlant
+
+    class TorqueOffset(Equations):
+        """T = T + offset_nm."""
+
+        def torque(self, e, v):
+            v.torque = v.torque + e["offset_nm"]
+
+    cfg = scenario.plant_config()
+    t0 = WheelsetPlant(cfg).equilibrium_torque_nm
+    add_effect(EffectSpec("torque_offset", "plant", {"offset_nm": 10.0}, "the inverter's torque offset",
+                          {"offset_nm": "N·m"}, form="offset", equations=TorqueOffset(),
+                          fit=PlantFit(("offset_nm",), (-0.2 * t0,), (0.2 * t0,), (False,), (21,)),
+                          draws=(Draw("library_form", lambda g: {"offset_nm": float(g.uniform(0.02, 0.05) * t0)},
+                                      recover="offset_nm"),),
+                          plausible={"offset_nm": (-0.2 * t0, 0.2 * t0)}))
+    try:
+        seed = fresh_seed()
+        g = np.random.default_rng(seed)
+        offset = float(g.uniform(0.02, 0.05) * t0)
+        # simulated: at the equilibrium the motor accelerates by offset / J_eq (rad/s^2) more than nominal
+        # (plant.model's Appendix A), the train not at all; and a run with it drifts off the nominal one
+        model = RealityPlant(cfg, {"torque_offset": {"offset_nm": offset}}).model
+        x0 = WheelsetPlant(cfg).x0
+        dx = [np.asarray(RealityModel(cfg, e).rhs(x0, t0, 0.0)[0], float).ravel() for e in (model.effects, {})]
+        assert dx[0][0] - dx[1][0] == pytest.approx(offset / cfg.params.equivalent_inertia_kgm2, rel=1e-9)
+        assert dx[0][1] == pytest.approx(dx[1][1], rel=1e-12)
+        # offered as a candidate, with the record's fit settings
+        cand = next(c for c in candidates(scenario) if c.name == "torque_offset")
+        assert (cand.fit_params, cand.scan) == (("offset_nm",), (21,))
+        # fitted and ranked first on a run with it
+        real = with_reality(scenario, {"torque_offset": {"offset_nm": offset}})
+        s = run(real, "nlls", int(g.integers(1, 1 << 30)), bus="inprocess", out_dir=tmp_path, progress=False,
+                log=print)
+        out, _ = diagnose(read_real_log(s["mcap"]), scenario, identify=False)
+        which = out["which"]
+        print(f"seed {seed}: offset {offset:.2f} N·m ->", which["verdict"])
+        top = which["ranking"][0]
+        assert top["candidate"] == "torque_offset", which["verdict"]
+        assert top["params"]["offset_nm"] == pytest.approx(offset, rel=0.1)
+        # drawn by the bench among the library forms
+        mix = parse_mix("library_form=1")
+        assert "torque_offset" in library()
+        assert any("torque_offset" in draw_case(seed, i, mix)[1] for i in range(200))
+    finally:
+        remove_effect("torque_offset")
+    assert "torque_offset" not in {c.name for c in candidates(scenario)}
