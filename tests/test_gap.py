@@ -749,11 +749,10 @@ def test_without_a_c_compiler_the_step_runs_on_the_virtual_machine(tmp_path):
 def test_other_firsts_are_the_classes_the_best_does_not_beat_and_accepted_pairs_within_the_margin_are_rivals():
     """Forward selection's other starts and the choice among their pairs, on rows written by hand: the
     margin is 25 in score and half the remaining gap (``beats``)."""
-    from hil.gap.select import FORWARD_FIRSTS, choose_pair, other_firsts
+    from hil.gap.select import FORWARD_FIRSTS, Row, choose_pair, other_firsts
 
     def row(effect, candidate, score, gap, shrink):
-        return {"effect": effect, "candidate": candidate, "score_gain": score, "held_out_gap": gap,
-                "held_out_shrink": shrink}
+        return Row(effect, "", candidate, {}, 1, score, shrink, gap)
     ranking = [row("compliance", "drivetrain_damping", 1000, 2.9, 0.80),
                row("compliance", "gear_efficiency", 999, 2.9, 0.80),      # the best's own class: never a start
                row("sensor_delay", "sensor_delay", 990, 3.0, 0.79),       # within the margin
@@ -762,7 +761,7 @@ def test_other_firsts_are_the_classes_the_best_does_not_beat_and_accepted_pairs_
                row("resistance", "resistance", 500, 6.4, 0.56),           # beaten: 2.9 <= 3.2, 1000 >= 525
                row("torque_lag", "torque_lag", -7, 14.7, 0.0)]
     assert FORWARD_FIRSTS == 2
-    assert [r["candidate"] for r in other_firsts(ranking, ranking[0])] == ["sensor_delay", "adhesion_lag"]
+    assert [r.candidate for r in other_firsts(ranking, ranking[0])] == ["sensor_delay", "adhesion_lag"]
     # a class within the margin but removing less than forward selection starts from is no start
     low = [ranking[0], row("can", "can", 990, 3.0, 0.10)]
     assert other_firsts(low, low[0]) == []
@@ -959,7 +958,7 @@ def test_bench_gap_summary_fits_a_terminal():
     """``hil bench gap``'s default summary, rendered from the stored report, keeps every line within 100
     characters and every figure of it (the full report is ``--markdown``)."""
     from hil.benchmarks.gap import summary_text
-    from hil.benchmarks.terminal import WIDTH, wrap_lines
+    from hil.terminal import WIDTH, wrap_lines
 
     result = json.loads((ROOT / "docs" / "benchmarks" / "gap.json").read_text())
     text = wrap_lines(summary_text(result))

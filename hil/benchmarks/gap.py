@@ -57,7 +57,7 @@ import numpy as np
 
 from ..effects import EFFECTS
 from ..sweep.engine import map_in_order
-from .terminal import wrap, wrap_lines
+from ..terminal import wrap, wrap_lines
 
 
 def _draws(kind: str) -> dict:
@@ -339,12 +339,12 @@ def oracle(result, effects: dict, truth_set: list) -> dict | None:
     row = entry(result.ctx, fit, result.base)
     # the alternatives: another class's best for one effect; for several, any single candidate too (a
     # pair is told apart only when it beats the best single effect: the second one shows)
-    others = [r for r in result.ranking if len(truth_set) > 1 or r["effect"] not in truth_set]
-    material = row["held_out_shrink"] >= MIN_SHRINK and row["score_gain"] > MIN_SCORE_GAIN
+    others = [r for r in result.ranking if len(truth_set) > 1 or r.effect not in truth_set]
+    material = row.held_out_shrink >= MIN_SHRINK and row.score_gain > MIN_SCORE_GAIN
     over_rail = result.rail is None or beats(row, result.rail)
     over_others = all(beats(row, r) for r in others[:1])
-    return {"shrink_percent": row["held_out_shrink"] * 100, "held_out_gap": row["held_out_gap"],
-            "score_gain": row["score_gain"], "material": material, "beats_rail": over_rail,
+    return {"shrink_percent": row.held_out_shrink * 100, "held_out_gap": row.held_out_gap,
+            "score_gain": row.score_gain, "material": material, "beats_rail": over_rail,
             "beats_other_classes": over_others, "separable": bool(material and over_rail and over_others)}
 
 
