@@ -20,8 +20,9 @@ A "real" run is the nominal plant plus one or more of these effects.  Three leve
     Coulomb torque taken off the motor torque; or the torque scaled by a gear efficiency.
   - ``adhesion_lag``   adhesion dynamics: mu relaxes towards the curve's value with time constant
     tau_s (d mu / dt = (mu_curve(v_s) - mu) / tau), so mu lags a changing creep and a rail switch.
-    Its other forms: ``creep_relaxation`` (tau = L / v_train: relaxation over a rolled length) and
-    ``bristle`` (LuGre-type: a bristle state whose relaxation rate is |w| / g(v_s), plus damping).
+    Its other forms: ``creep_relaxation`` (tau = L / v_train: relaxation over a rolled length),
+    ``bristle`` (LuGre-type: a bristle state whose relaxation rate is |w| / g(v_s), plus damping) and
+    ``adhesion_lag2`` (a second-order lag: mu'' = w^2 (mu_curve - mu) - 2 zeta w mu').
   - ``resistance``     running-resistance mismatch: the Davis polynomial scaled by ``factor``.
   - ``torque_ripple``  (not a diagnosis candidate) sinusoidal ripple on the motor torque.
   - ``power_limit``    (not a diagnosis candidate) the drive's constant-power region: the motor torque
@@ -37,7 +38,8 @@ A "real" run is the nominal plant plus one or more of these effects.  Three leve
   - ``wheel_radius``   (not a diagnosis candidate) true wheel radius off the nominal one.
 
 * **sensor** effects (``RealitySensors`` wraps ``plant.SensorModel``): ``sensor_delay`` (delay_ms,
-  fractional periods by linear interpolation) and ``sensor_quantisation`` (quanta on top of noise);
+  fractional periods by linear interpolation) and ``sensor_quantisation`` (quanta on top of noise;
+  ``motor_noise_after_rad_s``: noise added after the motor encoder's quantiser);
   not diagnosis candidates: ``tachometer_gain`` and ``sensor_stick`` (the motor encoder's reading
   stuck: from reading ``start_s`` / period on, it repeats the last reading it made before, noise
   included, for ``hold_ms``).
@@ -282,6 +284,23 @@ class CreepRelaxation(Equations):
         s.set("mu_state", s.mu0)
 
 
+class SecondOrderAdhesion(Equations):
+    """Adhesion dynamics as a second-order contact lag: mu'' = w^2 (mu_curve(v_s) - mu) - 2 zeta w mu',
+    w = 2 pi natural_hz (a contact patch whose stress builds up through a mass-spring-like lag: issue 51
+    found this form answered "none" by the first-order forms)."""
+    states, state_rank, claims = ("mu_state", "mu_rate"), 3, "mu"
+
+    def adhesion(self, e, v):
+        v.mu = v.state("mu_state")
+        rate = v.state("mu_rate")
+        w = 2 * math.pi * e["natural_hz"]
+        v.set_rate("mu_state", rate)
+        v.set_rate("mu_rate", w * w * (v.mu_curve - v.mu) - 2 * e["damping_ratio"] * w * rate)
+
+    def initial(self, e, s):
+        s.set("mu_state", s.mu0)
+
+
 class Bristle(Equations):
     """LuGre-type bristle: z' = w - |w| z / g = (|w| / g) (g sgn(w) - z), g = mu_curve(v_s) / sigma0,
     mu = sigma0 z + sigma1 z' (w slip velocity, m/s).  Written as a relaxation towards the steady
@@ -360,7 +379,7 @@ EQUATIONS: dict[str, Equations] = {
     "torque_ripple": TorqueRipple(), "drivetrain_damping": DrivetrainDamping(),
     "gear_efficiency": GearEfficiency(), "compliance": Compliance(), "wheel_radius": WheelRadius(),
     "rail_curve": RailCurve(), "adhesion_lag": AdhesionLag(), "creep_relaxation": CreepRelaxation(),
-    "bristle": Bristle(), "load_transfer": LoadTransfer(), "load_transfer_pitch": LoadTransferPitch(),
+    "bristle": Bristle(), "adhesion_lag2": SecondOrderAdhesion(), "load_transfer": LoadTransfer(), "load_transfer_pitch": LoadTransferPitch(),
     "resistance": Resistance(),
 }
 
@@ -577,6 +596,10 @@ class RealitySensors:
         q = effects.get("sensor_quantisation", {})
         self.q_motor = q.get("motor_quantum_rad_s", 0.0)
         self.q_train = q.get("train_quantum_ms", 0.0)
+        # noise after the motor encoder's quantiser (its electronics after the counter): its own stream,
+        # seeded from the sensor model's, drawn only when asked for (other runs keep their numbers)
+        self.noise_after = q.get("motor_noise_after_rad_s", 0.0)
+        self._rng_after = np.random.default_rng(inner._rng.integers(1 << 62)) if self.noise_after > 0 else None
         st = effects.get("sensor_stick")
         self.stick = (round(st["start_s"] / period_s), round((st["start_s"] + st["hold_ms"] * 1e-3) / period_s)) \
             if st else None
@@ -610,6 +633,8 @@ class RealitySensors:
         omega, v = self.inner.measure(motor_speed_rad_s * self.motor_gain, train_speed_ms)
         if self.q_motor > 0:
             omega = float(np.round(omega / self.q_motor) * self.q_motor)
+        if self._rng_after is not None:
+            omega += self.noise_after * float(self._rng_after.standard_normal())
         if self.q_train > 0:
             v = float(np.round(v / self.q_train) * self.q_train)
         if self.stick is not None:

@@ -179,7 +179,7 @@ def interval_halfwidths(result, z: float = 1.96):
     m, p = J.shape
     try:
         cov = np.linalg.inv(J.T @ J) * (2 * float(result.cost) / max(m - p, 1))
-    except np.linalg.LinAlgError:
+    except np.linalg.LinAlgError:     # J'J singular (a parameter the data do not move): no interval
         return None
     d = np.diag(cov)
     return np.where(d >= 0, z * np.sqrt(np.abs(d)), np.nan)
@@ -232,6 +232,8 @@ class PlantCandidate:
             try:
                 motor, train = sim.run(theta_of(u), x0, torque, n=ctx.n_read)
             except (FloatingPointError, RuntimeError):
+                # the model diverges (FloatingPointError) or CasADi cannot evaluate it at these parameters:
+                # a residual far worse than any fit, so the search steps back into the range it can use
                 return np.full(n_res, 1e3)
             return ctx.residuals(ctx.predict(motor, train), ctx.sigma_nom, ctx.train)
 
@@ -337,7 +339,7 @@ def fit_pair(ctx: Context, plant: PlantCandidate, sensor: SensorDelayCandidate, 
     def resid(u):
         try:
             motor, train = sim.run(theta_of(u), start_of(u), torque, n=ctx.n_read)
-        except (FloatingPointError, RuntimeError):
+        except (FloatingPointError, RuntimeError):     # as PlantCandidate.fit's: a residual worse than any fit
             return np.full(n_res, 1e3)
         return ctx.residuals(ctx.predict(motor, train, **{arg: u[np_]}), ctx.sigma_nom, ctx.train)
 

@@ -34,9 +34,9 @@ from .candidates import SIGNALS, UNITS, Context, Fit, candidates, fit_nominal
 from .identify import identification
 from .model import ObserverReplica, initial_line
 from .select import (FORWARD_MAX_SHARE, FORWARD_MIN_LEFT, FORWARD_MIN_SHARE, MARGIN_GAP_RATIO, MIN_GAP, MIN_MARGIN,
-                     MIN_SCORE_GAIN, MIN_SHRINK, NOISE_GAP, NONE, HowFar, Row, Verdict, choose_pair, entry, fit_candidates, fit_rail, forward,
-                     judge, label, other_firsts, pair_explanation, pair_label, pair_listed, quantiser, rejudge, score,
-                     within_noise)
+                     MIN_SCORE_GAIN, MIN_SHRINK, NOISE_GAP, NONE, HowFar, Row, Verdict, choose_pair, entry,
+                     fit_candidates, fit_rail, forward, judge, label, other_firsts, pair_explanation, pair_label,
+                     pair_listed, quantiser, rejudge, score, within_noise)
 from .sparse import AHEAD_PERIODS, describe_residual
 from .where import normal_running_replay, observability, separation, where
 
@@ -160,7 +160,7 @@ class Diagnosis:
         listed = self._listed(answer, forward_, tried)
         if lattice:
             self._name_quantiser(answer, lattice)
-        named_row, far = self._how_far(answer, ranking, best, forward_, lattice)
+        named_row, far = self._how_far(answer, ranking, best, forward_, lattice, rail)
         shrink_table = {s: {"rmse_before": base["per_signal"][s]["rmse"], "rmse_after": far.per_signal[s]["rmse"],
                             "gap_before": base["per_signal"][s]["gap"], "gap_after": far.per_signal[s]["gap"],
                             "noise_floor": sigma[s], "unit": UNITS[s]} for s in SIGNALS}
@@ -198,8 +198,9 @@ class Diagnosis:
                       "rule": {"min_shrink": MIN_SHRINK, "min_score_gain": MIN_SCORE_GAIN,
                                "margin_score": MIN_MARGIN, "margin_gap_ratio": MARGIN_GAP_RATIO,
                                "min_gap": MIN_GAP, "within_noise_gap": NOISE_GAP}},
-            "shrink": {"effect": answer.how_far.label, "named": named, "held_out_gap_shrink_percent":
-                       answer.how_far.held_out_shrink * 100, "per_signal": shrink_table},
+            "shrink": {"effect": answer.how_far.label, "named": named, "said": answer.how_far.said(),
+                       "held_out_gap_shrink_percent": answer.how_far.held_out_shrink * 100,
+                       "per_signal": shrink_table},
         }
         if self.identify:
             say("identification on the real run and on the model replays")
@@ -299,13 +300,16 @@ class Diagnosis:
             answer.also(f"and {said}")
 
     @staticmethod
-    def _how_far(answer: Verdict, ranking, best, forward_, lattice):
+    def _how_far(answer: Verdict, ranking, best, forward_, lattice, rail):
         """(the named class's best single row, the row HOW FAR reports) and ``answer.how_far``: the
-        explanation named (a pair, or that single; the quantiser alone: its share of the gap), else the
-        best single."""
+        explanation named (a pair, or that single; the quantiser alone: its share of the gap; the rail
+        curve when the answer is that nuisance, issue 51: the best effect's shrink would read as the
+        answer), else the best single."""
         named = answer.named
         named_row = next((r for r in ranking if r.effect == named), best)
-        if forward_ is not None and forward_["accepted"] and set(answer.named_set) - {"sensor_quantisation"} == \
+        if answer.grade == "nuisance" and rail is not None:
+            far = rail
+        elif forward_ is not None and forward_["accepted"] and set(answer.named_set) - {"sensor_quantisation"} == \
                 {forward_["first"], forward_["second"]}:
             far = Row(f"{forward_['first']} + {forward_['second']}", forward_["first_form"],
                       forward_["second_candidate"], {}, 0, forward_["pair_score_gain"],

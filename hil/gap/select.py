@@ -201,6 +201,21 @@ def entry(ctx: Context, fit: Fit, base: dict) -> Row:
                fit.extra.get("param_ci", {}), fit.note, sc_["per_signal"])
 
 
+def off_vehicle(row: Row) -> list[str]:
+    """The fitted parameters of ``row`` (a pair's first effect's too) outside the range a vehicle allows
+    (``EffectSpec.plausible``), as "name=value (lo-hi unit)": a fit that explains the log only with,
+    say, a bogie pivot a few centimetres above the rail stands for some other change of the curve's
+    shape, not for this effect (issue 51), and weighs against its candidate."""
+    out = []
+    for cand, params in ((row.candidate, row.params), (row.first_candidate, row.first_params or {})):
+        spec = EFFECTS.get(cand or "")
+        for k, (lo, hi) in (spec.plausible if spec else {}).items():
+            v = params.get(k)
+            if v is not None and not lo <= v <= hi:
+                out.append(f"{k}={v:.3g} ({lo:g}-{hi:g} {spec.units.get(k, '')})".replace(" )", ")"))
+    return out
+
+
 def beats(a: dict, b: dict) -> bool:
     """``a`` explains the held-out data better than ``b`` by the margin: a better held-out score by
     MIN_MARGIN and a remaining gap at most MARGIN_GAP_RATIO of ``b``'s (unless ``b``'s is already
@@ -322,6 +337,12 @@ class HowFar:
     held_out_shrink: float
     per_signal: dict
 
+    def said(self) -> str:
+        """What the shrink is of, as the summary and report.md say it."""
+        if self.label == "rail_curve":
+            return "the rail curve, the nuisance the answer names"
+        return self.label if self.named else f"{self.label}, the best single, not named"
+
 
 def judge(base, ranking, rail, gap_present) -> Verdict:
     """The answer from the single candidates' ranking and the rail nuisance (see the module
@@ -387,11 +408,13 @@ def judge(base, ranking, rail, gap_present) -> Verdict:
     is_material = material(best)
     over_runner = runner is None or beats(best, runner)
     over_rail = rail is None or beats(best, rail)
-    if is_material and over_runner and over_rail and not pinned:
+    off = off_vehicle(best)
+    if is_material and over_runner and over_rail and not pinned and not off:
         return Verdict("confident", f"{best.effect} explains the gap: {desc}{bound_note}", best.effect, [best.effect],
                        nuisances=nuisances)
     if is_material:
         why = "its fit sits at a bound" if pinned else (
+            f"its fitted {', '.join(off)} lies outside what a vehicle allows" if off else
             f"it does not beat {runner.effect} ({runner.share * 100:.0f} %) by the margin" if not over_runner
             else "it does not beat the rail-curve nuisance by the margin")
         return Verdict("tentative", f"none named with confidence: most likely {desc}{bound_note}; {why}",
@@ -551,6 +574,7 @@ def forward(ctx: Context, nom_fit: Fit, base: dict, first: Fit, first_row: dict,
          runner is not None and not beats_on_top(second, runner, first_row)),
         ("its fit is pinned at its bounds", bool(bounded)),
         (f"parameters at a bound of their range: {', '.join(off_range)}", bool(off_range)),
+        (f"fitted outside what a vehicle allows: {', '.join(off_vehicle(second))}", bool(off_vehicle(second))),
         (f"the pair removes less than {MIN_SHRINK * 100:.0f} %", second.held_out_shrink < MIN_SHRINK),
     ) if bad]
     why = own + ([f"the pair does not beat the single candidate(s) {', '.join(unbeaten)} by the margin"]
