@@ -1192,3 +1192,21 @@ def test_a_fit_outside_what_a_vehicle_allows_is_not_named_with_confidence():
         assert v.grade == grade, (z, v.sentence)
         if grade == "tentative":
             assert "outside what a vehicle allows" in v.sentence and v.named == "none"
+
+
+def test_adhesion_dynamics_as_a_second_order_contact_lag_is_named_adhesion_lag(tmp_path, scenario):
+    """Issue 51: adhesion dynamics written as a second-order contact lag was answered "none" (the
+    first-order forms and the bristle cannot lag like it; a static load transfer with a bogie pivot a
+    dozen centimetres high explained most of it).  The class's second-order form names its class."""
+    from hil.effects import with_reality
+    seed = fresh_seed()
+    g = np.random.default_rng(seed)
+    effects = {"adhesion_lag2": {"natural_hz": float(np.exp(g.uniform(np.log(8), np.log(40)))),
+                                 "damping_ratio": float(g.uniform(0.4, 0.9))}}
+    s = run(with_reality(scenario, effects), "nlls", int(g.integers(1, 1 << 30)), bus="inprocess", out_dir=tmp_path,
+            progress=False, log=print)
+    out, _ = diagnose(read_real_log(s["mcap"]), scenario, identify=False)
+    which = out["which"]
+    print(f"seed {seed}: {effects} ->", which["confidence"], which["verdict"][:300])
+    assert which["named_set"] == ["adhesion_lag"] and which["confidence"] == "confident", which["verdict"]
+    assert out["shrink"]["held_out_gap_shrink_percent"] >= 80
