@@ -454,13 +454,13 @@ def test_two_effects_at_once_found_by_forward_selection(tmp_path, scenario):
 def _bench_case(tmp_path, scenario, seed: int, i: int, mix: str, identify: bool = False):
     """Case ``i`` of ``hil bench gap --seed SEED --mix MIX``, recorded and diagnosed as the bench does
     (the truth's own forms held out of the candidates; ``identify``: with the model replays too)."""
-    from hil.benchmarks.gap import HELD_OUT
+    from hil.benchmarks.gap import held_out
     from hil.effects import with_reality
     kind, effects, run_seed = draw_case(seed, i, parse_mix(mix))
     s = run(with_reality(scenario, effects), "nlls", run_seed, bus="inprocess", out_dir=tmp_path, progress=False,
             log=print)
     out, result = diagnose(read_real_log(s["mcap"]), scenario, identify=identify,
-                           exclude=sorted(n for n in effects if n in HELD_OUT))
+                           exclude=sorted(n for n in effects if n in held_out()))
     print(f"bench seed {seed}, case {i}: {effects} ->", out["which"]["named_set"], out["which"]["confidence"])
     return effects, out, result
 
@@ -749,11 +749,10 @@ def test_without_a_c_compiler_the_step_runs_on_the_virtual_machine(tmp_path):
 def test_other_firsts_are_the_classes_the_best_does_not_beat_and_accepted_pairs_within_the_margin_are_rivals():
     """Forward selection's other starts and the choice among their pairs, on rows written by hand: the
     margin is 25 in score and half the remaining gap (``beats``)."""
-    from hil.gap.select import FORWARD_FIRSTS, choose_pair, other_firsts
+    from hil.gap.select import FORWARD_FIRSTS, Row, choose_pair, other_firsts
 
     def row(effect, candidate, score, gap, shrink):
-        return {"effect": effect, "candidate": candidate, "score_gain": score, "held_out_gap": gap,
-                "held_out_shrink": shrink}
+        return Row(effect, "", candidate, {}, 1, score, shrink, gap)
     ranking = [row("compliance", "drivetrain_damping", 1000, 2.9, 0.80),
                row("compliance", "gear_efficiency", 999, 2.9, 0.80),      # the best's own class: never a start
                row("sensor_delay", "sensor_delay", 990, 3.0, 0.79),       # within the margin
@@ -762,7 +761,7 @@ def test_other_firsts_are_the_classes_the_best_does_not_beat_and_accepted_pairs_
                row("resistance", "resistance", 500, 6.4, 0.56),           # beaten: 2.9 <= 3.2, 1000 >= 525
                row("torque_lag", "torque_lag", -7, 14.7, 0.0)]
     assert FORWARD_FIRSTS == 2
-    assert [r["candidate"] for r in other_firsts(ranking, ranking[0])] == ["sensor_delay", "adhesion_lag"]
+    assert [r.candidate for r in other_firsts(ranking, ranking[0])] == ["sensor_delay", "adhesion_lag"]
     # a class within the margin but removing less than forward selection starts from is no start
     low = [ranking[0], row("can", "can", 990, 3.0, 0.10)]
     assert other_firsts(low, low[0]) == []
@@ -901,10 +900,10 @@ def test_a_held_out_bristle_is_not_named_as_another_class(tmp_path, scenario):
     answers are its class or "none", never another class; and the truth itself, scored as the bench's
     oracle, explains more of the gap than any remaining form of its class (what is missing is a form,
     not information in the log)."""
-    from hil.benchmarks.gap import HELD_OUT, oracle
+    from hil.benchmarks.gap import held_out, oracle
     from hil.effects import with_reality
     g = np.random.default_rng(fresh_seed())
-    effects = {"bristle": HELD_OUT["bristle"](g)}
+    effects = {"bristle": held_out()["bristle"](g)}
     real = with_reality(scenario, effects)
     s = run(real, "nlls", int(g.integers(1, 1 << 30)), bus="inprocess", out_dir=tmp_path, progress=False, log=print)
     out, dg = diagnose(read_real_log(s["mcap"]), scenario, identify=False, exclude=["bristle"])
@@ -959,7 +958,7 @@ def test_bench_gap_summary_fits_a_terminal():
     """``hil bench gap``'s default summary, rendered from the stored report, keeps every line within 100
     characters and every figure of it (the full report is ``--markdown``)."""
     from hil.benchmarks.gap import summary_text
-    from hil.benchmarks.terminal import WIDTH, wrap_lines
+    from hil.terminal import WIDTH, wrap_lines
 
     result = json.loads((ROOT / "docs" / "benchmarks" / "gap.json").read_text())
     text = wrap_lines(summary_text(result))
@@ -974,12 +973,12 @@ def test_a_creep_stretched_rail_is_the_nuisance_and_nothing_more_is_named(tmp_pa
     drawn as the bench's out-of-library family draws it.  The rail curve leaves the held-out gap within
     the noise, so the answer is the nuisance with nothing named, and no second effect is fitted on top of
     anything (before, compliance plus an adhesion lag on top was named "confident")."""
-    from hil.benchmarks.gap import FAMILY
+    from hil.benchmarks.gap import family
     from hil.effects import with_reality
     from hil.gap.select import NOISE_GAP
     seed = fresh_seed()
     g = np.random.default_rng(seed)
-    cls, effect, sampler = FAMILY["rail_stretch"]
+    cls, effect, sampler = family()["rail_stretch"]
     assert cls == "nuisance" and not EFFECTS[effect].candidate
     effects = {effect: sampler(g)}
     real = with_reality(scenario, effects)
@@ -995,6 +994,9 @@ def test_a_creep_stretched_rail_is_the_nuisance_and_nothing_more_is_named(tmp_pa
     assert which["forward"] is None                            # and no second effect was tried
     assert rail["peak_creep_percent"] == pytest.approx((effects[effect]["creep_scale"] - 1) * 100, abs=1.5)
     assert which["not_separable"] == [] and which["separate_by"] is None
+    # HOW FAR is the nuisance's shrink, not the best effect's (issue 51: that read as if it were the answer)
+    assert out["shrink"]["effect"] == "rail_curve" and "nuisance" in out["shrink"]["said"]
+    assert out["shrink"]["held_out_gap_shrink_percent"] == pytest.approx(rail["held_out_shrink"] * 100)
 
 
 def test_a_constant_power_limit_is_never_the_rail_nor_a_name(tmp_path, scenario):
@@ -1007,13 +1009,13 @@ def test_a_constant_power_limit_is_never_the_rail_nor_a_name(tmp_path, scenario)
     1.66 noise units and the answer was "nuisance", wrong for an effect outside the library).  Never a
     name and never "nuisance" (before, a second effect on top of one of them was named "confident"),
     and no second effect accepted."""
-    from hil.benchmarks.gap import FAMILY
+    from hil.benchmarks.gap import family
     from hil.effects import with_reality
     from hil.gap.report import text_summary
     from hil.gap.select import NOISE_GAP
     seed = fresh_seed()
     g = np.random.default_rng(seed)
-    cls, effect, sampler = FAMILY["power_limit"]
+    cls, effect, sampler = family()["power_limit"]
     assert cls == "outside" and not EFFECTS[effect].candidate
     effects = {effect: sampler(g)}
     assert 1.005 <= effects[effect]["power_ratio"] <= 1.05
@@ -1083,3 +1085,128 @@ def test_grades_are_scored_and_the_calibration_is_read_back(tmp_path):
     path.write_text(json.dumps({"seed": 7, "cases": 10, "grades": table}))
     line = grade_line("none", read_calibration(path))
     assert line["sentence"] == "none: right in 2 of 3 bench cases" and line["seed"] == 7
+
+
+@pytest.mark.slow
+def test_an_effect_added_as_one_record_and_its_equations_is_simulated_fitted_ranked_and_drawn(tmp_path, scenario):
+    """A newcomer's effect (issue 51): an inverter whose torque runs ``offset_nm`` above the command, added
+    as one ``EffectSpec`` (parameters, units, fit settings, bench draw) with its ``Equations``; nothing
+    else changes.  The plant integrates it (the motor's initial acceleration is offset / J_eq), the
+    candidate list offers it, a diagnosis of a run with it recovers its offset and ranks it first, and
+    the bench draws it among the candidates' own forms."""
+    from hil.benchmarks.gap import draw_case, library, parse_mix
+    from hil.effects import Draw, EffectSpec, PlantFit, add_effect, remove_effect, with_reality
+    from hil.gap.candidates import candidates
+    from plant import WheelsetPlant
+    from plant.reality import Equations, RealityModel, RealityPlant
+
+    class TorqueOffset(Equations):
+        """T = T + offset_nm."""
+
+        def torque(self, e, v):
+            v.torque = v.torque + e["offset_nm"]
+
+    cfg = scenario.plant_config()
+    t0 = WheelsetPlant(cfg).equilibrium_torque_nm
+    add_effect(EffectSpec("torque_offset", "plant", {"offset_nm": 10.0}, "the inverter's torque offset",
+                          {"offset_nm": "N·m"}, form="offset", equations=TorqueOffset(),
+                          fit=PlantFit(("offset_nm",), (-0.2 * t0,), (0.2 * t0,), (False,), (21,)),
+                          draws=(Draw("library_form", lambda g: {"offset_nm": float(g.uniform(0.02, 0.05) * t0)},
+                                      recover="offset_nm"),),
+                          plausible={"offset_nm": (-0.2 * t0, 0.2 * t0)}))
+    try:
+        seed = fresh_seed()
+        g = np.random.default_rng(seed)
+        offset = float(g.uniform(0.02, 0.05) * t0)
+        # simulated: at the equilibrium the motor accelerates by offset / J_eq (rad/s^2) more than nominal
+        # (plant.model's Appendix A), the train not at all; and a run with it drifts off the nominal one
+        model = RealityPlant(cfg, {"torque_offset": {"offset_nm": offset}}).model
+        x0 = WheelsetPlant(cfg).x0
+        dx = [np.asarray(RealityModel(cfg, e).rhs(x0, t0, 0.0)[0], float).ravel() for e in (model.effects, {})]
+        assert dx[0][0] - dx[1][0] == pytest.approx(offset / cfg.params.equivalent_inertia_kgm2, rel=1e-9)
+        assert dx[0][1] == pytest.approx(dx[1][1], rel=1e-12)
+        # offered as a candidate, with the record's fit settings
+        cand = next(c for c in candidates(scenario) if c.name == "torque_offset")
+        assert (cand.fit_params, cand.scan) == (("offset_nm",), (21,))
+        # fitted and ranked first on a run with it
+        real = with_reality(scenario, {"torque_offset": {"offset_nm": offset}})
+        s = run(real, "nlls", int(g.integers(1, 1 << 30)), bus="inprocess", out_dir=tmp_path, progress=False,
+                log=print)
+        out, _ = diagnose(read_real_log(s["mcap"]), scenario, identify=False)
+        which = out["which"]
+        print(f"seed {seed}: offset {offset:.2f} N·m ->", which["verdict"])
+        top = which["ranking"][0]
+        assert top["candidate"] == "torque_offset", which["verdict"]
+        assert top["params"]["offset_nm"] == pytest.approx(offset, rel=0.1)
+        # drawn by the bench among the library forms
+        mix = parse_mix("library_form=1")
+        assert "torque_offset" in library()
+        assert any("torque_offset" in draw_case(seed, i, mix)[1] for i in range(200))
+    finally:
+        remove_effect("torque_offset")
+    assert "torque_offset" not in {c.name for c in candidates(scenario)}
+
+
+def test_a_quantiser_under_noise_after_it_is_found_by_the_lattices_coherence():
+    """Issue 51: speeds on a lattice with noise added after the quantiser step by far less than the
+    quantum wherever a reading stays on one lattice point, so the smallest steps miss the lattice; the
+    values' coherence with it finds it.  Readings without a quantiser (a ramp plus the sensor noise) give
+    no lattice of coherence above 0.9 (the quantiser's naming threshold)."""
+    from hil.gap.model import lattice_quantum
+
+    seed = fresh_seed()
+    g = np.random.default_rng(seed)
+    sigma = 0.0045                                   # ffcc_a's motor encoder noise (rad/s)
+    t = np.arange(700) * 1e-3
+    for _ in range(6):
+        q = float(g.uniform(0.05, 0.2))
+        motor = 64.0 + float(g.uniform(2, 30)) * t + float(g.uniform(0, 20)) * np.maximum(t - 0.4, 0) ** 2
+        noise_after = q / float(g.uniform(40, 60))
+        y = np.round((motor + sigma * g.standard_normal(t.size)) / q) * q + noise_after * g.standard_normal(t.size)
+        found, coherence = lattice_quantum(y, 2 * sigma, 400 * sigma)
+        print(f"seed {seed}: q {q:.4f}, noise after {noise_after:.4f} -> {found:.4f} (coherence {coherence:.3f})")
+        assert found == pytest.approx(q, rel=0.02) and coherence > 0.9
+        plain = motor + sigma * g.standard_normal(t.size)
+        assert lattice_quantum(plain, 2 * sigma, 400 * sigma)[1] < 0.9
+
+
+def test_a_fit_outside_what_a_vehicle_allows_is_not_named_with_confidence():
+    """Issue 51: a static load transfer stood for another change of the curve's shape at low creep with a
+    fitted bogie height of 0.06-0.32 m against the vehicle's 2.6 m.  The same row, confident when its
+    height is one a vehicle allows (``EffectSpec.plausible``), is only "most likely" when it is not;
+    rows written by hand (the margin is 25 in score and half the remaining gap)."""
+    from hil.gap.select import Row, judge, off_vehicle
+
+    lo, hi = EFFECTS["load_transfer"].plausible["bogie_height_m"]
+    base = {"gap": 10.0, "score": 0.0, "per_signal": {}}
+
+    def ranking(z):
+        return [Row("load_transfer", "static", "load_transfer", {"bogie_height_m": z}, 1, 5000.0, 0.97, 0.3,
+                    at_bound={"bogie_height_m": False}),
+                Row("compliance", "stiffness_backlash", "compliance", {"stiffness_nm_rad": 3e5}, 2, 1000.0, 0.5, 5.0)]
+    for z, grade in ((2.0, "confident"), (lo * 0.5, "tentative"), (0.1, "tentative"), (hi * 1.5, "tentative"),
+                     (lo, "confident")):
+        rows = ranking(z)
+        assert bool(off_vehicle(rows[0])) == (grade == "tentative")
+        v = judge(base, rows, None, True)
+        assert v.grade == grade, (z, v.sentence)
+        if grade == "tentative":
+            assert "outside what a vehicle allows" in v.sentence and v.named == "none"
+
+
+def test_adhesion_dynamics_as_a_second_order_contact_lag_is_named_adhesion_lag(tmp_path, scenario):
+    """Issue 51: adhesion dynamics written as a second-order contact lag was answered "none" (the
+    first-order forms and the bristle cannot lag like it; a static load transfer with a bogie pivot a
+    dozen centimetres high explained most of it).  The class's second-order form names its class."""
+    from hil.effects import with_reality
+    seed = fresh_seed()
+    g = np.random.default_rng(seed)
+    effects = {"adhesion_lag2": {"natural_hz": float(np.exp(g.uniform(np.log(8), np.log(40)))),
+                                 "damping_ratio": float(g.uniform(0.4, 0.9))}}
+    s = run(with_reality(scenario, effects), "nlls", int(g.integers(1, 1 << 30)), bus="inprocess", out_dir=tmp_path,
+            progress=False, log=print)
+    out, _ = diagnose(read_real_log(s["mcap"]), scenario, identify=False)
+    which = out["which"]
+    print(f"seed {seed}: {effects} ->", which["confidence"], which["verdict"][:300])
+    assert which["named_set"] == ["adhesion_lag"] and which["confidence"] == "confident", which["verdict"]
+    assert out["shrink"]["held_out_gap_shrink_percent"] >= 80

@@ -263,8 +263,8 @@ def test_the_effect_registry_and_the_physics_name_the_same_effects():
     """hil/effects.py says which effects exist and at which level; plant/reality.py integrates the plant
     and sensor ones: the two lists must agree."""
     from hil.effects import EFFECTS
-    from plant.reality import PLANT_ORDER, SENSOR_EFFECTS
+    from plant.reality import SENSOR_EFFECTS, plant_order
 
-    assert {n for n, s in EFFECTS.items() if s.level == "plant"} == set(PLANT_ORDER)
+    assert {n for n, s in EFFECTS.items() if s.level == "plant"} == set(plant_order())
     assert {n for n, s in EFFECTS.items() if s.level == "sensor"} == set(SENSOR_EFFECTS)
     assert {n for n, s in EFFECTS.items() if s.level == "bus"} == {"can"}

@@ -10,7 +10,7 @@ import tempfile
 from ..bus.frames import WALL_CLOCK_IDS as HEARTBEAT_IDS     # heartbeats and TcuScenario: wall-clock frames
 from ..config import load_scenario
 from ..rt.idle_spin import AWAY_SHARE
-from . import terminal
+from .. import terminal
 from .judge import _median
 
 IDENT_KEYS = ("identified", "t_identified_s", "corrections", "params", "samples", "mse", "r2", "observer_lag_ms")

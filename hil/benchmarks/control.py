@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .terminal import columns, wrap
+from ..terminal import columns, wrap
 
 DRY_PEAK_MU = (0.25, 0.35)
 DRY_PEAK_CREEP_KMH = (0.8, 4.0)

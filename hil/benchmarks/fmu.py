@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from ..config import load_scenario
-from . import terminal
+from .. import terminal
 
 STATE_FIELDS = ("motor_speed_rad_s", "train_speed_ms", "creep_speed_kmh", "mu", "load_torque_nm")
 #: summary keys that depend on the wall clock, not on the run

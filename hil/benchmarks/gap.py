@@ -14,7 +14,7 @@ K real runs, each drawn (seeded; the seed is drawn at run time unless given, and
 * ``two_effect``: one plant effect and one sensor effect at once;
 * ``outside``: an effect outside every class (torque ripple, wheel radius, tachometer gain): right answer
   "none", and a sparse description (``which.description``) naming what the missing term depends on;
-* ``out_of_library``: a member of ``FAMILY``, effects that are no candidate and that a combination of
+* ``out_of_library``: a member of ``family()``, effects that are no candidate and that a combination of
   candidates can mimic, each classed in advance (``outside``: the right answer names no effect;
   ``nuisance``: the rail's curve is what differs): the drive's constant-power torque limit
   (``power_limit``: the torque capped at P_max / omega_m once the motor runs 0.5-5 % above its
@@ -47,7 +47,6 @@ acts and no diagnosis can see it (the gap is zero); it stays in the library and 
 from __future__ import annotations
 
 import json
-import math
 import os
 import sys
 import tempfile
@@ -58,43 +57,52 @@ import numpy as np
 
 from ..effects import EFFECTS
 from ..sweep.engine import map_in_order
-from .terminal import wrap, wrap_lines
+from ..terminal import wrap, wrap_lines
 
-U = lambda g, a, b: float(g.uniform(a, b))  # noqa: E731
-LOGU = lambda g, a, b: float(math.exp(g.uniform(math.log(a), math.log(b))))  # noqa: E731
 
-#: the candidates' own forms: effect -> (the parameter the diagnosis must recover, sampler(rng) -> params)
-LIBRARY = {
-    "load_transfer": ("bogie_height_m", lambda g: {"bogie_height_m": U(g, 0.5, 2.6)}),
-    "compliance": ("stiffness_nm_rad", lambda g: {"stiffness_nm_rad": LOGU(g, 1e5, 1e6),
-                                                  "damping_ratio": U(g, 0.02, 0.15),
-                                                  "backlash_rad": U(g, 0.0, 0.002)}),
-    "adhesion_lag": ("tau_s", lambda g: {"tau_s": LOGU(g, 0.003, 0.03)}),
-    "resistance": ("factor", lambda g: {"factor": U(g, 0.4, 0.7) if g.random() < 0.5 else U(g, 1.4, 2.0)}),
-    "sensor_delay": ("delay_ms", lambda g: {"delay_ms": U(g, 1.0, 8.0)}),
-    "sensor_quantisation": ("motor_quantum_rad_s", lambda g: {"motor_quantum_rad_s": LOGU(g, 0.04, 0.2)}),
-    "can": ("delay_ms", lambda g: {"delay_ms": float(g.integers(1, 7)), "jitter_ms": U(g, 0.0, 1.0),
-                                   "loss": U(g, 0.0, 0.03)}),
-}
-#: forms the candidate list does not use (their class: ``EFFECTS[name].effect_class``)
-HELD_OUT = {
-    "creep_relaxation": lambda g: {"relaxation_length_m": LOGU(g, 0.05, 0.8)},
-    "bristle": lambda g: {"stiffness_per_m": LOGU(g, 50.0, 400.0), "damping_s_per_m": U(g, 0.0, 0.02)},
-    "drivetrain_damping": lambda g: {"viscous_nm_s_rad": U(g, 0.2, 2.0), "coulomb_nm": U(g, 5.0, 40.0)},
-    "gear_efficiency": lambda g: {"efficiency": U(g, 0.93, 0.99)},
-    "sensor_lowpass": lambda g: {"tau_ms": U(g, 1.0, 6.0)},
-    "motor_delay": lambda g: {"delay_ms": U(g, 2.0, 12.0)},
-    "load_transfer_pitch": lambda g: {"bogie_height_m": U(g, 0.5, 2.6), "pitch_hz": U(g, 2.0, 8.0),
-                                      "pitch_damping": U(g, 0.1, 0.4)},
-}
-RAIL = lambda g: {"peak_mu_scale": 1.0 + float(g.choice([-1, 1])) * U(g, 0.01, 0.05),  # noqa: E731
-                  "creep_scale": 1.0 if g.random() < 0.5 else 1.0 + U(g, -0.05, 0.05)}
-OUTSIDE = {
-    "torque_ripple": lambda g: {"amplitude": U(g, 0.01, 0.05), "frequency_hz": U(g, 20.0, 150.0),
-                                "phase_rad": U(g, 0, 2 * math.pi)},
-    "wheel_radius": lambda g: {"error_percent": float(g.choice([-1, 1]) * g.uniform(0.05, 0.3))},
-    "tachometer_gain": lambda g: {"error_percent": float(g.choice([-1, 1]) * g.uniform(0.2, 2.0))},
-}
+def _draws(kind: str) -> dict:
+    """effect -> its record's draw of ``kind`` (``hil.effects.Draw``), in the registry's order."""
+    return {n: s.draw(kind) for n, s in EFFECTS.items() if s.draw(kind) is not None}
+
+
+# every table below is read off the effects' records (``hil.effects``: ``EffectSpec.draws``) when a case
+# is drawn, so an effect added with ``hil.effects.add_effect`` is drawn too
+def library() -> dict:
+    """The candidates' own forms: effect -> (the parameter the diagnosis must recover, sampler(rng) -> params)."""
+    return {n: (d.recover, d.sample) for n, d in _draws("library_form").items()}
+
+
+def held_out() -> dict:
+    """Forms the candidate list does not use (their class: ``EFFECTS[name].effect_class``) -> sampler."""
+    return {n: d.sample for n, d in _draws("held_out_form").items()}
+
+
+def outside() -> dict:
+    """Effects of no candidate's class -> sampler."""
+    return {n: d.sample for n, d in _draws("outside").items()}
+
+
+def rail_draw(g) -> dict:
+    """The rail's fault curve 1-5 % off (the ``rail`` kind)."""
+    return _draws("rail")["rail_curve"].sample(g)
+
+
+def family() -> dict:
+    """The out-of-library family: member -> (its class, decided before any diagnosis: "outside" (no
+    effect is right) or "nuisance" (the rail's curve differs), the reality effect that makes it,
+    sampler(rng) -> its parameters).  None is a candidate (``EFFECTS[effect].candidate`` is False); why
+    each is drawn as it is: its record's comment."""
+    return {d.member: (d.member_class, n, d.sample) for n, d in _draws("out_of_library").items()}
+
+
+def paired_forms() -> tuple[tuple, tuple]:
+    """(plant forms, sensor or bus forms) the two-effect cases draw one of each from, by ``Draw.pair_rank``."""
+    paired = sorted((d.pair_rank, n) for kind in ("library_form", "held_out_form")
+                    for n, d in _draws(kind).items() if d.pair_rank)
+    return (tuple(n for _, n in paired if EFFECTS[n].level == "plant"),
+            tuple(n for _, n in paired if EFFECTS[n].level != "plant"))
+
+
 #: what the missing term of each out-of-library effect depends on: a sparse description of the gap
 #: (``which.description``) is right when it names one of these (a tachometer gain scales the motor
 #: speed read; a wheel radius error changes the creep a wheel speed makes; a torque ripple rides on the
@@ -104,30 +112,7 @@ OUTSIDE = {
 OUTSIDE_VARIABLES = {"torque_ripple": {"torque"}, "wheel_radius": {"creep_speed", "motor_speed"},
                      "tachometer_gain": {"motor_speed"}, "power_limit": {"motor_speed", "torque"},
                      "torque_map": {"motor_speed", "torque"}, "sensor_stick": {"motor_speed"}}
-#: the out-of-library family: member -> (its class, decided before any diagnosis: "outside" (no effect
-#: is right) or "nuisance" (the rail's curve differs), the reality effect that makes it, sampler(rng) ->
-#: its parameters).  None is a candidate (``EFFECTS[effect].candidate`` is False).
-FAMILY = {
-    # the drive's constant-power region: T = min(T_cmd, P_max / omega_m), P_max a ratio of the equilibrium
-    # power, so the cap binds once the motor runs that much above its equilibrium speed (at the fault's
-    # creep rise, or earlier as the train accelerates)
-    "power_limit": ("outside", "power_limit", lambda g: {"power_ratio": U(g, 1.005, 1.05)}),
-    # the rail's curve stretched in creep, inside the nuisance's range (candidates.RAIL: 0.85-1.18)
-    "rail_stretch": ("nuisance", "rail_curve",
-                     lambda g: {"peak_mu_scale": 1.0, "creep_scale": float(g.choice([-1, 1])) * U(g, 0.06, 0.14)
-                                + 1.0}),
-    # the drive's torque gain falling linearly with motor speed about the equilibrium speed (no knee: it
-    # acts as the train speeds up, before the fault too); no candidate adds torque below nor takes it
-    # off only above the equilibrium speed, the drivetrain losses and the rail curve mimic parts of it
-    "torque_map": ("outside", "torque_map", lambda g: {"droop": U(g, 0.5, 3.0)}),
-    # the motor encoder stuck for 5-30 ms (its last reading repeated), somewhere in 0.2-0.65 s (the fault
-    # of ffcc_a is at 0.5 s: before it the speed hardly moves and the stick may leave no gap at all)
-    "sensor_stick": ("outside", "sensor_stick", lambda g: {"start_s": U(g, 0.2, 0.65), "hold_ms": U(g, 5.0, 30.0)}),
-}
 LINE_TOLERANCE = 0.02
-PLANT_FORMS = ("load_transfer", "compliance", "adhesion_lag", "resistance", "creep_relaxation", "bristle",
-               "load_transfer_pitch")
-SENSOR_FORMS = ("sensor_delay", "sensor_quantisation", "can", "sensor_lowpass", "motor_delay")
 KINDS = ("held_out_form", "library_form", "rail", "two_effect", "outside", "out_of_library", "nominal")
 #: the five first kinds in the proportions they always had; the out-of-library family and the nominal row beside
 DEFAULT_MIX = {"held_out_form": 0.4, "library_form": 0.15, "rail": 0.15, "two_effect": 0.1, "outside": 0.2,
@@ -136,11 +121,10 @@ GRADES = ("confident", "tentative", "not_separable", "nuisance", "none")
 
 
 def _sample(name: str, g) -> dict:
-    if name in LIBRARY:
-        return LIBRARY[name][1](g)
-    if name in HELD_OUT:
-        return HELD_OUT[name](g)
-    return OUTSIDE[name](g)
+    for table in (library(), held_out()):
+        if name in table:
+            return table[name][1](g) if isinstance(table[name], tuple) else table[name](g)
+    return outside()[name](g)
 
 
 def truth_classes(effects: dict) -> list[str]:
@@ -153,7 +137,7 @@ def member_of(kind: str, effects: dict) -> str | None:
     """The out-of-library family member a case was drawn as (None for the other kinds)."""
     if kind != "out_of_library":
         return None
-    return next(m for m, (_, effect, _) in FAMILY.items() if effect in effects)
+    return next(m for m, (_, effect, _) in family().items() if effect in effects)
 
 
 def register(sub) -> None:
@@ -201,22 +185,27 @@ def draw_case(seed: int, i: int, mix: dict) -> tuple[str, dict, int]:
     w = np.array([mix[k] for k in kinds], float)
     kind = kinds[int(g.choice(len(kinds), p=w / w.sum()))]
     if kind == "held_out_form":
-        name = sorted(HELD_OUT)[int(g.integers(len(HELD_OUT)))]
+        forms = sorted(held_out())
+        name = forms[int(g.integers(len(forms)))]
         effects = {name: _sample(name, g)}
     elif kind == "library_form":
-        name = sorted(LIBRARY)[int(g.integers(len(LIBRARY)))]
+        forms = sorted(library())
+        name = forms[int(g.integers(len(forms)))]
         effects = {name: _sample(name, g)}
     elif kind == "rail":
-        effects = {"rail_curve": RAIL(g)}
+        effects = {"rail_curve": rail_draw(g)}
     elif kind == "two_effect":
-        a = PLANT_FORMS[int(g.integers(len(PLANT_FORMS)))]
-        b = SENSOR_FORMS[int(g.integers(len(SENSOR_FORMS)))]
+        plant_forms, sensor_forms = paired_forms()
+        a = plant_forms[int(g.integers(len(plant_forms)))]
+        b = sensor_forms[int(g.integers(len(sensor_forms)))]
         effects = {a: _sample(a, g), b: _sample(b, g)}
     elif kind == "outside":
-        name = sorted(OUTSIDE)[int(g.integers(len(OUTSIDE)))]
+        names = sorted(outside())
+        name = names[int(g.integers(len(names)))]
         effects = {name: _sample(name, g)}
     elif kind == "out_of_library":
-        _, effect, sampler = FAMILY[sorted(FAMILY)[int(g.integers(len(FAMILY)))]]
+        members = family()
+        _, effect, sampler = members[sorted(members)[int(g.integers(len(members)))]]
         effects = {effect: sampler(g)}
     else:                                  # nominal: no effect
         effects = {}
@@ -225,12 +214,12 @@ def draw_case(seed: int, i: int, mix: dict) -> tuple[str, dict, int]:
 
 def truth_value(effect: str, truth: dict) -> float | None:
     """The parameter value the diagnosis must recover, from the log's truth record (library forms)."""
-    if effect not in LIBRARY:
+    if effect not in library():
         return None
     params = json.loads(truth["effects"])[effect]
     if effect == "can":   # the TCU sees whole periods: the realised mean delay is the recoverable figure
         return json.loads(truth["can_realised"])["mean_delay_ms"]
-    return params[LIBRARY[effect][0]]
+    return params[library()[effect][0]]
 
 
 def run_case(scenario, kind: str, effects: dict, run_seed: int, out_dir: Path, i: int) -> dict:
@@ -244,8 +233,8 @@ def run_case(scenario, kind: str, effects: dict, run_seed: int, out_dir: Path, i
                   log=lambda text: None)
     path = summary["mcap"]
     t0 = time.perf_counter()
-    held_out = sorted(n for n in effects if n in HELD_OUT)             # the truth's own form is no candidate
-    out, result = diagnose(read_real_log(path), scenario, identify=False, exclude=held_out)   # blind: no truth here
+    held = sorted(n for n in effects if n in held_out())             # the truth's own form is no candidate
+    out, result = diagnose(read_real_log(path), scenario, identify=False, exclude=held)   # blind: no truth here
     wall = time.perf_counter() - t0
     truth = read_log(path).metadata.get(TRUTH_KEY, {})                  # only now, for scoring (none: nominal)
     which = out["which"]
@@ -261,7 +250,7 @@ def run_case(scenario, kind: str, effects: dict, run_seed: int, out_dir: Path, i
            "best_form": which["ranking"][0]["form"], "diagnosis_s": wall, "log": path,
            "description": (which.get("description") or {}).get("sentence"),
            "described_variables": (which.get("description") or {}).get("variables", []),
-           "oracle": limit, "excluded": held_out, "ranked_candidates": [r["candidate"] for r in which["ranking"]],
+           "oracle": limit, "excluded": held, "ranked_candidates": [r["candidate"] for r in which["ranking"]],
            "failed_candidates": which["failed_candidates"], "gap_present": which["gap_present"],
            "member": member_of(kind, effects),
            "not_separable": ["+".join(a.get("effects") or [a["effect"]]) for a in which.get("not_separable") or []],
@@ -270,7 +259,7 @@ def run_case(scenario, kind: str, effects: dict, run_seed: int, out_dir: Path, i
            "forward_firsts": [f"{f['first']}+{f['second']}: {'accepted' if f['accepted'] else 'turned away'}"
                               for f in which.get("forward_firsts") or []],
            "veto_in_time": ((which["forward"] or {}).get("held_out_in_time") or {}).get("pair_wins")}
-    rec["member_class"] = FAMILY[rec["member"]][0] if rec["member"] else None
+    rec["member_class"] = family()[rec["member"]][0] if rec["member"] else None
     if kind == "outside" or rec["member_class"] == "outside":
         right = set().union(*(OUTSIDE_VARIABLES[n] for n in effects))
         line_hz = (which.get("description") or {}).get("line_hz") if "periodic" in rec["described_variables"] \
@@ -300,7 +289,7 @@ def run_case(scenario, kind: str, effects: dict, run_seed: int, out_dir: Path, i
             # the library form's own fit (a quantiser is judged apart: ``which.quantiser``)
             row = which["quantiser"] if effect == "sensor_quantisation" and which.get("quantiser") else \
                 next(r for r in which["ranking"] if r["candidate"] == effect)
-            fitted = row["params"][LIBRARY[effect][0]]
+            fitted = row["params"][library()[effect][0]]
             rec["fitted_value"] = fitted
             rec["param_err_percent"] = abs(fitted - true_v) / abs(true_v) * 100
     return rec
@@ -350,12 +339,12 @@ def oracle(result, effects: dict, truth_set: list) -> dict | None:
     row = entry(result.ctx, fit, result.base)
     # the alternatives: another class's best for one effect; for several, any single candidate too (a
     # pair is told apart only when it beats the best single effect: the second one shows)
-    others = [r for r in result.ranking if len(truth_set) > 1 or r["effect"] not in truth_set]
-    material = row["held_out_shrink"] >= MIN_SHRINK and row["score_gain"] > MIN_SCORE_GAIN
+    others = [r for r in result.ranking if len(truth_set) > 1 or r.effect not in truth_set]
+    material = row.held_out_shrink >= MIN_SHRINK and row.score_gain > MIN_SCORE_GAIN
     over_rail = result.rail is None or beats(row, result.rail)
     over_others = all(beats(row, r) for r in others[:1])
-    return {"shrink_percent": row["held_out_shrink"] * 100, "held_out_gap": row["held_out_gap"],
-            "score_gain": row["score_gain"], "material": material, "beats_rail": over_rail,
+    return {"shrink_percent": row.held_out_shrink * 100, "held_out_gap": row.held_out_gap,
+            "score_gain": row.score_gain, "material": material, "beats_rail": over_rail,
             "beats_other_classes": over_others, "separable": bool(material and over_rail and over_others)}
 
 

@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError
-from . import terminal
+from .. import terminal
 from .judge import TOL_PEAK_CREEP_PERCENT, TOL_PEAK_MU_PERCENT, judge
 from .judge import quantile_or_inf as judge_quantile
 from .judge import aggregate as judge_aggregate

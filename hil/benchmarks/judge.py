@@ -26,7 +26,7 @@ import math
 
 import numpy as np
 
-from . import terminal
+from .. import terminal
 
 TOL_PEAK_MU_PERCENT = 3.0
 TOL_PEAK_CREEP_PERCENT = 10.0
@@ -143,7 +143,7 @@ COLUMNS = (("strategy", None, "{}"), ("confirmed before serious", "confirmed_bef
            ("CI width peak creep %", "ci_width_peak_creep_median_percent", ".1f"),
            ("RT median %", "rt_median_percent", ".1f"), ("RT p90 %", "rt_p90_percent", ".1f"),
            ("oracle RT median %", "oracle_rt_median_percent", ".1f"), ("cost p99 µs", "cost_p99_us", ".0f"))
-#: what a terminal shows by default (``hil.benchmarks.terminal.WIDTH``): the columns a reader decides on
+#: what a terminal shows by default (``hil.terminal.WIDTH``): the columns a reader decides on
 TERMINAL = (("strategy", None, "{}"), ("correct", "correct_fraction", "pct"),
             ("wrong", "wrong_confirmation_fraction", "pct"), ("unconfirmed", "unconfirmed_fraction", "pct"),
             ("covers μ", "coverage_peak_mu", "pct"), ("covers creep", "coverage_peak_creep", "pct"),

@@ -45,7 +45,7 @@ from ..sweep.engine import Engine
 from ..sweep.point import THREAD_ENV, run_point, threads_seen
 from ..sweep.spec import parse_sweep
 from ..sweep.table import comparable
-from . import terminal
+from .. import terminal
 
 BASE = Path(__file__).resolve().parents[2] / "scenarios" / "ffcc_a.toml"
 

@@ -22,7 +22,7 @@ def register(sub) -> None:
 
 def cmd_gap(args) -> int:
     from ..gap import diagnose, read_real_log
-    from ..benchmarks.terminal import wrap_lines
+    from ..terminal import wrap_lines
     from ..gap.report import text_summary, write_report
 
     if args.block < 2:

@@ -19,7 +19,7 @@ def read_calibration(path=None) -> dict | None:
     p = Path(path) if path is not None else DEFAULT_PATH
     try:
         table = json.loads(p.read_text())
-    except (OSError, ValueError):
+    except (OSError, ValueError):     # no calibration file, or not JSON: the grade is said without one
         return None
     if not isinstance(table, dict) or not isinstance(table.get("grades"), dict):
         return None

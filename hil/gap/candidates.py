@@ -22,7 +22,7 @@ from scipy.optimize import least_squares, minimize_scalar
 
 from plant.reality import fill_defaults
 
-from ..effects import EFFECTS
+from ..effects import EFFECTS, DelayFit, PlantFit
 
 from .model import Simulator, lattice_quantum, lowpass, shift
 
@@ -179,7 +179,7 @@ def interval_halfwidths(result, z: float = 1.96):
     m, p = J.shape
     try:
         cov = np.linalg.inv(J.T @ J) * (2 * float(result.cost) / max(m - p, 1))
-    except np.linalg.LinAlgError:
+    except np.linalg.LinAlgError:     # J'J singular (a parameter the data do not move): no interval
         return None
     d = np.diag(cov)
     return np.where(d >= 0, z * np.sqrt(np.abs(d)), np.nan)
@@ -232,6 +232,8 @@ class PlantCandidate:
             try:
                 motor, train = sim.run(theta_of(u), x0, torque, n=ctx.n_read)
             except (FloatingPointError, RuntimeError):
+                # the model diverges (FloatingPointError) or CasADi cannot evaluate it at these parameters:
+                # a residual far worse than any fit, so the search steps back into the range it can use
                 return np.full(n_res, 1e3)
             return ctx.residuals(ctx.predict(motor, train), ctx.sigma_nom, ctx.train)
 
@@ -337,7 +339,7 @@ def fit_pair(ctx: Context, plant: PlantCandidate, sensor: SensorDelayCandidate, 
     def resid(u):
         try:
             motor, train = sim.run(theta_of(u), start_of(u), torque, n=ctx.n_read)
-        except (FloatingPointError, RuntimeError):
+        except (FloatingPointError, RuntimeError):     # as PlantCandidate.fit's: a residual worse than any fit
             return np.full(n_res, 1e3)
         return ctx.residuals(ctx.predict(motor, train, **{arg: u[np_]}), ctx.sigma_nom, ctx.train)
 
@@ -517,35 +519,34 @@ class QuantisationCandidate:
                    {"quanta": params, "x0": x0.tolist()})
 
 
+def from_record(name: str):
+    """The candidate of effect ``name``, built from its record's fit settings (``hil.effects``)."""
+    spec = EFFECTS[name]
+    fit = spec.fit
+    if isinstance(fit, PlantFit):
+        return PlantCandidate(name, fit.params, fit.lo, fit.hi, fit.log, fit.scan)
+    if isinstance(fit, DelayFit):
+        return SensorDelayCandidate(name, fit.form, fit.param, fit.max_periods)
+    if fit == "quantiser":
+        return QuantisationCandidate(name)
+    if fit == "frames":
+        return CanCandidate(name)
+    raise ValueError(f"effect {name!r}: no fit settings the diagnosis knows ({fit!r})")
+
+
 #: the nuisance fitted before any effect is compared: the rail's fault curve, scaled in mu and in creep
-RAIL = PlantCandidate("rail_curve", ("peak_mu_scale", "creep_scale"), (0.85, 0.85), (1.18, 1.18), (True, True), (17, 7))
+RAIL = from_record("rail_curve")
+
+
+def _order(spec) -> tuple:
+    """The candidate list's order: the least-squares fits first (each class's own form, then the other
+    forms), the quantiser's and the frame map's last; the registry's order within each."""
+    return (not isinstance(spec.fit, (PlantFit, DelayFit)), bool(spec.cls))
 
 
 def candidates(scenario, exclude=()) -> list:
-    """The candidate list the diagnosis tries: every EffectSpec with candidate=True, one candidate per
-    form, but the effects named in ``exclude`` (the blind bench holds the truth's own form out)."""
-    out = [
-        PlantCandidate("load_transfer", ("bogie_height_m",), (0.0,), (6.0,), (False,)),
-        PlantCandidate("torque_lag", ("tau_s",), (2e-4,), (0.1,), (True,)),
-        # the ring frequency makes the stiffness cost multimodal: a fine scan in stiffness
-        PlantCandidate("compliance", ("stiffness_nm_rad", "damping_ratio"), (2e4, 0.005), (5e6, 1.0), (True, True),
-                       (17, 4)),
-        PlantCandidate("adhesion_lag", ("tau_s",), (2e-4,), (0.2,), (True,)),
-        PlantCandidate("resistance", ("factor",), (0.0,), (5.0,), (False,)),
-        SensorDelayCandidate(),
-        # the other forms of the classes above (each class names its best form)
-        PlantCandidate("load_transfer_pitch", ("bogie_height_m", "pitch_hz"), (0.0, 0.5), (6.0, 20.0), (False, True),
-                       (7, 5)),
-        PlantCandidate("drivetrain_damping", ("viscous_nm_s_rad", "coulomb_nm"), (0.0, 0.0), (20.0, 400.0),
-                       (False, False), (5, 5)),
-        PlantCandidate("gear_efficiency", ("efficiency",), (0.5,), (1.0,), (False,), (11,)),
-        PlantCandidate("creep_relaxation", ("relaxation_length_m",), (2e-3,), (10.0,), (True,)),
-        PlantCandidate("bristle", ("stiffness_per_m", "damping_s_per_m"), (5.0, 0.0), (1e4, 0.05), (True, False),
-                       (9, 3)),
-        SensorDelayCandidate("sensor_lowpass", "low_pass", "tau_ms"),
-        SensorDelayCandidate("motor_delay", "per_signal", "delay_ms"),
-        QuantisationCandidate(),
-        CanCandidate(),
-    ]
-    assert {c.name for c in out} == {n for n, s in EFFECTS.items() if s.candidate}
-    return [c for c in out if c.name not in exclude]
+    """The candidate list the diagnosis tries: every effect whose record says ``candidate``, one
+    candidate per form, built from the record's fit settings (``from_record``), but the effects named
+    in ``exclude`` (the blind bench holds the truth's own form out)."""
+    specs = sorted((s for s in EFFECTS.values() if s.candidate), key=_order)
+    return [from_record(s.name) for s in specs if s.name not in exclude]

@@ -44,7 +44,7 @@ def _compiler() -> tuple[str, str] | None:
         if path:
             try:
                 out = subprocess.run([path, "--version"], capture_output=True, text=True, timeout=30).stdout
-            except (OSError, subprocess.SubprocessError):
+            except (OSError, subprocess.SubprocessError):   # this name is no working compiler: try the next
                 continue
             return path, (out.splitlines() or [""])[0]
     return None
@@ -55,7 +55,7 @@ def _cache_dir() -> Path:
         CACHE.mkdir(parents=True, exist_ok=True)
         if os.access(CACHE, os.W_OK):
             return CACHE
-    except OSError:
+    except OSError:                   # the shared cache cannot be made here: a private one below
         pass
     if not _own_cache:
         _own_cache.append(Path(tempfile.mkdtemp(prefix="hil-casadi-c-")))
@@ -65,7 +65,7 @@ def _cache_dir() -> Path:
 def _touch(lib: Path) -> None:
     try:
         os.utime(lib)
-    except OSError:
+    except OSError:                   # a read-only cache: the library is used all the same, only pruned sooner
         pass
 
 
@@ -75,7 +75,7 @@ def _prune(cache: Path) -> None:
         libs = sorted(cache.glob("*.so"), key=lambda p: p.stat().st_mtime, reverse=True)
         for old in libs[KEEP:]:
             old.unlink(missing_ok=True)
-    except OSError:
+    except OSError:                   # another process pruned or holds it: pruning is housekeeping only
         pass
 
 
@@ -99,7 +99,7 @@ def compiled(fn: ca.Function) -> ca.Function:
                 subprocess.run([cc, *FLAGS, str(Path(tmp) / "step.c"), "-o", str(part), "-lm"],
                                check=True, capture_output=True, timeout=120)
                 os.replace(part, lib)
-            except (OSError, subprocess.SubprocessError):
+            except (OSError, subprocess.SubprocessError):   # the compiler failed: the virtual machine's same bits
                 part.unlink(missing_ok=True)
                 return fn
             _prune(cache)
@@ -107,5 +107,5 @@ def compiled(fn: ca.Function) -> ca.Function:
             _touch(lib)
     try:
         return ca.external(fn.name(), str(lib))
-    except RuntimeError:
+    except RuntimeError:              # CasADi cannot load the library: the virtual machine's same bits
         return fn

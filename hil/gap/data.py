@@ -69,7 +69,7 @@ def read_real_log(path, period_s: float | None = None) -> RealData:
     run = meta.get("run", {})
     try:
         period = float(run["exchange_period_s"])
-    except (KeyError, ValueError):
+    except (KeyError, ValueError):    # no (readable) period in the log's metadata: from its first two steps
         steps = np.array([m.step for m in sensor[:2]])
         ts = np.array([m.t_s for m in sensor[:2]])
         period = float((ts[1] - ts[0]) / max(steps[1] - steps[0], 1))

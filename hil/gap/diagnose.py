@@ -34,9 +34,9 @@ from .candidates import SIGNALS, UNITS, Context, Fit, candidates, fit_nominal
 from .identify import identification
 from .model import ObserverReplica, initial_line
 from .select import (FORWARD_MAX_SHARE, FORWARD_MIN_LEFT, FORWARD_MIN_SHARE, MARGIN_GAP_RATIO, MIN_GAP, MIN_MARGIN,
-                     MIN_SCORE_GAIN, MIN_SHRINK, NOISE_GAP, NONE, choose_pair, entry, fit_candidates, fit_rail, forward,
-                     judge, label, other_firsts, pair_explanation, pair_label, pair_listed, quantiser, rejudge, score,
-                     within_noise)
+                     MIN_SCORE_GAIN, MIN_SHRINK, NOISE_GAP, NONE, HowFar, Row, Verdict, choose_pair, entry,
+                     fit_candidates, fit_rail, forward, judge, label, other_firsts, pair_explanation, pair_label,
+                     pair_listed, quantiser, rejudge, score, within_noise)
 from .sparse import AHEAD_PERIODS, describe_residual
 from .where import normal_running_replay, observability, separation, where
 
@@ -64,6 +64,7 @@ class DiagnosisResult:
     creep_meas: np.ndarray
     failed: list = field(default_factory=list)
     ahead_motor: np.ndarray | None = None     # Simulator.ahead by sparse.AHEAD_PERIODS (the rate view)
+    verdict: Verdict | None = None            # the answer (``report["which"]`` and ``["shrink"]`` are it)
 
 
 def _log(progress, msg):
@@ -149,91 +150,19 @@ class Diagnosis:
         rail, rail_fit = None, None
         if gap_present:
             rail_fit, rail = fit_rail(ctx, nom_fit, base, failed, say)
-        ranking = [entry(ctx, fit, base) for fit in fits]
-        ranking.sort(key=lambda r: -r["score_gain"])
+        ranking = sorted((entry(ctx, fit, base) for fit in fits), key=lambda r: -r.score_gain)
         best = ranking[0]
-        named, named_set, verdict, nuisances, confidence, alternatives = judge(base, ranking, rail, gap_present)
-        best_fit = next(f for f in fits if f.name == best["candidate"])
-        # what would tell a "not separable" answer's explanations apart: where their fits differ most
-        separate = []
-        if alternatives:
-            by_name = {f.name: f for f in fits}
-            preds = {label(r): (rail_fit.pred if r is rail else by_name[r["candidate"]].pred) for r in alternatives}
-            separate = separation(ctx, preds, creep_meas)
-            if separate:
-                sb = separate[0]      # the two best: the first two explanations listed
-                verdict += (f"; they differ most on {sb['signal']} in the {sb['stage']} stage "
-                            f"({sb['difference_noise_units']:.2f} noise units between {sb['between'][0]} and "
-                            f"{sb['between'][1]})")
-        forward_, tried, rivals = None, [], []
-        # nothing is named on top of an explanation that leaves the held-out gap within the noise: the
-        # rail nuisance (``within_noise``) or the best single effect (its gap above NOISE_GAP); after a
-        # first that removes most of the gap, not within twice that (``FORWARD_MIN_LEFT``: what a form
-        # that differs from its candidate's leaves, which a small second effect can take half of)
-        if gap_present and FORWARD_MIN_SHARE <= best["held_out_shrink"] and best["held_out_gap"] > NOISE_GAP and \
-                not within_noise(rail) and \
-                (best["held_out_shrink"] < FORWARD_MAX_SHARE or best["held_out_gap"] >= FORWARD_MIN_LEFT):
-            alone = {f.name: f for f in fits}
-            forward_ = forward(ctx, nom_fit, base, best_fit, best, rail_fit, ranking, exclude, failed, say, alone=alone)
-            tried = [(best, forward_)] if forward_ is not None else []
-            if forward_ is None or not forward_["accepted"]:
-                for row in other_firsts(ranking, best):      # the true first need not be the best alone
-                    fw = forward(ctx, nom_fit, base, alone[row["candidate"]], row, rail_fit, ranking, exclude, failed,
-                                 say, alone=alone)
-                    if fw is not None:
-                        tried.append((row, fw))
-            first_row, won, rivals = choose_pair(tried)
-            if won is not None and not rivals:
-                forward_ = won
-                named, named_set, verdict, confidence = rejudge(named, named_set, verdict, confidence, first_row,
-                                                                won, ranking)
-                alternatives, separate = [], []       # the pair settles what the singles left open
-            elif won is not None:
-                # pairs on different firsts, each accepted, none beating the others by the margin
-                forward_ = won
-                pairs = [won] + rivals
-                alternatives, separate = [], []
-                named, named_set, confidence = NONE, [], "not_separable"
-                verdict = (" or ".join(pair_label(fw) for fw in pairs) + ": not separable in this log ("
-                           + "; ".join(f"{pair_label(fw)} removes {fw['pair_held_out_shrink'] * 100:.0f} %, leaves "
-                                       f"{fw['pair_held_out_gap']:.2f} noise units" for fw in pairs) + ")")
-        listed = [{"explanation": label(r), "effect": r["effect"], "effects": [r["effect"]], "form": r["form"],
-                   "held_out_shrink": r["held_out_shrink"], "held_out_gap": r["held_out_gap"],
-                   "score_gain": r["score_gain"]} for r in alternatives]
-        if rivals:
-            listed = [pair_listed(fw) for fw in [forward_] + rivals]
-        elif confidence == "not_separable":
-            for _, fw in tried:
-                pair = pair_explanation(fw, alternatives)
-                if pair is None or any(set(p["effects"]) == set(pair["effects"]) for p in listed):
-                    continue
-                # a pair forward selection turned away only against the explanations listed: one more of them
-                listed.append(pair)
-                verdict += (f"; or {pair['explanation']}, within the margin of them too (removes "
-                            f"{pair['held_out_shrink'] * 100:.0f} %, leaves {pair['held_out_gap']:.2f} noise units; "
-                            f"not named because {'; '.join(pair['turned_away_because'])})")
+        best_fit = next(f for f in fits if f.name == best.candidate)
+        answer = judge(base, ranking, rail, gap_present)
+        self._separate(answer, ctx, fits, rail, rail_fit, creep_meas)
+        forward_, tried, answer = self._pairs(answer, ctx, nom_fit, base, fits, ranking, rail, rail_fit, exclude,
+                                              failed, say, gap_present)
+        listed = self._listed(answer, forward_, tried)
         if lattice:
-            # named beside whatever explains the mean
-            named_set = sorted(named_set + ["sensor_quantisation"])
-            said = ("the speed sensors are quantised: " + ", ".join(f"{k}={v:.4g}" for k, v in lattice["params"].items()
-                                                                     if v > 0)
-                    + f" ({lattice['note']}); their noise is {lattice['share'] * 100:.0f} % of the held-out gap")
-            if named == NONE:
-                named, confidence = "sensor_quantisation", "confident"
-                verdict = f"{said}; beyond it, {verdict}"
-            else:
-                verdict = f"{verdict}; and {said}"
-        # the named class's best single (of a pair, the effect named first; the best single when none is)
-        named_row = next((r for r in ranking if r["effect"] == named), best)
-        # HOW FAR: the explanation named (a pair, or that single), else the best single
-        if forward_ is not None and forward_["accepted"] and set(named_set) - {"sensor_quantisation"} == \
-                {forward_["first"], forward_["second"]}:
-            far = {"effect": f"{forward_['first']} + {forward_['second']}",
-                   "held_out_shrink": forward_["pair_held_out_shrink"], "per_signal": forward_["pair_per_signal"]}
-        else:
-            far = named_row
-        shrink_table = {s: {"rmse_before": base["per_signal"][s]["rmse"], "rmse_after": far["per_signal"][s]["rmse"],
-                            "gap_before": base["per_signal"][s]["gap"], "gap_after": far["per_signal"][s]["gap"],
+            self._name_quantiser(answer, lattice)
+        named_row, far = self._how_far(answer, ranking, best, forward_, lattice, rail)
+        shrink_table = {s: {"rmse_before": base["per_signal"][s]["rmse"], "rmse_after": far.per_signal[s]["rmse"],
+                            "gap_before": base["per_signal"][s]["gap"], "gap_after": far.per_signal[s]["gap"],
                             "noise_floor": sigma[s], "unit": UNITS[s]} for s in SIGNALS}
         unobservable = observability(where_["input_constant"])
         # what the nominal model leaves, described by a sparse regression (when there is a gap)
@@ -243,18 +172,21 @@ class Diagnosis:
                                                       AHEAD_PERIODS)
             description = describe_residual(ctx.meas["motor"], nominal["motor"], d.train_speed_ms, creep_meas,
                                             d.torque_cmd_nm, d.period_s, ctx.train, ctx.held, ahead)
+        named, confidence = answer.named, answer.grade
         out = {
             "real_log": d.path, "real_log_source": d.source, "model": sc.path, "periods": d.n, "analysis_periods": int(window.sum()),
             "held_out_periods": int(held_mask.sum()), "block_periods": self.block,
             "noise_floor": sigma, "initial_state": {"motor_speed_rad_s": nom_fit.extra["x0"][0],
                                                     "train_speed_ms": nom_fit.extra["x0"][1]},
             "where": where_,
-            "which": {"named": named, "named_set": named_set, "verdict": verdict, "gap_present": gap_present,
-                      "confidence": confidence, "nominal_held_out_gap": base["gap"], "ranking": ranking,
+            "which": {"named": named, "named_set": answer.named_set, "verdict": answer.sentence,
+                      "gap_present": gap_present,
+                      "confidence": confidence, "nominal_held_out_gap": base["gap"],
+                      "ranking": [r.to_json() for r in ranking],
                       "not_separable": listed,
-                      "separate_by": separate[0] if separate else None,
-                      "separate_by_pairs": separate,
-                      "nuisances": nuisances, "forward": forward_,
+                      "separate_by": answer.separate_by[0] if answer.separate_by else None,
+                      "separate_by_pairs": answer.separate_by,
+                      "nuisances": answer.nuisances, "forward": forward_,
                       "forward_firsts": [{k: fw.get(k) for k in ("first", "first_form", "second", "second_form",
                                                                  "accepted", "own_tests_passed", "rejected_because",
                                                                  "pair_held_out_shrink", "pair_held_out_gap")}
@@ -266,18 +198,129 @@ class Diagnosis:
                       "rule": {"min_shrink": MIN_SHRINK, "min_score_gain": MIN_SCORE_GAIN,
                                "margin_score": MIN_MARGIN, "margin_gap_ratio": MARGIN_GAP_RATIO,
                                "min_gap": MIN_GAP, "within_noise_gap": NOISE_GAP}},
-            "shrink": {"effect": far["effect"], "named": named, "held_out_gap_shrink_percent":
-                       far["held_out_shrink"] * 100, "per_signal": shrink_table},
+            "shrink": {"effect": answer.how_far.label, "named": named, "said": answer.how_far.said(),
+                       "held_out_gap_shrink_percent": answer.how_far.held_out_shrink * 100,
+                       "per_signal": shrink_table},
         }
-        if named == "sensor_quantisation":      # the quantiser alone: its share of the gap is the shrink
-            out["shrink"].update(effect="sensor_quantisation", held_out_gap_shrink_percent=lattice["share"] * 100)
         if self.identify:
             say("identification on the real run and on the model replays")
-            named_fit = next(f for f in fits if f.name == named_row["candidate"])
+            named_fit = next(f for f in fits if f.name == named_row.candidate)
             augmented = quantiser_fit if named == "sensor_quantisation" else named_fit if named != NONE else None
             out["identification"] = identification(ctx, nom_fit, augmented, creep_meas)
         return DiagnosisResult(clean(out), d, sc, ctx, nominal, best_fit, fits, base, rail, ranking, creep_meas,
-                               failed, ahead)
+                               failed, ahead, answer)
+
+    # -- the steps of ``run`` after the single candidates are judged ---------------------------------------
+    @staticmethod
+    def _separate(answer: Verdict, ctx, fits, rail, rail_fit, creep_meas) -> None:
+        """What would tell a "not separable" answer's explanations apart: where their fits differ most
+        (``answer.separate_by``, the first two explanations' first, said in the sentence)."""
+        if not answer.alternatives:
+            return
+        by_name = {f.name: f for f in fits}
+        preds = {label(r): (rail_fit.pred if r is rail else by_name[r.candidate].pred) for r in answer.alternatives}
+        answer.separate_by = separation(ctx, preds, creep_meas)
+        if answer.separate_by:
+            sb = answer.separate_by[0]      # the two best: the first two explanations listed
+            answer.sentence += (f"; they differ most on {sb['signal']} in the {sb['stage']} stage "
+                                f"({sb['difference_noise_units']:.2f} noise units between {sb['between'][0]} and "
+                                f"{sb['between'][1]})")
+
+    @staticmethod
+    def _pairs(answer: Verdict, ctx, nom_fit, base, fits, ranking, rail, rail_fit, exclude, failed, say,
+               gap_present):
+        """Forward selection: (its answer from the best single, every (first row, answer) tried, the
+        verdict).  Nothing is named on top of an explanation that leaves the held-out gap within the
+        noise: the rail nuisance (``within_noise``) or the best single effect (its gap above NOISE_GAP);
+        after a first that removes most of the gap, not within twice that (``FORWARD_MIN_LEFT``: what a
+        form that differs from its candidate's leaves, which a small second effect can take half of).
+        The pair built on the best single first; when it is not accepted, from the other classes it does
+        not beat (``other_firsts``); one accepted pair is named (``rejudge``), several within the margin
+        of each other are "not_separable"."""
+        best = ranking[0]
+        if not (gap_present and FORWARD_MIN_SHARE <= best.held_out_shrink and best.held_out_gap > NOISE_GAP
+                and not within_noise(rail)
+                and (best.held_out_shrink < FORWARD_MAX_SHARE or best.held_out_gap >= FORWARD_MIN_LEFT)):
+            return None, [], answer
+        alone = {f.name: f for f in fits}
+        forward_ = forward(ctx, nom_fit, base, alone[best.candidate], best, rail_fit, ranking, exclude, failed, say,
+                           alone=alone)
+        tried = [(best, forward_)] if forward_ is not None else []
+        if forward_ is None or not forward_["accepted"]:
+            for row in other_firsts(ranking, best):      # the true first need not be the best alone
+                fw = forward(ctx, nom_fit, base, alone[row.candidate], row, rail_fit, ranking, exclude, failed, say,
+                             alone=alone)
+                if fw is not None:
+                    tried.append((row, fw))
+        first_row, won, rivals = choose_pair(tried)
+        if won is None:
+            return forward_, tried, answer
+        if not rivals:
+            return won, tried, rejudge(answer, first_row, won, ranking)   # the pair settles what the singles left
+        # pairs on different firsts, each accepted, none beating the others by the margin
+        pairs = [won] + rivals
+        return won, tried, Verdict(
+            "not_separable", " or ".join(pair_label(fw) for fw in pairs) + ": not separable in this log ("
+            + "; ".join(f"{pair_label(fw)} removes {fw['pair_held_out_shrink'] * 100:.0f} %, leaves "
+                        f"{fw['pair_held_out_gap']:.2f} noise units" for fw in pairs) + ")",
+            nuisances=answer.nuisances, alternatives=[pair_listed(fw) for fw in pairs])
+
+    @staticmethod
+    def _listed(answer: Verdict, forward_, tried) -> list[dict]:
+        """The explanations a "not_separable" answer lists (``which.not_separable``): its rows, or its
+        pairs; and a pair forward selection turned away only against the rows listed, as one more."""
+        if answer.alternatives and isinstance(answer.alternatives[0], dict):     # pairs (``_pairs``)
+            return answer.alternatives
+        listed = [{"explanation": label(r), "effect": r.effect, "effects": [r.effect], "form": r.form,
+                   "held_out_shrink": r.held_out_shrink, "held_out_gap": r.held_out_gap,
+                   "score_gain": r.score_gain} for r in answer.alternatives]
+        if answer.grade != "not_separable":
+            return listed
+        for _, fw in tried:
+            pair = pair_explanation(fw, answer.alternatives)
+            if pair is None or any(set(p["effects"]) == set(pair["effects"]) for p in listed):
+                continue
+            listed.append(pair)
+            answer.also(f"or {pair['explanation']}, within the margin of them too (removes "
+                        f"{pair['held_out_shrink'] * 100:.0f} %, leaves {pair['held_out_gap']:.2f} noise units; "
+                        f"not named because {'; '.join(pair['turned_away_because'])})")
+        return listed
+
+    @staticmethod
+    def _name_quantiser(answer: Verdict, lattice: dict) -> None:
+        """A quantiser judged apart is named beside whatever explains the mean (or alone)."""
+        answer.named_set = sorted(answer.named_set + ["sensor_quantisation"])
+        said = ("the speed sensors are quantised: " + ", ".join(f"{k}={v:.4g}" for k, v in lattice["params"].items()
+                                                                 if v > 0)
+                + f" ({lattice['note']}); their noise is {lattice['share'] * 100:.0f} % of the held-out gap")
+        if answer.named == NONE:
+            answer.named, answer.grade = "sensor_quantisation", "confident"
+            answer.sentence = f"{said}; beyond it, {answer.sentence}"
+        else:
+            answer.also(f"and {said}")
+
+    @staticmethod
+    def _how_far(answer: Verdict, ranking, best, forward_, lattice, rail):
+        """(the named class's best single row, the row HOW FAR reports) and ``answer.how_far``: the
+        explanation named (a pair, or that single; the quantiser alone: its share of the gap; the rail
+        curve when the answer is that nuisance, issue 51: the best effect's shrink would read as the
+        answer), else the best single."""
+        named = answer.named
+        named_row = next((r for r in ranking if r.effect == named), best)
+        if answer.grade == "nuisance" and rail is not None:
+            far = rail
+        elif forward_ is not None and forward_["accepted"] and set(answer.named_set) - {"sensor_quantisation"} == \
+                {forward_["first"], forward_["second"]}:
+            far = Row(f"{forward_['first']} + {forward_['second']}", forward_["first_form"],
+                      forward_["second_candidate"], {}, 0, forward_["pair_score_gain"],
+                      forward_["pair_held_out_shrink"], forward_["pair_held_out_gap"],
+                      per_signal=forward_["pair_per_signal"])
+        else:
+            far = named_row
+        answer.how_far = HowFar(far.effect, named != NONE, far.held_out_shrink, far.per_signal)
+        if named == "sensor_quantisation":      # the quantiser alone: its share of the gap is the shrink
+            answer.how_far.label, answer.how_far.held_out_shrink = "sensor_quantisation", lattice["share"]
+        return named_row, far
 
 
 def diagnose(data, scenario, **kw) -> tuple[dict, DiagnosisResult]:

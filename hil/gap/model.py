@@ -174,8 +174,14 @@ def lattice_quantum(values: np.ndarray, q_min: float, q_max: float) -> tuple[flo
     Quantised readings move in whole steps, so the smallest non-zero steps between consecutive values
     give q; it is then refined on the values themselves (k = round(y/q), q = sum(y k) / sum(k^2)).
     Coherence |mean exp(2 pi i x / q)| is 1 for values exactly on the lattice and near 0 for continuous
-    ones; the smaller of the steps' and the values' coherence is returned.  (0, 0) when nothing fits
-    in [q_min, q_max].
+    ones; the smaller of the steps' and the values' coherence is returned.  Noise added after the
+    quantiser (issue 51) makes a reading that stays on one lattice point step by far less than q, so
+    the smallest steps miss the lattice: then the steps' upper quantiles (``UPPER_STEP_QUANTILES``:
+    the steps from one lattice point to the next) start the same refinement, the steps near zero left
+    out (k = 0), and the lattice is judged by the values' coherence alone (lowered by the noise only by
+    exp(-2 pi^2 s^2 / q^2), 0.98 at s = q / 30, however often the values repeat); the most coherent
+    answer is returned, or the largest multiple of it about as coherent (a lattice's submultiples are
+    lattices too).  (0, 0) when nothing fits in [q_min, q_max].
     """
     y = np.asarray(values, float)
     y = y[np.isfinite(y)]
@@ -183,14 +189,75 @@ def lattice_quantum(values: np.ndarray, q_min: float, q_max: float) -> tuple[flo
     d = d[d > 1e-12 * max(1.0, float(np.max(np.abs(y))) if y.size else 1.0)]
     if d.size < 10:
         return 0.0, 0.0
+    best = (0.0, 0.0)
     q = float(np.quantile(d, 0.02))
-    if not (q_min <= q <= q_max):
-        return 0.0, 0.0
-    k = np.maximum(np.round(d / q), 1)
-    q = float(np.sum(d * k) / np.sum(k * k))
-    coh_d = float(np.abs(np.exp(2j * math.pi * d / q).mean()))
+    if q_min <= q <= q_max:
+        k = np.maximum(np.round(d / q), 1)
+        q = float(np.sum(d * k) / np.sum(k * k))
+        coh_d = float(np.abs(np.exp(2j * math.pi * d / q).mean()))
+        q = _refined_on_values(y, q)
+        best = (q, min(coh_d, _coherence(y, q)))
+    if best[1] > 0.9:
+        return best
+    tried: list[float] = []
+    for quantile in UPPER_STEP_QUANTILES:          # noise after the quantiser
+        q = float(np.quantile(d, quantile))
+        if not q_min <= q <= q_max:
+            continue
+        for _ in range(3):                           # the steps between neighbouring lattice points
+            k = np.round(d / q)
+            if not np.any(k):
+                break
+            q = float(np.sum(d * k) / np.sum(k * k))
+        if not (q_min <= q <= q_max and np.any(k)):
+            continue
+        q = _refined_on_values(y, q)
+        coh = _coherence(y, q)
+        if coh <= 0.9 and any(abs(q / p - 1) < 0.03 for p in tried):
+            continue                                 # polished already
+        tried.append(q)
+        if coh <= 0.9:
+            q = _polished(y, q)
+            coh = _coherence(y, q)
+        if q_min <= q <= q_max and coh > best[1]:
+            best = (q, coh)
+        if best[1] > 0.97:
+            break
+    if 0 < best[1] <= 0.9 or best[0] == 0:
+        return best
+    # values on a lattice are on every submultiple of it too (less coherent under the noise only by a
+    # little when the noise is small): the lattice is the largest multiple as coherent as what was found
+    q, coh = best
+    for m in (5, 4, 3, 2):
+        qm = _refined_on_values(y, m * q)
+        cm = _coherence(y, qm)
+        if q_min <= qm <= q_max and cm >= coh - 0.05:
+            return qm, cm
+    return best
+
+
+def _polished(y: np.ndarray, q: float, points: int = 241, width: float = 0.03) -> float:
+    """The most coherent q within +-``width`` of ``q`` (a grid): the steps' refinement under noise may
+    land a fraction of a per cent off, and the values' phase drifts by that times y / q cycles."""
+    grid = q * np.linspace(1 - width, 1 + width, points)
+    ref = float(np.median(y))
+    d = y - ref
+    coh = np.abs(np.exp(2j * math.pi * (d[None, :] / grid[:, None] + ref / grid[:, None])).mean(axis=1))
+    return _refined_on_values(y, float(grid[int(np.argmax(coh))]))
+
+
+#: the quantiles of the steps between consecutive values that start ``lattice_quantum``'s search under
+#: noise after the quantiser (a reading moves to the next lattice point in a few per cent of the
+#: periods to most of them, as the speed moves slowly or fast)
+UPPER_STEP_QUANTILES = (0.5, 0.8, 0.9, 0.95, 0.98, 0.99)
+
+
+def _refined_on_values(y: np.ndarray, q: float) -> float:
     for _ in range(3):
         k = np.round(y / q)
         q = float(np.sum(y * k) / np.sum(k * k))
-    coh_y = float(np.abs(np.exp(2j * math.pi * y / q).mean()))
-    return q, min(coh_d, coh_y)
+    return q
+
+
+def _coherence(y: np.ndarray, q: float) -> float:
+    return float(np.abs(np.exp(2j * math.pi * y / q).mean()))

@@ -65,7 +65,7 @@ def text_summary(out: dict) -> str:
     for n in which.get("nuisances", []):
         lines.append(f"    nuisance {n['name']}: peak mu {n['peak_mu_percent']:+.2f} %, peak creep "
                      f"{n['peak_creep_percent']:+.2f} %, held-out gap shrink {n['held_out_shrink'] * 100:.1f} %")
-    lines.append(f"  HOW FAR ({sh['effect']}{'' if sh['named'] != 'none' else ', not named'}): held-out gap "
+    lines.append(f"  HOW FAR ({sh['said']}): held-out gap "
                  f"shrink {sh['held_out_gap_shrink_percent']:.1f} %")
     for s, v in sh["per_signal"].items():
         lines.append(f"    {s:7s} RMSE {_f(v['rmse_before'], '.4g')} -> {_f(v['rmse_after'], '.4g')} {v['unit']}  (gap "
@@ -247,8 +247,7 @@ def write_report(out: dict, result, directory) -> Path:
                "| candidate | form | step | error |", "|---|---|---|---|"]
         for f_ in out["which"]["failed_candidates"]:
             md.append(f"| {f_['name']} | {f_['form']} | {f_['step']} | {f_['error'].replace('|', '/')} |")
-    md += ["", f"## How far it shrinks (held-out blocks): nominal + {out['shrink']['effect']}"
-           f"{'' if out['shrink']['named'] != 'none' else ' (the best single, not named)'}", "",
+    md += ["", f"## How far it shrinks (held-out blocks): nominal + {out['shrink']['said']}", "",
            "| signal | RMSE before | RMSE after | gap before | gap after | noise floor |", "|---|---|---|---|---|---|"]
     for s, v in out["shrink"]["per_signal"].items():
         md.append(f"| {s} [{v['unit']}] | {_f(v['rmse_before'], '.4g')} | {_f(v['rmse_after'], '.4g')} | "

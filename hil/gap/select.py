@@ -48,6 +48,7 @@ to the caller's ``failed`` list (``failure``: name, form, step, error) and the d
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -143,26 +144,85 @@ def quantiser(ctx: Context, nom_fit: Fit, cands, failed: list, say=quiet) -> tup
     return {"params": dict(fit.params), "note": fit.note}, fit
 
 
-def entry(ctx: Context, fit: Fit, base: dict) -> dict:
+@dataclass
+class Row:
+    """One fitted candidate (or the rail nuisance, or a pair forward selection built) as the answer
+    judges it: its class and form, the candidate fitted, its parameters (``k`` fitted), the held-out
+    score gain over the nominal model, the share of the held-out gap it removes (``held_out_shrink``;
+    ``share`` clipped to 0-1) and the gap it leaves (noise units; ``held_out_gap_own_floor``: in its own
+    noise floor's), which parameters sit at a bound and their intervals, its fit's note, and per
+    signal its held-out RMSE and gap.  A pair's row also holds its first effect's parameters, form and
+    candidate (``first_*``; None for a single).  ``to_json`` is what ``which.ranking`` lists."""
+
+    effect: str
+    form: str
+    candidate: str
+    params: dict
+    k: int
+    score_gain: float
+    held_out_shrink: float
+    held_out_gap: float
+    held_out_gap_own_floor: float = math.nan
+    at_bound: dict = field(default_factory=dict)
+    param_ci: dict = field(default_factory=dict)
+    note: str = ""
+    per_signal: dict = field(default_factory=dict)
+    first_params: dict | None = None
+    first_form: str | None = None
+    first_candidate: str | None = None
+
+    @property
+    def share(self) -> float:
+        return min(max(self.held_out_shrink, 0.0), 1.0)
+
+    def brief(self) -> dict:
+        return {"candidate": self.candidate, "params": self.params, "score_gain": self.score_gain,
+                "held_out_shrink": self.held_out_shrink, "held_out_gap": self.held_out_gap}
+
+    def to_json(self) -> dict:
+        out = {"effect": self.effect, "form": self.form, "candidate": self.candidate, "params": self.params,
+               "k": self.k, "score_gain": self.score_gain, "held_out_shrink": self.held_out_shrink,
+               "share": self.share, "held_out_gap": self.held_out_gap,
+               "held_out_gap_own_floor": self.held_out_gap_own_floor, "at_bound": self.at_bound,
+               "param_ci": self.param_ci, "note": self.note, "per_signal": self.per_signal}
+        for k in ("first_params", "first_form", "first_candidate"):
+            if getattr(self, k) is not None:
+                out[k] = getattr(self, k)
+        return out
+
+
+def entry(ctx: Context, fit: Fit, base: dict) -> Row:
     """One ranking row: held-out score gain and shrink against the nominal model, form, interval."""
     sc_ = score(ctx, fit)
     shrink = 1 - sc_["gap"] / base["gap"] if base["gap"] > 0 else 0.0
     spec = EFFECTS.get(fit.name)
-    return {"effect": spec.effect_class if spec else fit.name, "form": spec.form if spec else "",
-            "candidate": fit.name, "params": fit.params, "k": fit.k,
-            "score_gain": base["score"] - sc_["score"], "held_out_shrink": shrink,
-            "share": min(max(shrink, 0.0), 1.0), "held_out_gap": sc_["gap"],
-            "held_out_gap_own_floor": sc_["gap_own_floor"], "at_bound": fit.extra.get("at_bound", {}),
-            "param_ci": fit.extra.get("param_ci", {}), "note": fit.note, "per_signal": sc_["per_signal"]}
+    return Row(spec.effect_class if spec else fit.name, spec.form if spec else "", fit.name, fit.params, fit.k,
+               base["score"] - sc_["score"], shrink, sc_["gap"], sc_["gap_own_floor"], fit.extra.get("at_bound", {}),
+               fit.extra.get("param_ci", {}), fit.note, sc_["per_signal"])
+
+
+def off_vehicle(row: Row) -> list[str]:
+    """The fitted parameters of ``row`` (a pair's first effect's too) outside the range a vehicle allows
+    (``EffectSpec.plausible``), as "name=value (lo-hi unit)": a fit that explains the log only with,
+    say, a bogie pivot a few centimetres above the rail stands for some other change of the curve's
+    shape, not for this effect (issue 51), and weighs against its candidate."""
+    out = []
+    for cand, params in ((row.candidate, row.params), (row.first_candidate, row.first_params or {})):
+        spec = EFFECTS.get(cand or "")
+        for k, (lo, hi) in (spec.plausible if spec else {}).items():
+            v = params.get(k)
+            if v is not None and not lo <= v <= hi:
+                out.append(f"{k}={v:.3g} ({lo:g}-{hi:g} {spec.units.get(k, '')})".replace(" )", ")"))
+    return out
 
 
 def beats(a: dict, b: dict) -> bool:
     """``a`` explains the held-out data better than ``b`` by the margin: a better held-out score by
     MIN_MARGIN and a remaining gap at most MARGIN_GAP_RATIO of ``b``'s (unless ``b``'s is already
     within the noise: then the score alone decides)."""
-    if b["score_gain"] + MIN_MARGIN > a["score_gain"]:
+    if b.score_gain + MIN_MARGIN > a.score_gain:
         return False
-    return a["held_out_gap"] <= MARGIN_GAP_RATIO * b["held_out_gap"] or b["held_out_gap"] <= NOISE_GAP
+    return a.held_out_gap <= MARGIN_GAP_RATIO * b.held_out_gap or b.held_out_gap <= NOISE_GAP
 
 
 def beats_on_top(a: dict, b: dict, first: dict) -> bool:
@@ -172,11 +232,11 @@ def beats_on_top(a: dict, b: dict, first: dict) -> bool:
     judged on what is left to explain: the first rule is out of reach of a right second effect when
     its form differs from the truth's and leaves a remainder of its own; the second alone is out of
     reach of a right second that removes everything when ``b`` removes more than half)."""
-    if b["score_gain"] + MIN_MARGIN > a["score_gain"]:
+    if b.score_gain + MIN_MARGIN > a.score_gain:
         return False
-    left = first["held_out_gap"]
-    return (a["held_out_gap"] <= MARGIN_GAP_RATIO * b["held_out_gap"]
-            or MARGIN_GAP_RATIO * (left - a["held_out_gap"]) >= left - b["held_out_gap"])
+    left = first.held_out_gap
+    return (a.held_out_gap <= MARGIN_GAP_RATIO * b.held_out_gap
+            or MARGIN_GAP_RATIO * (left - a.held_out_gap) >= left - b.held_out_gap)
 
 
 def explanations(ranking, rail):
@@ -184,30 +244,30 @@ def explanations(ranking, rail):
     (``effect`` "rail_curve"): the explanations an answer is judged among."""
     out, seen = [], set()
     for r in ranking:
-        if r["effect"] not in seen:
-            seen.add(r["effect"])
+        if r.effect not in seen:
+            seen.add(r.effect)
             out.append(r)
     if rail is not None:
         out.append(rail)
-    return sorted(out, key=lambda r: -r["score_gain"])
+    return sorted(out, key=lambda r: -r.score_gain)
 
 
 def material(row) -> bool:
     """``row`` removes at least ``MIN_SHRINK`` of the held-out gap and gains ``MIN_SCORE_GAIN``."""
-    return row is not None and row["held_out_shrink"] >= MIN_SHRINK and row["score_gain"] > MIN_SCORE_GAIN
+    return row is not None and row.held_out_shrink >= MIN_SHRINK and row.score_gain > MIN_SCORE_GAIN
 
 
 def within_noise(row) -> bool:
     """``row`` is material and leaves the held-out gap within the noise (``NOISE_GAP`` noise units, the
     level ``beats`` already treats as "within the noise": below it only the score tells models apart):
     nothing is named on top of such an explanation."""
-    return material(row) and row["held_out_gap"] <= NOISE_GAP
+    return material(row) and row.held_out_gap <= NOISE_GAP
 
 
 def beats_strictly(a: dict, b: dict) -> bool:
     """``beats`` without its noise exemption: a better held-out score by MIN_MARGIN *and* a remaining gap
     at most MARGIN_GAP_RATIO of ``b``'s (how an effect must beat a nuisance that is within the noise)."""
-    return b["score_gain"] + MIN_MARGIN <= a["score_gain"] and a["held_out_gap"] <= MARGIN_GAP_RATIO * b["held_out_gap"]
+    return b.score_gain + MIN_MARGIN <= a.score_gain and a.held_out_gap <= MARGIN_GAP_RATIO * b.held_out_gap
 
 
 def profile_gain(a: dict, b: dict) -> float:
@@ -220,7 +280,7 @@ def profile_gain(a: dict, b: dict) -> float:
     (no penalty for parameters: they were not fitted on these samples).  Where the residuals are far
     above the noise floor (a model that forecasts badly) ``score`` counts a tiny relative improvement
     as thousands; this counts it by the share of the residual removed."""
-    per_a, per_b = a["per_signal"], b["per_signal"]
+    per_a, per_b = a.per_signal, b.per_signal
     return sum(per_a[s]["n"] * 2 * math.log(per_b[s]["rmse"] / per_a[s]["rmse"]) for s in per_a
                if per_a[s]["rmse"] and per_b[s]["rmse"])
 
@@ -233,44 +293,86 @@ def beats_in_time(a: dict, b: dict) -> bool:
     transfer leaves most of the first's gap there), while a second effect fitted into a wrong first's
     remainder removes next to none of it; where that remainder is large the score with the noise floor
     counts next to none as thousands, the profiled score does not (docs/design/gap-diagnosis.md)."""
-    return b["score_gain"] + MIN_MARGIN <= a["score_gain"] and profile_gain(a, b) >= MIN_MARGIN
+    return b.score_gain + MIN_MARGIN <= a.score_gain and profile_gain(a, b) >= MIN_MARGIN
 
 
 def label(row) -> str:
     """An explanation as the verdict names it: its class and form, or "the rail curve"."""
-    return "the rail curve" if row["effect"] == "rail_curve" else f"{row['effect']} ({row['form']})"
+    return "the rail curve" if row.effect == "rail_curve" else f"{row.effect} ({row.form})"
 
 
-def judge(base, ranking, rail, gap_present):
-    """(named, named_set, verdict, nuisances, confidence, alternatives) -- see the module docstring;
-    ``alternatives``: the explanations listed by a "not_separable" answer (ranking rows, the rail's
-    included), best score first ([] otherwise)."""
+@dataclass
+class Verdict:
+    """The answer, written once and read by the terminal summary, report.md and ``--json`` alike
+    (``which``: ``named``, ``named_set``, ``verdict`` = ``sentence``, ``confidence`` = ``grade``; ``shrink``:
+    ``how_far``).  ``grade``: "confident", "tentative", "not_separable", "nuisance" or "none"; ``named``:
+    the effect named first (``NONE`` when none is), ``named_set`` every effect named; ``alternatives``:
+    the explanations a "not_separable" answer lists (ranking rows, the rail's included, best score
+    first); ``nuisances``: the rail's fitted curve; ``how_far``: the explanation whose held-out shrink
+    HOW FAR reports (``HowFar``); ``separate_by``: where a "not_separable" answer's first two
+    explanations differ most (``where.separation``)."""
+
+    grade: str
+    sentence: str
+    named: str = NONE
+    named_set: list = field(default_factory=list)
+    alternatives: list = field(default_factory=list)
+    nuisances: list = field(default_factory=list)
+    how_far: "HowFar | None" = None
+    separate_by: list = field(default_factory=list)
+
+    def also(self, clause: str) -> None:
+        """One more clause at the end of the sentence."""
+        self.sentence = f"{self.sentence}; {clause}"
+
+
+@dataclass
+class HowFar:
+    """HOW FAR: the explanation whose held-out shrink is reported (``label``: a class, a pair "a + b", or
+    "sensor_quantisation"), whether it is the answer's (``named``: else it is only reported beside an
+    answer that names nothing), its held-out shrink (0-1) and per signal the RMSE and gap it leaves."""
+
+    label: str
+    named: bool
+    held_out_shrink: float
+    per_signal: dict
+
+    def said(self) -> str:
+        """What the shrink is of, as the summary and report.md say it."""
+        if self.label == "rail_curve":
+            return "the rail curve, the nuisance the answer names"
+        return self.label if self.named else f"{self.label}, the best single, not named"
+
+
+def judge(base, ranking, rail, gap_present) -> Verdict:
+    """The answer from the single candidates' ranking and the rail nuisance (see the module
+    docstring); its ``how_far`` is set by the caller."""
     best = ranking[0]
-    runner = next((r for r in ranking[1:] if r["effect"] != best["effect"]), None)   # another class's best
+    runner = next((r for r in ranking[1:] if r.effect != best.effect), None)   # another class's best
     nuisances = []
     if rail is not None:
-        p = rail["params"]
-        nuisances.append({"name": "rail_curve", "params": p, "score_gain": rail["score_gain"],
-                          "held_out_shrink": rail["held_out_shrink"], "held_out_gap": rail["held_out_gap"],
-                          "at_bound": rail["at_bound"], "param_ci": rail["param_ci"],
+        p = rail.params
+        nuisances.append({"name": "rail_curve", "params": p, "score_gain": rail.score_gain,
+                          "held_out_shrink": rail.held_out_shrink, "held_out_gap": rail.held_out_gap,
+                          "at_bound": rail.at_bound, "param_ci": rail.param_ci,
                           "peak_mu_percent": (p["peak_mu_scale"] - 1) * 100,
                           "peak_creep_percent": (p["creep_scale"] - 1) * 100})
     if not gap_present:
-        return NONE, [], (f"no significant gap: held-out residuals are within {base['gap']:.2f} noise units of "
-                          f"the sensor noise floor"), nuisances, "none", []
-    desc = (f"{best['effect']} ({best['form']}) removes {best['share'] * 100:.0f} % of the held-out gap, leaves "
-            f"{best['held_out_gap']:.2f} noise units, fitted "
-            + ", ".join(f"{k}={v:.4g}" for k, v in best["params"].items()))
-    bounded = [k for k, v in best["at_bound"].items() if v]
+        return Verdict("none", f"no significant gap: held-out residuals are within {base['gap']:.2f} noise units of "
+                               f"the sensor noise floor", nuisances=nuisances)
+    desc = (f"{best.effect} ({best.form}) removes {best.share * 100:.0f} % of the held-out gap, leaves "
+            f"{best.held_out_gap:.2f} noise units, fitted "
+            + ", ".join(f"{k}={v:.4g}" for k, v in best.params.items()))
+    bounded = [k for k, v in best.at_bound.items() if v]
     bound_note = f" (fit at its bound: {', '.join(bounded)})" if bounded else ""
     # a fit with every parameter at a bound is pinned (the effect vanishes or runs off its range): no
     # name; one parameter of several at a bound (viscous loss 0 beside a Coulomb loss) is only said
-    pinned = bool(bounded) and len(bounded) == len(best["at_bound"])
+    pinned = bool(bounded) and len(bounded) == len(best.at_bound)
     rail_desc = ""
     if rail is not None:
         n = nuisances[0]
         rail_desc = (f"peak mu {n['peak_mu_percent']:+.1f} %, peak creep {n['peak_creep_percent']:+.1f} % removes "
-                     f"{rail['share'] * 100:.0f} % of the held-out gap, leaves {rail['held_out_gap']:.2f} noise units")
+                     f"{rail.share * 100:.0f} % of the held-out gap, leaves {rail.held_out_gap:.2f} noise units")
     # the explanations that matter, best held-out score first; the top one and every other one it does
     # not beat by the margin.  Once the rail curve leaves the gap within the noise, an effect must beat
     # it on both counts (score and half its gap: ``beats_strictly``), not by the score alone
@@ -279,44 +381,46 @@ def judge(base, ranking, rail, gap_present):
     if quiet_rail:
         cands = [r for r in cands if r is rail or beats_strictly(r, rail)] + \
             [r for r in cands if r is not rail and not beats_strictly(r, rail) and not beats(rail, r)]
-        cands.sort(key=lambda r: -r["score_gain"])
+        cands.sort(key=lambda r: -r.score_gain)
         if cands and cands[0] is not rail and not beats_strictly(cands[0], rail):
             cands.remove(rail)
             cands.insert(0, rail)          # within the noise, the rail stands first unless strictly beaten
     if cands:
         top = cands[0]
-        listed = [top] + [r for r in cands[1:] if r["effect"] != top["effect"] and not beats(top, r)]
+        listed = [top] + [r for r in cands[1:] if r.effect != top.effect and not beats(top, r)]
         if len(listed) > 1:
             names = " or ".join(label(r) for r in listed)
-            return NONE, [], (f"{names}: not separable in this log ("
-                              + "; ".join(f"{label(r)} removes {r['share'] * 100:.0f} %, leaves "
-                                          f"{r['held_out_gap']:.2f} noise units" for r in listed)
-                              + ")"), nuisances, "not_separable", listed
+            return Verdict("not_separable", f"{names}: not separable in this log ("
+                           + "; ".join(f"{label(r)} removes {r.share * 100:.0f} %, leaves "
+                                       f"{r.held_out_gap:.2f} noise units" for r in listed) + ")",
+                           alternatives=listed, nuisances=nuisances)
         if top is rail and quiet_rail:
-            return NONE, [], (f"the rail's curve differs: {rail_desc} (within the noise: nothing more is named), "
-                              f"more than any effect (best: {desc})"), nuisances, "nuisance", []
+            return Verdict("nuisance", f"the rail's curve differs: {rail_desc} (within the noise: nothing more is "
+                                       f"named), more than any effect (best: {desc})", nuisances=nuisances)
         if top is rail:
             # the best explanation, by the margin, yet not the whole story: "the rail's curve differs" would
             # claim what the log does not show (a constant-power limit is mimicked this way), so no grade
             # above "none" (docs/design/gap-diagnosis.md, issue 35)
-            return NONE, [], (f"none of the candidates explains the whole gap: the rail's curve beats every "
-                              f"effect by the margin ({rail_desc}; the best effect: {desc}) but leaves more than "
-                              f"the noise ({NOISE_GAP:g} noise units): what differs is not only the rail's curve"), \
-                nuisances, "none", []
+            return Verdict("none", f"none of the candidates explains the whole gap: the rail's curve beats every "
+                                   f"effect by the margin ({rail_desc}; the best effect: {desc}) but leaves more than "
+                                   f"the noise ({NOISE_GAP:g} noise units): what differs is not only the rail's curve",
+                           nuisances=nuisances)
     is_material = material(best)
     over_runner = runner is None or beats(best, runner)
     over_rail = rail is None or beats(best, rail)
-    if is_material and over_runner and over_rail and not pinned:
-        return best["effect"], [best["effect"]], (f"{best['effect']} explains the gap: {desc}{bound_note}"), nuisances, \
-            "confident", []
+    off = off_vehicle(best)
+    if is_material and over_runner and over_rail and not pinned and not off:
+        return Verdict("confident", f"{best.effect} explains the gap: {desc}{bound_note}", best.effect, [best.effect],
+                       nuisances=nuisances)
     if is_material:
         why = "its fit sits at a bound" if pinned else (
-            f"it does not beat {runner['effect']} ({runner['share'] * 100:.0f} %) by the margin" if not over_runner
+            f"its fitted {', '.join(off)} lies outside what a vehicle allows" if off else
+            f"it does not beat {runner.effect} ({runner.share * 100:.0f} %) by the margin" if not over_runner
             else "it does not beat the rail-curve nuisance by the margin")
-        return NONE, [], (f"none named with confidence: most likely {desc}{bound_note}; {why}"), nuisances, \
-            "tentative", []
-    return NONE, [], (f"none of the candidates: the best, {desc}, removes less than "
-                      f"{MIN_SHRINK * 100:.0f} %{bound_note}"), nuisances, "none", []
+        return Verdict("tentative", f"none named with confidence: most likely {desc}{bound_note}; {why}",
+                       nuisances=nuisances)
+    return Verdict("none", f"none of the candidates: the best, {desc}, removes less than "
+                           f"{MIN_SHRINK * 100:.0f} %{bound_note}", nuisances=nuisances)
 
 
 # -- forward selection -----------------------------------------------------------------------------
@@ -351,11 +455,11 @@ def forward(ctx: Context, nom_fit: Fit, base: dict, first: Fit, first_row: dict,
     by_name = {c.name: c for c in candidates(ctx.scenario, exclude)}
     first_cand = by_name.get(first.name)
     joint = set()         # seconds already fitted together with the first
-    first_forms = [r for r in ranking if r["effect"] == first_row["effect"]     # (a form whose fit failed
-                   and isinstance(by_name.get(r["candidate"]), PlantCandidate)    # alone has no parameters)
-                   and not r["note"].startswith("fit failed")][:FORWARD_JOINT]
+    first_forms = [r for r in ranking if r.effect == first_row.effect     # (a form whose fit failed
+                   and isinstance(by_name.get(r.candidate), PlantCandidate)    # alone has no parameters)
+                   and not r.note.startswith("fit failed")][:FORWARD_JOINT]
     for cand in by_name.values():
-        if EFFECTS[cand.name].effect_class == first_row["effect"] or \
+        if EFFECTS[cand.name].effect_class == first_row.effect or \
                 cand.name == "torque_lag" and ctx.data.torque_cmd_nm.std() < 1e-9:
             continue
         if sensor_first and not isinstance(cand, PlantCandidate):
@@ -372,19 +476,19 @@ def forward(ctx: Context, nom_fit: Fit, base: dict, first: Fit, first_row: dict,
             # the delay on top finds little of it: fit the pair together for every sensor form, with
             # the first class's best FORWARD_JOINT forms (the form best alone need not be best in a pair)
             for r1 in first_forms:
-                c1 = by_name[r1["candidate"]]
+                c1 = by_name[r1.candidate]
                 try:
                     say(f"forward selection: {c1.name} and {cand.name} fitted together")
-                    jf = fit_pair(ctx, c1, cand, r1["params"], f2.extra[cand.ARGUMENT[cand.form]],
+                    jf = fit_pair(ctx, c1, cand, r1.params, f2.extra[cand.ARGUMENT[cand.form]],
                                   f2.extra["x0"])
-                    jrow = dict(entry(ctx, jf, base), first_params=jf.extra["plant_params"], first_form=r1["form"],
-                                first_candidate=c1.name)
+                    jrow = replace(entry(ctx, jf, base), first_params=jf.extra["plant_params"], first_form=r1.form,
+                                   first_candidate=c1.name)
                     # the better pair: a plausible one (no parameter off its range) before the best score
                     # (a form that runs off its range to score well would be rejected as implausible,
                     # where another form of the same class fits the pair within its range)
-                    now = by_name.get(row.get("first_candidate", first.name), first_cand)
-                    if (not implausible(jrow, [c1, cand]), jrow["score_gain"]) > \
-                            (not implausible(row, [now, cand]), row["score_gain"]):
+                    now = by_name.get(row.first_candidate or first.name, first_cand)
+                    if (not implausible(jrow, [c1, cand]), jrow.score_gain) > \
+                            (not implausible(row, [now, cand]), row.score_gain):
                         row = jrow
                         joint.add(cand.name)
                 except FIT_ERRORS as e:       # keep the greedy fit
@@ -393,12 +497,12 @@ def forward(ctx: Context, nom_fit: Fit, base: dict, first: Fit, first_row: dict,
         rows.append(row)
     if not rows:
         return None
-    rows.sort(key=lambda r: -r["score_gain"])
+    rows.sort(key=lambda r: -r.score_gain)
     if isinstance(first_cand, SensorDelayCandidate):
         # and a sensor form fitted alone absorbs part of a lag: the best FORWARD_JOINT plant seconds are
         # fitted together with it
         for i, row in enumerate(rows[:FORWARD_JOINT]):
-            cand = by_name[row["candidate"]]
+            cand = by_name[row.candidate]
             if not isinstance(cand, PlantCandidate):
                 continue
             try:
@@ -407,18 +511,18 @@ def forward(ctx: Context, nom_fit: Fit, base: dict, first: Fit, first_row: dict,
                 jf = fit_pair(ctx, cand, first_cand, f2.params, first.extra[first_cand.ARGUMENT[first_cand.form]],
                               f2.extra["x0"])
                 jrow = entry(ctx, plant_side(jf, cand), base)
-                if jrow["score_gain"] > row["score_gain"]:
-                    rows[i] = dict(jrow, first_params=jf.params)
+                if jrow.score_gain > row.score_gain:
+                    rows[i] = replace(jrow, first_params=jf.params)
                     joint.add(cand.name)
             except FIT_ERRORS as e:           # keep the greedy fit
                 failed.append(failure(cand.name, f"together with {first.name}", e))
-        rows.sort(key=lambda r: -r["score_gain"])
+        rows.sort(key=lambda r: -r.score_gain)
     second = rows[0]
-    runner = next((r for r in rows[1:] if r["effect"] != second["effect"]), None)   # another class's best
+    runner = next((r for r in rows[1:] if r.effect != second.effect), None)   # another class's best
     # the first was fitted alone and absorbed part of the second: refit each on top of the other
     # (one round of coordinate descent), keeping the refit only if it scores better
-    f1_now, f2_now = first, fits2[second["candidate"]]      # the pair as it stands
-    if second["candidate"] not in joint:     # (a second fitted together with the first is done)
+    f1_now, f2_now = first, fits2[second.candidate]      # the pair as it stands
+    if second.candidate not in joint:     # (a second fitted together with the first is done)
         f2 = f2_now
         refit, under = first.name, f2.name
         try:
@@ -427,14 +531,14 @@ def forward(ctx: Context, nom_fit: Fit, base: dict, first: Fit, first_row: dict,
             refit, under = f2.name, first.name
             f2b = by_name[f2.name].fit(ctx.on_top_of(f1b), pseudo(f1b, nom_fit))
             row = entry(ctx, f2b, base)
-            if row["score_gain"] > second["score_gain"]:
+            if row.score_gain > second.score_gain:
                 second = row
-                second["first_params"] = f1b.params
+                second.first_params = f1b.params
                 f1_now, f2_now = f1b, f2b
         except FIT_ERRORS as e:               # keep the greedy pair
             failed.append(failure(refit, f"refit on top of {under}", e))
         # a plant effect and a sensor form: fit both together, from where the pair stands
-        c1, c2 = by_name[first.name], by_name[second["candidate"]]
+        c1, c2 = by_name[first.name], by_name[second.candidate]
         plant_c, sensor_c, plant_f, sensor_f = (c1, c2, f1_now, f2_now) if isinstance(c1, PlantCandidate) \
             else (c2, c1, f2_now, f1_now)
         try:
@@ -446,49 +550,53 @@ def forward(ctx: Context, nom_fit: Fit, base: dict, first: Fit, first_row: dict,
                     row, first_params = entry(ctx, jf, base), jf.extra["plant_params"]
                 else:                                 # the second is the plant effect: name the row after it
                     row, first_params = entry(ctx, plant_side(jf, plant_c), base), jf.params
-                if row["score_gain"] > second["score_gain"]:
+                if row.score_gain > second.score_gain:
                     second = row
-                    second["first_params"] = first_params
+                    second.first_params = first_params
         except FIT_ERRORS as e:               # keep the pair as it is
             failed.append(failure(plant_c.name, f"together with {sensor_c.name}", e))
-    removed = 1 - second["held_out_gap"] / first_row["held_out_gap"] if first_row["held_out_gap"] > 0 else 0.0
-    bounded = [k for k, v in second["at_bound"].items() if v]
-    bounded = bounded if len(bounded) == len(second["at_bound"]) else []      # pinned, as in ``judge``
-    off_range = implausible(second, [by_name[n] for n in (second["candidate"], first.name) if n in by_name])
+    removed = 1 - second.held_out_gap / first_row.held_out_gap if first_row.held_out_gap > 0 else 0.0
+    bounded = [k for k, v in second.at_bound.items() if v]
+    bounded = bounded if len(bounded) == len(second.at_bound) else []      # pinned, as in ``judge``
+    off_range = implausible(second, [by_name[n] for n in (second.candidate, first.name) if n in by_name])
     # the pair must earn its place as a single effect would: beat every class's best single candidate by
     # the margin (``beats``), not only the first alone
-    unbeaten = [r["candidate"] for r in explanations(ranking, None) if not beats(second, r)]
+    unbeaten = [r.candidate for r in explanations(ranking, None) if not beats(second, r)]
     # the second's own tests (does it add to the first, is it this class, is its fit plausible), then the
     # pair against the other explanations: a pair that passes its own tests and fails only against them
     # is one more explanation within the margin (``pair_explanation``)
     own = [w for w, bad in (
-        (f"it gains less than {MIN_MARGIN:g} in held-out score over {first_row['effect']} alone",
-         second["score_gain"] - first_row["score_gain"] < MIN_MARGIN),
-        (f"it removes less than {FORWARD_MIN_REMAINDER * 100:.0f} % of what {first_row['effect']} left",
+        (f"it gains less than {MIN_MARGIN:g} in held-out score over {first_row.effect} alone",
+         second.score_gain - first_row.score_gain < MIN_MARGIN),
+        (f"it removes less than {FORWARD_MIN_REMAINDER * 100:.0f} % of what {first_row.effect} left",
          removed < FORWARD_MIN_REMAINDER),
-        (f"it does not beat {runner['effect'] if runner else ''} on top by the margin",
+        (f"it does not beat {runner.effect if runner else ''} on top by the margin",
          runner is not None and not beats_on_top(second, runner, first_row)),
         ("its fit is pinned at its bounds", bool(bounded)),
         (f"parameters at a bound of their range: {', '.join(off_range)}", bool(off_range)),
-        (f"the pair removes less than {MIN_SHRINK * 100:.0f} %", second["held_out_shrink"] < MIN_SHRINK),
+        (f"fitted outside what a vehicle allows: {', '.join(off_vehicle(second))}", bool(off_vehicle(second))),
+        (f"the pair removes less than {MIN_SHRINK * 100:.0f} %", second.held_out_shrink < MIN_SHRINK),
     ) if bad]
     why = own + ([f"the pair does not beat the single candidate(s) {', '.join(unbeaten)} by the margin"]
                  if unbeaten else [])
     accepted = not why
-    out = {"first": first_row["effect"], "first_form": second.get("first_form", first_row["form"]),
-           "first_candidate": second.get("first_candidate", first.name), "second_candidate": second["candidate"],
-           "second": second["effect"],
-           "second_form": second["form"],
-           "second_params": second["params"], "first_params": second.get("first_params", first.params),
-           "pair_held_out_shrink": second["held_out_shrink"],
+    out = {"first": first_row.effect,
+           "first_form": second.first_form if second.first_form is not None else first_row.form,
+           "first_candidate": second.first_candidate if second.first_candidate is not None else first.name,
+           "second_candidate": second.candidate,
+           "second": second.effect,
+           "second_form": second.form,
+           "second_params": second.params,
+           "first_params": second.first_params if second.first_params is not None else first.params,
+           "pair_held_out_shrink": second.held_out_shrink,
            "second_removes_of_remainder": removed, "accepted": bool(accepted), "rejected_because": why,
-           "own_tests_passed": not own, "pair_score_gain": second["score_gain"],
-           "pair_held_out_gap": second["held_out_gap"], "pair_per_signal": second["per_signal"],
-           "ranking": [{k: r[k] for k in ("effect", "form", "params", "score_gain", "held_out_shrink",
-                                          "held_out_gap", "at_bound")} for r in rows]}
+           "own_tests_passed": not own, "pair_score_gain": second.score_gain,
+           "pair_held_out_gap": second.held_out_gap, "pair_per_signal": second.per_signal,
+           "ranking": [{k: r.to_json()[k] for k in ("effect", "form", "params", "score_gain", "held_out_shrink",
+                                                    "held_out_gap", "at_bound")} for r in rows]}
     if accepted and rail_fit is not None:
         # is the first effect the rail in disguise?  the rail curve plus the same second effect
-        cand = by_name[second["candidate"]]
+        cand = by_name[second.candidate]
         try:
             r2 = cand.fit(ctx.on_top_of(rail_fit), Fit("rail_curve", rail_fit.params, 0, rail_fit.pred,
                                                         dict(ctx.sigma_nom), extra={
@@ -496,8 +604,8 @@ def forward(ctx: Context, nom_fit: Fit, base: dict, first: Fit, first_row: dict,
                                                             "plant_motor": rail_fit.extra["plant_motor"],
                                                             "plant_train": rail_fit.extra["plant_train"]}))
             row = entry(ctx, r2, base)
-            out["rail_pair"] = {"held_out_shrink": row["held_out_shrink"], "score_gain": row["score_gain"],
-                                "held_out_gap": row["held_out_gap"]}
+            out["rail_pair"] = {"held_out_shrink": row.held_out_shrink, "score_gain": row.score_gain,
+                                "held_out_gap": row.held_out_gap}
             out["pair_vs_rail"] = ("pair" if beats(second, row) else
                                    "rail" if beats(row, second) else "not_separable")
             # and against the rail alone: the pair, or the rail with the same second effect (the first
@@ -512,20 +620,20 @@ def forward(ctx: Context, nom_fit: Fit, base: dict, first: Fit, first_row: dict,
             out["pair_vs_rail"] = "pair"
     else:
         out["pair_vs_rail"] = "pair"
-    runner1 = next((r for r in ranking if r["effect"] != first_row["effect"]), None)   # as ``rejudge``'s
-    f_other = (alone or {}).get(runner1["candidate"]) if runner1 is not None else None
+    runner1 = next((r for r in ranking if r.effect != first_row.effect), None)   # as ``rejudge``'s
+    f_other = (alone or {}).get(runner1.candidate) if runner1 is not None else None
     if out["accepted"] and f_other is not None and not beats(first_row, runner1) \
-            and runner1["effect"] != second["effect"]:
+            and runner1.effect != second.effect:
         # the first was only "most likely" alone (another class within the margin of it): is it the first
         # of the pair, or is that class?  The other class's best with the same second effect on top
-        cand = by_name[second["candidate"]]
+        cand = by_name[second.candidate]
         try:
             r2 = entry(ctx, cand.fit(ctx.on_top_of(f_other), pseudo(f_other, nom_fit)), base)
-            out["runner_pair"] = {"first": runner1["candidate"], "held_out_shrink": r2["held_out_shrink"],
-                                  "score_gain": r2["score_gain"], "held_out_gap": r2["held_out_gap"]}
+            out["runner_pair"] = {"first": runner1.candidate, "held_out_shrink": r2.held_out_shrink,
+                                  "score_gain": r2.score_gain, "held_out_gap": r2.held_out_gap}
             out["pair_vs_runner"] = "pair" if beats(second, r2) else "not_separable"
         except FIT_ERRORS as e:               # the first stays "most likely"
-            failed.append(failure(cand.name, f"on top of {runner1['candidate']}", e))
+            failed.append(failure(cand.name, f"on top of {runner1.candidate}", e))
     if out["accepted"]:
         # and the pair must win on data held out in time: fitted without the last stage, judged on it (the
         # pair named: the rail curve with the second when that explains it better than the first with it)
@@ -548,13 +656,13 @@ def other_firsts(ranking, best) -> list[dict]:
     be the second's evidence, so the true first is among those the best did not beat
     (docs/design/gap-diagnosis.md)."""
     return [r for r in explanations(ranking, None)
-            if r["effect"] != best["effect"] and not beats(best, r)
-            and r["held_out_shrink"] >= FORWARD_MIN_SHARE and r["held_out_gap"] > NOISE_GAP][:FORWARD_FIRSTS]
+            if r.effect != best.effect and not beats(best, r)
+            and r.held_out_shrink >= FORWARD_MIN_SHARE and r.held_out_gap > NOISE_GAP][:FORWARD_FIRSTS]
 
 
-def pair_row(fw: dict) -> dict:
-    """A pair forward selection found, as a row ``beats`` compares."""
-    return {"score_gain": fw["pair_score_gain"], "held_out_gap": fw["pair_held_out_gap"]}
+def pair_row(fw: dict) -> Row:
+    """A pair forward selection found, as a row ``beats`` compares (its score gain and remaining gap)."""
+    return Row("pair", "", "", {}, 0, fw["pair_score_gain"], math.nan, fw["pair_held_out_gap"])
 
 
 def choose_pair(tried: list) -> tuple:
@@ -623,8 +731,8 @@ def time_veto(ctx: Context, first_name: str, pair: tuple, rail: bool, failed: li
         failed.append(failure(pair[1], f"{step}, on top of {pair[0]}", e))
         return {"held_out": what, "periods": int(held.sum()), "pair_wins": False, "rows": [],
                 "why": f"the pair's fit failed on the data before {what}"}
-    pair_row = entry(ct, f2, base)
-    rows = [dict(_brief(pair_row), explanation="the pair")]
+    both = entry(ct, f2, base)
+    rows = [dict(both.brief(), explanation="the pair")]
     singles = [(first_name, by_name[first_name])] + ([("rail_curve", RAIL)] if rail else [])
     lost = []
     for name, cand in singles:
@@ -634,8 +742,8 @@ def time_veto(ctx: Context, first_name: str, pair: tuple, rail: bool, failed: li
             failed.append(failure(name, f"{step}, alone", e))
             continue
         row = entry(ct, f, base)
-        rows.append(dict(_brief(row), explanation=name, pair_profile_gain=profile_gain(pair_row, row)))
-        if not beats_in_time(pair_row, row):
+        rows.append(dict(row.brief(), explanation=name, pair_profile_gain=profile_gain(both, row)))
+        if not beats_in_time(both, row):
             lost.append(name)
     return {"held_out": what, "periods": int(held.sum()), "pair_wins": not lost, "rows": rows,
             "why": (f"on data held out in time ({what}, fitted on the window before it) the pair does not beat "
@@ -643,18 +751,14 @@ def time_veto(ctx: Context, first_name: str, pair: tuple, rail: bool, failed: li
                     f"estimated from the residuals)") if lost else ""}
 
 
-def _brief(row: dict) -> dict:
-    return {k: row[k] for k in ("candidate", "params", "score_gain", "held_out_shrink", "held_out_gap")}
-
-
 def implausible(row: dict, cands) -> list[str]:
     """The parameters of a (pair's) ranking row fitted at a bound of their range, but a zero lower bound
     (an absent term of an additive form, as a viscous loss of 0 beside a Coulomb loss, or no delay): a
     fit that ran off its range is no physically plausible second effect.  ``cands``: the candidates
     whose parameters the row holds (bounds)."""
-    values = {**(row.get("first_params") or {}), **row["params"]}
+    values = {**(row.first_params or {}), **row.params}
     out = []
-    for k, hit in (row.get("at_bound") or {}).items():
+    for k, hit in (row.at_bound or {}).items():
         if not hit:
             continue
         zero_floor = False
@@ -677,8 +781,9 @@ def pseudo(fit: Fit, nom_fit: Fit) -> Fit:
                       "plant_train": fit.extra.get("plant_train", nom_fit.extra["plant_train"])})
 
 
-def rejudge(named, named_set, verdict, confidence, best, fw, ranking=()):
-    """The answer once forward selection accepted a second effect.  A first effect that was only
+def rejudge(single: Verdict, best, fw, ranking=()) -> Verdict:
+    """The answer once forward selection accepted a second effect (``single``: the answer of the single
+    candidates, ``best``: the first effect's row).  A first effect that was only
     "most likely" alone because it did not beat the rail nuisance or another class's best by the
     margin is named with the second when the pair beats the rail curve with the same second effect
     and that class's best with it (``pair_vs_runner``), or that class is the second's: those
@@ -689,22 +794,23 @@ def rejudge(named, named_set, verdict, confidence, best, fw, ranking=()):
             f"{fw['second_removes_of_remainder'] * 100:.0f} % "
             f"of what {first} left (together {fw['pair_held_out_shrink'] * 100:.0f} % of the gap), fitted "
             + ", ".join(f"{k}={v:.4g}" for k, v in fw["second_params"].items()))
+    def named(sentence, *names):
+        return Verdict("confident", sentence, names[0], sorted(names), nuisances=single.nuisances)
+
     if fw["pair_vs_rail"] == "rail":
-        return second, [second], (
-            f"{second} explains part of the gap and the rail's curve differs: {pair}; the rail curve with "
-            f"{second} explains it better than {first} with {second}"), "confident"
+        return named(f"{second} explains part of the gap and the rail's curve differs: {pair}; the rail curve with "
+                     f"{second} explains it better than {first} with {second}", second)
     if fw["pair_vs_rail"] == "not_separable":
-        return second, [second], (f"{second} found, and rail or {what(first)}: not separable in this log; "
-                                  f"{pair}"), "confident"
-    runner = next((r for r in ranking if r["effect"] != best["effect"]), None)
-    runner_settled = runner is None or beats(best, runner) or runner["effect"] == second \
+        return named(f"{second} found, and rail or {what(first)}: not separable in this log; {pair}", second)
+    runner = next((r for r in ranking if r.effect != best.effect), None)
+    runner_settled = runner is None or beats(best, runner) or runner.effect == second \
         or fw.get("pair_vs_runner") == "pair"
-    only_the_rail = runner_settled and not any(best["at_bound"].values())
-    if confidence == "tentative" and not (only_the_rail and "rail_pair" in fw):
-        return second, [second], (f"{second} found; {pair}; {first} is only the most likely first effect "
-                                  f"({verdict})"), "confident"
-    return first, sorted([first, second]), (f"{first} and {second} explain the gap: {first} ({best['form']}) "
-                                            f"removes {best['share'] * 100:.0f} % alone; {pair}"), "confident"
+    only_the_rail = runner_settled and not any(best.at_bound.values())
+    if single.grade == "tentative" and not (only_the_rail and "rail_pair" in fw):
+        return named(f"{second} found; {pair}; {first} is only the most likely first effect ({single.sentence})",
+                     second)
+    return named(f"{first} and {second} explain the gap: {first} ({best.form}) removes {best.share * 100:.0f} % "
+                 f"alone; {pair}", first, second)
 
 
 def pair_label(fw: dict) -> str:

@@ -47,7 +47,7 @@ Each part is a module of this package (``frames``, ``scenarios``, ``logs``, ``fm
 ``report`` writes the table and the markdown.  What a probe shares with the tests (``hil`` as a
 subprocess, a log's chunk map, the scenario mutants) is ``hil.testing``.
 
-The result: a terminal table by default (lines within ``hil.benchmarks.terminal.WIDTH``), the markdown report
+The result: a terminal table by default (lines within ``hil.terminal.WIDTH``), the markdown report
 with ``--markdown``, one JSON object with ``--json``, and with ``--report DIR``
 ``DIR/robustness.md`` and ``DIR/robustness.json``.  Exit code 1 when a probe failed.
 """

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 
-from .. import terminal
+from ... import terminal
 
 
 def headline(r: dict) -> str:

@@ -1,5 +1,5 @@
-"""What a benchmark prints to a terminal by default: aligned columns and wrapped prose, every line
-within ``WIDTH`` characters (a helper module of the benchmarks; it registers no command).
+"""What a command or a benchmark prints to a terminal by default: aligned columns and wrapped prose,
+every line within ``WIDTH`` characters (``hil gap``'s summary, the benches'; it registers no command).
 
 Why: a reader decides on a few columns; a table wider than the terminal wraps into noise.  Every
 figure stays in ``--json`` and, where a bench has one, in its ``--markdown`` table.
@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import textwrap
 
-#: the longest line a bench prints by default
+#: the longest line a summary prints by default
 WIDTH = 100
 
 
