@@ -1115,7 +1115,7 @@ def test_an_effect_added_as_one_record_and_its_equations_is_simulated_fitted_ran
                                       recover="offset_nm"),),
                           plausible={"offset_nm": (-0.2 * t0, 0.2 * t0)}))
     try:
-        seed = fresh_seed()
+        seed = 5151          # a fixed case: the test shows the record is enough, not a rate
         g = np.random.default_rng(seed)
         offset = float(g.uniform(0.02, 0.05) * t0)
         # simulated: at the equilibrium the motor accelerates by offset / J_eq (rad/s^2) more than nominal
@@ -1154,7 +1154,10 @@ def test_a_quantiser_under_noise_after_it_is_found_by_the_lattices_coherence():
     no lattice of coherence above 0.9 (the quantiser's naming threshold)."""
     from hil.gap.model import lattice_quantum
 
-    seed = fresh_seed()
+    # a fixed seed: the draws sit close to the test's margins (7,178 draws at the merge: coherence down to
+    # 0.90001 against the 0.9 threshold, the quantum's error up to 1.6 % against 2 %), so drawn afresh the
+    # test would fail more often than once in 10,000 runs; the statistics belong to the design note
+    seed = 5151
     g = np.random.default_rng(seed)
     sigma = 0.0045                                   # ffcc_a's motor encoder noise (rad/s)
     t = np.arange(700) * 1e-3
@@ -1199,7 +1202,9 @@ def test_adhesion_dynamics_as_a_second_order_contact_lag_is_named_adhesion_lag(t
     first-order forms and the bristle cannot lag like it; a static load transfer with a bogie pivot a
     dozen centimetres high explained most of it).  The class's second-order form names its class."""
     from hil.effects import with_reality
-    seed = fresh_seed()
+    # a fixed case: 4 of 4 drawn cases were named before the merge, too few to set a drawn assertion's failure
+    # rate below 1 in 10,000; the bench measures the form's rate
+    seed = 5151
     g = np.random.default_rng(seed)
     effects = {"adhesion_lag2": {"natural_hz": float(np.exp(g.uniform(np.log(8), np.log(40)))),
                                  "damping_ratio": float(g.uniform(0.4, 0.9))}}
