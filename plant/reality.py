@@ -444,9 +444,6 @@ class RealityModel:
         self.state_names = names
         self.nx = len(names)
 
-    def _i(self, name):
-        return self.state_names.index(name)
-
     def rhs(self, x, torque_cmd, t):
         """(dx, mu, v_s_kmh, normal_force_n) as CasADi expressions: the nominal plant (plant.model) with
         each effect's stages (``Equations``) applied in turn."""

@@ -560,14 +560,16 @@ def test_no_second_effect_within_twice_the_noise_after_a_first_that_removes_most
     every test: "adhesion_lag and resistance", confident and wrong (twice in that bench).  Below
     ``FORWARD_MIN_LEFT`` (twice the noise) after a first removing ``FORWARD_MAX_SHARE`` no second
     effect is tried: the adhesion lag alone is named."""
-    from hil.gap.select import FORWARD_MAX_SHARE, FORWARD_MIN_LEFT, NOISE_GAP
+    from hil.gap.select import FORWARD_MAX_SHARE, FORWARD_MIN_LEFT
     effects, out, _ = _bench_case(tmp_path, scenario, 829663343, 84, ",".join(
         f"{k}={v}" for k, v in DEFAULT_MIX.items()))
     assert set(effects) == {"creep_relaxation"}
     which, best = out["which"], out["which"]["ranking"][0]
     print(best["effect"], round(best["held_out_shrink"], 4), round(best["held_out_gap"], 3), which["verdict"][:300])
     assert best["effect"] == "adhesion_lag" and best["held_out_shrink"] >= FORWARD_MAX_SHARE
-    assert NOISE_GAP < best["held_out_gap"] < FORWARD_MIN_LEFT
+    # below twice the noise (with issue 51's second-order form of the class, whose best may now leave less than
+    # the noise: 0.21 noise units under HIL_TEST_SEED=606248406, 0.53 with the first-order form alone)
+    assert best["held_out_gap"] < FORWARD_MIN_LEFT
     assert which["forward"] is None
     assert which["confidence"] == "confident" and which["named_set"] == ["adhesion_lag"], which["verdict"]
 

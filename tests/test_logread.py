@@ -174,7 +174,7 @@ def test_a_log_closed_after_a_fault_is_not_called_damaged(tmp_path):
     assert proc.returncode == 3, err
     got = read_log(path)
     assert not got.complete and not got.cut and got.damage == "" and not got.damaged
-    assert got.ended_early.startswith("fault at step ") and "TCU process exited" in got.ended_early
+    assert got.ended_early.startswith("fault at step ") and "TCU process was killed by SIGKILL" in got.ended_early
     assert got.problem().startswith("the run did not finish (fault at step ") and "closed properly" in got.problem()
     r = hil("replay", path, "--json", cwd=ROOT)
     assert r.returncode == 0, r.stderr

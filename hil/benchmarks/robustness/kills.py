@@ -94,7 +94,7 @@ def part_kills(seed: int, count: int, log) -> dict:
             if not r["messages"] or not r["states"]:
                 part.fail(i, what, "nothing readable in the log")
             if victim in ("tcu", "hub"):
-                says = "TCU process exited" if victim == "tcu" else "its hub process or interface is gone"
+                says = "TCU process was killed by SIGKILL" if victim == "tcu" else "its hub process or interface is gone"
                 if r["exit"] != 3 or says not in r["last_line"] or not r["last_line"].startswith("hil run: error: "):
                     part.fail(i, what, f"exit {r['exit']}: {r['last_line']}")
                 if r["damage"] or not r["ended_early"].startswith("fault at step"):
