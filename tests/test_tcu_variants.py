@@ -5,7 +5,7 @@ signed torque, an offset signal, a value table): the pytest plugin runs the vari
 variant fails exactly its checks:
 
 - on the local bus (the variant from this project's virtualenv: the bus is this package's python-can
-  interface), and
+  interface; three of them, one per path of the verdict), and
 - on python-can's udp_multicast bus held to this machine, the variant run from a virtualenv with only
   python-can and cantools (tests/conftest.py's ``their_tcu`` makes it and checks ``import hil`` fails there).
 
@@ -80,8 +80,13 @@ def _check(r, junit, fault):
     print(f"{fault}: failed {sorted(named) if FAILS[fault] != ALL else 'every check (run failed)'}")
 
 
+#: on the local bus, the variants that take each path of the verdict (a pass, checks failed, a process that dies);
+#: all seven run on udp_multicast below (all seven passed on both buses on 2026-11-28: 14 of 14, the note of stop 48)
+LOCAL_BUS_FAULTS = ("none", "sign", "crash")
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("fault", list(FAILS))
+@pytest.mark.parametrize("fault", LOCAL_BUS_FAULTS)
 def test_each_variant_fails_exactly_its_checks_on_the_local_bus(tmp_path, fault):
     bus = tempfile.mkdtemp(prefix="hil-bus-")
     try:
