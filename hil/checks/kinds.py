@@ -208,6 +208,20 @@ def resolve_window(run: Run, window) -> tuple[float, float] | str:
     return (t + a, math.inf if b is None else t + b)
 
 
+def _by_margin(base: dict, t: np.ndarray, v: np.ndarray, margin: np.ndarray, hold_s: np.ndarray) -> Result:
+    """The result of a sample-wise check from each sample's margin (< 0: a violation; NaN counts as one):
+    passed when none is negative, the first and the worst violation, and the time in violation (each
+    sample held ``hold_s`` until the next)."""
+    margin = np.where(np.isnan(margin), -np.inf, margin)
+    bad = margin < 0
+    worst = int(np.argmin(margin))
+    first = int(np.argmax(bad)) if bad.any() else None
+    return Result(**base, passed=not bad.any(), samples=len(t), margin=float(margin[worst]),
+                  first=None if first is None else (float(t[first]), float(v[first])),
+                  worst=(float(t[worst]), float(v[worst])) if bad.any() else None,
+                  violation_s=float(hold_s[bad].sum()))
+
+
 def _masked(run: Run, series, valid: str | None) -> np.ndarray:
     if valid is None:
         return np.ones(len(series.t_s), dtype=bool)
@@ -267,14 +281,7 @@ class InRange(Check):
         hi = np.inf if self.hi is None else self.hi
         with np.errstate(invalid="ignore"):
             margin = np.minimum(v - lo, hi - v)
-        margin = np.where(np.isnan(margin), -np.inf, margin)
-        bad = margin < 0
-        worst = int(np.argmin(margin))
-        first = int(np.argmax(bad)) if bad.any() else None
-        return Result(**base, passed=not bad.any(), samples=len(t), margin=float(margin[worst]),
-                      first=None if first is None else (float(t[first]), float(v[first])),
-                      worst=(float(t[worst]), float(v[worst])) if bad.any() else None,
-                      violation_s=float(_hold(s.t_s)[keep][bad].sum()))
+        return _by_margin(base, t, v, margin, _hold(s.t_s)[keep])
 
 
 def in_range(signal: str, lo: float | None = None, hi: float | None = None, during=None, *, valid: str | None = None,
@@ -314,14 +321,7 @@ class TorqueSign(Check):
         d = run.signal(self.demand).at(t)
         with np.errstate(invalid="ignore"):
             margin = np.sign(d) * v + self.tolerance        # < 0: the torque opposes the demand
-        margin = np.where(np.isnan(margin), -np.inf, margin)
-        bad = margin < 0
-        worst = int(np.argmin(margin))
-        first = int(np.argmax(bad)) if bad.any() else None
-        return Result(**base, passed=not bad.any(), samples=len(t), margin=float(margin[worst]),
-                      first=None if first is None else (float(t[first]), float(v[first])),
-                      worst=(float(t[worst]), float(v[worst])) if bad.any() else None,
-                      violation_s=float(_hold(s.t_s)[keep][bad].sum()))
+        return _by_margin(base, t, v, margin, _hold(s.t_s)[keep])
 
 
 def torque_sign(torque: str, demand: str, during=None, *, tolerance: float = 0.0, name: str | None = None,
