@@ -38,6 +38,9 @@ from .bus.link import GuardedBus, Sender, heartbeat_period_s, poll_until, silenc
 from .bus.secoc import node_key
 from .bus.verdicts import BAD_SEQUENCE, FRESH, RESENT, newest, sensor_sequence
 
+#: the environment variable that asks this process for the account of its periods (``hil.period_account``)
+ACCOUNT_ENV = "HIL_PERIOD_ACCOUNT"
+
 #: a sensor step may jump ahead by at most this many periods (frames lost); beyond it is garbage
 MAX_STEP_GAP = 100
 
@@ -354,6 +357,7 @@ def run_tcu(args) -> int:
     period = scenario.run.exchange_period_s
     code = EXIT_OK
     error = None
+    account = None
     handle = open_bus(bus)
     _bus_open.append(True)
     try:        # from here the bus is closed whatever ends the process (a SIGTERM from the plant included)
@@ -361,7 +365,12 @@ def run_tcu(args) -> int:
         if args.mode == "realtime":     # a full collection over scipy's and casadi's objects stalls both threads
             gc.freeze()
             gc.disable()
-        serve(GuardedBus(handle.bus, handle.name), node, silence_s=silence_limit_s(settings, args.mode, period),
+        guarded = GuardedBus(handle.bus, handle.name)
+        account_path = os.environ.get(ACCOUNT_ENV)
+        if account_path:        # hil bench period asked for the account of this process's periods
+            from .period_account import install_tcu
+            account = install_tcu(node, guarded, scenario.steps + 100)
+        serve(guarded, node, silence_s=silence_limit_s(settings, args.mode, period),
               heartbeat_period_s=heartbeat_period_s(settings, args.mode),
               startup_timeout_s=settings.startup_timeout_s if args.wait is None else args.wait,
               realtime=args.mode == "realtime", spin_s=settings.lockstep_spin_s,
@@ -376,6 +385,9 @@ def run_tcu(args) -> int:
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, signal.SIG_IGN)
         handle.close()
+        if account is not None:
+            account.close()
+            account.save(account_path)
         report = node.report()
         report["exit"] = error.exit_code if error is not None else code
         report["error"] = None if error is None else str(error)
