@@ -389,10 +389,15 @@ def test_compiled_decoders_judge_and_decode_as_the_dict_path(codec):
         layout = codec.layouts[fid]
         for i in range(400):
             data = bytearray(rng.randbytes(m.length))
-            if i % 2:        # a legal-looking frame, one signal set to an edge or a limit
-                values = {n: 0 for n in layout.names}
+            if i % 2:        # a valid frame of random values, half the time one signal at an edge or a limit
+                values = {}
+                for n in layout.names:
+                    sig = m.get_signal_by_name(n)
+                    lo = sig.minimum if sig.minimum is not None else -1e6
+                    hi = sig.maximum if sig.maximum is not None else 1e6
+                    values[n] = rng.uniform(lo, hi) if sig.is_float else rng.randint(int(lo), int(hi))
                 sig = m.get_signal_by_name(rng.choice(layout.names))
-                if sig.is_float:
+                if sig.is_float and i % 4 == 1:
                     choices = edges + [x for x in (sig.minimum, sig.maximum) if x is not None]
                     x = rng.choice(choices)
                     if rng.random() < 0.3 and math.isfinite(x) and x != 0:
