@@ -18,7 +18,9 @@ that returned nothing, or waited (a timeout above zero) before a frame came, is 
 timeout that returned a frame is ``receive``.  The frames' *transit* (a send returning in one process to
 the ``recv`` that returns the frame in the other: the bus, the kernel, the peer's wake-up or the end of its
 current poll) is taken from stamps on ``CLOCK_MONOTONIC`` (``perf_counter_ns`` on Linux), which both
-processes share: the n-th PlantSensor sent against the n-th received, the n-th TorqueCommand likewise.
+processes share, of the PlantSensor and TorqueCommand frames, matched by their first 8 bytes (the step
+counter and more), the first of each.  ``poll``: the plant node's ``poll`` itself, i.e. its pacing (the
+sleeps before a real-time period's start) and its glue.
 """
 from __future__ import annotations
 
@@ -29,7 +31,7 @@ from array import array
 from .tcu_node import ACCOUNT_ENV       # names the file (.npz) a TCU process writes its account to
 
 PLANT_PARTS = ("plant step", "sense", "encode", "authenticate", "send", "wait", "receive", "verify", "decode",
-               "frame handling", "log append", "log write", "collector")
+               "frame handling", "log append", "log write", "poll", "collector")
 TCU_PARTS = ("wait", "receive", "verify", "decode", "observer", "control law", "command", "strategy", "encode",
              "authenticate", "send", "collector")
 #: frame ids whose n-th send and receive are stamped (the transit of the period's two frames)
@@ -46,11 +48,11 @@ class PeriodAccount:
         self.ns = array("q", bytes(8 * self._p * capacity))
         self.starts = array("q", bytes(8 * capacity))
         self.calls = array("q", bytes(8 * capacity))      # wrapped calls per period (the account's own cost)
-        self.overhead_ns = calibrate(self)
         self.k = -1                      # the current period (-1: before the first)
         self._stack = [0]                # per open wrapped call: the time of the calls nested in it
         self.stamps: dict[int, dict[str, array]] = {}     # frame id -> {"sent"|"received": ns of the n-th}
         self._gc_t0 = []
+        self.overhead_ns = calibrate(self)
 
     def index(self, part: str) -> int:
         return self.parts.index(part)
@@ -66,8 +68,13 @@ class PeriodAccount:
             self.ns[k * self._p + i] += dt
             self.calls[k] += 1
 
-    def stamp(self, fid: int, what: str, t_ns: int) -> None:
-        self.stamps.setdefault(fid, {"sent": array("q"), "received": array("q")})[what].append(t_ns)
+    def stamp(self, msg, what: str, t_ns: int) -> None:
+        """The time a frame of a stamped id was sent or received, keyed by its first 8 bytes (the step
+        counter and more: the same key in both processes for the same frame)."""
+        d = self.stamps.setdefault(msg.arbitration_id, {"sent": array("q"), "sent_key": array("q"),
+                                                        "received": array("q"), "received_key": array("q")})
+        d[what].append(t_ns)
+        d[what + "_key"].append(int.from_bytes(bytes(msg.data[:8]), "little", signed=True))
 
     def timed(self, fn, part: str):
         """``fn`` with its exclusive time added to ``part`` of the current period."""
@@ -107,7 +114,7 @@ class PeriodAccount:
                 stack[-1] += t1 - t0
                 add(i_send, t1 - t0 - nested)
                 if msg.arbitration_id in (SENSOR_ID, COMMAND_ID):
-                    self.stamp(msg.arbitration_id, "sent", t1)
+                    self.stamp(msg, "sent", t1)
 
         def timed_recv(timeout=None):
             stack.append(0)
@@ -125,7 +132,7 @@ class PeriodAccount:
                     self.begin_period(t1)
                 add(i_recv if msg is not None and not timeout else i_wait, t1 - t0 - nested)
                 if fid in (SENSOR_ID, COMMAND_ID):
-                    self.stamp(fid, "received", t1)
+                    self.stamp(msg, "received", t1)
 
         bus.send, bus.recv = timed_send, timed_recv
 
@@ -213,6 +220,7 @@ def install_plant(node, capacity: int) -> PeriodAccount:
         acc.wrap(rec, "row", "log append")
         acc.wrap(rec, "write", "log append")
         acc.wrap(rec, "work", "log write")
+    acc.wrap(node, "poll", "poll")
     acc.wrap_bus(node.bus)
     send_sensor = node.send_sensor
 

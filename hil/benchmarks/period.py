@@ -87,18 +87,37 @@ def run_accounted(args, strategy: str, out_dir: str) -> dict:
         z = np.load(tcu_file)
         skip = 10
         out["tcu"] = _side(z["parts"][skip:-1], [str(x) for x in z["names"]], z["total"][skip:-1])
-        stamps = {k: z[k] for k in z.files if k.startswith(("sent_", "received_"))}
-        ps = acc.stamps
-        plant_sensor_sent = np.frombuffer(ps[0x100]["sent"], dtype=np.int64)
-        plant_command_got = np.frombuffer(ps[0x110]["received"], dtype=np.int64)
-        tcu_sensor_got, tcu_command_sent = stamps["received_100"], stamps["sent_110"]
-        n = min(len(plant_sensor_sent), len(tcu_sensor_got), len(tcu_command_sent), len(plant_command_got))
-        sl = slice(skip, n)
-        out["transit"] = {
-            "sensor (plant send -> TCU recv)": _stats((tcu_sensor_got[sl] - plant_sensor_sent[sl]) / 1e3),
-            "TCU: sensor recv -> command sent": _stats((tcu_command_sent[sl] - tcu_sensor_got[sl]) / 1e3),
-            "command (TCU send -> plant recv)": _stats((plant_command_got[sl] - tcu_command_sent[sl]) / 1e3),
-            "round trip (plant send -> plant recv)": _stats((plant_command_got[sl] - plant_sensor_sent[sl]) / 1e3)}
+        stamps = {k: z[k] for k in z.files if k.startswith(("sent", "received"))}
+        plant = {f"{kind}_{fid:x}": np.frombuffer(a, dtype=np.int64) for fid, d in acc.stamps.items()
+                 for kind, a in d.items()}
+        sensor_sent = _first(plant, "sent_100")
+        sensor_got = _first(stamps, "received_100")
+        command_sent = _first(stamps, "sent_110")
+        command_got = _first(plant, "received_110")
+        # the command of step k answers the sensor frame of step k: their keys differ, their order does not
+        steps = sorted(set(sensor_sent) & set(sensor_got))[skip:]
+        legs = {"sensor (plant send -> TCU recv)": [sensor_got[k] - sensor_sent[k] for k in steps]}
+        cmd_keys = sorted(set(command_sent) & set(command_got))[skip:]
+        legs["command (TCU send -> plant recv)"] = [command_got[k] - command_sent[k] for k in cmd_keys]
+        # both frames begin with their step (32 bits): the TCU's answer, and the round trip, step by step
+        got_by_step = {k & 0xFFFFFFFF: t for k, t in sensor_got.items()}
+        sent_by_step = {k & 0xFFFFFFFF: t for k, t in sensor_sent.items()}
+        cmd_sent_by_step = {k & 0xFFFFFFFF: t for k, t in command_sent.items()}
+        cmd_got_by_step = {k & 0xFFFFFFFF: t for k, t in command_got.items()}
+        answered = sorted(set(got_by_step) & set(cmd_sent_by_step))[skip:]
+        legs["TCU: sensor recv -> command sent"] = [cmd_sent_by_step[k] - got_by_step[k] for k in answered]
+        trips = sorted(set(sent_by_step) & set(cmd_got_by_step))[skip:]
+        legs["round trip (sensor sent -> command received)"] = [cmd_got_by_step[k] - sent_by_step[k] for k in trips]
+        out["transit"] = {k: _stats(np.array(v, dtype=float) / 1e3) for k, v in legs.items()}
+    return out
+
+
+def _first(stamps: dict, name: str) -> dict:
+    """key -> time of the first frame with that key (a frame sent again keeps its first time)."""
+    out = {}
+    kind, fid = name.split("_")
+    for key, t in zip(stamps.get(f"{kind}_key_{fid}", ()), stamps.get(name, ())):
+        out.setdefault(int(key), int(t))
     return out
 
 
