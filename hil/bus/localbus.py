@@ -201,6 +201,14 @@ class LocalBus(can.BusABC):
         if self._own:
             self._own_queue.append(decode(packet, self._dir))
 
+    def recv(self, timeout: float | None = None) -> can.Message | None:
+        """``BusABC.recv``; with no filter set (the nodes set none) straight to ``_recv_internal``, which
+        keeps the timeout itself: a lockstep node polls the bus tens of times a period, and python-can's
+        loop around it (two clock reads, the filter test, a log call) came on top of each poll."""
+        if self._filters is not None:
+            return super().recv(timeout)
+        return self._recv_internal(timeout)[0]
+
     def _recv_internal(self, timeout: float | None):
         if self._own_queue:
             return self._own_queue.pop(0), False
