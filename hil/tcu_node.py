@@ -206,7 +206,9 @@ def serve(bus: can.BusABC, node: TcuNode, *, silence_s: float, heartbeat_period_
     (lockstep): poll the bus this long after each frame before sleeping in it, so the next sensor
     frame finds the node awake (``[bus] lockstep_spin_s``).
 
-    Heartbeats, every ``heartbeat_period_s``: this loop sends them between frames, after its answers.
+    Heartbeats, every ``heartbeat_period_s``: this loop sends them between frames, after its answers; in
+    real time one due within the next exchange period goes out right after the answer to a reading, so it
+    never reaches the plant just before the plant's next period starts.
     A thread is the backstop for work that holds the loop longer (a strategy's fit): it wakes
     ``max(heartbeat_period_s, silence_s / 4)`` after the last heartbeat and sends one when none went
     out for a period, so the plant never takes a busy TCU for a silent one.  Why not the thread
@@ -245,6 +247,8 @@ def serve(bus: can.BusABC, node: TcuNode, *, silence_s: float, heartbeat_period_
     thread.start()
     t0 = time.monotonic()
     last_plant = None
+    early_s = node.settings.period_s if realtime else 0.0
+    answered_n = 0                     # real time: the readings answered when the last heartbeat check ran
     try:
         spinning = spin_s > 0.0 and not realtime
         while not node.finished:
@@ -277,6 +281,13 @@ def serve(bus: can.BusABC, node: TcuNode, *, silence_s: float, heartbeat_period_
                     replies = node.handle(msg, classified)
                 for r in replies:
                     sender.send(r)
+            if early_s and node.sensor_frames != answered_n:
+                # real time: a heartbeat due within the next period goes out now, right after the answer,
+                # not at whatever moment it falls due (it may then reach the plant just before its next
+                # period starts, and the plant's handling of it start that period late)
+                answered_n = node.sensor_frames
+                if sent["at"] + heartbeat_period_s - time.monotonic() <= early_s:
+                    send_heartbeat()
         state[0] = STATE_FINISHED
     except BaseException:
         state[0] = STATE_FAULT
