@@ -28,7 +28,9 @@ import gc
 import time
 from array import array
 
-from .tcu_node import ACCOUNT_ENV       # names the file (.npz) a TCU process writes its account to
+#: the environment variable that asks a TCU process (``hil.tcu_node``) to keep an account, and names the
+#: file (``.npz``) it writes at its end
+ACCOUNT_ENV = "HIL_PERIOD_ACCOUNT"
 
 PLANT_PARTS = ("plant step", "sense", "encode", "authenticate", "send", "wait", "receive", "verify", "decode",
                "frame handling", "log append", "log write", "poll", "collector")

@@ -37,9 +37,7 @@ from .bus.mapping import codec_for
 from .bus.link import GuardedBus, Sender, heartbeat_period_s, poll_until, silence_limit_s
 from .bus.secoc import node_key
 from .bus.verdicts import BAD_SEQUENCE, FRESH, RESENT, newest, sensor_sequence
-
-#: the environment variable that asks this process for the account of its periods (``hil.period_account``)
-ACCOUNT_ENV = "HIL_PERIOD_ACCOUNT"
+from .period_account import ACCOUNT_ENV
 
 #: a sensor step may jump ahead by at most this many periods (frames lost); beyond it is garbage
 MAX_STEP_GAP = 100

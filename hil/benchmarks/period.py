@@ -58,9 +58,8 @@ def run_accounted(args, strategy: str, out_dir: str) -> dict:
     import numpy as np
 
     from ..exchange import exchange
-    from ..period_account import install_plant
+    from ..period_account import ACCOUNT_ENV, install_plant
     from ..session import Session
-    from ..tcu_node import ACCOUNT_ENV
 
     scenario, sets = _scenario(args)
     tcu_file = Path(out_dir) / "tcu-account.npz"
