@@ -185,21 +185,24 @@ def calibrate(account: PeriodAccount, calls: int = 2000, batches: int = 7) -> fl
     """What one wrapped call adds to its caller's time (ns; the median of ``batches``): the wrapper's own
     lines outside its two clock reads, estimated on a call that does nothing.  The account charges it, times
     the wrapped calls of each period, to the part ``the account itself`` rather than to ``other``."""
-    def nothing():
-        return None
-    saved_k, account.k = account.k, -1           # the calibration's calls count in no period
+    def nothing(x):
+        return x
+    saved_k, account.k = account.k, 0             # the calibration's calls count in period 0, cleared after
     wrapped = account.timed(nothing, account.parts[0])
     clock, out = time.perf_counter_ns, []
     for _ in range(batches):
         t0 = clock()
         for _ in range(calls):
-            nothing()
+            nothing(None)
         t1 = clock()
         for _ in range(calls):
-            wrapped()
+            wrapped(None)
         t2 = clock()
         out.append(((t2 - t1) - (t1 - t0)) / calls)
     account.k = saved_k
+    for i in range(account._p):
+        account.ns[i] = 0
+    account.calls[0] = 0
     return max(sorted(out)[batches // 2], 0.0)
 
 
