@@ -375,12 +375,29 @@ class Recorder:
             self._write_queued(None, max_rows=len(self._queue) - self._queue_limit + 1)
 
     def _write_queued(self, until: float | None, max_rows: int | None = None) -> None:
+        """Queued rows written in line, in one batch: one interrupt guard around them, not one a row (as
+        ``_write``, which it is row by row)."""
         q, n = self._queue, 0
-        while q and (max_rows is None or n < max_rows):
-            if until is not None and n and time.perf_counter() >= until:
-                break
-            self._write(*q.popleft())
-            n += 1
+        if self.failed:
+            while q and (max_rows is None or n < max_rows):
+                q.popleft()
+                self.dropped += 1
+                n += 1
+            return
+        write, clock = self._file.write, time.perf_counter
+        _InterruptGuard.depth += 1
+        try:
+            while q and (max_rows is None or n < max_rows):
+                if until is not None and n and clock() >= until:
+                    break
+                write(*q.popleft())
+                n += 1
+        except OSError as e:
+            self._written, n = self._written + n, 0      # the rows before the failing one reached the file
+            raise self._fail(e) from None
+        finally:
+            self._written += n
+            _InterruptGuard.leave()
 
     def _ship(self, block: bool) -> None:
         proc = self._proc
