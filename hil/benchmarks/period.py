@@ -196,6 +196,24 @@ def _rows(side: dict) -> list[list[str]]:
     return rows
 
 
+#: issue 52's lockstep target: the loop at least this many times real time where the plant alone runs at least
+#: PLANT_ALONE_X (two processes, the default strategy)
+TARGET_LOCKSTEP_X, PLANT_ALONE_X = 10.0, 130.0
+
+
+def target_lines(result: dict) -> list[str]:
+    """The lockstep target judged (lockstep only): the loop's median speed without the account, beside the
+    plant alone's before and after the runs."""
+    if result["mode"] != "lockstep":
+        return []
+    loop = _median([r["speed"] for r in result["plain"]])
+    alone = [result["plant_alone"]["x_realtime"], result["plant_alone_after"]["x_realtime"]]
+    met = "met" if loop >= TARGET_LOCKSTEP_X else "missed"
+    where = "" if min(alone) >= PLANT_ALONE_X else f" (the plant alone below {PLANT_ALONE_X:g}x here)"
+    return [f"  target: lockstep >= {TARGET_LOCKSTEP_X:g}x where the plant alone runs >= {PLANT_ALONE_X:g}x: "
+            f"{met}, {loop:.2f}x = {100 * loop / max(alone):.1f} % of the plant alone's {max(alone):.1f}x{where}"]
+
+
 def report(result: dict) -> str:
     head = ["part", "median us", "p99 us", "mean us", "of the mean period"]
     a = result["accounted"][-1]
@@ -204,10 +222,11 @@ def report(result: dict) -> str:
     out = [f"{result['scenario']} {result['strategy']} seed {result['seed']}, {result['mode']} over {result['bus']}, "
            f"{result['seconds']:g} s runs, {result['date_utc']} UTC",
            f"  plant alone {alone:.1f}x real time ({result['plant_alone']['us_per_period']:.1f} us a period; "
-           f"{result['plant_alone_after']['x_realtime']:.1f}x after the runs)",
+           f"{result['plant_alone_after']['x_realtime']:.1f}x after the runs; load {result['plant_alone']['load']:.2f})",
            f"  the loop, no account: {', '.join(f'{x:.2f}x' for x in plain)} (median {_median(plain):.2f}x; loads "
            + ", ".join(f"{r['load']:.1f}" for r in result["plain"]) + ")",
-           "  the loop, with the account: " + ", ".join(f"{r['speed']:.2f}x" for r in result["accounted"]), "",
+           "  the loop, with the account: " + ", ".join(f"{r['speed']:.2f}x" for r in result["accounted"]),
+           *target_lines(result), "",
            f"plant side ({a['plant']['periods']} periods, the last accounted run):",
            terminal.columns(head, _rows(a["plant"]), indent="  ")]
     if "tcu" in a:
