@@ -371,8 +371,8 @@ class Recorder:
     def _make_room(self, block: bool) -> None:
         if self._proc is not None:
             self._ship(block)
-        elif block:
-            self._write_queued(None, max_rows=len(self._queue) - self._queue_limit + 1)
+        elif block:       # a batch, not the one row the next append needs: the appends after it go straight in
+            self._write_queued(None, max_rows=len(self._queue) - self._queue_limit + self.BATCH_ROWS)
 
     def _write_queued(self, until: float | None, max_rows: int | None = None) -> None:
         """Queued rows written in line, in one batch: one interrupt guard around them, not one a row (as
