@@ -9,8 +9,9 @@ are timed where and as they really run, on the run's own frames.
 
 Times are *exclusive*: a wrapped call inside another (a log row written inside ``sense``, the MAC inside
 an encoding, a collection of the garbage collector anywhere) is counted in its own part only, and
-subtracted from its caller's.  What no wrapper covers (the loop's own lines) is
-``other``: the period's wall time minus the sum of its parts.
+subtracted from its caller's.  The wrappers' own cost (``calibrate``: a wrapped call that does nothing
+against the bare call, times the wrapped calls of the period) is the part *the account itself*; what no
+wrapper covers (the loop's own lines) is ``other``: the period's wall time minus the sum of the rest.
 
 A period is, on the plant, from one ``send_sensor`` to the next; on the TCU, from the return of the
 ``recv`` that brought one PlantSensor frame to the next one's.  ``recv`` is split by what it did: a call
@@ -36,8 +37,8 @@ PLANT_PARTS = ("plant step", "sense", "encode", "authenticate", "send", "wait", 
                "frame handling", "log append", "log write", "poll", "collector")
 TCU_PARTS = ("wait", "receive", "verify", "decode", "observer", "control law", "command", "strategy", "encode",
              "authenticate", "send", "collector")
-#: frame ids whose n-th send and receive are stamped (the transit of the period's two frames)
-SENSOR_ID, COMMAND_ID = 0x100, 0x110
+#: the frames whose sends and receipts are stamped (the transit of the period's two frames)
+from .bus.frames import COMMAND_ID, SENSOR_ID  # noqa: E402
 
 
 class PeriodAccount:
