@@ -222,7 +222,8 @@ def report(result: dict) -> str:
     out = [f"{result['scenario']} {result['strategy']} seed {result['seed']}, {result['mode']} over {result['bus']}, "
            f"{result['seconds']:g} s runs, {result['date_utc']} UTC",
            f"  plant alone {alone:.1f}x real time ({result['plant_alone']['us_per_period']:.1f} us a period; "
-           f"{result['plant_alone_after']['x_realtime']:.1f}x after the runs; load {result['plant_alone']['load']:.2f})",
+           f"{result['plant_alone_after']['x_realtime']:.1f}x after the runs; load "
+           f"{result['plant_alone']['load']:.2f})",
            f"  the loop, no account: {', '.join(f'{x:.2f}x' for x in plain)} (median {_median(plain):.2f}x; loads "
            + ", ".join(f"{r['load']:.1f}" for r in result["plain"]) + ")",
            "  the loop, with the account: " + ", ".join(f"{r['speed']:.2f}x" for r in result["accounted"]),
