@@ -47,6 +47,11 @@ POLL_SLICE_S = 50e-6
 #: ... and the last SPIN_S are polled without sleeping (a sleeper wakes tens of us late: the period's
 #: start would jitter by that; at most this much of each period is spent polling)
 SPIN_S = 150e-6
+#: real time: in the last QUIET_S before a period's start (at most QUIET_FRACTION of the period) the plant's
+#: pacing sends no heartbeat and does no log work: a heartbeat's encoding, MAC, send and row, or a batch of
+#: rows pickled for the log's writer, would start the period that much later; both wait for the next period
+QUIET_S = 400e-6
+QUIET_FRACTION = 0.4
 #: a mapped bus's start-up probes (``PlantNode.wait_for_tcu``) go out this often
 PROBE_PERIOD_S = 0.05
 #: how often the TCU child process is asked whether it still runs (a waitpid at every poll is a
@@ -169,6 +174,7 @@ class PlantNode:
         self.progress_s = self.settings.lockstep_progress_s if mode == "lockstep" else None
         self.spin_s = self.settings.lockstep_spin_s if mode == "lockstep" else 0.0
         self.heartbeat_s = heartbeat_period_s(self.settings, mode)
+        self.quiet_s = min(QUIET_S, QUIET_FRACTION * self.period_s)
         self.rejected = RejectCounter()
         self.commands: dict[int, TorqueCommand] = {}
         self.awaited = -1
@@ -377,17 +383,21 @@ class PlantNode:
         so the log costs the loop nothing between a deadline and the sensor frame; not with
         ``log_work`` False (real time's wait for the command: a batch's pickling and pipe write would
         come on top of the round trip whenever the command arrives during it; the rest of the period
-        has room for it).
+        has room for it); nor in real time's last ``quiet_s`` before a period starts (``QUIET_S``), where no
+        heartbeat goes out either.
         With nothing to do for the log, lockstep polls the bus for up to ``[bus] lockstep_spin_s``
         before it sleeps in it: the TCU's answer then finds this process awake (a sleeper's wake-up
         costs tens of us a frame, and lockstep runs as fast as the bus allows)."""
         now = time.perf_counter()
-        self.heartbeat_if_due(now)
+        # real time's pacing, close to the period's start: nothing but the bus (QUIET_S)
+        quiet = log_work and until is not None and until - now < self.quiet_s
+        if not quiet:
+            self.heartbeat_if_due(now)
         timeout = self.next_hb - now
         if until is not None:
-            timeout = min(timeout, until - now)
+            timeout = until - now if quiet else min(timeout, until - now)
         msg = None
-        if log_work and self.rec is not None and self.rec.work_due:
+        if log_work and not quiet and self.rec is not None and self.rec.work_due:
             msg = self.bus.recv(timeout=0.0)
             if msg is None:
                 self.rec.work(now + max(min(FLUSH_SLICE_S, timeout), 0.0))

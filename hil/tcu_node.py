@@ -37,6 +37,7 @@ from .bus.mapping import codec_for
 from .bus.link import GuardedBus, Sender, heartbeat_period_s, poll_until, silence_limit_s
 from .bus.secoc import node_key
 from .bus.verdicts import BAD_SEQUENCE, FRESH, RESENT, newest, sensor_sequence
+from .period_account import ACCOUNT_ENV
 
 #: a sensor step may jump ahead by at most this many periods (frames lost); beyond it is garbage
 MAX_STEP_GAP = 100
@@ -203,7 +204,9 @@ def serve(bus: can.BusABC, node: TcuNode, *, silence_s: float, heartbeat_period_
     (lockstep): poll the bus this long after each frame before sleeping in it, so the next sensor
     frame finds the node awake (``[bus] lockstep_spin_s``).
 
-    Heartbeats, every ``heartbeat_period_s``: this loop sends them between frames, after its answers.
+    Heartbeats, every ``heartbeat_period_s``: this loop sends them between frames, after its answers; in
+    real time one due within the next exchange period goes out right after the answer to a reading, so it
+    never reaches the plant just before the plant's next period starts.
     A thread is the backstop for work that holds the loop longer (a strategy's fit): it wakes
     ``max(heartbeat_period_s, silence_s / 4)`` after the last heartbeat and sends one when none went
     out for a period, so the plant never takes a busy TCU for a silent one.  Why not the thread
@@ -242,6 +245,8 @@ def serve(bus: can.BusABC, node: TcuNode, *, silence_s: float, heartbeat_period_
     thread.start()
     t0 = time.monotonic()
     last_plant = None
+    early_s = node.settings.period_s if realtime else 0.0
+    answered_n = 0                     # real time: the readings answered when the last heartbeat check ran
     try:
         spinning = spin_s > 0.0 and not realtime
         while not node.finished:
@@ -274,6 +279,13 @@ def serve(bus: can.BusABC, node: TcuNode, *, silence_s: float, heartbeat_period_
                     replies = node.handle(msg, classified)
                 for r in replies:
                     sender.send(r)
+            if early_s and node.sensor_frames != answered_n:
+                # real time: a heartbeat due within the next period goes out now, right after the answer,
+                # not at whatever moment it falls due (it may then reach the plant just before its next
+                # period starts, and the plant's handling of it start that period late)
+                answered_n = node.sensor_frames
+                if sent["at"] + heartbeat_period_s - time.monotonic() <= early_s:
+                    send_heartbeat()
         state[0] = STATE_FINISHED
     except BaseException:
         state[0] = STATE_FAULT
@@ -354,6 +366,7 @@ def run_tcu(args) -> int:
     period = scenario.run.exchange_period_s
     code = EXIT_OK
     error = None
+    account = None
     handle = open_bus(bus)
     _bus_open.append(True)
     try:        # from here the bus is closed whatever ends the process (a SIGTERM from the plant included)
@@ -361,7 +374,12 @@ def run_tcu(args) -> int:
         if args.mode == "realtime":     # a full collection over scipy's and casadi's objects stalls both threads
             gc.freeze()
             gc.disable()
-        serve(GuardedBus(handle.bus, handle.name), node, silence_s=silence_limit_s(settings, args.mode, period),
+        guarded = GuardedBus(handle.bus, handle.name)
+        account_path = os.environ.get(ACCOUNT_ENV)
+        if account_path:        # hil bench period asked for the account of this process's periods
+            from .period_account import install_tcu
+            account = install_tcu(node, guarded, scenario.steps + 100)
+        serve(guarded, node, silence_s=silence_limit_s(settings, args.mode, period),
               heartbeat_period_s=heartbeat_period_s(settings, args.mode),
               startup_timeout_s=settings.startup_timeout_s if args.wait is None else args.wait,
               realtime=args.mode == "realtime", spin_s=settings.lockstep_spin_s,
@@ -376,6 +394,9 @@ def run_tcu(args) -> int:
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, signal.SIG_IGN)
         handle.close()
+        if account is not None:
+            account.close()
+            account.save(account_path)
         report = node.report()
         report["exit"] = error.exit_code if error is not None else code
         report["error"] = None if error is None else str(error)

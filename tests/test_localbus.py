@@ -120,3 +120,18 @@ def test_what_a_peer_sent_before_closing_is_read_even_after_a_send_to_it_fails(c
         a.shutdown()
         if b is not None:
             b.shutdown()
+
+
+def test_a_node_with_filters_receives_only_the_frames_they_let_through(channel):
+    """``recv`` skips python-can's filter loop only when no filter is set: a node that sets filters still
+    gets only the matching frames, and a node without them every frame, in order."""
+    with can.Bus(interface="localbus", channel=channel) as a, \
+            can.Bus(interface="localbus", channel=channel, can_filters=[{"can_id": 0x102, "can_mask": 0x7FF}]) as b, \
+            can.Bus(interface="localbus", channel=channel) as c:
+        for i in range(14):
+            a.send(frame(i))
+        got_b = recv_all(b, 2, timeout=3.0)
+        got_c = recv_all(c, 14, timeout=3.0)
+        assert [m.arbitration_id for m in got_b] == [0x102, 0x102]
+        assert b.recv(0.05) is None
+        assert [bytes(m.data) for m in got_c] == [bytes(frame(i).data) for i in range(14)]

@@ -112,9 +112,12 @@ def _rt_run(scenario_path, bus, seconds, sets, seed, strategy, out_dir, probe_be
             "error": r.stderr.strip().splitlines()[-1] if r.returncode and r.stderr.strip() else None}
 
 
-#: the real-time issue's targets: (missed per 10 000 at most, jitter p99 at most us) for SCHED_FIFO runs of the
-#: default bus, and lockstep speed at least (two processes, in-process)
-TARGET_MISSED_PER_10K, TARGET_JITTER_P99_US = 10.0, 100.0
+#: the targets (issue 52, the period's budget) for SCHED_FIFO runs of the local bus: the median over the runs of
+#: the missed deadlines per 10 000 at most the idle loop's median in the same rounds plus this, and the median
+#: of the runs' jitter p99 at most this (us); lockstep speed at least (two processes, in-process)
+TARGET_MISSED_OVER_FLOOR_PER_10K, TARGET_JITTER_P99_US = 3.0, 60.0
+#: the earlier absolute target (every run), still printed beside the floor's: the vCPU probe's words use it
+TARGET_MISSED_PER_10K = 10.0
 TARGET_LOCKSTEP, TARGET_LOCKSTEP_INPROCESS = 5.0, 8.0
 
 
@@ -141,15 +144,23 @@ def verdicts(result: dict) -> list[tuple[str, str, bool | None]]:
         rng = lambda key, rs: (f"{min(r[key] for r in rs):.1f}-{max(r[key] for r in rs):.1f}"  # noqa: E731
                                if rs and all(r[key] is not None for r in rs) else "-")
         if fifo:
-            ok = all(r["missed_per_10k"] is not None and r["missed_per_10k"] <= TARGET_MISSED_PER_10K for r in fifo)
-            out.append((f"local, SCHED_FIFO: <= {TARGET_MISSED_PER_10K:g} missed per 10 000 in every run",
-                        f"{rng('missed_per_10k', fifo)} over {len(fifo)} runs" + _floor_words(result), ok))
-            ok = all(r["jitter_p99_us"] is not None and r["jitter_p99_us"] <= TARGET_JITTER_P99_US for r in fifo)
-            out.append((f"local, SCHED_FIFO: jitter p99 <= {TARGET_JITTER_P99_US:g} us in every run",
-                        f"{rng('jitter_p99_us', fifo)} us", ok))
+            missed = _median([r["missed_per_10k"] for r in fifo])
+            floor = _median([f["missed_per_10k"] for f in result.get("idle_loop") or []])
+            ok = None if missed is None or floor is None else missed <= floor + TARGET_MISSED_OVER_FLOOR_PER_10K
+            out.append((f"local, SCHED_FIFO: median missed per 10 000 <= the idle loop's median + "
+                        f"{TARGET_MISSED_OVER_FLOOR_PER_10K:g}",
+                        f"median {_fmt(missed, '.1f')} ({rng('missed_per_10k', fifo)} over {len(fifo)} runs) against "
+                        + (f"the idle loop's {floor:.1f} (+ {TARGET_MISSED_OVER_FLOOR_PER_10K:g} = "
+                           f"{floor + TARGET_MISSED_OVER_FLOOR_PER_10K:.1f})" if floor is not None else "no idle loop")
+                        + _floor_words(result), ok))
+            jitter = _median([r["jitter_p99_us"] for r in fifo])
+            out.append((f"local, SCHED_FIFO: jitter p99 <= {TARGET_JITTER_P99_US:g} us (median of the runs)",
+                        f"median {_fmt(jitter, '.0f')} us ({rng('jitter_p99_us', fifo)} us)",
+                        None if jitter is None else jitter <= TARGET_JITTER_P99_US))
         else:
             out.append(("local, SCHED_FIFO targets", "SCHED_FIFO not asked for or refused: not measured", None))
-        out.append(("local: no run ends in exit 3", f"exit codes {rt['exit_codes']}", 3 not in rt["exit_codes"]))
+        out.append(("local: no run ends in exit 3 or 5", f"exit codes {rt['exit_codes']}",
+                    not {3, 5} & set(rt["exit_codes"])))
     for bus, b in result["buses"].items():
         speeds = b["lockstep_speeds"]
         target = TARGET_LOCKSTEP_INPROCESS if bus == "inprocess" else TARGET_LOCKSTEP

@@ -63,6 +63,7 @@ INTERVAL_LEVEL_PERCENT = 90
 NON_FINITE_OK = frozenset({"JEf"})
 #: the authentication trailer's signals (every frame's last; hil/bus/secoc.py)
 AUTH_SIGNALS = ("AuthFreshness", "AuthMac")
+_INF = math.inf
 
 
 def load_dbc() -> cantools.database.can.Database:
@@ -189,6 +190,8 @@ class FrameCodec:
                                 tuple((name, is_float, -inf if lo is None else lo, inf if hi is None else hi)
                                       for name, is_float, lo, hi in self._limits[fid]))
                           for fid, m in self._by_id.items()}
+        #: per frame id with a compiled layout, what ``_classify`` runs (``_compile_decoders``)
+        self._fast = self._compile_decoders()
         #: where each frame's authentication trailer starts (bytes)
         self.trailer_offsets = {fid: m.get_signal_by_name(AUTH_SIGNALS[0]).start // 8
                                 for fid, m in self._by_id.items()}
@@ -196,6 +199,60 @@ class FrameCodec:
         if auth is not None:
             from .secoc import Authenticator
             self.auth = Authenticator(auth, self.trailer_offsets)
+
+    def _compile_decoders(self) -> dict:
+        """Per frame id with a compiled layout: (name, length, unpack, checks, build).  ``unpack`` gives the
+        values in the layout's order, ``checks`` the (position, signal, is_float, lo, hi) of each bounded
+        signal, ``build`` the decoded object from the values by position: ``_to_object``'s objects
+        without a dict of the values per frame (the dict path stays for frames cantools decodes)."""
+        out = {}
+        for fid, (name, length, layout, limits) in self._decoders.items():
+            if layout is None:
+                continue
+            at = {n: i for i, n in enumerate(layout.names)}
+            checks = tuple((at[signal], signal, is_float, lo, hi) for signal, is_float, lo, hi in limits)
+            build = self._builder(fid, at)
+            if build is not None:
+                out[fid] = (name, length, layout.struct.unpack, checks, build)
+        return out
+
+    def _builder(self, fid: int, at: dict):
+        """``_to_object`` for frame ``fid`` as a function of the unpacked values (``at``: signal -> position);
+        None for a frame it does not know."""
+        try:
+            if fid == SENSOR_ID:
+                i, m, t = at["SensorStep"], at["MotorSpeed"], at["TrainSpeed"]
+                return lambda v: SensorReading(int(v[i]), float(v[m]), float(v[t]))
+            if fid == COMMAND_ID:
+                i, q = at["CommandStep"], at["TorqueCmd"]
+                return lambda v: TorqueCommand(int(v[i]), float(v[q]))
+            if fid == DEMAND_ID:
+                i, q = at["DemandStep"], at["DemandTorque"]
+                return lambda v: DriverDemand(int(v[i]), float(v[q]))
+            if fid == STATUS_ID:
+                i, g, c, ok = at["StatusStep"], at["Stage"], at["Correction"], at["ObserverValid"]
+                cr, mu, lt, period = at["CreepSpeed"], at["MuHat"], at["LoadTorque"], self.period_s
+
+                def status(v):
+                    step = int(v[i])
+                    obs = ObserverSample(step, step * period, float(v[cr]), float(v[mu]), float(v[lt])) if v[ok] \
+                        else None
+                    return TcuStatus(step, int(v[g]), int(v[c])), obs
+                return status
+            if fid == SAMPLE_ID:
+                i, x, d, cr, mu = (at["SampleStep"], at["SampleIndex"], at["DetectedStep"], at["SampleCreep"],
+                                   at["SampleMu"])
+                return lambda v: SampleReport(int(v[i]), int(v[x]), int(v[d]), float(v[cr]), float(v[mu]))
+            if fid == PLANT_HEARTBEAT_ID:
+                c, st, i = at["PlantCounter"], at["PlantState"], at["PlantStep"]
+                return lambda v: Heartbeat(int(v[c]), int(v[st]), int(v[i]))
+            if fid == TCU_HEARTBEAT_ID:
+                c, st, i = at["TcuCounter"], at["TcuState"], at["TcuStep"]
+                return lambda v: Heartbeat(int(v[c]), int(v[st]), int(v[i]))
+        except KeyError:          # a DBC whose frame lacks a signal: the dict path says so when it comes
+            return None
+        names = tuple(at)         # the rarer frames (results, intervals, the scenario word): the dict path
+        return lambda v: self._to_object(fid, dict(zip(names, v)))
 
     # -- encoding ------------------------------------------------------------------------------
     def _msg(self, fid: int, values: dict) -> can.Message:
@@ -293,6 +350,27 @@ class FrameCodec:
         if msg.is_remote_frame:
             return None, "remote_frame"
         fid = msg.arbitration_id
+        fast = None if msg.is_extended_id else self._fast.get(fid)
+        if fast is not None:          # a compiled layout (every frame of hil.dbc): no dict of values
+            name, length, unpack, checks, build = fast
+            data = bytes(msg.data)
+            if len(data) != length:
+                return None, "bad_length"
+            if self.auth is not None:
+                verdict = self.auth.verify(fid, data)
+                if verdict != "ok":
+                    return None, verdict
+            v = unpack(data)
+            for i, signal, is_float, lo, hi in checks:
+                x = v[i]
+                if lo <= x <= hi and (not is_float or -_INF < x < _INF):     # finite and in range (NaN fails)
+                    continue
+                if is_float and not math.isfinite(x):
+                    if signal in NON_FINITE_OK:
+                        continue
+                    return None, f"non_finite:{signal}"
+                return None, f"out_of_range:{signal}"
+            return Frame(name, build(v)), "ok"
         entry = None if msg.is_extended_id else self._decoders.get(fid)
         if entry is None:
             return None, "unknown_id"

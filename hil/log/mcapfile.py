@@ -61,6 +61,7 @@ class LeanMcapWriter:
         self._parts: list[bytes] = []              # the open chunk's records, uncompressed
         self._size = 0                             # their bytes
         self._indexes: dict[int, list[int]] = {}   # channel -> [log_time, offset, log_time, offset, ...]
+        self._start, self._end = 1 << 64, -1         # its messages' earliest and latest log_time
 
     def _chunk_record(self, record) -> None:
         b = RecordBuilder()
@@ -104,6 +105,10 @@ class LeanMcapWriter:
         if index is None:
             index = self._indexes[channel_id] = []
         index += (log_time, self._size)
+        if log_time < self._start:
+            self._start = log_time
+        if log_time > self._end:
+            self._end = log_time
         record = _MESSAGE.pack(Opcode.MESSAGE, _MESSAGE_FIELDS_BYTES + len(data), channel_id, sequence, log_time,
                                publish_time) + data
         self._parts.append(record)
@@ -160,8 +165,7 @@ class LeanMcapWriter:
         if not self._indexes:
             return
         stats, counts = self._stats, self._stats.channel_message_counts
-        start = min(min(flat[0::2]) for flat in self._indexes.values())
-        end = max(max(flat[0::2]) for flat in self._indexes.values())
+        start, end = self._start, self._end
         stats.message_start_time = start if stats.message_count == 0 else min(start, stats.message_start_time)
         stats.message_end_time = max(end, stats.message_end_time)
         for channel_id, flat in self._indexes.items():

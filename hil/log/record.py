@@ -152,17 +152,24 @@ class McapFile:
         self._file = _DirectFile(fd)
         self._writer = LeanMcapWriter(self._file, chunk_size)
         self._writer.start(profile=PROFILE, library=f"railway-hil hil.log.mcapfile ({LIBRARY_IDENTIFIER} records)")
-        self._types, self._channels = {}, {}
+        self._types, self._channels, self._fill = {}, {}, {}
         for topic, name in TOPICS.items():
             cls = TYPES[name]
             schema_id = self._writer.register_schema(cls.DESCRIPTOR.full_name, "protobuf",
                                                      build_file_descriptor_set(cls).SerializeToString())
             self._channels[topic] = self._writer.register_channel(topic, "protobuf", schema_id)
             self._types[topic] = cls
+            if topic in FIELDS and not any(getattr(f, "is_repeated", True) or f.type == f.TYPE_MESSAGE
+                                           for f in cls.DESCRIPTOR.fields):
+                self._fill[topic] = _filler(cls, FIELDS[topic])
 
     def write(self, topic: str, log_t_s: float, fields: dict | tuple) -> None:
         """One row: ``fields`` by name, or (a tuple) every field's value in ``FIELDS[topic]`` order."""
         ns = sim_time_ns(log_t_s)
+        fill = self._fill.get(topic) if type(fields) is tuple else None
+        if fill is not None:        # a row of scalars: one message of the topic, every field set anew
+            self._writer.add_message(self._channels[topic], log_time=ns, data=fill(fields), publish_time=ns)
+            return
         if type(fields) is tuple:
             names = FIELDS[topic]
             if len(fields) != len(names):
@@ -185,6 +192,22 @@ class McapFile:
         """Close the file as it is (after a write failed: the writer's state is not to be trusted)."""
         with contextlib.suppress(OSError):
             self._file.close()
+
+
+def _filler(cls, names: tuple):
+    """``McapFile.write``'s encoder of a tuple row of a topic whose fields are all scalars: one message kept
+    per topic, every field set from the row, serialised.  The bytes of ``cls(**dict(zip(names, row)))``
+    (every field is set each time, and proto3 writes a field at its default value the same way: not at
+    all), without a dict and a message made per row."""
+    msg, n, topic = cls(), len(names), cls.DESCRIPTOR.full_name
+
+    def fill(values: tuple) -> bytes:
+        if len(values) != n:
+            raise ValueError(f"{topic}: a row of {len(values)} values for {n} fields")
+        for name, value in zip(names, values):
+            setattr(msg, name, value)
+        return msg.SerializeToString()
+    return fill
 
 
 #: what the writer process records when the run's process dies without closing the log
@@ -348,16 +371,33 @@ class Recorder:
     def _make_room(self, block: bool) -> None:
         if self._proc is not None:
             self._ship(block)
-        elif block:
-            self._write_queued(None, max_rows=len(self._queue) - self._queue_limit + 1)
+        elif block:       # a batch, not the one row the next append needs: the appends after it go straight in
+            self._write_queued(None, max_rows=len(self._queue) - self._queue_limit + self.BATCH_ROWS)
 
     def _write_queued(self, until: float | None, max_rows: int | None = None) -> None:
+        """Queued rows written in line, in one batch: one interrupt guard around them, not one a row (as
+        ``_write``, which it is row by row)."""
         q, n = self._queue, 0
-        while q and (max_rows is None or n < max_rows):
-            if until is not None and n and time.perf_counter() >= until:
-                break
-            self._write(*q.popleft())
-            n += 1
+        if self.failed:
+            while q and (max_rows is None or n < max_rows):
+                q.popleft()
+                self.dropped += 1
+                n += 1
+            return
+        write, clock = self._file.write, time.perf_counter
+        _InterruptGuard.depth += 1
+        try:
+            while q and (max_rows is None or n < max_rows):
+                if until is not None and n and clock() >= until:
+                    break
+                write(*q.popleft())
+                n += 1
+        except OSError as e:
+            self._written, n = self._written + n, 0      # the rows before the failing one reached the file
+            raise self._fail(e) from None
+        finally:
+            self._written += n
+            _InterruptGuard.leave()
 
     def _ship(self, block: bool) -> None:
         proc = self._proc
