@@ -10,7 +10,7 @@ import time
 from pathlib import Path
 
 from ..config import load_scenario, parse_set
-from . import terminal
+from .. import terminal
 
 
 def register(sub) -> None:
