@@ -13,7 +13,7 @@ import signal
 import subprocess
 
 import pytest
-from hil.testing import chunk_map, expected_messages, in_payload, still_intact
+from hil.testing import PAYLOAD, chunk_map, expected_messages, in_payload, still_intact
 from hil.log.read import read_log
 
 from .conftest import ROOT, SCENARIOS, case_seed, hil, hil_command, subprocess_env
@@ -145,8 +145,11 @@ def test_channels_lost_with_the_first_chunk_are_rebuilt(log, tmp_path):
 def test_replay_of_a_log_with_a_damaged_chunk_names_the_bytes(log, tmp_path):
     data, chunks = log
     a, b, _ = chunks[len(chunks) // 2]
-    bad = bytearray(data)
-    bad[(a + b) // 2] ^= 0x08
+    for at in range((a + b) // 2, b - PAYLOAD[1]):   # the first flip from the middle that is not inert
+        bad = bytearray(data)
+        bad[at] ^= 0x08
+        if not still_intact(data, bytes(bad), a):
+            break
     path = tmp_path / "hole.mcap"
     path.write_bytes(bytes(bad))
     r = subprocess.run(hil_command() + ["replay", str(path), "--json"], capture_output=True, text=True,
