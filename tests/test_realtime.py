@@ -47,15 +47,19 @@ def _hil_process(args):
             proc.wait()
 
 
-def _stall_20ms(pid: int, proc, times: int, every_s: float) -> int:
-    """SIGSTOP ``pid`` for 20 ms, ``every_s`` apart, up to ``times`` times while ``proc`` runs; the stalls made."""
+def _stall_20ms(pid: int, proc, times: int, every_s: float, held_s: list | None = None) -> int:
+    """SIGSTOP ``pid`` for 20 ms, ``every_s`` apart, up to ``times`` times while ``proc`` runs; the stalls made.
+    ``held_s`` gets each stall's measured length (a loaded host wakes this process late: longer than 20 ms)."""
     stalls = 0
     while proc.poll() is None and stalls < times:
         time.sleep(every_s)
         try:
             os.kill(pid, signal.SIGSTOP)
+            t0 = time.monotonic()
             time.sleep(0.02)
             os.kill(pid, signal.SIGCONT)
+            if held_s is not None:
+                held_s.append(time.monotonic() - t0)
             stalls += 1
         except ProcessLookupError:
             break
@@ -370,14 +374,35 @@ def test_misses_of_a_stalled_plant_are_told_from_those_of_a_stalled_tcu(tmp_path
     deadline are counted as such (``missed_deadlines_plant_started_late``, checked against the log's
     ``/loop/timing``: missed, begun later than 0.9 ms); a TCU stalled the same way leaves the plant
     on time, and its misses are not counted there."""
-    counts = {}
+    for attempt in range(1, STALL_ATTEMPTS + 1):
+        counts, explained = _stalled_runs(tmp_path / f"run{attempt}")
+        machine = counts["plant"][1] > 2 * explained + 40     # the plant late beyond what its stalls explain
+        if not machine or attempt == STALL_ATTEMPTS:
+            break
+        print(f"run {attempt}: the plant began {counts['plant'][1]} periods late, its stalls explain {explained}: "
+              "the machine's doing, once more")
+    assert counts["plant"][1] >= 30, counts       # 20 ms stalls of the plant in its loop: ~19 late periods each
+    assert counts["tcu"][0] >= 30 and counts["tcu"][1] <= counts["tcu"][0] // 3, counts
+
+
+#: runs of the stalled-plant test in all when the plant began periods late far beyond what its stalls explain
+#: (the fresh-clone runs of 2026-11-29 with other work on the machine: 480 and 912 late periods in the plant's
+#: run against about 160 its eight stalls explain, and the TCU's run as late, the machine's doing)
+STALL_ATTEMPTS = 3
+
+
+def _stalled_runs(tmp_path) -> tuple[dict, int]:
+    """({who: (missed deadlines, periods the plant began late)} of a run with the plant and one with the TCU
+    stalled, the late periods the plant's stalls explain (their measured lengths in periods, plus one each))."""
+    counts, held = {}, []
     for who in ("plant", "tcu"):
         args = [*RT_ARGS, "--strategy", "proposed", "--seed", "1", "--out", str(tmp_path / who), "--no-rrd"]
         args[args.index("run.duration_s=1.0")] = "run.duration_s=4.0"
         args[args.index("run.fault_time_s=0.5")] = "run.fault_time_s=3.5"
         with _hil_process(args) as proc:
             tcu = _tcu_child(proc.pid)
-            _stall_20ms(proc.pid if who == "plant" else tcu, proc, 8, 0.4)   # most land in the loop's 4 s
+            _stall_20ms(proc.pid if who == "plant" else tcu, proc, 8, 0.4,   # most land in the loop's 4 s
+                        held if who == "plant" else None)
             out, err = proc.communicate(timeout=120)
         assert proc.returncode == 0, err
         s = json.loads(out)
@@ -386,8 +411,7 @@ def test_misses_of_a_stalled_plant_are_told_from_those_of_a_stalled_tcu(tmp_path
         print(who, "stalled: missed", s["missed_deadlines"], "plant began late", late)
         assert s["missed_deadlines_plant_started_late"] == late
         counts[who] = (s["missed_deadlines"], late)
-    assert counts["plant"][1] >= 30, counts       # 20 ms stalls of the plant in its loop: ~19 late periods each
-    assert counts["tcu"][0] >= 30 and counts["tcu"][1] <= counts["tcu"][0] // 3, counts
+    return counts, sum(int(h / 1e-3) + 1 for h in held)
 
 
 def _spinners_of(pid: int) -> list[int]:
