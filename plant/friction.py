@@ -32,7 +32,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import brentq, minimize_scalar
 
 #: creep-speed range (km/h) searched for a curve's peak; every curve of interest peaks well inside.
 PEAK_SEARCH_KMH = (0.0, 30.0)
@@ -40,6 +39,46 @@ PEAK_SEARCH_KMH = (0.0, 30.0)
 _KMH_PER_MS = 3.6
 #: Polach's creepage divides by the train speed; below this (m/s) the law uses this instead (standstill)
 MIN_TRAIN_SPEED_MS = 0.1
+
+
+#: 1 / golden ratio, the golden-section search's step
+_INV_PHI = (math.sqrt(5.0) - 1.0) / 2.0
+
+
+def _golden_max(f, lo: float, hi: float, xtol: float) -> float:
+    """The maximiser of ``f`` on [lo, hi] (unimodal there) to ``xtol``: golden-section search (Kiefer 1953),
+    the bracket shrinking by 1/phi a step.  Plain Python rather than scipy.optimize, whose import costs
+    0.4 s of every process start-up (the plant computes a peak at import, plant.families)."""
+    a, b = lo, hi
+    c, d = b - _INV_PHI * (b - a), a + _INV_PHI * (b - a)
+    fc, fd = f(c), f(d)
+    while b - a > xtol:
+        if fc >= fd:                      # the maximum lies in [a, d]
+            b, d, fd = d, c, fc
+            c = b - _INV_PHI * (b - a)
+            fc = f(c)
+        else:                             # in [c, b]
+            a, c, fc = c, d, fd
+            d = a + _INV_PHI * (b - a)
+            fd = f(d)
+    return (a + b) / 2.0
+
+
+def _bisect(g, lo: float, hi: float, xtol: float) -> float:
+    """The root of ``g`` in [lo, hi] (signs differ at the ends) to ``xtol``, by bisection."""
+    glo = g(lo)
+    if glo == 0.0:
+        return lo
+    while hi - lo > xtol:
+        mid = (lo + hi) / 2.0
+        gm = g(mid)
+        if gm == 0.0:
+            return mid
+        if (gm > 0.0) == (glo > 0.0):
+            lo, glo = mid, gm
+        else:
+            hi = mid
+    return (lo + hi) / 2.0
 
 
 class _CurveShape:
@@ -54,9 +93,8 @@ class _CurveShape:
         lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, len(grid) - 1)]
         if hi <= lo:
             return float(grid[i]), float(self.mu(grid[i]))
-        res = minimize_scalar(lambda v: -float(self.mu(v)), bounds=(lo, hi), method="bounded",
-                              options={"xatol": 1e-9})
-        return float(res.x), float(-res.fun)
+        v = _golden_max(lambda x: float(self.mu(x)), float(lo), float(hi), 1e-9)
+        return v, float(self.mu(v))
 
     def creep_for_mu(self, mu_target: float) -> float:
         """Creep speed (km/h) on the stable (rising) side where the curve reaches ``mu_target``."""
@@ -67,7 +105,7 @@ class _CurveShape:
                              f"[{mu0:.4f}, {mu_peak:.4f}]")
         if mu_target == mu_peak:
             return v_peak
-        return float(brentq(lambda v: float(self.mu(v)) - mu_target, 0.0, v_peak, xtol=1e-12))
+        return _bisect(lambda v: float(self.mu(v)) - mu_target, 0.0, v_peak, 1e-12)
 
 
 @dataclass(frozen=True)

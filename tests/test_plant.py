@@ -118,3 +118,30 @@ def test_a_rail_stepped_by_windows_of_segments_is_the_whole_rail_to_the_bit():
                               np.r_[np.array(x_ref).ravel(), float(mu_ref), float(creep_ref)]), f"step {k}"
     assert len(built) == 5 and plant._steps.keys() == built.keys()
     assert plant.cleaned[0] > 0.5      # the recovery did act: rho entered the windows' functions
+
+
+def test_a_curves_peak_and_stable_inverse_agree_with_scipy_on_drawn_curves():
+    """``peak`` (golden-section search) and ``creep_for_mu`` (bisection) are plain Python so that the plant
+    does not import scipy.optimize at start-up; scipy's bounded Brent and brentq are the reference here, on
+    curves drawn from the default family (exponential and Polach), the seed printed."""
+    from scipy.optimize import brentq, minimize_scalar
+
+    from plant.families import sample_curves
+    from plant.friction import PEAK_SEARCH_KMH
+
+    from .conftest import case_seed
+
+    seed = case_seed("peak-vs-scipy")
+    batch = sample_curves("default", 40, np.random.default_rng(seed), 20.0)
+    print(f"seed {seed}")
+    grid = np.linspace(*PEAK_SEARCH_KMH, 3001)
+    for i in range(len(batch)):
+        c = batch.curve(i)
+        v, mu = c.peak()
+        k = int(np.argmax(c.mu(grid)))
+        ref = minimize_scalar(lambda x: -float(c.mu(x)), bounds=(grid[k - 1], grid[k + 1]), method="bounded",
+                              options={"xatol": 1e-10})
+        assert v == pytest.approx(ref.x, abs=2e-6) and mu == pytest.approx(-ref.fun, rel=1e-12), (seed, i)
+        target = 0.8 * mu + 0.2 * float(c.mu(0.0))
+        root = brentq(lambda x: float(c.mu(x)) - target, 0.0, v, xtol=1e-13)
+        assert c.creep_for_mu(target) == pytest.approx(root, abs=1e-11), (seed, i)
