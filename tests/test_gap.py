@@ -1053,11 +1053,12 @@ def test_grades_are_scored_and_the_calibration_is_read_back(tmp_path):
     from hil.benchmarks.gap import calibration, grade_right
     from hil.gap.calibration import grade_line, read_calibration
 
-    def case(effects, truth, named_set, grade, listed=(), best="compliance", oracle=None):
+    def case(effects, truth, named_set, grade, listed=(), best="compliance", oracle=None, member_class=None):
         which = {"named_set": named_set, "confidence": grade, "ranking": [{"effect": best}],
                  "not_separable": [{"effect": e} if isinstance(e, str) else {"effect": e[0], "effects": e}
                                    for e in listed]}
-        rec = {"effects": effects, "truth_classes": truth, "oracle": oracle, "confidence": grade}
+        rec = {"effects": effects, "truth_classes": truth, "oracle": oracle, "confidence": grade,
+               "member_class": member_class}
         return dict(rec, grade_right=grade_right(rec, which))
 
     cases = [case({"compliance": {}}, ["compliance"], ["compliance"], "confident"),          # right
@@ -1074,12 +1075,15 @@ def test_grades_are_scored_and_the_calibration_is_read_back(tmp_path):
              case({"bristle": {}}, ["adhesion_lag"], [], "tentative", best="adhesion_lag"),   # right
              case({}, [], [], "none"),                                                          # right: nominal
              case({"bristle": {}}, ["adhesion_lag"], [], "none", oracle={"separable": False}),  # right: beyond
-             case({"bristle": {}}, ["adhesion_lag"], [], "none", oracle={"separable": True})]   # wrong
+             case({"bristle": {}}, ["adhesion_lag"], [], "none", oracle={"separable": True}),   # wrong
+             # issue 51: the rail's curve changed in shape (a family member classed nuisance) is the rail too
+             case({"rail_shape": {}}, [], [], "nuisance", member_class="nuisance"),             # right
+             case({"rail_shape": {}}, [], ["load_transfer"], "confident", member_class="nuisance")]   # wrong
     assert [c["grade_right"] for c in cases] == [True, False, True, False, True, False, True, False, True, True,
-                                                 True, False]
+                                                 True, False, True, False]
     table = calibration(cases)
     assert {g: (v["right"], v["cases"]) for g, v in table.items()} == {
-        "confident": (1, 2), "tentative": (1, 1), "not_separable": (2, 4), "nuisance": (1, 2), "none": (2, 3)}
+        "confident": (1, 3), "tentative": (1, 1), "not_separable": (2, 4), "nuisance": (2, 3), "none": (2, 3)}
     lo, hi = table["none"]["interval95"]
     assert lo < 2 / 3 < hi
     path = tmp_path / "gap-calibration.json"
