@@ -60,13 +60,16 @@ BENCH_CASES = sum(BENCH_KINDS.values())
 
 def bench_seed(seed: int) -> int:
     """The first bench seed from ``seed`` on whose ``BENCH_CASES`` cases under ``BENCH_MIX`` are
-    ``BENCH_KINDS`` (no quantiser among the library forms: it is judged apart, ``which.quantiser``), from
-    ``draw_case`` as the bench draws them: a pure function of the seed chosen when the test runs."""
+    ``BENCH_KINDS`` (no quantiser among the library forms: it is judged apart, ``which.quantiser``; no
+    second-order lag either: its natural frequency trades against its damping, so the 20 % bound on a
+    one-parameter form's error does not hold for it: 11.5 Hz at zeta 0.65 was fitted 13.4 Hz at zeta 0.73,
+    the same 2 zeta / w within 3 %; the bench reports its error), from ``draw_case`` as the bench draws
+    them: a pure function of the seed chosen when the test runs."""
     mix = parse_mix(BENCH_MIX)
     while True:
         cases = [draw_case(seed, i, mix)[:2] for i in range(BENCH_CASES)]
-        if Counter(k for k, _ in cases) == BENCH_KINDS and \
-                not any(k == "library_form" and "sensor_quantisation" in e for k, e in cases):
+        if Counter(k for k, _ in cases) == BENCH_KINDS and not any(
+                k == "library_form" and {"sensor_quantisation", "adhesion_lag2"} & set(e) for k, e in cases):
             return seed
         seed = (seed + 1) % (1 << 31)
 
@@ -451,12 +454,14 @@ def test_two_effects_at_once_found_by_forward_selection(tmp_path, scenario):
     assert out["where"]["summary"].startswith("first significant in the")
 
 
-def _bench_case(tmp_path, scenario, seed: int, i: int, mix: str, identify: bool = False):
+def _bench_case(tmp_path, scenario, seed: int, i: int, mix: str, identify: bool = False, drawn=None):
     """Case ``i`` of ``hil bench gap --seed SEED --mix MIX``, recorded and diagnosed as the bench does
-    (the truth's own forms held out of the candidates; ``identify``: with the model replays too)."""
+    (the truth's own forms held out of the candidates; ``identify``: with the model replays too).
+    ``drawn``: (effects, run seed) the bench drew for that case when it was found, where its draw tables
+    have grown since (issue 51's family members and library form move some cases' draws)."""
     from hil.benchmarks.gap import held_out
     from hil.effects import with_reality
-    kind, effects, run_seed = draw_case(seed, i, parse_mix(mix))
+    effects, run_seed = drawn if drawn is not None else draw_case(seed, i, parse_mix(mix))[1:]
     s = run(with_reality(scenario, effects), "nlls", run_seed, bus="inprocess", out_dir=tmp_path, progress=False,
             log=print)
     out, result = diagnose(read_real_log(s["mcap"]), scenario, identify=identify,
@@ -582,7 +587,8 @@ def test_a_pair_turned_away_only_against_the_rail_is_listed_not_named(tmp_path, 
     the margin, so the answer lists it with what turned it away, and names nothing."""
     from hil.benchmarks.gap import grade_right
     effects, out, _ = _bench_case(tmp_path, scenario, 194847016, 100,
-                                  "held_out_form=1,out_of_library=0.6,outside=0.3,rail=0.3,library_form=0.3")
+                                  "held_out_form=1,out_of_library=0.6,outside=0.3,rail=0.3,library_form=0.3",
+                                  drawn=({"power_limit": {"power_ratio": 1.0449360371043848}}, 1832957439))
     assert set(effects) == {"power_limit"}
     which, fw = out["which"], out["which"]["forward"]
     listed = which["not_separable"]
