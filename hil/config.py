@@ -785,7 +785,7 @@ def parse_set(items) -> dict:
         key, value = item.split("=", 1)
         try:
             out[key.strip()] = tomllib.loads(f"v = {value}")["v"]
-        except tomllib.TOMLDecodeError:
+        except tomllib.TOMLDecodeError:  # not a TOML value: taken as a bare string (--set name=ffcc)
             out[key.strip()] = value
     return out
 

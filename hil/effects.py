@@ -70,9 +70,10 @@ class Draw:
     """One way ``hil bench gap`` draws the effect: the case ``kind`` (``library_form`` the candidates'
     own form, ``held_out_form`` a form the candidate list does not use, ``rail``, ``outside`` no
     candidate's class, ``out_of_library`` the family member ``member`` classed ``member_class``
-    "outside" or "nuisance" before any diagnosis), ``sample(rng) -> params``, the parameter a library
-    form's fit must recover (``recover``) and, for the two-effect cases, the effect's place in the list
-    they draw from (``pair_rank``; 0: not drawn in pairs)."""
+    before any diagnosis: "outside", "nuisance", or "library", a library class in a form its candidate
+    was not written from, whose right answer names that class), ``sample(rng) -> params``, the
+    parameter a library form's fit must recover (``recover``) and, for the two-effect cases, the
+    effect's place in the list they draw from (``pair_rank``; 0: not drawn in pairs)."""
 
     kind: str
     sample: Callable
@@ -123,6 +124,12 @@ _GEOMETRY = {"half_bogie_distance_m": None, "half_wheelbase_m": None, "coupler_h
 _BOGIE_HEIGHT = {"bogie_height_m": (0.4, 4.0)}
 
 EFFECTS: dict[str, EffectSpec] = {}
+
+
+def _quantiser_under_noise(g) -> dict:
+    """The motor encoder's quantum as the library form draws it, and noise q/60-q/30 added after it."""
+    q = LOGU(g, 0.04, 0.2)
+    return {"motor_quantum_rad_s": q, "motor_noise_after_rad_s": q / U(g, 30.0, 60.0)}
 
 
 def add_effect(spec: EffectSpec) -> EffectSpec:
@@ -212,7 +219,10 @@ for _spec in [
                "adhesion dynamics as a second-order contact lag: mu'' = w^2 (mu_curve - mu) - 2 zeta w mu', "
                "w = 2 pi natural_hz", {"natural_hz": "Hz", "damping_ratio": "-"}, cls="adhesion_lag",
                form="second_order",
-               fit=PlantFit(("natural_hz", "damping_ratio"), (1.0, 0.2), (500.0, 3.0), (True, True), (9, 3))),
+               fit=PlantFit(("natural_hz", "damping_ratio"), (1.0, 0.2), (500.0, 3.0), (True, True), (9, 3)),
+               # the band of the first-order lag's draws (tau 3-30 ms ~ 2 zeta / w: 5-40 Hz at zeta 0.5-1)
+               draws=(Draw("library_form", lambda g: {"natural_hz": LOGU(g, 8.0, 40.0),
+                                                      "damping_ratio": U(g, 0.5, 1.0)}, recover="natural_hz"),)),
     EffectSpec("resistance", "plant", {"factor": 1.5}, "running resistance = factor x the Davis polynomial",
                {"factor": "-"}, form="davis_factor", fit=PlantFit(("factor",), (0.0,), (5.0,), (False,)),
                draws=(Draw("library_form", lambda g: {"factor": U(g, 0.4, 0.7) if g.random() < 0.5
@@ -228,6 +238,17 @@ for _spec in [
                       Draw("out_of_library", lambda g: {"peak_mu_scale": 1.0, "creep_scale": float(
                           g.choice([-1, 1])) * U(g, 0.06, 0.14) + 1.0}, member="rail_stretch",
                            member_class="nuisance"))),
+    EffectSpec("rail_shape", "plant", {"low_creep_scale": 0.8, "knee_kmh": 0.5},
+               "the rail's fault curve changed in shape at low creep, its peak and tail kept: mu = mu_fault(v_s / k), "
+               "k = 1 + (low_creep_scale - 1) exp(-|v_s| / knee_kmh)", {"low_creep_scale": "-", "knee_kmh": "km/h"},
+               candidate=False,
+               # stretched or squeezed by 15-35 % near zero creep (beyond the nuisance's uniform 0.85-1.18), fading
+               # over 0.3-1 km/h (ffcc_a's fault curve peaks at 1.27 km/h): the rail's curve is what differs, in a
+               # shape no scaling of the whole curve makes, where a static load transfer at a few centimetres
+               # used to stand for it (issue 51)
+               draws=(Draw("out_of_library", lambda g: {"low_creep_scale": 1.0 + float(g.choice([-1, 1]))
+                                                        * U(g, 0.15, 0.35), "knee_kmh": U(g, 0.3, 1.0)},
+                           member="rail_shape", member_class="nuisance"),)),
     EffectSpec("torque_ripple", "plant", {"amplitude": 0.02, "frequency_hz": 60.0, "phase_rad": 0.0},
                "sinusoidal torque ripple (fraction of the torque)",
                {"amplitude": "-", "frequency_hz": "Hz", "phase_rad": "rad"}, candidate=False,
@@ -279,7 +300,11 @@ for _spec in [
                {"motor_quantum_rad_s": "rad/s", "train_quantum_ms": "m/s", "motor_noise_after_rad_s": "rad/s"},
                form="quantiser", fit="quantiser",
                draws=(Draw("library_form", lambda g: {"motor_quantum_rad_s": LOGU(g, 0.04, 0.2)},
-                           recover="motor_quantum_rad_s", pair_rank=12),)),
+                           recover="motor_quantum_rad_s", pair_rank=12),
+                      # noise after the quantiser (q/60-q/30), which hid the lattice's smallest steps: a library
+                      # effect in a form the lattice detector was not first written for, so named right or wrong
+                      Draw("out_of_library", _quantiser_under_noise, member="quantiser_noise",
+                           member_class="library"))),
     EffectSpec("can", "bus", {"delay_ms": 2.0, "jitter_ms": 0.0, "loss": 0.0},
                "CAN sensor frames delayed (+ uniform jitter), lost with probability loss; the TCU uses the "
                "newest frame it has", {"delay_ms": "ms", "jitter_ms": "ms", "loss": "-"}, form="frame_delay",

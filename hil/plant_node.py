@@ -112,7 +112,7 @@ def describe_exit(process) -> str:
     if code is not None and code < 0:
         try:
             return f"was killed by {signal.Signals(-code).name}"
-        except ValueError:
+        except ValueError:  # a signal number Python does not name
             return f"was killed by signal {-code}"
     return f"exited with code {code}"
 
@@ -132,7 +132,7 @@ def stderr_tail(process, lines: int = STDERR_TAIL_LINES) -> str:
             f.seek(0, 2)
             f.seek(max(f.tell() - 8192, 0))
             text = f.read().decode("utf-8", "replace")
-    except OSError:
+    except OSError:  # no stderr file: nothing to quote
         return ""
     tail = [line.rstrip() for line in text.splitlines() if line.strip()][-lines:]
     return f"; its stderr ends: {' | '.join(tail)}" if tail else "; its stderr is empty"

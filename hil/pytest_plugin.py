@@ -74,7 +74,7 @@ def _junit_writer(config):
     it is gone, the output stays out of the XML (the terminal has it) and the suite has no properties."""
     try:
         from _pytest.junitxml import xml_key
-    except ImportError:
+    except ImportError:  # pytest moved its junitxml key: no XML properties (docstring)
         return None
     return config.stash.get(xml_key, None)
 
@@ -234,7 +234,7 @@ class Bench:
         child.stderr_path = str(stderr_path)
         try:
             child.wait(0.2)             # let it open the bus; the plant waits [bus] startup_timeout_s for it
-        except subprocess.TimeoutExpired:
+        except subprocess.TimeoutExpired:  # still running after 0.2 s: it started
             return child
         raise TcuDidNotStart(f"--hil-tcu-cmd {cmd!r}: the TCU process {describe_exit(child)} before it joined "
                              f"the bus{stderr_tail(child)}")
@@ -248,10 +248,10 @@ def _stop(child, timeout_s: float = 5.0) -> None:
         try:
             os.killpg(child.pid, signal.SIGTERM)
             child.wait(timeout_s)
-        except subprocess.TimeoutExpired:
+        except subprocess.TimeoutExpired:  # a TCU that ignores SIGTERM is killed
             os.killpg(child.pid, signal.SIGKILL)
             child.wait()
-        except ProcessLookupError:
+        except ProcessLookupError:  # the group has ended already
             pass
 
 
@@ -296,7 +296,7 @@ def pytest_collection_finish(session):
     bench = session.config.stash[_BENCH]
     try:
         package = version("railway-hil")
-    except PackageNotFoundError:
+    except PackageNotFoundError:  # a source tree, not installed: said so in the report
         package = "unknown (not installed)"
     if bench.tcu == "external":
         # the session's bus and mode filled in; {scenario} and {handover} stay: they change from run to run
@@ -376,11 +376,11 @@ def _failed_run(error):
         try:
             run = Run.open(log)
             error.hil_log_run = run
-        except (HilError, OSError):
+        except (HilError, OSError):  # no readable log: the error is reported without its figures
             return None, None
     try:
         return run, recorded(run) or error
-    except HilError:
+    except HilError:  # the log is unreadable: the error is reported without the log's figures
         return None, None
 
 

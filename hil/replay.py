@@ -118,7 +118,7 @@ def load_mcap(path, scenario_file=None) -> ReplaySource:
             load_scenario(scenario_file, as_recorded)
     try:
         seed = int(run["seed"]) if "seed" in run else None
-    except ValueError:
+    except ValueError:  # a seed the log does not hold as a number: replayed unseeded
         seed = None
     frames, sensor, truth, events, status_steps = [], [], [], [], []
     has_ident_topic = False

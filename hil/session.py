@@ -79,7 +79,7 @@ def node_cpus(settings, mode: str, transport: str) -> tuple[tuple, tuple]:
         return plant, tcu
     try:
         allowed = sorted(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
+    except (AttributeError, OSError):  # no affinity API (not Linux): left unpinned
         return plant, tcu
     if len(allowed) < 2:
         return plant, tcu
@@ -245,7 +245,7 @@ class Tcu:
             raise PeerSilent(f"TCU process did not end within {CHILD_EXIT_TIMEOUT_S:g} s after the run")
         try:
             report = json.loads(self.report_path.read_text())
-        except (OSError, ValueError):
+        except (OSError, ValueError):  # no report (the TCU died before writing it): its exit code is judged below
             report = {}
         if self.child.returncode != 0:
             raise PeerSilent(f"TCU process ended with code {self.child.returncode} after the run: "
@@ -259,7 +259,7 @@ class Tcu:
         child.terminate()
         try:
             child.wait(5)
-        except subprocess.TimeoutExpired:
+        except subprocess.TimeoutExpired:  # a TCU that ignores SIGTERM is killed
             child.kill()
             child.wait()
 

@@ -1,5 +1,6 @@
 """What a command or a benchmark prints to a terminal by default: aligned columns and wrapped prose,
-every line within ``WIDTH`` characters (``hil gap``'s summary, the benches'; it registers no command).
+every line within ``WIDTH`` characters (``hil run``'s and ``hil gap``'s summaries, the benches'; it
+registers no command).
 
 Why: a reader decides on a few columns; a table wider than the terminal wraps into noise.  Every
 figure stays in ``--json`` and, where a bench has one, in its ``--markdown`` table.

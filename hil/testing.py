@@ -55,7 +55,7 @@ def children_of(pid: int) -> list[int]:
     for task in Path(f"/proc/{pid}/task").glob("*"):
         try:
             out += [int(x) for x in (task / "children").read_text().split()]
-        except OSError:
+        except OSError:  # a thread that ended while listed
             pass
     return out
 
@@ -64,7 +64,7 @@ def cmdline(pid: int) -> str:
     """``pid``'s command line, words joined by spaces ("" when it is gone)."""
     try:
         return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()
-    except OSError:
+    except OSError:  # the process has ended
         return ""
 
 
@@ -72,7 +72,7 @@ def alive(pid: int) -> bool:
     """Whether ``pid`` runs (a zombie does not)."""
     try:
         state = Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0]
-    except OSError:
+    except OSError:  # the process has ended
         return False
     return state != "Z"
 
@@ -83,7 +83,7 @@ def stop(proc: subprocess.Popen) -> None:
         proc.kill()
         try:
             proc.wait(10)
-        except subprocess.TimeoutExpired:
+        except subprocess.TimeoutExpired:  # unkillable (D state): left to the caller's check
             pass
 
 

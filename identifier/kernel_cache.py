@@ -33,7 +33,7 @@ def _host() -> dict:
     Read by CPUID, so a guest kernel (User-Mode Linux) on the same CPU is the same host."""
     try:
         from llvmlite import binding
-    except ImportError:
+    except ImportError:  # no llvmlite: keyed by the machine alone
         return {"machine": platform.machine()}
     return {"triple": binding.get_process_triple(), "cpu": binding.get_host_cpu_name(),
             "features": binding.get_host_cpu_features().flatten()}
@@ -43,7 +43,7 @@ def _identity() -> dict:
     """What the compiled cache depends on."""
     try:
         numba_version = metadata.version("numba")
-    except metadata.PackageNotFoundError:
+    except metadata.PackageNotFoundError:  # numba absent: the stamp says so
         numba_version = None
     return {"source_sha256": hashlib.sha256(SOURCE.read_bytes()).hexdigest(), "numba": numba_version,
             "python": sys.version.split()[0], **_host()}
@@ -53,7 +53,7 @@ def fresh() -> bool:
     """True when this machine's cache holds every kernel of this source (the stamp matches)."""
     try:
         return json.loads(STAMP.read_text()) == _identity()
-    except (OSError, ValueError):
+    except (OSError, ValueError):  # no stamp or a damaged one: not fresh, compiled again
         return False
 
 
@@ -64,7 +64,7 @@ def mark() -> None:
         tmp = STAMP.with_suffix(".tmp")
         tmp.write_text(json.dumps(_identity()))
         tmp.replace(STAMP)
-    except OSError:
+    except OSError:  # a read-only tree: the next run compiles again
         pass
 
 

@@ -74,7 +74,7 @@ def max_extracted_bytes() -> int:
         return MAX_EXTRACTED_BYTES
     try:
         value = int(raw)
-    except ValueError:
+    except ValueError:  # not a number: refused below like 0
         value = 0
     if value <= 0:
         raise FmuError(f"{MAX_BYTES_ENV}={raw!r}: must be a positive number of bytes")
@@ -472,11 +472,11 @@ class FmuPlant:
         if f is not None:
             try:
                 f.terminate()
-            except Exception:
+            except Exception:  # FMPy raises plain Exception; an FMU in error may refuse: close must go on and free
                 pass
             try:
                 f.freeInstance()
-            except Exception:
+            except Exception:  # as above: the unpacked files are deleted whatever the FMU says
                 pass
         self._finalizer()
 

@@ -36,6 +36,8 @@ A "real" run is the nominal plant plus one or more of these effects.  Three leve
     (omega0_rad_s None: the scenario's equilibrium motor speed; ``droop``: the fraction of torque lost
     per fraction of speed gained).
   - ``wheel_radius``   (not a diagnosis candidate) true wheel radius off the nominal one.
+  - ``rail_shape``     (not a diagnosis candidate) the rail's fault curve changed in shape at low creep,
+    its peak and tail kept: mu = mu_fault(v_s / k(v_s)), k = 1 + (low_creep_scale - 1) exp(-|v_s| / knee_kmh).
 
 * **sensor** effects (``RealitySensors`` wraps ``plant.SensorModel``): ``sensor_delay`` (delay_ms,
   fractional periods by linear interpolation) and ``sensor_quantisation`` (quanta on top of noise;
@@ -259,6 +261,25 @@ class RailCurve(Equations):
         return float(e["peak_mu_scale"] * curve.mu_at(v_s / float(e["creep_scale"]), v_t))
 
 
+class RailShape(Equations):
+    """The rail's fault curve changed in shape at low creep, its peak and tail kept:
+    mu_fault = mu_fault(v_s / k(v_s)), k(v_s) = 1 + (low_creep_scale - 1) exp(-|v_s| / knee_kmh): the
+    curve stretched (k > 1) or squeezed (k < 1) in creep near zero, the stretch fading over
+    ``knee_kmh``.  v_s / k(v_s) rises with v_s for every low_creep_scale > 0 (its slope is
+    (1 + (k0 - 1) e^-x (1 + x)) / k^2, x = |v_s| / knee), so the curve keeps its order.  No scaling of
+    the whole curve (the rail nuisance, ``RailCurve``) reproduces it (issue 51)."""
+
+    @staticmethod
+    def _k(e, v_s, exp, fabs):
+        return 1 + (e["low_creep_scale"] - 1) * exp(-fabs(v_s) / e["knee_kmh"])
+
+    def curve(self, e, v):
+        v.fault = v.cfg.fault_curve.mu_casadi(v.v_s / self._k(e, v.v_s, ca.exp, ca.fabs), v.v_t)
+
+    def initial_mu(self, e, mu0, curve, v_s, v_t):
+        return float(curve.mu_at(v_s / float(self._k(e, v_s, math.exp, abs)), v_t))
+
+
 class AdhesionLag(Equations):
     """d mu / dt = (mu_curve(v_s) - mu) / tau."""
     states, state_rank, claims = ("mu_state",), 3, "mu"
@@ -378,7 +399,7 @@ EQUATIONS: dict[str, Equations] = {
     "torque_lag": TorqueLag(), "power_limit": PowerLimit(), "torque_map": TorqueMap(),
     "torque_ripple": TorqueRipple(), "drivetrain_damping": DrivetrainDamping(),
     "gear_efficiency": GearEfficiency(), "compliance": Compliance(), "wheel_radius": WheelRadius(),
-    "rail_curve": RailCurve(), "adhesion_lag": AdhesionLag(), "creep_relaxation": CreepRelaxation(),
+    "rail_curve": RailCurve(), "rail_shape": RailShape(), "adhesion_lag": AdhesionLag(), "creep_relaxation": CreepRelaxation(),
     "bristle": Bristle(), "adhesion_lag2": SecondOrderAdhesion(), "load_transfer": LoadTransfer(), "load_transfer_pitch": LoadTransferPitch(),
     "resistance": Resistance(),
 }

@@ -60,13 +60,16 @@ BENCH_CASES = sum(BENCH_KINDS.values())
 
 def bench_seed(seed: int) -> int:
     """The first bench seed from ``seed`` on whose ``BENCH_CASES`` cases under ``BENCH_MIX`` are
-    ``BENCH_KINDS`` (no quantiser among the library forms: it is judged apart, ``which.quantiser``), from
-    ``draw_case`` as the bench draws them: a pure function of the seed chosen when the test runs."""
+    ``BENCH_KINDS`` (no quantiser among the library forms: it is judged apart, ``which.quantiser``; no
+    second-order lag either: its natural frequency trades against its damping, so the 20 % bound on a
+    one-parameter form's error does not hold for it: 11.5 Hz at zeta 0.65 was fitted 13.4 Hz at zeta 0.73,
+    the same 2 zeta / w within 3 %; the bench reports its error), from ``draw_case`` as the bench draws
+    them: a pure function of the seed chosen when the test runs."""
     mix = parse_mix(BENCH_MIX)
     while True:
         cases = [draw_case(seed, i, mix)[:2] for i in range(BENCH_CASES)]
-        if Counter(k for k, _ in cases) == BENCH_KINDS and \
-                not any(k == "library_form" and "sensor_quantisation" in e for k, e in cases):
+        if Counter(k for k, _ in cases) == BENCH_KINDS and not any(
+                k == "library_form" and {"sensor_quantisation", "adhesion_lag2"} & set(e) for k, e in cases):
             return seed
         seed = (seed + 1) % (1 << 31)
 
@@ -451,12 +454,14 @@ def test_two_effects_at_once_found_by_forward_selection(tmp_path, scenario):
     assert out["where"]["summary"].startswith("first significant in the")
 
 
-def _bench_case(tmp_path, scenario, seed: int, i: int, mix: str, identify: bool = False):
+def _bench_case(tmp_path, scenario, seed: int, i: int, mix: str, identify: bool = False, drawn=None):
     """Case ``i`` of ``hil bench gap --seed SEED --mix MIX``, recorded and diagnosed as the bench does
-    (the truth's own forms held out of the candidates; ``identify``: with the model replays too)."""
+    (the truth's own forms held out of the candidates; ``identify``: with the model replays too).
+    ``drawn``: (effects, run seed) the bench drew for that case when it was found, where its draw tables
+    have grown since (issue 51's family members and library form move some cases' draws)."""
     from hil.benchmarks.gap import held_out
     from hil.effects import with_reality
-    kind, effects, run_seed = draw_case(seed, i, parse_mix(mix))
+    effects, run_seed = drawn if drawn is not None else draw_case(seed, i, parse_mix(mix))[1:]
     s = run(with_reality(scenario, effects), "nlls", run_seed, bus="inprocess", out_dir=tmp_path, progress=False,
             log=print)
     out, result = diagnose(read_real_log(s["mcap"]), scenario, identify=identify,
@@ -582,7 +587,8 @@ def test_a_pair_turned_away_only_against_the_rail_is_listed_not_named(tmp_path, 
     the margin, so the answer lists it with what turned it away, and names nothing."""
     from hil.benchmarks.gap import grade_right
     effects, out, _ = _bench_case(tmp_path, scenario, 194847016, 100,
-                                  "held_out_form=1,out_of_library=0.6,outside=0.3,rail=0.3,library_form=0.3")
+                                  "held_out_form=1,out_of_library=0.6,outside=0.3,rail=0.3,library_form=0.3",
+                                  drawn=({"power_limit": {"power_ratio": 1.0449360371043848}}, 1832957439))
     assert set(effects) == {"power_limit"}
     which, fw = out["which"], out["which"]["forward"]
     listed = which["not_separable"]
@@ -1053,11 +1059,12 @@ def test_grades_are_scored_and_the_calibration_is_read_back(tmp_path):
     from hil.benchmarks.gap import calibration, grade_right
     from hil.gap.calibration import grade_line, read_calibration
 
-    def case(effects, truth, named_set, grade, listed=(), best="compliance", oracle=None):
+    def case(effects, truth, named_set, grade, listed=(), best="compliance", oracle=None, member_class=None):
         which = {"named_set": named_set, "confidence": grade, "ranking": [{"effect": best}],
                  "not_separable": [{"effect": e} if isinstance(e, str) else {"effect": e[0], "effects": e}
                                    for e in listed]}
-        rec = {"effects": effects, "truth_classes": truth, "oracle": oracle, "confidence": grade}
+        rec = {"effects": effects, "truth_classes": truth, "oracle": oracle, "confidence": grade,
+               "member_class": member_class}
         return dict(rec, grade_right=grade_right(rec, which))
 
     cases = [case({"compliance": {}}, ["compliance"], ["compliance"], "confident"),          # right
@@ -1074,12 +1081,15 @@ def test_grades_are_scored_and_the_calibration_is_read_back(tmp_path):
              case({"bristle": {}}, ["adhesion_lag"], [], "tentative", best="adhesion_lag"),   # right
              case({}, [], [], "none"),                                                          # right: nominal
              case({"bristle": {}}, ["adhesion_lag"], [], "none", oracle={"separable": False}),  # right: beyond
-             case({"bristle": {}}, ["adhesion_lag"], [], "none", oracle={"separable": True})]   # wrong
+             case({"bristle": {}}, ["adhesion_lag"], [], "none", oracle={"separable": True}),   # wrong
+             # issue 51: the rail's curve changed in shape (a family member classed nuisance) is the rail too
+             case({"rail_shape": {}}, [], [], "nuisance", member_class="nuisance"),             # right
+             case({"rail_shape": {}}, [], ["load_transfer"], "confident", member_class="nuisance")]   # wrong
     assert [c["grade_right"] for c in cases] == [True, False, True, False, True, False, True, False, True, True,
-                                                 True, False]
+                                                 True, False, True, False]
     table = calibration(cases)
     assert {g: (v["right"], v["cases"]) for g, v in table.items()} == {
-        "confident": (1, 2), "tentative": (1, 1), "not_separable": (2, 4), "nuisance": (1, 2), "none": (2, 3)}
+        "confident": (1, 3), "tentative": (1, 1), "not_separable": (2, 4), "nuisance": (2, 3), "none": (2, 3)}
     lo, hi = table["none"]["interval95"]
     assert lo < 2 / 3 < hi
     path = tmp_path / "gap-calibration.json"

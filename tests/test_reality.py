@@ -182,6 +182,41 @@ def test_bristle_at_its_steady_deflection_is_on_the_curve_at_any_slip(scenario, 
     assert float(mu) == pytest.approx(mu_curve, rel=1e-9)
 
 
+@pytest.mark.parametrize("low_creep_scale", [0.65, 1.35])
+def test_a_rail_shape_changes_the_curve_at_low_creep_and_keeps_its_peak_and_tail(scenario, low_creep_scale):
+    """Issue 51 item 4: ``rail_shape`` stretches (k > 1) or squeezes (k < 1) the fault curve near zero creep,
+    mu = mu_fault(v_s / k(v_s)), k = 1 + (k0 - 1) exp(-|v_s| / knee).  Read off the plant's own dynamics
+    (``RealityModel.rhs``, after the fault) against the fault curve and k by hand: at 0.05 km/h mu is the
+    curve's at v_s / k and its slope the curve's over k (more than 20 % off); at 10 knees and more mu is
+    the curve's within 1e-3; its peak is the curve's, and mu rises with creep up to it."""
+    import casadi as ca
+    from plant.params import KMH_PER_MS
+    from plant.reality import RealityModel
+    cfg = scenario.plant_config()
+    p = cfg.params
+    knee = 0.5
+    model = RealityModel(cfg, {"rail_shape": {"low_creep_scale": low_creep_scale, "knee_kmh": knee}})
+    v_t, t = 20.0, cfg.fault_time_s + 0.1
+
+    def mu_at(creep_kmh):
+        omega_m = (v_t + creep_kmh / KMH_PER_MS) / p.wheel_radius_m * p.gear_ratio
+        return float(model.rhs(ca.DM([omega_m, v_t]), 1000.0, t)[1])
+
+    curve = lambda c: float(cfg.fault_curve.mu_at(c, v_t))  # noqa: E731
+    k = lambda c: 1 + (low_creep_scale - 1) * math.exp(-c / knee)  # noqa: E731   (by hand)
+    for c in (0.05, 0.5, 2.0, 5.0):
+        assert mu_at(c) == pytest.approx(curve(c / k(c)), rel=1e-9)
+    low = 0.05
+    slope_ratio = (mu_at(low) / low) / (curve(low) / low)      # the curve's slope near zero, over k
+    assert slope_ratio == pytest.approx(1 / k(low), rel=0.03) and abs(slope_ratio - 1) > 0.2
+    for c in (5.0, 7.0):                                        # 10 knees and more: the curve's tail
+        assert mu_at(c) == pytest.approx(curve(c), rel=1e-3)
+    grid = np.linspace(0.01, 3.0, 600)
+    shaped = np.array([mu_at(c) for c in grid])
+    assert shaped.max() == pytest.approx(max(curve(c) for c in grid), rel=1e-4)   # the same peak
+    assert np.all(np.diff(shaped[grid <= 1.2]) > 0)             # ffcc_a's fault curve peaks at 1.27 km/h
+
+
 def test_sensor_delay_and_quantisation():
     inner = SensorModel(SensorConfig(), seed=1)
     s = RealitySensors(inner, {"sensor_delay": {"delay_ms": 2.5}}, 1e-3)

@@ -297,3 +297,54 @@ def test_no_scenario_name_puts_a_file_outside_out(tmp_path, name, refused):
     assert set(written) == {scenario.relative_to(tmp_path), *logs}, written
     stem = logs[0].stem
     assert stem.endswith("-gp-5") and len(stem) <= 60 + len("-gp-5") and ".." not in stem
+
+
+def test_the_text_summary_fits_a_terminal_and_says_what_the_json_says(ffcc_a_run):
+    """Issue 51: ``hil run``'s text is built from the typed summary (``hil.run_summary``) and every line is
+    within 100 characters.  The real run's summary, then the same summary with the long branches a run can
+    reach switched on (three reality effects, a real-time run whose misses have both causes, rejected
+    frames, open intervals that miss the truth, unmapped and suspicious frames): each figure still printed,
+    in the words the docs and the tests read, a longer line continued further in."""
+    import io
+
+    from hil.commands.run import print_summary
+    from hil.terminal import WIDTH
+
+    s, _ = ffcc_a_run
+
+    def text_of(summary):
+        buf = io.StringIO()
+        print_summary(summary, file=buf)
+        text = buf.getvalue()
+        assert max(len(line) for line in text.splitlines()) <= WIDTH == 100, text
+        return text, " ".join(line.strip() for line in text.splitlines())
+
+    text, flat = text_of(s)
+    assert text.splitlines()[0] == f"scenario ffcc_a  strategy gp  seed 3  bus inprocess  plant {s['plant']}" + (
+        "  frames not authenticated" if s.get("frame_auth") == "off" else "  frames authenticated")
+    assert f"RT {s['rt_percent']:.1f} % after {s['corrections']} corrections" in flat
+    assert "params (l0, l1, l2, t1, t2): " + ", ".join(f"{x:.5g}" for x in s["params"]) in flat
+    assert f"log: {s['mcap']}" in flat
+    long = {**s, "mode": "realtime", "missed_deadlines": 1234, "missed_deadlines_plant_started_late": 1000,
+            "missed_deadlines_cpu_away": 234, "jitter_p99_us": 61.7,
+            "rejected_frames": {"crc": 3, "counter": 4}, "tcu_rejected_frames": {"stale": 5},
+            "reality": {"load_transfer": {"bogie_height_m": 1.5}, "sensor_delay": {"delay_ms": 3.25},
+                        "power_limit": {"max_power_w": 1.2e6, "ratio": 1.04}},
+            "identified": False, "unconfirmed": True, "peak_interval_open": True, "peak_ci_holds_truth": False,
+            "peak_mu_ci": [0.14, 0.16], "peak_creep_ci": [1.1, 9.9],
+            "unmapped_ids": {f"0x{i:03X}": 10 + i for i in range(0x300, 0x30C)},
+            "suspicious": {"replayed": 2, "forged_counter": 7, "unknown_sender": 1}}
+    text, flat = text_of(long)
+    for said in ("reality: load_transfer(bogie_height_m=1.5); sensor_delay(delay_ms=3.25); "
+                 "power_limit(max_power_w=1200000.0, ratio=1.04)",
+                 f"UNCONFIRMED: the TCU gave up after {s['corrections']} corrections", "its best estimate:",
+                 "peak mu 0.1400 .. 0.1600, peak creep 1.100 .. 9.900 km/h",
+                 "(open: the peak may lie past the creeps seen", "its 90 % intervals MISS the true peak",
+                 "missed deadlines 1234 (1000 in periods the plant itself began past the deadline: a stall of its "
+                 "process or CPU; 234 with a CPU taken away by the machine), jitter p99 62 us; rejected frames: "
+                 "plant 7, TCU 5",
+                 "frames of ids the mapping does not name (not acted on): 0x300 x778, 0x301 x779",
+                 "0x30B x789", "suspicious frames (another node on the bus?): forged_counter x7, replayed x2, "
+                 "unknown_sender x1"):
+        assert said in flat, (said, text)
+    assert any(line.startswith("      ") for line in text.splitlines())       # a long line continued further in

@@ -90,7 +90,7 @@ def _rt_run(scenario_path, bus, seconds, sets, seed, strategy, out_dir, probe_be
     r = subprocess.run(cmd, capture_output=True, text=True, stdin=subprocess.DEVNULL)
     try:
         s = json.loads(r.stdout) if r.stdout.strip() else {}
-    except ValueError:
+    except ValueError:  # a run that printed no JSON (it crashed): its exit code and stderr say why
         s = {}
     steps = s.get("steps")
     missed = s.get("missed_deadlines")

@@ -381,7 +381,7 @@ def provenance(args, seed: int, load_before: float) -> dict:
     try:
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, timeout=10,
                                 cwd=Path(__file__).resolve().parents[2]).stdout.strip() or None
-    except (OSError, subprocess.SubprocessError):
+    except (OSError, subprocess.SubprocessError):  # no git or not a checkout: the report says commit unknown
         commit = None
     command = (f"hil bench control --draws {args.draws} --seed {seed} --duration-s {args.duration_s:g} "
                f"--speed-s {args.speed_s:g}" + (f" --laws {args.laws}" if args.laws else "")
@@ -421,7 +421,7 @@ def verdicts(results: dict, speed: dict | None = None) -> list[tuple[str, str]]:
         for name, test in targets:
             try:
                 out.append((name, "met" if test(figures) else "missed"))
-            except (KeyError, TypeError):
+            except (KeyError, TypeError):  # a figure the run did not produce: the target reads 'not measured'
                 out.append((name, "not measured"))
     return out
 

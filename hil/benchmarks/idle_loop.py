@@ -64,6 +64,7 @@ def _child(period_s: float, steps: int, priority: int, deadline_s: float) -> Non
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
             granted = True
         except (AttributeError, PermissionError, OSError):
+            # no SCHED_FIFO here: 'granted' stays False and the report says so
             pass
     print("ready", flush=True)
     t0 = float(sys.stdin.readline())
@@ -88,17 +89,17 @@ def kernel_preemption() -> str:
         m = re.search(r"\((\w+)\)", text)
         if m:
             return f"{m.group(1)} (dynamic)"
-    except OSError:
+    except OSError:  # no debugfs here (or not readable): try the kernel command line
         pass
     try:
         m = re.search(r"(?:^|\s)preempt=(\w+)", open("/proc/cmdline").read())
         if m:
             return f"{m.group(1)} (kernel command line)"
-    except OSError:
+    except OSError:  # no /proc/cmdline: try the kernel config
         pass
     try:
         config = gzip.open("/proc/config.gz", "rt").read()
-    except OSError:
+    except OSError:  # no /proc/config.gz: the report says unknown
         return "unknown"
     for option, name in (("CONFIG_PREEMPT_RT", "rt"), ("CONFIG_PREEMPT_NONE", "none"),
                          ("CONFIG_PREEMPT_VOLUNTARY", "voluntary"), ("CONFIG_PREEMPT_LAZY", "lazy"),

@@ -145,7 +145,7 @@ class ExternalCluster:
         for p in self.procs:
             try:
                 p.wait(15)
-            except subprocess.TimeoutExpired:
+            except subprocess.TimeoutExpired:  # a worker that ignores SIGTERM is killed
                 p.kill()
                 p.wait()
         self.logdir.cleanup()

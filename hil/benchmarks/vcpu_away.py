@@ -63,7 +63,7 @@ def _steal_ticks() -> dict[str, int]:
     """Per CPU the ``steal`` column of ``/proc/stat`` (clock ticks); empty where there is none."""
     try:
         lines = open("/proc/stat").read().splitlines()
-    except OSError:
+    except OSError:  # no /proc/stat (not Linux): no steal figures
         return {}
     return {f[0]: int(f[8]) for f in (line.split() for line in lines)
             if f and f[0].startswith("cpu") and f[0] != "cpu" and len(f) > 8}

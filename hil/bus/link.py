@@ -66,7 +66,7 @@ def can_interfaces() -> list[str]:
         try:
             if (p / "type").read_text().strip() == "280":
                 out.append(p.name)
-        except OSError:
+        except OSError:  # an interface that went away while listed
             continue
     return out
 
@@ -127,7 +127,7 @@ def die_with_parent() -> None:
         import ctypes
         import signal
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)   # PR_SET_PDEATHSIG
-    except (OSError, AttributeError):
+    except (OSError, AttributeError):  # no prctl (not Linux): the child is still stopped by close()
         pass
 
 
@@ -176,7 +176,7 @@ class Hub:
             self.proc.terminate()
             try:
                 self.proc.wait(5)
-            except subprocess.TimeoutExpired:
+            except subprocess.TimeoutExpired:  # a hub that ignores SIGTERM is killed
                 self.proc.kill()
                 self.proc.wait()
 

@@ -55,10 +55,10 @@ def remove_channel(path: str) -> None:
             if name.endswith(SOCKET_SUFFIX):
                 try:
                     os.unlink(os.path.join(path, name))
-                except FileNotFoundError:
+                except FileNotFoundError:  # a peer removed its socket first
                     pass
         os.rmdir(path)
-    except OSError:
+    except OSError:  # the directory is in use or gone already: left for the next cleanup
         pass
 
 
@@ -143,7 +143,7 @@ class LocalBus(can.BusABC):
         sock, _, _ = self._peers.pop(fd)
         try:
             self._poll.unregister(fd)
-        except KeyError:
+        except KeyError:  # not registered (closed before its first poll)
             pass
         sock.close()
 
@@ -161,9 +161,9 @@ class LocalBus(can.BusABC):
         while True:
             try:
                 s, _ = self._listener.accept()
-            except BlockingIOError:
+            except BlockingIOError:  # no more pending connections
                 return
-            except OSError:
+            except OSError:  # the listener was closed (shutdown): nothing to accept
                 return
             self._add(s, None, False)      # its name comes in its hello
 
@@ -189,7 +189,7 @@ class LocalBus(can.BusABC):
                 continue
             try:
                 sock.send(packet, socket.MSG_DONTWAIT)
-            except (BlockingIOError, InterruptedError):
+            except (BlockingIOError, InterruptedError):  # the peer's queue is full: counted as dropped
                 self.dropped[peer or str(fd)] += 1
             except OSError as e:
                 if e.errno in (errno.EPIPE, errno.ECONNRESET, errno.ENOTCONN):
@@ -217,7 +217,7 @@ class LocalBus(can.BusABC):
             wait_ms = -1 if end is None else max(0, int((end - time.monotonic()) * 1000 + 0.999))
             try:
                 events = self._poll.poll(wait_ms)
-            except InterruptedError:
+            except InterruptedError:  # interrupted: nothing read this round, polled again
                 events = []
             for fd, ev in events:
                 if fd == self._listener.fileno():
@@ -228,9 +228,9 @@ class LocalBus(can.BusABC):
                 sock = self._peers[fd][0]
                 try:
                     packet = sock.recv(128)
-                except BlockingIOError:
+                except BlockingIOError:  # spurious wake-up: nothing to read yet
                     continue
-                except OSError:
+                except OSError:  # a reset connection: read as the peer closing, handled below
                     packet = b""
                 if not packet:                       # the peer closed or died
                     self.peers_lost += 1
@@ -254,7 +254,7 @@ class LocalBus(can.BusABC):
         self._listener.close()
         try:
             os.unlink(self._path)
-        except FileNotFoundError:
+        except FileNotFoundError:  # removed already (a second shutdown)
             pass
         super().shutdown()
 

@@ -120,7 +120,7 @@ def dbc_bitrates(db) -> tuple[int | None, int | None]:
             if name in attrs:
                 try:
                     value = int(attrs[name].value)
-                except (TypeError, ValueError):
+                except (TypeError, ValueError):  # a non-numeric attribute: not a rate, the next name is tried
                     continue
                 if value > 0:
                     return value

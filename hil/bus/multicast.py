@@ -157,7 +157,7 @@ class LoopbackMulticastBus(can.BusABC):
         """One datagram (data, source, arrival interface index, TTL), None when none is queued."""
         try:
             data, ancillary, _, source = self._rx.recvmsg(4096, 256)
-        except (BlockingIOError, InterruptedError):
+        except (BlockingIOError, InterruptedError):  # nothing queued
             return None
         ifindex = ttl = None
         for level, kind, value in ancillary:
@@ -196,7 +196,7 @@ class LoopbackMulticastBus(can.BusABC):
                 return None, False
             try:
                 self._poll.poll(-1 if wait_s is None else max(1, int(wait_s * 1000 + 0.999)))
-            except InterruptedError:
+            except InterruptedError:  # a signal: the loop checks the deadline and polls again
                 pass
 
     def fileno(self) -> int:
@@ -215,7 +215,7 @@ class LoopbackMulticastBus(can.BusABC):
 def _interface_name(ifindex: int) -> str:
     try:
         return socket.if_indextoname(ifindex)
-    except OSError:
+    except OSError:  # the interface went away: named by its index
         return f"interface {ifindex}"
 
 

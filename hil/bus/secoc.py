@@ -54,7 +54,7 @@ def read_key(path: str | os.PathLike) -> bytes:
     text = raw.strip()
     try:
         key = bytes.fromhex(text.decode("ascii")) if len(text) == 2 * KEY_BYTES else raw
-    except (UnicodeDecodeError, ValueError):
+    except (UnicodeDecodeError, ValueError):  # not hex text: the file holds the raw key bytes
         key = raw
     if len(key) != KEY_BYTES:
         raise ConfigError(f"bus.auth_key_file: {p} must hold a {8 * KEY_BYTES}-bit key (32 hex digits or "

@@ -26,7 +26,7 @@ def properties(run) -> dict:
     dbc = meta.get("text", "")
     try:
         judged_by = version("railway-hil")
-    except PackageNotFoundError:
+    except PackageNotFoundError:  # a source tree, not installed: the report says unknown
         judged_by = "unknown"
     s = run.summary
     return {"dbc": meta.get("name", "none recorded"),

@@ -326,7 +326,7 @@ def _summary_of(log) -> dict:
         text = summaries[-1].json if summaries else None
     try:
         summary = json.loads(text) if text else {}
-    except ValueError:
+    except ValueError:  # a damaged summary: read as none (fault, mode from the metadata)
         summary = {}
     if not summary:
         fault = log.metadata.get("fault") or {}
@@ -342,7 +342,7 @@ def _summary_of(log) -> dict:
 def _overrides(log) -> dict:
     try:
         return json.loads((log.metadata.get("scenario") or {}).get("overrides") or "{}")
-    except ValueError:
+    except ValueError:  # damaged overrides: the scenario as its TOML has it
         return {}
 
 
@@ -350,7 +350,7 @@ def _scenario_table(log, table: str):
     """A table (or array of tables) of the scenario the log was recorded with, as its TOML text has it."""
     try:
         return tomllib.loads((log.metadata.get("scenario") or {}).get("toml", "")).get(table)
-    except (ValueError, AttributeError):
+    except (ValueError, AttributeError):  # the scenario text is damaged or absent: the caller uses defaults
         return None
 
 
@@ -362,7 +362,7 @@ def _scenario_value(log, table: str, key: str):
         if f"{table}.{key}" in overrides:
             return overrides[f"{table}.{key}"]
         return tomllib.loads(sc.get("toml", "")).get(table, {}).get(key)
-    except (ValueError, AttributeError):
+    except (ValueError, AttributeError):  # the scenario text is damaged or absent: the caller uses defaults
         return None
 
 

@@ -8,8 +8,6 @@ from identifier import DEFAULT_STRATEGY, STRATEGIES
 
 from ..config import load_scenario, parse_set
 from ..errors import ConfigError
-from ..trace import fmt as _fmt
-from ..traction import response_text
 
 
 def register(sub) -> None:
@@ -119,72 +117,8 @@ def apply_reality_args(scenario, items):
 
 
 def print_summary(s: dict, file=sys.stdout, heading: str | None = None) -> None:
-    """The run summary as text; every figure prints n/a where the source lacks it (e.g. a CAN log has no truth)."""
-    external = s.get("transport") == "external"      # what it runs is its own: nothing to claim for it
-    strategy = "(the external TCU's own)" if external else s["strategy"]
-    print(heading or f"scenario {s['scenario']}  strategy {strategy}  seed {s['seed']}  bus {s['bus']}"
-          + (f"  plant {s['plant']}" if s.get("plant") else "")
-          + (f"  frames {'authenticated' if s['frame_auth'] == 'on' else 'not authenticated'}"
-             if s.get("frame_auth") else ""), file=file)
-    if s.get("reality"):
-        print("  reality: " + "; ".join(f"{name}(" + ", ".join(f"{k}={v}" for k, v in (params or {}).items()) + ")"
-                                        for name, params in s["reality"].items()), file=file)
-    print(f"  fault at {_fmt(s['t_fault_s'], '.3f')} s, serious stage at {_fmt(s['t_serious_s'], '.3f')} s "
-          f"(T_det {_fmt(s['t_det_s'] and s['t_det_s'] * 1e3, '.1f')} ms), slip detected at "
-          f"{_fmt(s['t_detected_s'], '.3f')} s", file=file)
-    if s["identified"]:
-        print(f"  identified at {_fmt(s['t_identified_s'], '.3f')} s: RT {_fmt(s['rt_percent'], '.1f')} % after "
-              f"{s['corrections']} corrections", file=file)
-    elif s.get("unconfirmed"):
-        print(f"  UNCONFIRMED: the TCU gave up after {s['corrections']} corrections (the data did not pin the curve)",
-              file=file)
-        print("  its best estimate:", file=file)
-    elif external and not s.get("corrections"):
-        print("  no identification result received (an external TCU need not send TcuResult frames)", file=file)
-    else:
-        print(f"  NOT identified within the run ({s['corrections']} corrections)", file=file)
-    if s.get("params"):
-        print("  params (l0, l1, l2, t1, t2): " + ", ".join(f"{x:.5g}" for x in s["params"]), file=file)
-        if s.get("peak_mu_ci") and s.get("peak_creep_ci"):
-            (m0, m1), (c0, c1) = s["peak_mu_ci"], s["peak_creep_ci"]
-            print(f"  how sure (90 % intervals): peak mu {m0:.4f} .. {m1:.4f}, peak creep {c0:.3f} .. {c1:.3f} km/h"
-                  + ("\n    (open: the peak may lie past the creeps seen; the upper ends are the TCU's range)"
-                     if s.get("peak_interval_open") else ""), file=file)
-        print(f"  fit: MSE {_fmt(s['mse'], '.3e')}  RMSE {_fmt(s['rmse'], '.3e')}  MAE {_fmt(s['mae'], '.3e')}  "
-              f"R2 {_fmt(s['r2'], '.5f')}", file=file)
-        print(f"  vs true curve: peak mu error {_fmt(s['peak_mu_err_percent'], '.2f')} %, peak creep error "
-              f"{_fmt(s['peak_creep_err_percent'], '.2f')} %, R2 {_fmt(s.get('r2_vs_truth'), '.5f')} "
-              f"(on 0..2x its peak creep)"
-              + ("\n    its 90 % intervals MISS the true peak" if s.get("peak_ci_holds_truth") is False else ""),
-              file=file)
-    print(f"  observer lag {_fmt(s.get('observer_lag_ms'), '.1f')} ms; "
-          f"{_fmt(s.get('sim_s'), '.2f')} s simulated in {_fmt(s.get('wall_s'), '.2f')} s", file=file)
-    if s.get("adhesion_utilisation") is not None:
-        print(f"  traction ({s.get('control')}): adhesion utilisation {_fmt(s['adhesion_utilisation'], '.3f')}, "
-              f"where it matters {_fmt(s.get('adhesion_utilisation_low'), '.3f')}; macro-slip "
-              f"{_fmt(s.get('macro_slip_s'), '.3f')} s ({s.get('macro_slip_count')}x)", file=file)
-        print(f"    {response_text(s.get('reaction_ms'), s.get('recovery_s'))}, "
-              f"ripple {_fmt(s.get('torque_ripple_percent'), '.2f')} %", file=file)
-    if s.get("mode") in ("lockstep", "realtime"):
-        line = f"  {s['mode']} over {s['bus']}: round trip p50 {_fmt(s.get('round_trip_p50_us'), '.0f')} us"
-        if s["mode"] == "realtime":
-            late, away = s.get("missed_deadlines_plant_started_late"), s.get("missed_deadlines_cpu_away")
-            why = ([f"{late} in periods the plant itself began past the deadline: a stall of its process or CPU"]
-                   if late else []) + ([f"{away} with a CPU taken away by the machine"] if away else [])
-            line += (f", missed deadlines {s.get('missed_deadlines')}" + (f" ({'; '.join(why)})" if why else "")
-                     + f", jitter p99 {_fmt(s.get('jitter_p99_us'), '.0f')} us")
-        bad, bad_tcu = sum((s.get("rejected_frames") or {}).values()), sum((s.get("tcu_rejected_frames") or {}).values())
-        if bad or bad_tcu:
-            line += f"; rejected frames: plant {bad}, TCU {bad_tcu}"
-        print(line, file=file)
-    if s.get("unmapped_ids"):
-        print("  frames of ids the mapping does not name (not acted on): "
-              + ", ".join(f"{k} x{n}" for k, n in s["unmapped_ids"].items()), file=file)
-    outside = {k: n for k, n in (s.get("out_of_range_signals") or {}).items() if n}
-    if outside:
-        print("  signals outside their DBC range: " + ", ".join(f"{k} x{n}" for k, n in outside.items()), file=file)
-    if s.get("suspicious"):
-        print("  suspicious frames (another node on the bus?): "
-              + ", ".join(f"{k} x{n}" for k, n in sorted(s["suspicious"].items())), file=file)
-    if s.get("mcap"):
-        print(f"  log: {s['mcap']}", file=file)
+    """The run summary as text (``hil.run_summary``): every line within 100 characters, every figure "n/a"
+    where the source lacks it (e.g. a CAN log has no truth)."""
+    from ..run_summary import RunSummary
+
+    print(RunSummary.from_json(s).text(heading), file=file)

@@ -104,17 +104,7 @@ class Diagnosis:
         s_t = math.sqrt(sens.train_speed_noise_ms ** 2 + sens.train_speed_quantum_ms ** 2 / 12) or 1e-5
         floors = lambda m, t: {"motor": m, "train": t, "mu_hat": obs.noise_gain() * m}  # noqa: E731
         sigma = floors(s_m, s_t)
-        x0, x0_slope = initial_line(d.t_s, d.motor_speed_rad_s, d.train_speed_ms)
-        creep_meas = obs.creep_kmh(d.motor_speed_rad_s, d.train_speed_ms)
-        # analysis window: until the measured creep first exceeds max_creep_kmh (free spinning after)
-        over = np.flatnonzero(creep_meas > self.max_creep_kmh)
-        end = int(over[0]) if over.size else d.n
-        end = max(end, min(d.n, 100))
-        window = np.zeros(d.n, bool)
-        window[:end] = True
-        blocks = (np.arange(d.n) // self.block) % 2
-        train_mask, held_mask = window & (blocks == 0), window & (blocks == 1)
-        ctx = Context(d, sc, obs, x0, window, train_mask, held_mask, sigma, x0_slope)
+        ctx, creep_meas = self._context(obs, sigma)
 
         say(f"replaying the nominal model over {d.n} periods")
         nom_fit = fit_nominal(ctx)
@@ -161,10 +151,6 @@ class Diagnosis:
         if lattice:
             self._name_quantiser(answer, lattice)
         named_row, far = self._how_far(answer, ranking, best, forward_, lattice, rail)
-        shrink_table = {s: {"rmse_before": base["per_signal"][s]["rmse"], "rmse_after": far.per_signal[s]["rmse"],
-                            "gap_before": base["per_signal"][s]["gap"], "gap_after": far.per_signal[s]["gap"],
-                            "noise_floor": sigma[s], "unit": UNITS[s]} for s in SIGNALS}
-        unobservable = observability(where_["input_constant"])
         # what the nominal model leaves, described by a sparse regression (when there is a gap)
         description, ahead = None, None
         if gap_present:
@@ -172,8 +158,45 @@ class Diagnosis:
                                                       AHEAD_PERIODS)
             description = describe_residual(ctx.meas["motor"], nominal["motor"], d.train_speed_ms, creep_meas,
                                             d.torque_cmd_nm, d.period_s, ctx.train, ctx.held, ahead)
+        out = self._record(ctx, nom_fit, sigma, where_, base, gap_present, ranking, answer, listed, forward_,
+                           tried, failed, lattice, description, far)
+        named = answer.named
+        if self.identify:
+            say("identification on the real run and on the model replays")
+            named_fit = next(f for f in fits if f.name == named_row.candidate)
+            augmented = quantiser_fit if named == "sensor_quantisation" else named_fit if named != NONE else None
+            out["identification"] = identification(ctx, nom_fit, augmented, creep_meas)
+        return DiagnosisResult(clean(out), d, sc, ctx, nominal, best_fit, fits, base, rail, ranking, creep_meas,
+                               failed, ahead, answer)
+
+    def _context(self, obs, sigma) -> tuple[Context, np.ndarray]:
+        """The run cut for the fits (``Context``) and the measured creep: the analysis window runs until
+        the measured creep first exceeds ``max_creep_kmh`` (free spinning after; at least 100 periods),
+        cut into alternating blocks of ``block`` periods, the even ones fitted, the odd ones held out."""
+        d = self.data
+        x0, x0_slope = initial_line(d.t_s, d.motor_speed_rad_s, d.train_speed_ms)
+        creep_meas = obs.creep_kmh(d.motor_speed_rad_s, d.train_speed_ms)
+        over = np.flatnonzero(creep_meas > self.max_creep_kmh)
+        end = int(over[0]) if over.size else d.n
+        end = max(end, min(d.n, 100))
+        window = np.zeros(d.n, bool)
+        window[:end] = True
+        blocks = (np.arange(d.n) // self.block) % 2
+        train_mask, held_mask = window & (blocks == 0), window & (blocks == 1)
+        return Context(d, self.scenario, obs, x0, window, train_mask, held_mask, sigma, x0_slope), creep_meas
+
+    def _record(self, ctx, nom_fit, sigma, where_, base, gap_present, ranking, answer: Verdict, listed, forward_,
+                tried, failed, lattice, description, far) -> dict:
+        """The diagnosis as ``hil gap --json`` prints it (docs/design/gap-diagnosis.md), from the typed
+        answer (``Verdict``) and rows: WHERE, WHICH, HOW FAR."""
+        d, sc = self.data, self.scenario
         named, confidence = answer.named, answer.grade
-        out = {
+        shrink_table = {s: {"rmse_before": base["per_signal"][s]["rmse"], "rmse_after": far.per_signal[s]["rmse"],
+                            "gap_before": base["per_signal"][s]["gap"], "gap_after": far.per_signal[s]["gap"],
+                            "noise_floor": sigma[s], "unit": UNITS[s]} for s in SIGNALS}
+        unobservable = observability(where_["input_constant"])
+        window, held_mask = ctx.window, ctx.held
+        return {
             "real_log": d.path, "real_log_source": d.source, "model": sc.path, "periods": d.n, "analysis_periods": int(window.sum()),
             "held_out_periods": int(held_mask.sum()), "block_periods": self.block,
             "noise_floor": sigma, "initial_state": {"motor_speed_rad_s": nom_fit.extra["x0"][0],
@@ -202,13 +225,6 @@ class Diagnosis:
                        "held_out_gap_shrink_percent": answer.how_far.held_out_shrink * 100,
                        "per_signal": shrink_table},
         }
-        if self.identify:
-            say("identification on the real run and on the model replays")
-            named_fit = next(f for f in fits if f.name == named_row.candidate)
-            augmented = quantiser_fit if named == "sensor_quantisation" else named_fit if named != NONE else None
-            out["identification"] = identification(ctx, nom_fit, augmented, creep_meas)
-        return DiagnosisResult(clean(out), d, sc, ctx, nominal, best_fit, fits, base, rail, ranking, creep_meas,
-                               failed, ahead, answer)
 
     # -- the steps of ``run`` after the single candidates are judged ---------------------------------------
     @staticmethod

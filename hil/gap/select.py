@@ -424,7 +424,7 @@ def judge(base, ranking, rail, gap_present) -> Verdict:
 
 
 # -- forward selection -----------------------------------------------------------------------------
-def forward(ctx: Context, nom_fit: Fit, base: dict, first: Fit, first_row: dict, rail_fit, ranking, exclude,
+def forward(ctx: Context, nom_fit: Fit, base: dict, first: Fit, first_row: Row, rail_fit, ranking, exclude,
             failed: list, say=quiet, alone: dict | None = None) -> dict | None:
     """Second step of forward selection: every form of every other class fitted on top of the first
     (its parameters held), judged on held-out data against the first alone.  Sensor-level pairs are not
@@ -443,90 +443,129 @@ def forward(ctx: Context, nom_fit: Fit, base: dict, first: Fit, first_row: dict,
     (``pair_explanation`` lists it then).  ``exclude``: candidates
     not to offer; ``alone``: the single candidates' fits by name (the rival class's best is built on, not
     fitted again); a fit that fails at any step is appended to ``failed`` (a second effect whose fit on
-    top fails is not ranked; a failed joint fit or refit keeps the fit it would replace)."""
+    top fails is not ranked; a failed joint fit or refit keeps the fit it would replace).
+
+    The steps (``Forward``'s methods, in order): ``seconds`` (every second on top of the first, pairs
+    of a plant and a sensor form fitted together), ``descend`` (the best second and the first refitted
+    on top of each other), ``own_tests`` and ``answer`` (the second's own tests, the pair against every
+    single), ``against_rail``, ``against_runner``, ``in_time``."""
     if first.name == "sensor_quantisation":
         return None
-    sensor_first = "plant" not in first.extra
-    ctx2 = ctx.on_top_of(first)
-    on_first = pseudo(first, nom_fit)
-    rows, fits2 = [], {}
-    # a second effect of another class, in each of its forms (the form that explains most alone is not
-    # always the one that explains most of what the first left)
-    by_name = {c.name: c for c in candidates(ctx.scenario, exclude)}
-    first_cand = by_name.get(first.name)
-    joint = set()         # seconds already fitted together with the first
-    first_forms = [r for r in ranking if r.effect == first_row.effect     # (a form whose fit failed
-                   and isinstance(by_name.get(r.candidate), PlantCandidate)    # alone has no parameters)
-                   and not r.note.startswith("fit failed")][:FORWARD_JOINT]
-    for cand in by_name.values():
-        if EFFECTS[cand.name].effect_class == first_row.effect or \
-                cand.name == "torque_lag" and ctx.data.torque_cmd_nm.std() < 1e-9:
-            continue
-        if sensor_first and not isinstance(cand, PlantCandidate):
-            continue
-        say(f"forward selection: {cand.name} on top of {first.name}")
-        try:
-            f2 = cand.fit(ctx2, on_first)
-        except FIT_ERRORS as e:
-            failed.append(failure(cand.name, f"on top of {first.name}", e))
-            continue
-        row = entry(ctx, f2, base)
-        if isinstance(first_cand, PlantCandidate) and isinstance(cand, SensorDelayCandidate):
-            # a plant effect fitted alone absorbs part of a sensor delay (a lag looks like a delay), so
-            # the delay on top finds little of it: fit the pair together for every sensor form, with
-            # the first class's best FORWARD_JOINT forms (the form best alone need not be best in a pair)
-            for r1 in first_forms:
-                c1 = by_name[r1.candidate]
-                try:
-                    say(f"forward selection: {c1.name} and {cand.name} fitted together")
-                    jf = fit_pair(ctx, c1, cand, r1.params, f2.extra[cand.ARGUMENT[cand.form]],
-                                  f2.extra["x0"])
-                    jrow = replace(entry(ctx, jf, base), first_params=jf.extra["plant_params"], first_form=r1.form,
-                                   first_candidate=c1.name)
-                    # the better pair: a plausible one (no parameter off its range) before the best score
-                    # (a form that runs off its range to score well would be rejected as implausible,
-                    # where another form of the same class fits the pair within its range)
-                    now = by_name.get(row.first_candidate or first.name, first_cand)
-                    if (not implausible(jrow, [c1, cand]), jrow.score_gain) > \
-                            (not implausible(row, [now, cand]), row.score_gain):
-                        row = jrow
-                        joint.add(cand.name)
-                except FIT_ERRORS as e:       # keep the greedy fit
-                    failed.append(failure(cand.name, f"together with {c1.name}", e))
-        fits2[cand.name] = f2
-        rows.append(row)
+    fw = Forward(ctx, nom_fit, base, first, first_row, {c.name: c for c in candidates(ctx.scenario, exclude)},
+                 failed, say)
+    rows, fits2, joint = fw.seconds(ranking)
     if not rows:
         return None
-    rows.sort(key=lambda r: -r.score_gain)
-    if isinstance(first_cand, SensorDelayCandidate):
-        # and a sensor form fitted alone absorbs part of a lag: the best FORWARD_JOINT plant seconds are
-        # fitted together with it
-        for i, row in enumerate(rows[:FORWARD_JOINT]):
-            cand = by_name[row.candidate]
-            if not isinstance(cand, PlantCandidate):
+    runner = next((r for r in rows[1:] if r.effect != rows[0].effect), None)   # another class's best
+    second = fw.descend(rows[0], fits2[rows[0].candidate], joint)
+    out = fw.answer(second, rows, *fw.own_tests(second, runner, ranking))
+    if out["accepted"] and rail_fit is not None:
+        fw.against_rail(second, rail_fit, out)
+    else:
+        out["pair_vs_rail"] = "pair"
+    fw.against_runner(second, ranking, alone, out)
+    if out["accepted"]:
+        fw.in_time(rail_fit, out)
+    return out
+
+
+@dataclass
+class Forward:
+    """What every step of one forward selection (``forward``) reads: the context, the nominal fit and
+    score (``base``), the first effect's fit and row, the candidates offered by name, the caller's
+    list of failed fits and its progress line."""
+
+    ctx: Context
+    nom_fit: Fit
+    base: dict
+    first: Fit
+    first_row: Row
+    by_name: dict
+    failed: list
+    say: object = quiet
+
+    def seconds(self, ranking) -> tuple[list, dict, set]:
+        """(rows best first, their fits by candidate, the seconds fitted together with the first): every
+        form of every other class on top of the first.  A plant effect fitted alone absorbs part of a
+        sensor delay (a lag looks like a delay), so the delay on top finds little of it: a sensor second
+        on a plant first is fitted together with the first class's best ``FORWARD_JOINT`` forms (the
+        form best alone need not be best in a pair); and a sensor form fitted alone absorbs part of a
+        lag: on a sensor first the best ``FORWARD_JOINT`` plant seconds are fitted together with it."""
+        ctx, first, by_name, base = self.ctx, self.first, self.by_name, self.base
+        sensor_first = "plant" not in first.extra
+        ctx2 = ctx.on_top_of(first)
+        on_first = pseudo(first, self.nom_fit)
+        rows, fits2, joint = [], {}, set()
+        first_cand = by_name.get(first.name)
+        first_forms = [r for r in ranking if r.effect == self.first_row.effect     # (a form whose fit failed
+                       and isinstance(by_name.get(r.candidate), PlantCandidate)    # alone has no parameters)
+                       and not r.note.startswith("fit failed")][:FORWARD_JOINT]
+        for cand in by_name.values():
+            if EFFECTS[cand.name].effect_class == self.first_row.effect or \
+                    cand.name == "torque_lag" and ctx.data.torque_cmd_nm.std() < 1e-9:
                 continue
+            if sensor_first and not isinstance(cand, PlantCandidate):
+                continue
+            self.say(f"forward selection: {cand.name} on top of {first.name}")
             try:
-                say(f"forward selection: {cand.name} and {first.name} fitted together")
-                f2 = fits2[cand.name]
-                jf = fit_pair(ctx, cand, first_cand, f2.params, first.extra[first_cand.ARGUMENT[first_cand.form]],
-                              f2.extra["x0"])
-                jrow = entry(ctx, plant_side(jf, cand), base)
-                if jrow.score_gain > row.score_gain:
-                    rows[i] = replace(jrow, first_params=jf.params)
-                    joint.add(cand.name)
-            except FIT_ERRORS as e:           # keep the greedy fit
-                failed.append(failure(cand.name, f"together with {first.name}", e))
+                f2 = cand.fit(ctx2, on_first)
+            except FIT_ERRORS as e:
+                self.failed.append(failure(cand.name, f"on top of {first.name}", e))
+                continue
+            row = entry(ctx, f2, base)
+            if isinstance(first_cand, PlantCandidate) and isinstance(cand, SensorDelayCandidate):
+                for r1 in first_forms:
+                    c1 = by_name[r1.candidate]
+                    try:
+                        self.say(f"forward selection: {c1.name} and {cand.name} fitted together")
+                        jf = fit_pair(ctx, c1, cand, r1.params, f2.extra[cand.ARGUMENT[cand.form]],
+                                      f2.extra["x0"])
+                        jrow = replace(entry(ctx, jf, base), first_params=jf.extra["plant_params"],
+                                       first_form=r1.form, first_candidate=c1.name)
+                        # the better pair: a plausible one (no parameter off its range) before the best score
+                        # (a form that runs off its range to score well would be rejected as implausible,
+                        # where another form of the same class fits the pair within its range)
+                        now = by_name.get(row.first_candidate or first.name, first_cand)
+                        if (not implausible(jrow, [c1, cand]), jrow.score_gain) > \
+                                (not implausible(row, [now, cand]), row.score_gain):
+                            row = jrow
+                            joint.add(cand.name)
+                    except FIT_ERRORS as e:       # keep the greedy fit
+                        self.failed.append(failure(cand.name, f"together with {c1.name}", e))
+            fits2[cand.name] = f2
+            rows.append(row)
         rows.sort(key=lambda r: -r.score_gain)
-    second = rows[0]
-    runner = next((r for r in rows[1:] if r.effect != second.effect), None)   # another class's best
-    # the first was fitted alone and absorbed part of the second: refit each on top of the other
-    # (one round of coordinate descent), keeping the refit only if it scores better
-    f1_now, f2_now = first, fits2[second.candidate]      # the pair as it stands
-    if second.candidate not in joint:     # (a second fitted together with the first is done)
-        f2 = f2_now
+        if rows and isinstance(first_cand, SensorDelayCandidate):
+            for i, row in enumerate(rows[:FORWARD_JOINT]):
+                cand = by_name[row.candidate]
+                if not isinstance(cand, PlantCandidate):
+                    continue
+                try:
+                    self.say(f"forward selection: {cand.name} and {first.name} fitted together")
+                    f2 = fits2[cand.name]
+                    jf = fit_pair(ctx, cand, first_cand, f2.params,
+                                  first.extra[first_cand.ARGUMENT[first_cand.form]], f2.extra["x0"])
+                    jrow = entry(ctx, plant_side(jf, cand), base)
+                    if jrow.score_gain > row.score_gain:
+                        rows[i] = replace(jrow, first_params=jf.params)
+                        joint.add(cand.name)
+                except FIT_ERRORS as e:           # keep the greedy fit
+                    self.failed.append(failure(cand.name, f"together with {first.name}", e))
+            rows.sort(key=lambda r: -r.score_gain)
+        return rows, fits2, joint
+
+    def descend(self, second: Row, f2: Fit, joint: set) -> Row:
+        """The best second after one round of coordinate descent: the first was fitted alone and absorbed
+        part of the second, so each is refitted on top of the other, the refit kept only if it scores
+        better; then a plant effect and a sensor form are fitted together from where the pair stands.
+        A second already fitted together with the first (``joint``) is done."""
+        if second.candidate in joint:
+            return second
+        ctx, first, by_name, base, nom_fit = self.ctx, self.first, self.by_name, self.base, self.nom_fit
+        f1_now, f2_now = first, f2           # the pair as it stands
         refit, under = first.name, f2.name
         try:
-            say(f"forward selection: refitting {first.name} on top of {f2.name}, then back")
+            self.say(f"forward selection: refitting {first.name} on top of {f2.name}, then back")
             f1b = by_name[first.name].fit(ctx.on_top_of(f2), pseudo(f2, nom_fit))
             refit, under = f2.name, first.name
             f2b = by_name[f2.name].fit(ctx.on_top_of(f1b), pseudo(f1b, nom_fit))
@@ -536,14 +575,13 @@ def forward(ctx: Context, nom_fit: Fit, base: dict, first: Fit, first_row: dict,
                 second.first_params = f1b.params
                 f1_now, f2_now = f1b, f2b
         except FIT_ERRORS as e:               # keep the greedy pair
-            failed.append(failure(refit, f"refit on top of {under}", e))
-        # a plant effect and a sensor form: fit both together, from where the pair stands
+            self.failed.append(failure(refit, f"refit on top of {under}", e))
         c1, c2 = by_name[first.name], by_name[second.candidate]
         plant_c, sensor_c, plant_f, sensor_f = (c1, c2, f1_now, f2_now) if isinstance(c1, PlantCandidate) \
             else (c2, c1, f2_now, f1_now)
         try:
             if isinstance(plant_c, PlantCandidate) and isinstance(sensor_c, SensorDelayCandidate):
-                say(f"forward selection: {plant_c.name} and {sensor_c.name} fitted together")
+                self.say(f"forward selection: {plant_c.name} and {sensor_c.name} fitted together")
                 jf = fit_pair(ctx, plant_c, sensor_c, plant_f.params,
                               sensor_f.extra[SensorDelayCandidate.ARGUMENT[sensor_c.form]], f2_now.extra["x0"])
                 if c2.name == sensor_c.name:          # the second is the sensor form: the row as it is
@@ -554,49 +592,64 @@ def forward(ctx: Context, nom_fit: Fit, base: dict, first: Fit, first_row: dict,
                     second = row
                     second.first_params = first_params
         except FIT_ERRORS as e:               # keep the pair as it is
-            failed.append(failure(plant_c.name, f"together with {sensor_c.name}", e))
-    removed = 1 - second.held_out_gap / first_row.held_out_gap if first_row.held_out_gap > 0 else 0.0
-    bounded = [k for k, v in second.at_bound.items() if v]
-    bounded = bounded if len(bounded) == len(second.at_bound) else []      # pinned, as in ``judge``
-    off_range = implausible(second, [by_name[n] for n in (second.candidate, first.name) if n in by_name])
-    # the pair must earn its place as a single effect would: beat every class's best single candidate by
-    # the margin (``beats``), not only the first alone
-    unbeaten = [r.candidate for r in explanations(ranking, None) if not beats(second, r)]
-    # the second's own tests (does it add to the first, is it this class, is its fit plausible), then the
-    # pair against the other explanations: a pair that passes its own tests and fails only against them
-    # is one more explanation within the margin (``pair_explanation``)
-    own = [w for w, bad in (
-        (f"it gains less than {MIN_MARGIN:g} in held-out score over {first_row.effect} alone",
-         second.score_gain - first_row.score_gain < MIN_MARGIN),
-        (f"it removes less than {FORWARD_MIN_REMAINDER * 100:.0f} % of what {first_row.effect} left",
-         removed < FORWARD_MIN_REMAINDER),
-        (f"it does not beat {runner.effect if runner else ''} on top by the margin",
-         runner is not None and not beats_on_top(second, runner, first_row)),
-        ("its fit is pinned at its bounds", bool(bounded)),
-        (f"parameters at a bound of their range: {', '.join(off_range)}", bool(off_range)),
-        (f"fitted outside what a vehicle allows: {', '.join(off_vehicle(second))}", bool(off_vehicle(second))),
-        (f"the pair removes less than {MIN_SHRINK * 100:.0f} %", second.held_out_shrink < MIN_SHRINK),
-    ) if bad]
-    why = own + ([f"the pair does not beat the single candidate(s) {', '.join(unbeaten)} by the margin"]
-                 if unbeaten else [])
-    accepted = not why
-    out = {"first": first_row.effect,
-           "first_form": second.first_form if second.first_form is not None else first_row.form,
-           "first_candidate": second.first_candidate if second.first_candidate is not None else first.name,
-           "second_candidate": second.candidate,
-           "second": second.effect,
-           "second_form": second.form,
-           "second_params": second.params,
-           "first_params": second.first_params if second.first_params is not None else first.params,
-           "pair_held_out_shrink": second.held_out_shrink,
-           "second_removes_of_remainder": removed, "accepted": bool(accepted), "rejected_because": why,
-           "own_tests_passed": not own, "pair_score_gain": second.score_gain,
-           "pair_held_out_gap": second.held_out_gap, "pair_per_signal": second.per_signal,
-           "ranking": [{k: r.to_json()[k] for k in ("effect", "form", "params", "score_gain", "held_out_shrink",
-                                                    "held_out_gap", "at_bound")} for r in rows]}
-    if accepted and rail_fit is not None:
-        # is the first effect the rail in disguise?  the rail curve plus the same second effect
-        cand = by_name[second.candidate]
+            self.failed.append(failure(plant_c.name, f"together with {sensor_c.name}", e))
+        return second
+
+    def own_tests(self, second: Row, runner: Row | None, ranking) -> tuple[float, list, list]:
+        """(the share of what the first left that the second removes, the second's own tests failed, every
+        reason to turn the pair away).  Its own tests: does it add to the first, is it this class, is
+        its fit plausible; then the pair must earn its place as a single effect would, beating every
+        class's best single candidate by the margin (``beats``), not only the first alone.  A pair that
+        passes its own tests and fails only against the others is one more explanation within the
+        margin (``pair_explanation``)."""
+        first_row = self.first_row
+        removed = 1 - second.held_out_gap / first_row.held_out_gap if first_row.held_out_gap > 0 else 0.0
+        bounded = [k for k, v in second.at_bound.items() if v]
+        bounded = bounded if len(bounded) == len(second.at_bound) else []      # pinned, as in ``judge``
+        off_range = implausible(second, [self.by_name[n] for n in (second.candidate, self.first.name)
+                                         if n in self.by_name])
+        unbeaten = [r.candidate for r in explanations(ranking, None) if not beats(second, r)]
+        own = [w for w, bad in (
+            (f"it gains less than {MIN_MARGIN:g} in held-out score over {first_row.effect} alone",
+             second.score_gain - first_row.score_gain < MIN_MARGIN),
+            (f"it removes less than {FORWARD_MIN_REMAINDER * 100:.0f} % of what {first_row.effect} left",
+             removed < FORWARD_MIN_REMAINDER),
+            (f"it does not beat {runner.effect if runner else ''} on top by the margin",
+             runner is not None and not beats_on_top(second, runner, first_row)),
+            ("its fit is pinned at its bounds", bool(bounded)),
+            (f"parameters at a bound of their range: {', '.join(off_range)}", bool(off_range)),
+            (f"fitted outside what a vehicle allows: {', '.join(off_vehicle(second))}", bool(off_vehicle(second))),
+            (f"the pair removes less than {MIN_SHRINK * 100:.0f} %", second.held_out_shrink < MIN_SHRINK),
+        ) if bad]
+        why = own + ([f"the pair does not beat the single candidate(s) {', '.join(unbeaten)} by the margin"]
+                     if unbeaten else [])
+        return removed, own, why
+
+    def answer(self, second: Row, rows: list, removed: float, own: list, why: list) -> dict:
+        """The pair as ``which.forward`` records it (accepted when no test failed)."""
+        first, first_row = self.first, self.first_row
+        return {"first": first_row.effect,
+                "first_form": second.first_form if second.first_form is not None else first_row.form,
+                "first_candidate": second.first_candidate if second.first_candidate is not None else first.name,
+                "second_candidate": second.candidate,
+                "second": second.effect,
+                "second_form": second.form,
+                "second_params": second.params,
+                "first_params": second.first_params if second.first_params is not None else first.params,
+                "pair_held_out_shrink": second.held_out_shrink,
+                "second_removes_of_remainder": removed, "accepted": not why, "rejected_because": why,
+                "own_tests_passed": not own, "pair_score_gain": second.score_gain,
+                "pair_held_out_gap": second.held_out_gap, "pair_per_signal": second.per_signal,
+                "ranking": [{k: r.to_json()[k] for k in ("effect", "form", "params", "score_gain",
+                                                         "held_out_shrink", "held_out_gap", "at_bound")}
+                            for r in rows]}
+
+    def against_rail(self, second: Row, rail_fit: Fit, out: dict) -> None:
+        """Is the first effect the rail in disguise?  The rail curve plus the same second effect
+        (``out["pair_vs_rail"]``); and the pair, or the rail with the same second effect, must beat the
+        rail alone by the margin a single effect needs."""
+        ctx, base = self.ctx, self.base
+        cand = self.by_name[second.candidate]
         try:
             r2 = cand.fit(ctx.on_top_of(rail_fit), Fit("rail_curve", rail_fit.params, 0, rail_fit.pred,
                                                         dict(ctx.sigma_nom), extra={
@@ -608,42 +661,44 @@ def forward(ctx: Context, nom_fit: Fit, base: dict, first: Fit, first_row: dict,
                                 "held_out_gap": row.held_out_gap}
             out["pair_vs_rail"] = ("pair" if beats(second, row) else
                                    "rail" if beats(row, second) else "not_separable")
-            # and against the rail alone: the pair, or the rail with the same second effect (the first
-            # being the rail in disguise), beats it by the margin a single effect needs
             rail_row = entry(ctx, rail_fit, base)
             if not (beats(second, rail_row) or beats(row, rail_row)):
                 out["accepted"] = False
                 out["rejected_because"] = ["neither the pair nor the rail curve with the same second effect beats "
                                            "the rail curve alone by the margin"]
         except FIT_ERRORS as e:               # the pair stands untested against the rail
-            failed.append(failure(cand.name, "on top of the rail curve", e))
+            self.failed.append(failure(cand.name, "on top of the rail curve", e))
             out["pair_vs_rail"] = "pair"
-    else:
-        out["pair_vs_rail"] = "pair"
-    runner1 = next((r for r in ranking if r.effect != first_row.effect), None)   # as ``rejudge``'s
-    f_other = (alone or {}).get(runner1.candidate) if runner1 is not None else None
-    if out["accepted"] and f_other is not None and not beats(first_row, runner1) \
-            and runner1.effect != second.effect:
-        # the first was only "most likely" alone (another class within the margin of it): is it the first
-        # of the pair, or is that class?  The other class's best with the same second effect on top
-        cand = by_name[second.candidate]
+
+    def against_runner(self, second: Row, ranking, alone: dict | None, out: dict) -> None:
+        """When the first was only "most likely" alone (another class within the margin of it): is it the
+        first of the pair, or is that class?  The other class's best with the same second effect on top
+        (``out["pair_vs_runner"]``, read by ``rejudge``)."""
+        first_row = self.first_row
+        runner1 = next((r for r in ranking if r.effect != first_row.effect), None)   # as ``rejudge``'s
+        f_other = (alone or {}).get(runner1.candidate) if runner1 is not None else None
+        if not (out["accepted"] and f_other is not None and not beats(first_row, runner1)
+                and runner1.effect != second.effect):
+            return
+        cand = self.by_name[second.candidate]
         try:
-            r2 = entry(ctx, cand.fit(ctx.on_top_of(f_other), pseudo(f_other, nom_fit)), base)
+            r2 = entry(self.ctx, cand.fit(self.ctx.on_top_of(f_other), pseudo(f_other, self.nom_fit)), self.base)
             out["runner_pair"] = {"first": runner1.candidate, "held_out_shrink": r2.held_out_shrink,
                                   "score_gain": r2.score_gain, "held_out_gap": r2.held_out_gap}
             out["pair_vs_runner"] = "pair" if beats(second, r2) else "not_separable"
         except FIT_ERRORS as e:               # the first stays "most likely"
-            failed.append(failure(cand.name, f"on top of {runner1.candidate}", e))
-    if out["accepted"]:
-        # and the pair must win on data held out in time: fitted without the last stage, judged on it (the
-        # pair named: the rail curve with the second when that explains it better than the first with it)
+            self.failed.append(failure(cand.name, f"on top of {runner1.candidate}", e))
+
+    def in_time(self, rail_fit, out: dict) -> None:
+        """Last (it costs fits): the pair named must win on data held out in time, fitted without the
+        last stage and judged on it (the pair named: the rail curve with the second when that explains
+        it better than the first with it)."""
         pair = ("rail_curve" if out["pair_vs_rail"] == "rail" else out["first_candidate"], out["second_candidate"])
-        veto = time_veto(ctx, first.name, pair, rail_fit is not None, failed, say)
+        veto = time_veto(self.ctx, self.first.name, pair, rail_fit is not None, self.failed, self.say)
         out["held_out_in_time"] = veto
         if veto is not None and not veto["pair_wins"]:
             out["accepted"] = False
             out["rejected_because"] = [veto["why"]]
-    return out
 
 
 def other_firsts(ranking, best) -> list[dict]:

@@ -87,7 +87,7 @@ def scenario_from_log(log: LogContents, hint: str = "", overrides: dict | None =
         raise LogError(f"{log.path}: no scenario metadata: not a 'hil run' log (another tool's MCAP?){hint}")
     try:
         logged = json.loads(sc["overrides"]) if sc.get("overrides") else None
-    except ValueError:
+    except ValueError:  # damaged overrides: none applied, as with a log that has none
         logged = None
     logged = logged if isinstance(logged, dict) else {}
     try:
@@ -162,7 +162,7 @@ class _Reader:
         if hasattr(self.buf, "madvise") and end > start:
             try:
                 self.buf.madvise(mmap.MADV_DONTNEED, start, end - start)
-            except (OSError, ValueError):
+            except (OSError, ValueError):  # madvise is advice: without it the read uses more memory, same bytes
                 pass
 
     @staticmethod
@@ -272,7 +272,7 @@ class _Reader:
             try:
                 self.record_at(q, strict=True)
                 return q
-            except _Damaged:
+            except _Damaged:  # damaged here too: the scan goes on to the next offset
                 q += 1
         return None
 

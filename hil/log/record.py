@@ -47,11 +47,11 @@ def package_versions() -> dict[str, str]:
     for name in VERSIONED_PACKAGES:
         try:
             out[name] = importlib_metadata.version(name)
-        except importlib_metadata.PackageNotFoundError:
+        except importlib_metadata.PackageNotFoundError:  # an optional package: its absence is recorded
             out[name] = "not installed"
     try:
         out["railway-hil"] = importlib_metadata.version("railway-hil")
-    except importlib_metadata.PackageNotFoundError:
+    except importlib_metadata.PackageNotFoundError:  # run from a checkout without installing
         out["railway-hil"] = "source tree"
     return out
 

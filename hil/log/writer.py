@@ -127,7 +127,7 @@ class WriterProcess:
         while True:
             try:
                 chunk = os.read(self._status_fd, 4096)
-            except BlockingIOError:
+            except BlockingIOError:  # no report queued (non-blocking read)
                 break
             if not chunk:
                 self.ended = True

@@ -39,7 +39,7 @@ def cpuidle_driver(path: str = CPUIDLE_DRIVER) -> str | None:
     try:
         with open(path) as f:
             name = f.read().strip()
-    except OSError:
+    except OSError:  # no cpuidle in sysfs: the architecture's default idle (docstring)
         return None
     return None if name in ("", "none") else name
 
@@ -89,6 +89,6 @@ def current_latency_us(device: str = DEVICE) -> int | None:
     try:
         with open(device, "rb") as f:
             data = f.read(4)
-    except OSError:
+    except OSError:  # no device here (not Linux, no permission): unknown
         return None
     return struct.unpack("=i", data)[0] if len(data) == 4 else None

@@ -35,7 +35,7 @@ def threads_seen() -> dict:
         import numba
 
         out["numba_threads"] = numba.config.NUMBA_NUM_THREADS
-    except ImportError:
+    except ImportError:  # numba absent: no thread count to record
         out["numba_threads"] = None
     return out
 
@@ -45,7 +45,7 @@ def worker_name() -> str:
         from distributed import get_worker
 
         return get_worker().address
-    except (ImportError, ValueError):
+    except (ImportError, ValueError):  # not on a Dask worker (or none installed): host and pid name it
         return f"{socket.gethostname()}:{os.getpid()}"
 
 

@@ -93,7 +93,7 @@ class BoundedLm:
                 step[free] = np.linalg.solve(a[np.ix_(free, free)], -g[free])
             else:
                 step = np.linalg.solve(a, -g)
-        except np.linalg.LinAlgError:
+        except np.linalg.LinAlgError:  # a singular step: more damping, tried again (Levenberg-Marquardt)
             self.lam *= 4.0
             self.done = self.left <= 0
             return self.done

@@ -283,7 +283,7 @@ def frame_run(tmp: Path, seed: int, run_seed: int, garbage: int, forged: int, au
     out_text, err = (out / "stdout").read_text(), (out / "stderr").read_text()
     try:
         summary = json.loads(out_text) if out_text.strip() else None
-    except ValueError:
+    except ValueError:  # no JSON (the run crashed): its exit and stderr are judged
         summary = None
     return {"summary": summary, "exit": proc.returncode, "stderr": err, "hung": hung, "unsent": len(plan),
             "sent": sum(sent.values()), "sent_by_kind": {f"{a}:{b}": n for (a, b), n in sorted(sent.items())},

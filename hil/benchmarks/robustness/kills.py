@@ -50,7 +50,7 @@ def kill_run(tmp: Path, victim: str, seed: int, min_bytes: int) -> dict:
         os.kill({"tcu": tcu, "hub": hub}.get(victim, proc.pid), signal.SIGKILL)
         try:
             _, err = proc.communicate(timeout=60)
-        except subprocess.TimeoutExpired:
+        except subprocess.TimeoutExpired:  # a hang after the kill is the finding, recorded
             res["error"] = "the run did not end within 60 s of the kill"
             return res
         res["exit"] = proc.returncode

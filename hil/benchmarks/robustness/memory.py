@@ -21,7 +21,7 @@ def _vm_hwm_kb(pid: int) -> int | None:
         for line in Path(f"/proc/{pid}/status").read_text().splitlines():
             if line.startswith("VmHWM:"):
                 return int(line.split()[1])
-    except (OSError, ValueError):
+    except (OSError, ValueError):  # the process is gone or /proc unreadable: not measured
         return None
     return None
 

@@ -39,7 +39,7 @@ def load_mutant(path: Path, sets) -> tuple[str, str]:
     try:
         s = load_scenario(path, parse_set(sets))
         return "loaded", str(s.steps)
-    except _Timeout:
+    except _Timeout:  # the finding: loading hung
         return "hang", f"load_scenario took more than {LOAD_TIMEOUT_S:g} s"
     except HilError as e:
         msg = str(e)
@@ -77,7 +77,7 @@ def run_mutant(data: bytes, sets, sandbox_parent: Path, timeout_s: float) -> dic
     hung = False
     try:
         out, err = proc.communicate(timeout=timeout_s)
-    except subprocess.TimeoutExpired:
+    except subprocess.TimeoutExpired:  # the finding: the command hung; stopped, then judged
         hung = True
         stop(proc)
         out, err = proc.communicate()
