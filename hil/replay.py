@@ -57,6 +57,13 @@ NEWER_THAN_SOME_LOGS = (
                                              "control.options.identified.gain": 300.0}),
     ("identified_past_a_peak", "identified", {"control.options.identified.past_slope": 0.0}),
     ("identified_rise", "identified", {"control.options.identified.rise_mu": 0.0}),
+    ("identified_peak_estimate", "identified", {"control.options.identified.blind": 1,
+                                                "control.options.identified.cap_kmh": 0.7,
+                                                "control.options.identified.max_kmh": 1.6,
+                                                "control.options.identified.drop_fraction": 1.0,
+                                                "control.options.identified.change_limited": 0,
+                                                "control.options.identified.startup_s": 0.0}),
+    # (before identified_creep_bounds: a log older than both ran with that entry's bounds, so it must win)
     ("identified_creep_bounds", "identified", {"control.options.identified.max_kmh": 12.0,
                                                "control.options.identified.cap_kmh": 0.75}),
     ("gp_closed_loop_tracking", None, {"identifier.options.gp.track_train_speed": False,
