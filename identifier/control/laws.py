@@ -193,7 +193,7 @@ class Identified(ExtremumSeeking):
     defaults = {"hold_fraction": 0.98, "jump_ratio": 1.5, "rearm_s": 0.3, "drop_fraction": 0.0,
                 "change_mu": 0.02, "cap_kmh": 0.0, "scan_kmh_per_s": 4.0, "scan_settle_s": 0.03,
                 "scan_filter_s": 0.01, "scan_drop_mu": 0.004, "scan_flat_kmh": 0.25,
-                "past_slope": 0.02, "past_s": 0.05, "rise_mu": 0.008, "risk_margin": 0.9, "jump_width": 2.0,
+                "past_slope": 0.02, "past_s": 0.05, "rise_mu": 0.008, "drop_ratio": 0.5, "risk_margin": 0.9, "jump_width": 2.0,
                 "ceiling_width": 4.0, "stale_s": 0.1, "startup_s": 0.2, "new_rail_s": 0.0, "track_kmh_per_s": 1.0, "track_band": 0.1, "change_limited": 1, "blind": 0, **ExtremumSeeking.defaults,
                 "dither_kmh": 0.05, "gain": 480.0}
     ranges = {"hold_fraction": (0.1, 2.0), "jump_ratio": (0.0, 100.0), "rearm_s": (0.001, 60.0),
@@ -201,7 +201,7 @@ class Identified(ExtremumSeeking):
               "stale_s": (0.0, 10.0), "startup_s": (0.0, 60.0), "new_rail_s": (0.0, 60.0), "track_kmh_per_s": (0.0, 100.0),
               "track_band": (0.0, 10.0), "change_limited": (0, 1),
               "blind": (0, 1),
-              "drop_fraction": (0.0, 20.0), "change_mu": (0.0, 1.0), "cap_kmh": (0.0, 30.0),
+              "drop_fraction": (0.0, 20.0), "change_mu": (0.0, 1.0), "cap_kmh": (0.0, 30.0), "drop_ratio": (0.0, 1.0),
               "scan_kmh_per_s": (0.0, 1000.0), "scan_settle_s": (0.0, 10.0), "scan_filter_s": (0.0, 10.0),
               "scan_drop_mu": (0.0, 1.0), "scan_flat_kmh": (0.0, 30.0), "past_slope": (0.0, 10.0),
               "past_s": (0.0, 10.0), "rise_mu": (0.0, 1.0), **ExtremumSeeking.ranges}
@@ -222,6 +222,7 @@ class Identified(ExtremumSeeking):
         self.cap_kmh = max(self.cap_kmh, o["min_kmh"])
         self._changed_t_s = -math.inf       # the last change of rail the law acted on
         self._jumped = False
+        self._bounded = True                # the new rail's estimate has bounded the set-point (once per change)
 
     def _target_kmh(self, x: ControlInput) -> float | None:
         """hold_fraction x the confirmed peak creep, clipped to its interval (class docstring), or None."""
@@ -328,13 +329,22 @@ class Identified(ExtremumSeeking):
                 changed = True
             self._past_for_s = 0.0
         if changed:
-            # down to what the estimate allows: its creep bound while it holds a narrow interval (a new rail's
-            # estimate takes over as soon as it has dated the change: the ceiling above), else its prior's
-            cap = max(self.cap_kmh, b[1]) if narrow and not o["cap_kmh"] else self.cap_kmh
-            self._changed_t_s, self._jumped = x.t_s, False
+            # down to a fraction of the set-point held (what the law measured: blind or not), or, given it,
+            # ``cap_kmh``; the estimate of the new rail bounds it further as soon as it has dated the change
+            # (below)
+            cap = o["cap_kmh"] if o["cap_kmh"] else max(o["drop_ratio"] * self.v_hat, self.cap_kmh) \
+                if o["drop_ratio"] > 0.0 else self.cap_kmh
+            self._changed_t_s, self._jumped, self._bounded = x.t_s, False, False
             self.v_hat = min(self.v_hat, cap)
             if o["scan_kmh_per_s"] > 0.0:
                 self._scan = _Scan()
+        # the estimate of the new rail (dated at or after the change), narrow enough to mean it: its creep bound
+        # caps the set-point once per change of rail, whether climbing or not
+        if b is not None and not self._bounded and e.since_step * x.period_s >= self._changed_t_s - o["stale_s"] \
+                and x.t_s - self._changed_t_s < o["new_rail_s"] + o["stale_s"] + 1.0 and narrow:
+            self._bounded = True
+            if self.v_hat > b[1]:
+                self.v_hat = max(b[1], o["min_kmh"])
         # the estimate of the new rail narrow enough: to the creep it says is best, once per change of rail
         if b is not None and not self._jumped and lo_hi[1] <= o["jump_width"] * lo_hi[0] \
                 and (self._scan is not None or x.t_s - self._changed_t_s < o["stale_s"] + 1.0):
@@ -351,7 +361,7 @@ class Identified(ExtremumSeeking):
         if x.slipping and not self._was_slipping and o["drop_fraction"] > 0.0 and self._scan is None:
             self.v_hat = min(self.v_hat, max(o["drop_fraction"] * self.nominal_peak_creep_kmh, o["min_kmh"]))
         self._was_slipping = x.slipping
-        if x.confirmed and not self._was_confirmed:
+        if x.confirmed and not self._was_confirmed and not o["blind"]:
             target = self._target_kmh(x)
             if target is not None and x.creep_speed_kmh >= o["jump_ratio"] * target:
                 self.v_hat = min(max(target, o["min_kmh"]), self.max_now)
