@@ -193,7 +193,7 @@ class Identified(ExtremumSeeking):
     defaults = {"hold_fraction": 0.98, "jump_ratio": 1.5, "rearm_s": 0.3, "drop_fraction": 0.0,
                 "change_mu": 0.02, "cap_kmh": 0.0, "scan_kmh_per_s": 4.0, "scan_settle_s": 0.03,
                 "scan_filter_s": 0.01, "scan_drop_mu": 0.004, "scan_flat_kmh": 0.25,
-                "past_slope": 0.02, "past_s": 0.05, "rise_mu": 0.008, "drop_ratio": 0.5, "risk_margin": 0.9, "jump_width": 2.0,
+                "past_slope": 0.02, "past_s": 0.05, "rise_mu": 0.008, "drop_ratio": 0.5, "settle_s": 0.1, "centre_median": 1, "new_rail_bound": 1, "risk_margin": 0.9, "jump_width": 2.0,
                 "ceiling_width": 4.0, "stale_s": 0.1, "startup_s": 0.2, "new_rail_s": 0.0, "track_kmh_per_s": 1.0, "track_band": 0.1, "change_limited": 1, "blind": 0, **ExtremumSeeking.defaults,
                 "dither_kmh": 0.05, "gain": 480.0}
     ranges = {"hold_fraction": (0.1, 2.0), "jump_ratio": (0.0, 100.0), "rearm_s": (0.001, 60.0),
@@ -201,7 +201,8 @@ class Identified(ExtremumSeeking):
               "stale_s": (0.0, 10.0), "startup_s": (0.0, 60.0), "new_rail_s": (0.0, 60.0), "track_kmh_per_s": (0.0, 100.0),
               "track_band": (0.0, 10.0), "change_limited": (0, 1),
               "blind": (0, 1),
-              "drop_fraction": (0.0, 20.0), "change_mu": (0.0, 1.0), "cap_kmh": (0.0, 30.0), "drop_ratio": (0.0, 1.0),
+              "drop_fraction": (0.0, 20.0), "change_mu": (0.0, 1.0), "cap_kmh": (0.0, 30.0), "drop_ratio": (0.0, 1.0), "settle_s": (0.0, 10.0),
+              "centre_median": (0, 1), "new_rail_bound": (0, 1),
               "scan_kmh_per_s": (0.0, 1000.0), "scan_settle_s": (0.0, 10.0), "scan_filter_s": (0.0, 10.0),
               "scan_drop_mu": (0.0, 1.0), "scan_flat_kmh": (0.0, 30.0), "past_slope": (0.0, 10.0),
               "past_s": (0.0, 10.0), "rise_mu": (0.0, 1.0), **ExtremumSeeking.ranges}
@@ -298,6 +299,8 @@ class Identified(ExtremumSeeking):
             return None
         if e.since_step * x.period_s < self._changed_t_s - self.options["stale_s"]:
             return None
+        if (e.step - e.since_step) * x.period_s < self.options["settle_s"]:     # a change it has only just dated
+            return None
         return e
 
     def _bounds(self, e) -> tuple[float, float] | None:
@@ -309,7 +312,8 @@ class Identified(ExtremumSeeking):
         if not (math.isfinite(lo) and math.isfinite(hi) and lo > 0.0):
             return None
         bound = 2.0 * self.options["risk_margin"] * lo
-        return min(math.sqrt(lo * hi), bound), bound
+        best = e.peak_creep_kmh if self.options["centre_median"] else math.sqrt(lo * hi)
+        return min(best, bound), bound
 
     def torque_nm(self, x: ControlInput) -> float:
         o = self.options
@@ -340,7 +344,7 @@ class Identified(ExtremumSeeking):
                 self._scan = _Scan()
         # the estimate of the new rail (dated at or after the change), narrow enough to mean it: its creep bound
         # caps the set-point once per change of rail, whether climbing or not
-        if b is not None and not self._bounded and e.since_step * x.period_s >= self._changed_t_s - o["stale_s"] \
+        if b is not None and o["new_rail_bound"] and not self._bounded and e.since_step * x.period_s >= self._changed_t_s - o["stale_s"] \
                 and x.t_s - self._changed_t_s < o["new_rail_s"] + o["stale_s"] + 1.0 and narrow:
             self._bounded = True
             if self.v_hat > b[1]:
