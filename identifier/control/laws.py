@@ -160,15 +160,24 @@ class Identified(ExtremumSeeking):
 
     **A change of rail** (mu^ leaves its mean, extremum seeking's first-order filter of ``filter_s``, by more than
     ``change_mu``, up or down, while the creep loop and not the demand sets the torque (``change_limited``: a move
-    of the demand moves mu^ too) and after ``startup_s``): the set-point drops to the bound of the estimate held
-    then if it is narrow (hi <= ``ceiling_width`` lo), else to the bound of the estimate's prior (0.2 km/h; with no
-    sample of the new rail that is what the estimate allows; ``cap_kmh`` > 0 replaces both), and, ``scan_settle_s``
-    later, climbs at ``scan_kmh_per_s`` while mu^ (filtered over ``scan_filter_s``) keeps rising; once it has
-    fallen ``scan_drop_mu`` below the best seen (or risen less than that over ``scan_flat_kmh``), the set-point
-    returns to the creep where the best was seen and extremum seeking takes over from there.  The scan also ends
-    when the demand, not the creep loop, limits the torque.  As soon as the estimate of the new rail is narrow the
-    set-point goes to v* (never above the bound) and the climb ends, once per change of rail.  During a scan the
-    change test is off: the scan itself moves mu^.
+    of the demand moves mu^ too) and after ``startup_s``): the set-point drops to ``drop_ratio`` x the set-point
+    held (what the law measured, with or without the estimate: a rail whose peak creep lies above half the creep
+    held then stays out of macro-slip with no estimate at all; ``cap_kmh`` > 0 replaces it by a constant) and,
+    ``scan_settle_s`` later, climbs at ``scan_kmh_per_s`` while mu^ (filtered over ``scan_filter_s``) keeps rising;
+    once it has fallen ``scan_drop_mu`` below the best seen (or risen less than that over ``scan_flat_kmh``), the
+    set-point returns to the creep where the best was seen and extremum seeking takes over from there.  The scan
+    also ends when the demand, not the creep loop, limits the torque.  During a scan the change test is off: the
+    scan itself moves mu^.
+
+    **What the estimate adds** (all off with ``blind``).  An estimate acts once it has dated its change of rail
+    ``settle_s`` ago (a change it has only just dated rests on a handful of samples of a blend of two rails).
+    Once per change of rail, the first narrow estimate of the new rail (hi <= ``ceiling_width`` lo) lowers the
+    set-point to its bound if it is above it (``new_rail_bound``: the drop the blind law cannot make on a rail
+    peaking below half the creep held); the first estimate with hi <= ``jump_width`` lo moves the set-point to its
+    centre (``centre_median`` 1: its median, the posterior's best guess of the peak creep; 0: v* = sqrt(lo hi)),
+    never above the bound, and ends the climb.  With ``recall`` = 1, back on a better rail (mu^ up) the set-point
+    goes to the median of the rail left at the last drop, as its last narrow estimate knew it, instead of
+    dropping.
 
     **The ceiling and the tracking.**  While the estimate is narrow enough (hi <= ``ceiling_width`` lo), or for
     ``new_rail_s`` after a change of rail, its bound caps the set-point (else ``max_kmh``, extremum seeking's).
@@ -193,7 +202,7 @@ class Identified(ExtremumSeeking):
     defaults = {"hold_fraction": 0.98, "jump_ratio": 1.5, "rearm_s": 0.3, "drop_fraction": 0.0,
                 "change_mu": 0.02, "cap_kmh": 0.0, "scan_kmh_per_s": 4.0, "scan_settle_s": 0.03,
                 "scan_filter_s": 0.01, "scan_drop_mu": 0.004, "scan_flat_kmh": 0.25,
-                "past_slope": 0.02, "past_s": 0.05, "rise_mu": 0.008, "drop_ratio": 0.5, "settle_s": 0.1, "centre_median": 1, "new_rail_bound": 1, "risk_margin": 0.9, "jump_width": 2.0,
+                "past_slope": 0.02, "past_s": 0.05, "rise_mu": 0.008, "drop_ratio": 0.5, "settle_s": 0.1, "centre_median": 1, "new_rail_bound": 1, "recall": 0, "risk_margin": 0.9, "jump_width": 2.0,
                 "ceiling_width": 4.0, "stale_s": 0.1, "startup_s": 0.2, "new_rail_s": 0.0, "track_kmh_per_s": 1.0, "track_band": 0.1, "change_limited": 1, "blind": 0, **ExtremumSeeking.defaults,
                 "dither_kmh": 0.05, "gain": 480.0}
     ranges = {"hold_fraction": (0.1, 2.0), "jump_ratio": (0.0, 100.0), "rearm_s": (0.001, 60.0),
@@ -202,7 +211,7 @@ class Identified(ExtremumSeeking):
               "track_band": (0.0, 10.0), "change_limited": (0, 1),
               "blind": (0, 1),
               "drop_fraction": (0.0, 20.0), "change_mu": (0.0, 1.0), "cap_kmh": (0.0, 30.0), "drop_ratio": (0.0, 1.0), "settle_s": (0.0, 10.0),
-              "centre_median": (0, 1), "new_rail_bound": (0, 1),
+              "centre_median": (0, 1), "new_rail_bound": (0, 1), "recall": (0, 1),
               "scan_kmh_per_s": (0.0, 1000.0), "scan_settle_s": (0.0, 10.0), "scan_filter_s": (0.0, 10.0),
               "scan_drop_mu": (0.0, 1.0), "scan_flat_kmh": (0.0, 30.0), "past_slope": (0.0, 10.0),
               "past_s": (0.0, 10.0), "rise_mu": (0.0, 1.0), **ExtremumSeeking.ranges}
@@ -224,6 +233,7 @@ class Identified(ExtremumSeeking):
         self._changed_t_s = -math.inf       # the last change of rail the law acted on
         self._jumped = False
         self._bounded = True                # the new rail's estimate has bounded the set-point (once per change)
+        self._left: tuple[float, float] | None = None   # (median, bound) of the rail left at the last drop
 
     def _target_kmh(self, x: ControlInput) -> float | None:
         """hold_fraction x the confirmed peak creep, clipped to its interval (class docstring), or None."""
@@ -326,7 +336,11 @@ class Identified(ExtremumSeeking):
         self.max_now = max(min(o["max_kmh"], b[1]), o["min_kmh"]) \
             if b is not None and (narrow or x.t_s - self._changed_t_s < o["new_rail_s"]) else o["max_kmh"]
         rose = self._rose(x)
-        changed = rose or (self._rail_changed(x) if self._scan is None else False)
+        moved = self._rail_changed(x) if self._scan is None else False
+        changed = rose or moved
+        up = rose or (moved and x.mu_hat > self._mu_mean)      # a better rail (a patch's end) or a worse one
+        if moved and not up and narrow:
+            self._left = (e.peak_creep_kmh, b[1])               # the rail left, as the estimate knew it
         if self._scan is None and self._past_a_peak(x):
             # not past the peak when a narrow estimate puts it above the creep
             if not (narrow and x.creep_speed_kmh < e.peak_creep_kmh):
@@ -339,6 +353,12 @@ class Identified(ExtremumSeeking):
             cap = o["cap_kmh"] if o["cap_kmh"] else max(o["drop_ratio"] * self.v_hat, self.cap_kmh) \
                 if o["drop_ratio"] > 0.0 else self.cap_kmh
             self._changed_t_s, self._jumped, self._bounded = x.t_s, False, False
+            if up and o["recall"] and self._left is not None:
+                # back to a better rail: the one left at the last drop, as the estimate knew it (its median, never
+                # above its bound); the dither and the tests above correct it if this rail is another one
+                cap = min(self._left[0], self._left[1])
+                self.v_hat = max(cap, o["min_kmh"])
+                self._left = None
             self.v_hat = min(self.v_hat, cap)
             if o["scan_kmh_per_s"] > 0.0:
                 self._scan = _Scan()
@@ -365,7 +385,7 @@ class Identified(ExtremumSeeking):
         if x.slipping and not self._was_slipping and o["drop_fraction"] > 0.0 and self._scan is None:
             self.v_hat = min(self.v_hat, max(o["drop_fraction"] * self.nominal_peak_creep_kmh, o["min_kmh"]))
         self._was_slipping = x.slipping
-        if x.confirmed and not self._was_confirmed and not o["blind"]:
+        if x.confirmed and not self._was_confirmed:
             target = self._target_kmh(x)
             if target is not None and x.creep_speed_kmh >= o["jump_ratio"] * target:
                 self.v_hat = min(max(target, o["min_kmh"]), self.max_now)
