@@ -202,16 +202,16 @@ class Identified(ExtremumSeeking):
     defaults = {"hold_fraction": 0.98, "jump_ratio": 1.5, "rearm_s": 0.3, "drop_fraction": 0.0,
                 "change_mu": 0.02, "cap_kmh": 0.0, "scan_kmh_per_s": 4.0, "scan_settle_s": 0.03,
                 "scan_filter_s": 0.01, "scan_drop_mu": 0.004, "scan_flat_kmh": 0.25,
-                "past_slope": 0.02, "past_s": 0.05, "rise_mu": 0.008, "drop_ratio": 0.5, "settle_s": 0.1, "centre_median": 1, "new_rail_bound": 1, "recall": 0, "risk_margin": 0.9, "jump_width": 2.0,
-                "ceiling_width": 4.0, "stale_s": 0.1, "startup_s": 0.2, "new_rail_s": 0.0, "track_kmh_per_s": 1.0, "track_band": 0.1, "change_limited": 1, "blind": 0, **ExtremumSeeking.defaults,
+                "past_slope": 0.02, "past_s": 0.05, "rise_mu": 0.008, "drop_ratio": 0.5, "settle_s": 0.1, "centre_median": 1, "new_rail_bound": 0, "recall": 0, "lift": 1, "lift_kmh_per_s": 0.0, "lift_width": 0.0, "probe_hi": 0, "risk_margin": 0.9, "jump_width": 0.0,
+                "ceiling_width": 0.0, "stale_s": 0.1, "startup_s": 0.2, "new_rail_s": 0.0, "track_kmh_per_s": 1.0, "track_band": 0.1, "change_limited": 1, "blind": 0, **ExtremumSeeking.defaults,
                 "dither_kmh": 0.05, "gain": 480.0}
     ranges = {"hold_fraction": (0.1, 2.0), "jump_ratio": (0.0, 100.0), "rearm_s": (0.001, 60.0),
-              "risk_margin": (0.1, 1.0), "jump_width": (1.0, 100.0), "ceiling_width": (1.0, 1000.0),
+              "risk_margin": (0.1, 1.0), "jump_width": (0.0, 100.0), "ceiling_width": (0.0, 1000.0),
               "stale_s": (0.0, 10.0), "startup_s": (0.0, 60.0), "new_rail_s": (0.0, 60.0), "track_kmh_per_s": (0.0, 100.0),
               "track_band": (0.0, 10.0), "change_limited": (0, 1),
               "blind": (0, 1),
               "drop_fraction": (0.0, 20.0), "change_mu": (0.0, 1.0), "cap_kmh": (0.0, 30.0), "drop_ratio": (0.0, 1.0), "settle_s": (0.0, 10.0),
-              "centre_median": (0, 1), "new_rail_bound": (0, 1), "recall": (0, 1),
+              "centre_median": (0, 1), "new_rail_bound": (0, 1), "recall": (0, 1), "lift": (0, 2), "lift_kmh_per_s": (0.0, 1000.0), "lift_width": (0.0, 1000.0), "probe_hi": (0, 1),
               "scan_kmh_per_s": (0.0, 1000.0), "scan_settle_s": (0.0, 10.0), "scan_filter_s": (0.0, 10.0),
               "scan_drop_mu": (0.0, 1.0), "scan_flat_kmh": (0.0, 30.0), "past_slope": (0.0, 10.0),
               "past_s": (0.0, 10.0), "rise_mu": (0.0, 1.0), **ExtremumSeeking.ranges}
@@ -233,6 +233,7 @@ class Identified(ExtremumSeeking):
         self._changed_t_s = -math.inf       # the last change of rail the law acted on
         self._jumped = False
         self._bounded = True                # the new rail's estimate has bounded the set-point (once per change)
+        self._limited_for_s = 0.0            # how long the creep loop, not the demand, has set the torque
         self._left: tuple[float, float] | None = None   # (median, bound) of the rail left at the last drop
 
     def _target_kmh(self, x: ControlInput) -> float | None:
@@ -335,6 +336,19 @@ class Identified(ExtremumSeeking):
         # enough to mean it (a wide interval of a rail the demand carries says little), else max_kmh
         self.max_now = max(min(o["max_kmh"], b[1]), o["min_kmh"]) \
             if b is not None and (narrow or x.t_s - self._changed_t_s < o["new_rail_s"]) else o["max_kmh"]
+        if b is not None and o["probe_hi"]:          # never probe above the interval's upper end
+            self.max_now = max(min(self.max_now, lo_hi[1]), o["min_kmh"])
+        # (only once the creep loop has set the torque for settle_s: the estimate has then seen the rail at the
+        # creep the law holds, and dated a change the demand hid)
+        self._limited_for_s = self._limited_for_s + x.period_s if self.loop.limited else 0.0
+        if b is not None and o["lift"] and self._limited_for_s >= o["settle_s"] and lo_hi[0] > self.v_hat \
+                and (not o["lift_width"] or lo_hi[1] <= o["lift_width"] * lo_hi[0]):
+            # the estimate is sure (95 %) the peak lies above the set-point: up to its low end at once (a climb
+            # carries on from there; the dither, not a climb, would take seconds)
+            up = math.sqrt(lo_hi[0] * e.peak_creep_kmh) if o["lift"] > 1 else lo_hi[0]
+            if o["lift_kmh_per_s"] > 0.0:        # at a rate: an estimate of a blend of two rails lasts a few tens of ms
+                up = min(up, self.v_hat + o["lift_kmh_per_s"] * x.period_s)
+            self.v_hat = max(min(up, self.max_now), self.v_hat)
         rose = self._rose(x)
         moved = self._rail_changed(x) if self._scan is None else False
         changed = rose or moved
