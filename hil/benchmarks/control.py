@@ -360,19 +360,19 @@ def run_point(item: dict) -> dict:
     from ..session import Session
     from ..traction import estimate_figures
 
-    from ..errors import PeerSilent
+    from ..errors import PeerSilent, PlantError
 
     law = item["law"]
     sets = {"control.options.identified.blind": 1} if law == BLIND else {}
-    # a wheel that runs away (open loop on a patch) leaves the sensor frame's range and the TCU rejects it: the
-    # run then ends as a fault after lockstep_progress_s twice, its figures up to there kept (PeerSilent.summary)
+    # a wheel that runs away (open loop on a patch) leaves the sensor frame's range: the run then ends at once as a
+    # fault (PlantError, below; a TCU that falls silent: PeerSilent), its figures up to there kept
     scenario = parse_scenario(item["text"], f"{BASE} draw {item['index']}",
                               {"control.law": "demand" if law in (ORACLE, PRIOR) else
                                "identified" if law == BLIND else law,
                                "bus.lockstep_progress_s": 0.2, **sets, **item.get("set", {})})
     t0 = time.perf_counter()
     out_dir = item.get("out_dir")
-    est = {}
+    est, truth = {}, None
     try:
         with Session(scenario, "gp", item["run_seed"], bus="inprocess", mode="lockstep", external_tcu=False,
                      out_dir=out_dir, record=out_dir is not None, set_args=None, plant=None, plant_label=None,
@@ -393,6 +393,15 @@ def run_point(item: dict) -> dict:
         summary = {**(getattr(e, "summary", None) or {}), "fault": str(e)}
         summary["macro_slip_count"] = max(summary.get("macro_slip_count") or 0, 1)
         summary["sim_s_per_wall_s"] = (summary.get("sim_s") or 0.0) / (time.perf_counter() - t0)
+    except PlantError as e:
+        # a wheel that runs away past the sensor frame's range ends the run at once (hil/plant_node.py): a fault,
+        # its figures up to there from the truth the plant kept
+        if truth is None:
+            raise
+        summary = {**truth.metrics(), "fault": str(e)}
+        summary["macro_slip_count"] = max(summary.get("macro_slip_count") or 0, 1)
+        sim_s = float(truth.cols["t_s"][-1]) if truth.cols["t_s"].size else 0.0
+        summary["sim_s_per_wall_s"] = sim_s / (time.perf_counter() - t0)
     keys = ("adhesion_utilisation", "adhesion_utilisation_low", "macro_slip_s", "macro_slip_count", "reaction_ms",
             "recovery_s", "torque_ripple_percent", "drops", "sim_s_per_wall_s", "tcu_rearms", "fault")
     ident = [{k: d.get(k) for k in ("t_s", "t_identified_s", "peak_creep_err_percent", "interval_holds_truth")}
