@@ -66,7 +66,6 @@ NEWER_THAN_SOME_LOGS = (
     ("identified_relative_drop", "identified", {"control.options.identified.drop_ratio": 0.0,
                                                 "control.options.identified.settle_s": 0.0,
                                                 "control.options.identified.centre_median": 0,
-                                                "control.options.identified.new_rail_bound": 0,
                                                 "control.options.identified.lift": 0,
                                                 "control.options.identified.jump_width": 2.0,
                                                 "control.options.identified.ceiling_width": 4.0}),

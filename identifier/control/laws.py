@@ -9,11 +9,10 @@
 ``extremum_seeking``  perturbation-based peak tracking: a sine dither on the creep set-point, the observer's
                       mu^ demodulated by it gives the slope d mu / d v_s, the set-point climbs it (Ariyur and
                       Krstic's scheme; J. Adv. Transp. 2019, 6270515 for its use on a locomotive).
-``identified``        extremum seeking placed by what the TCU learns of the rail: its peak estimate
-                      (identifier/peak_estimate.py) sets the bound the creep falls to at each change of rail
-                      mu^ shows, the ceiling, and the set-point (the creep maximising the lower bound of mu
-                      over the estimate's interval); a climb finds the peak while the estimate is wide; the
-                      dither corrects and carries on alone otherwise.
+``identified``        extremum seeking with a drop to half the set-point held and a climb at each change of rail
+                      mu^ shows (what the law measures: ``blind`` = 1 runs it so, the bench's ablation), and
+                      what the TCU learns of the rail: its peak estimate (identifier/peak_estimate.py) lifts
+                      the set-point to its 90 % interval's low end when that lies above it.
 """
 from __future__ import annotations
 
@@ -148,7 +147,7 @@ class _Scan:
 class Identified(ExtremumSeeking):
     """Extremum seeking placed by what the TCU learns of the rail (module docstring): its peak estimate
     (identifier/peak_estimate.py: the current rail's peak creep v_p with a 90 % interval [lo, hi], every period,
-    ``x.estimate``) sets its bound, its ceiling and its set-point; no default is a rail family's extreme.
+    ``x.estimate``) lifts its set-point (below); no default is a rail family's extreme.
 
     **The estimate's creep and bound.**  With the estimate's curve mu = mu_p h(v / v_p) and h(x) = h(1 / x) (its
     k = 1 shape), min over v_p in [lo, hi] of h(v / v_p) is largest at v* = sqrt(lo hi): the creep that maximises
@@ -156,7 +155,7 @@ class Identified(ExtremumSeeking):
     peak creep below the interval's 5 % (``risk_margin`` 0.9 leaves room for the dither and the loop's overshoot).
     An estimate is of the current rail when it dates its change of rail no earlier than ``stale_s`` before the
     last change the law acted on; ``blind`` = 1 withholds it (the bench's ablation).  An estimate is *narrow*
-    when hi <= ``jump_width`` lo.
+    when hi <= ``ceiling_width`` lo (0, the default: never).
 
     **A change of rail** (mu^ leaves its mean, extremum seeking's first-order filter of ``filter_s``, by more than
     ``change_mu``, up or down, while the creep loop and not the demand sets the torque (``change_limited``: a move
@@ -171,18 +170,21 @@ class Identified(ExtremumSeeking):
 
     **What the estimate adds** (all off with ``blind``).  An estimate acts once it has dated its change of rail
     ``settle_s`` ago (a change it has only just dated rests on a handful of samples of a blend of two rails).
-    Once per change of rail, the first narrow estimate of the new rail (hi <= ``ceiling_width`` lo) lowers the
-    set-point to its bound if it is above it (``new_rail_bound``: the drop the blind law cannot make on a rail
-    peaking below half the creep held); the first estimate with hi <= ``jump_width`` lo moves the set-point to its
-    centre (``centre_median`` 1: its median, the posterior's best guess of the peak creep; 0: v* = sqrt(lo hi)),
-    never above the bound, and ends the climb.  With ``recall`` = 1, back on a better rail (mu^ up) the set-point
-    goes to the median of the rail left at the last drop, as its last narrow estimate knew it, instead of
-    dropping.
-
-    **The ceiling and the tracking.**  While the estimate is narrow enough (hi <= ``ceiling_width`` lo), or for
-    ``new_rail_s`` after a change of rail, its bound caps the set-point (else ``max_kmh``, extremum seeking's).
-    Outside a climb, while the creep loop sets the torque and the estimate is narrow, a set-point more than
-    ``track_band`` x v* from v* moves towards it at ``track_kmh_per_s`` (the dither still corrects it).
+    By default, one thing: **the lift** (``lift`` 1).  While the creep loop, not the demand, has set the torque
+    for ``settle_s`` (so the estimate has seen the rail at the creep held, and dated a change the demand hid)
+    and the estimate's interval lies above the set-point (lo > v^: the peak is above it with 95 %), the
+    set-point goes up to lo at once (``lift`` 2: to sqrt(lo x median); ``lift_kmh_per_s`` > 0: at that rate;
+    ``lift_width`` > 0: only when hi <= ``lift_width`` lo); the climb and the dither carry on from there.  It
+    never lowers the creep, and it uses the side of the interval a calibrated estimate gets wrong 5 % of the
+    time.  The other uses measured (docs/design/control.md, 2026-11-29: each cost eta_low or added nothing on
+    rails that change, where the estimate is narrow and wrong too often) stay as options, off by default: the
+    ceiling (while hi <= ``ceiling_width`` lo, the bound caps the set-point; 0: off), the jump (the first
+    estimate of the new rail with hi <= ``jump_width`` lo moves the set-point to its centre, ``centre_median`` 1:
+    its median, 0: v*; never above the bound; 0: off) and the tracking towards that centre at
+    ``track_kmh_per_s`` while it stays so narrow, the new rail's bound (``new_rail_bound`` 1: once per change of
+    rail, the first narrow estimate lowers the set-point to its bound), the cap at the interval's high end
+    (``probe_hi`` 1), and ``recall`` (1: back on a better rail, mu^ up, the set-point goes to the median of the
+    rail left at the last drop, as its last narrow estimate knew it, instead of dropping).
 
     **Past a peak**: when the dither's slope estimate 2 LPF(demod) / a stays below -``past_slope`` (per km/h) for
     ``past_s`` while the creep loop holds a creep above the bound, the set-point drops and climbs as at a change of
