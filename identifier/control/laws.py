@@ -364,10 +364,10 @@ class Identified(ExtremumSeeking):
             self._past_for_s = 0.0
         if changed:
             # down to a fraction of the set-point held (what the law measured: blind or not), or, given it,
-            # ``cap_kmh``; the estimate of the new rail bounds it further as soon as it has dated the change
-            # (below)
+            # ``cap_kmh`` (with ``new_rail_bound``, the estimate of the new rail bounds it further once it has
+            # dated the change: below)
             cap = o["cap_kmh"] if o["cap_kmh"] else max(o["drop_ratio"] * self.v_hat, self.cap_kmh) \
-                if o["drop_ratio"] > 0.0 else self.cap_kmh
+                if o["drop_ratio"] > 0.0 else max(self.cap_kmh, b[1]) if narrow else self.cap_kmh   # 0: as of 2026-11-28
             self._changed_t_s, self._jumped, self._bounded = x.t_s, False, False
             if up and o["recall"] and self._left is not None:
                 # back to a better rail: the one left at the last drop, as the estimate knew it (its median, never
