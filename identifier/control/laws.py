@@ -11,8 +11,8 @@
                       Krstic's scheme; J. Adv. Transp. 2019, 6270515 for its use on a locomotive).
 ``identified``        extremum seeking with a drop to half the set-point held and a climb at each change of rail
                       mu^ shows (what the law measures: ``blind`` = 1 runs it so, the bench's ablation), and
-                      what the TCU learns of the rail: its peak estimate (identifier/peak_estimate.py) lifts
-                      the set-point to its 90 % interval's low end when that lies above it.
+                      options that act on what the TCU learns of the rail (its peak estimate,
+                      identifier/peak_estimate.py), all off by default: measured, none helped (the class).
 """
 from __future__ import annotations
 
@@ -147,7 +147,8 @@ class _Scan:
 class Identified(ExtremumSeeking):
     """Extremum seeking placed by what the TCU learns of the rail (module docstring): its peak estimate
     (identifier/peak_estimate.py: the current rail's peak creep v_p with a 90 % interval [lo, hi], every period,
-    ``x.estimate``) lifts its set-point (below); no default is a rail family's extreme.
+    ``x.estimate``) can lift, cap or move its set-point (options, below, off by default: measured, none helped);
+    no default is a rail family's extreme.
 
     **The estimate's creep and bound.**  With the estimate's curve mu = mu_p h(v / v_p) and h(x) = h(1 / x) (its
     k = 1 shape), min over v_p in [lo, hi] of h(v / v_p) is largest at v* = sqrt(lo hi): the creep that maximises
@@ -170,14 +171,17 @@ class Identified(ExtremumSeeking):
 
     **What the estimate adds** (all off with ``blind``).  An estimate acts once it has dated its change of rail
     ``settle_s`` ago (a change it has only just dated rests on a handful of samples of a blend of two rails).
-    By default, one thing: **the lift** (``lift`` 1).  While the creep loop, not the demand, has set the torque
+    By default, nothing: every use measured either cost eta_low or added macro-slip on the default rail family
+    (docs/design/control.md, 2026-11-29), so ``identified`` runs as ``blind`` unless an option turns one on.
+    **The lift** (``lift`` 1; off: on 100 draws it left the median eta_low unchanged and tripled the runs with
+    macro-slip, 15 % against 5 %).  While the creep loop, not the demand, has set the torque
     for ``settle_s`` (so the estimate has seen the rail at the creep held, and dated a change the demand hid)
     and the estimate's interval lies above the set-point (lo > v^: the peak is above it with 95 %), the
     set-point goes up to lo at once (``lift`` 2: to sqrt(lo x median); ``lift_kmh_per_s`` > 0: at that rate;
     ``lift_width`` > 0: only when hi <= ``lift_width`` lo); the climb and the dither carry on from there.  It
     never lowers the creep, and it uses the side of the interval a calibrated estimate gets wrong 5 % of the
-    time.  The other uses measured (docs/design/control.md, 2026-11-29: each cost eta_low or added nothing on
-    rails that change, where the estimate is narrow and wrong too often) stay as options, off by default: the
+    time.  The other uses measured (each cost eta_low or added nothing on rails that change, where the estimate
+    is narrow and wrong too often) stay as options, off by default too: the
     ceiling (while hi <= ``ceiling_width`` lo, the bound caps the set-point; 0: off), the jump (the first
     estimate of the new rail with hi <= ``jump_width`` lo moves the set-point to its centre, ``centre_median`` 1:
     its median, 0: v*; never above the bound; 0: off) and the tracking towards that centre at
@@ -204,7 +208,7 @@ class Identified(ExtremumSeeking):
     defaults = {"hold_fraction": 0.98, "jump_ratio": 1.5, "rearm_s": 0.3, "drop_fraction": 0.0,
                 "change_mu": 0.02, "cap_kmh": 0.0, "scan_kmh_per_s": 4.0, "scan_settle_s": 0.03,
                 "scan_filter_s": 0.01, "scan_drop_mu": 0.004, "scan_flat_kmh": 0.25,
-                "past_slope": 0.02, "past_s": 0.05, "rise_mu": 0.008, "drop_ratio": 0.5, "settle_s": 0.1, "centre_median": 1, "new_rail_bound": 0, "recall": 0, "lift": 1, "lift_kmh_per_s": 0.0, "lift_width": 0.0, "probe_hi": 0, "risk_margin": 0.9, "jump_width": 0.0,
+                "past_slope": 0.02, "past_s": 0.05, "rise_mu": 0.008, "drop_ratio": 0.5, "settle_s": 0.1, "centre_median": 1, "new_rail_bound": 0, "recall": 0, "lift": 0, "lift_kmh_per_s": 0.0, "lift_width": 0.0, "probe_hi": 0, "risk_margin": 0.9, "jump_width": 0.0,
                 "ceiling_width": 0.0, "stale_s": 0.1, "startup_s": 0.2, "new_rail_s": 0.0, "track_kmh_per_s": 1.0, "track_band": 0.1, "change_limited": 1, "blind": 0, **ExtremumSeeking.defaults,
                 "dither_kmh": 0.05, "gain": 480.0}
     ranges = {"hold_fraction": (0.1, 2.0), "jump_ratio": (0.0, 100.0), "rearm_s": (0.001, 60.0),
