@@ -199,7 +199,7 @@ def test_identified_lifts_the_set_point_to_the_estimates_low_end_and_blind_does_
     """The law alone, its creep following its set-point (a 7 ms lag) on mu(v) = 2 mu_p (v / v_p) / (1 + (v / v_p)^2),
     peak 0.30 at 1.8 km/h, the set-point at 0.6 km/h, and an estimate of this rail (dated 0.2 s before, so
     settled) whose 90 % peak-creep interval is [1.5, 2.2] km/h: the estimate is sure the peak lies above the
-    set-point.  ``identified`` holds 0.6 km/h while the creep loop has set the torque for less than ``settle_s``
+    set-point.  ``identified`` with ``lift = 1`` holds 0.6 km/h while the creep loop has set the torque for less than ``settle_s``
     (0.1 s), then lifts the set-point to 1.5 km/h at once (what follows is the law's other tests': the creep
     loop's step then exceeds the demand and the rise test sees mu^ rise, docs/design/control.md); ``blind`` (the
     estimate withheld) stays below 1.2 km/h for the 0.15 s (the dither alone climbs slowly); with the default
