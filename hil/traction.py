@@ -108,12 +108,17 @@ class TruthTrack:
         """Where the rail changes: each segment's start after the first (the paper's runs: the fault)."""
         return self.rail.transitions_s if self.rail is not None else (self.scenario.run.fault_time_s,)
 
-    def metrics(self, events=()) -> dict:
+    def metrics(self, events=(), estimates=None) -> dict:
         """The run's figures (module docstring); ``events``: the TCU's identification events, for the per-drop
-        identification figures (``drop_identification``)."""
+        identification figures (``drop_identification``); ``estimates``: the built-in TCU's peak estimates (a
+        trace of them), for ``peak_estimate`` per rail change (``estimate_figures``; None: an external TCU)."""
         c = self.cols
         out = metrics(c, self.changes_s(), self.period_s, self.normal_force_n, self.torque_per_mu_nm)
         out["drop_identification"] = drop_figures(c, self.changes_s(), events)
+        if estimates is not None and self.rail is not None:
+            fig = estimate_figures(c, self.changes_s(), estimates, every=1)
+            out["peak_estimate"] = [{"change_s": r["t_s"], "lead_time_ms": r["lead_time_ms"],
+                                     **(r["peak_estimate"] or {})} for r in fig["per_change"]]
         return out
 
 
@@ -218,3 +223,53 @@ def metrics(c: dict, changes_s, period_s: float, normal_force_n: float, torque_p
             "torque_ripple_percent": max(ripples) if ripples else None,
             "traction_energy_mj": float((f_x * v_t).sum() * period_s / 1e6), "distance_m": float(v_t.sum() * period_s),
             "drops": drops}
+
+
+#: the lead time's target window and its accuracy: an estimate whose interval holds the true peak creep and whose
+#: centre lies within LEAD_ACCURACY of it
+LEAD_ACCURACY = 0.10
+
+
+def estimate_figures(c: dict, changes_s, estimates, every: int = 10) -> dict:
+    """The TCU's predictive peak estimates (identifier/peak_estimate.py ``PeakEstimate``, one per period) against the
+    rail's truth at their time, from per-step arrays ``c`` (``TruthTrack.cols``):
+
+    - ``coverage_peak_creep``, ``coverage_peak_mu``: the fraction of estimates (every ``every``-th) whose 90 %
+      interval holds the true current peak creep (peak mu);
+    - ``per_change``: for each change of rail, ``lead_time_ms``, from the change's start to the first estimate
+      whose peak-creep interval holds the true peak creep then and whose centre is within ``LEAD_ACCURACY`` of it
+      (None: none before the next change), and the estimate published 100 ms after the change
+      (``peak_estimate``: centre and interval, and the truth then)."""
+    t, p_mu, p_creep = c["t_s"], c["peak_mu"], c["peak_creep_kmh"]
+    if not estimates or t.size == 0:
+        return {"coverage_peak_creep": None, "coverage_peak_mu": None, "estimates": 0, "per_change": []}
+    steps = np.array([e.step for e in estimates])
+    period = float(np.median(np.diff(t))) if t.size > 1 else 1e-3
+    idx = np.clip(np.searchsorted(t, steps * period - 1e-9), 0, t.size - 1)
+    lo = np.array([e.peak_creep_ci[0] for e in estimates])
+    hi = np.array([e.peak_creep_ci[1] for e in estimates])
+    mid = np.array([e.peak_creep_kmh for e in estimates])
+    mlo = np.array([e.peak_mu_ci[0] for e in estimates])
+    mhi = np.array([e.peak_mu_ci[1] for e in estimates])
+    truth_v, truth_mu = p_creep[idx], p_mu[idx]
+    holds = (lo <= truth_v) & (truth_v <= hi)
+    good = holds & (np.abs(mid - truth_v) <= LEAD_ACCURACY * truth_v)
+    sub = slice(None, None, max(int(every), 1))
+    out = {"coverage_peak_creep": float(holds[sub].mean()),
+           "coverage_peak_mu": float(((mlo <= truth_mu) & (truth_mu <= mhi))[sub].mean()),
+           "estimates": int(len(estimates)), "per_change": []}
+    changes = [float(x) for x in changes_s if t[0] <= x <= t[-1]]
+    times = steps * period
+    for x, end in zip(changes, changes[1:] + [math.inf]):
+        inside = np.flatnonzero((times >= x - 1e-9) & (times < end) & good)
+        j = int(np.searchsorted(times, x + 0.1 - 1e-9))
+        row = {"t_s": x, "lead_time_ms": float((times[inside[0]] - x) * 1e3) if inside.size else None,
+               "peak_estimate": None}
+        if j < len(estimates) and times[j] < end:
+            e = estimates[j]
+            row["peak_estimate"] = {"t_s": float(times[j]), "peak_creep_kmh": e.peak_creep_kmh,
+                                    "peak_creep_ci": list(e.peak_creep_ci), "peak_mu": e.peak_mu,
+                                    "peak_mu_ci": list(e.peak_mu_ci), "since_s": e.since_step * period,
+                                    "true_peak_creep_kmh": float(truth_v[j]), "true_peak_mu": float(truth_mu[j])}
+        out["per_change"].append(row)
+    return out

@@ -1207,6 +1207,164 @@ def exp_shape_fit(mu0_axis, a_axis, r_axis, peak_mu, peak_creep_kmh, v, m, theta
     return best_i
 
 
+# -- the predictive peak estimate (identifier/peak_estimate.py) -------------------------------------------------
+_LOG_2PI = math.log(2.0 * math.pi)
+
+
+@njit(**_JIT_EXACT)
+def peak_estimate_step(prec, b, logml, log_mass, start, count, n, log_prior, vp, kk, x, m, s2, prec0, b0, log_h,
+                       log_1mh, kmax, step, h, lp, keep, dh, sv2):
+    """One sample (x = |creep|, m = mu^) of identifier/peak_estimate.py's change-point recursion on rows 0..n-1 of the
+    (kmax + 1, C) state, in place: a new run length is born in row n, then the least probable row is dropped
+    when more than ``kmax`` remain.  Returns the number of rows.  ``h``, ``lp``: (C,) scratch; ``keep``: the
+    weight the past keeps per sample (the estimator's memory); ``dh``: (C,) scratch for dh/dv; ``sv2``: the
+    creep's noise variance (errors in the variable: (mean dh/dv)^2 sv2 joins the predictive variance)."""
+    n_c = vp.size
+    for c in range(n_c):
+        xx = x / vp[c]
+        k = kk[c]
+        xp = xx ** (1.0 + k)
+        den = k + xp
+        h[c] = (1.0 + k) * xx / den
+        dh[c] = (1.0 + k) * k * (1.0 - xp) / (den * den) / vp[c]
+    mu0 = b0 / prec0
+    mx = -np.inf
+    for c in range(n_c):
+        var = s2 + h[c] * h[c] / prec0 + mu0 * mu0 * dh[c] * dh[c] * sv2
+        r = m - mu0 * h[c]
+        v = -0.5 * (_LOG_2PI + math.log(var) + r * r / var)
+        logml[n, c] = v
+        if log_prior[c] + v > mx:
+            mx = log_prior[c] + v
+    acc = 0.0
+    for c in range(n_c):
+        acc += math.exp(log_prior[c] + logml[n, c] - mx)
+    pred0 = mx + math.log(acc)
+    mm = -np.inf
+    for i in range(n):
+        if log_mass[i] > mm:
+            mm = log_mass[i]
+    acc = 0.0
+    for i in range(n):
+        acc += math.exp(log_mass[i] - mm)
+    mass_all = mm + math.log(acc)
+    for i in range(n):
+        mx1 = -np.inf
+        mx2 = -np.inf
+        for c in range(n_c):
+            p = prec[i, c]
+            mean = b[i, c] / p
+            var = s2 + h[c] * h[c] / p + mean * mean * dh[c] * dh[c] * sv2
+            r = m - mean * h[c]
+            v = -0.5 * (_LOG_2PI + math.log(var) + r * r / var)
+            lp[c] = v
+            a1 = log_prior[c] + logml[i, c]
+            if a1 > mx1:
+                mx1 = a1
+            if a1 + v > mx2:
+                mx2 = a1 + v
+        s1 = 0.0
+        s2_ = 0.0
+        for c in range(n_c):
+            a1 = log_prior[c] + logml[i, c]
+            s1 += math.exp(a1 - mx1)
+            s2_ += math.exp(a1 + lp[c] - mx2)
+        log_mass[i] += log_1mh + (mx2 + math.log(s2_)) - (mx1 + math.log(s1))
+        for c in range(n_c):
+            logml[i, c] = keep * logml[i, c] + lp[c]
+            prec[i, c] = prec0 + keep * (prec[i, c] - prec0) + h[c] * h[c] / s2
+            b[i, c] = b0 + keep * (b[i, c] - b0) + h[c] * m / s2
+        count[i] += 1
+    for c in range(n_c):
+        prec[n, c] = prec0 + h[c] * h[c] / s2
+        b[n, c] = b0 + h[c] * m / s2
+    log_mass[n] = log_h + mass_all + pred0
+    start[n] = step
+    count[n] = 1
+    n += 1
+    if n > kmax:
+        j = 0
+        for i in range(1, n):
+            if log_mass[i] < log_mass[j]:
+                j = i
+        last = n - 1
+        if j != last:
+            for c in range(n_c):
+                prec[j, c] = prec[last, c]
+                b[j, c] = b[last, c]
+                logml[j, c] = logml[last, c]
+            log_mass[j] = log_mass[last]
+            start[j] = start[last]
+            count[j] = count[last]
+        n -= 1
+    mm = -np.inf
+    for i in range(n):
+        if log_mass[i] > mm:
+            mm = log_mass[i]
+    acc = 0.0
+    for i in range(n):
+        acc += math.exp(log_mass[i] - mm)
+    norm = mm + math.log(acc)
+    for i in range(n):
+        log_mass[i] -= norm
+    return n
+
+
+@njit(**_JIT_EXACT)
+def peak_estimate_publish(prec, b, logml, log_mass, n, log_prior, n_k, log_grid, marg, out):
+    """The published figures of identifier/peak_estimate.py's mixture over rows 0..n-1: out = (peak creep 5, 50,
+    95 % quantiles, peak mu mean and sd, the most probable row).  ``marg``: (grid,) scratch."""
+    n_c = log_prior.size
+    for j in range(marg.size):
+        marg[j] = 0.0
+    m1 = 0.0
+    m2 = 0.0
+    total = 0.0
+    best = 0
+    for i in range(n):
+        if log_mass[i] > log_mass[best]:
+            best = i
+        mx = -np.inf
+        for c in range(n_c):
+            a = log_prior[c] + logml[i, c]
+            if a > mx:
+                mx = a
+        acc = 0.0
+        for c in range(n_c):
+            acc += math.exp(log_prior[c] + logml[i, c] - mx)
+        lse = mx + math.log(acc)
+        for c in range(n_c):
+            w = math.exp(log_mass[i] + log_prior[c] + logml[i, c] - lse)
+            marg[c // n_k] += w
+            mean = b[i, c] / prec[i, c]
+            m1 += w * mean
+            m2 += w * (mean * mean + 1.0 / prec[i, c])
+            total += w
+    m1 /= total
+    m2 /= total
+    for j in range(marg.size):
+        marg[j] /= total
+    for q_i in range(3):
+        q = 0.05 if q_i == 0 else (0.5 if q_i == 1 else 0.95)
+        cum = 0.0
+        prev_mid = -1.0
+        val = log_grid[log_grid.size - 1]
+        for j in range(marg.size):
+            mid = cum + 0.5 * marg[j]
+            if mid >= q:
+                if j == 0 or mid <= prev_mid:
+                    val = log_grid[j]
+                else:
+                    val = log_grid[j - 1] + (log_grid[j] - log_grid[j - 1]) * (q - prev_mid) / (mid - prev_mid)
+                break
+            prev_mid = mid
+            cum += marg[j]
+        out[q_i] = math.exp(val)
+    out[3] = m1
+    out[4] = math.sqrt(max(m2 - m1 * m1, 0.0))
+    out[5] = best
+
+
 def _warm_calls() -> list:
     """(kernel name, a call that compiles it on tiny inputs or loads it from the cache), in order."""
     xt = np.zeros((5, 4))
@@ -1219,7 +1377,14 @@ def _warm_calls() -> list:
     c = np.full(4, 0.1)
     u16 = np.ascontiguousarray(np.random.default_rng(0).standard_normal((16, 5)).T)
     th16 = np.empty((5, 16))
+    ps = (np.ones((3, 4)), np.zeros((3, 4)), np.zeros((3, 4)), np.zeros(3), np.zeros(3, np.int64),
+          np.zeros(3, np.int64))
+    grid = np.ones(4)
     return [
+        ("peak_estimate_step", lambda: peak_estimate_step(*ps, 1, np.zeros(4), grid, grid, 0.5, 0.1, 1e-4, 1.0, 0.0,
+                                                          -7.0, -1e-3, 2, 0, np.empty(4), np.empty(4), 1.0, np.empty(4), 1e-4)),
+        ("peak_estimate_publish", lambda: peak_estimate_publish(*ps[:4], 1, np.zeros(4), 1, np.zeros(4),
+                                                                np.empty(4), np.empty(6))),
         ("rownorm_propagate", lambda: rownorm_propagate(xt, w, np.zeros((5, 4)), np.empty((5, 4)), np.empty((5, 4)))),
         ("log_likelihood", lambda: log_likelihood(xt, np.zeros(5), 1.0, 0.1, -0.5, ll, tmp)),
         ("reweigh", lambda: reweigh(ll, w, np.empty(4))),

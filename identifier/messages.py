@@ -73,3 +73,4 @@ class TcuOutput:
     status: TcuStatus
     observer: ObserverSample | None = None
     events: list[IdentificationEvent] = field(default_factory=list)
+    estimate: object | None = None     # the current rail's peak estimate (identifier/peak_estimate.py PeakEstimate)

@@ -22,10 +22,13 @@ from .excitation import Excitation
 from .messages import (STAGE_CONFIRMED, STAGE_GAVE_UP, STAGE_IDENTIFYING, STAGE_MONITORING, ObserverSample,
                        SensorReading, TcuOutput, TcuStatus, TorqueCommand)
 from .observer import LoadTorqueObserver
+from .peak_estimate import PeakEstimator
 from .settings import IdentifierSettings
 from .strategies import DEFAULT_STRATEGY, Sample, make_strategy
 
 KMH_PER_MS = 3.6
+#: the run keeps one estimate in this many periods for its summary (identifier/peak_estimate.py)
+ESTIMATE_TRACE_STEPS = 10
 
 
 def creep_speed_kmh(reading: SensorReading, vehicle) -> float:
@@ -133,6 +136,14 @@ class TractionIdentifier:
         # strategy's code is warm when the fault comes (identifier/drill.py); not for strategies
         # whose samples are not all cheap (``Strategy.keeps_warm``), nor for those that model the
         # observer's output (the drill has speed readings or (creep, mu) samples, not an observer)
+        # the predictive estimate of the current rail's peak (identifier/peak_estimate.py), every period once the
+        # observer has settled from its start; ``estimates`` keeps every one when a benchmark asks for them
+        self.estimator = PeakEstimator(settings.period_s, settings.options.get("peak_estimate"))
+        self.estimate = None
+        self.estimates: list | None = None
+        #: every ``ESTIMATE_TRACE_STEPS``-th estimate, always (the run summary's ``peak_estimate`` per rail change)
+        self.estimate_trace: list = []
+        self.events_log: list | None = None    # every identification event, when a benchmark asks for them
         self.drill = (Drill(settings, strategy, settings.drill_particles, seed)
                       if settings.drill_particles > 0 and self.strategy.keeps_warm
                       and (self._wants_readings or not self._observer_aware) else None)
@@ -168,7 +179,7 @@ class TractionIdentifier:
         s = self.settings
         return ControlInput(step, step * s.period_s, s.period_s, self.demand_nm, creep, load_torque, mu_hat,
                             self.detector.detected_step is not None, ci,
-                            tuple(e.peak_mu_ci) if e is not None else None, confirmed, peak_creep)
+                            tuple(e.peak_mu_ci) if e is not None else None, confirmed, peak_creep, self.estimate)
 
     def use_controller(self, controller) -> None:
         """Act through ``controller`` (anything with ``torque_nm(ControlInput)`` and ``wants_rearm``) instead
@@ -232,6 +243,14 @@ class TractionIdentifier:
         reading, observer, innovation, paired_creep, slipping, detected_before = pending
         t_s = observer.t_s
         events = []
+        if reading.step >= self._settle_steps and not self._open_loop:
+            # the estimate is for a control law: an open-loop run (the paper's, the default) does not pay
+            # its cost (docs/design/control.md: p99 350 us a sample with it, 159 us without, at load 10)
+            self.estimate = self.estimator.add(reading.step, t_s, paired_creep, observer.mu_hat)
+            if self.estimates is not None:
+                self.estimates.append(self.estimate)
+            if reading.step % ESTIMATE_TRACE_STEPS == 0:
+                self.estimate_trace.append(self.estimate)
         if self.drill is not None and (self.detector.detected_step is None or (
                 not self._observer_aware and reading.step - self.detector.detected_step < self._settle_steps - 1)):
             self.drill.tick()       # monitoring, or settling: the strategy's first sample is still ahead
@@ -253,7 +272,9 @@ class TractionIdentifier:
                 events = self.strategy.add_sample(Sample(reading.step, t_s, paired_creep, observer.mu_hat))
         if events:
             self.latest_event = events[-1]
-        return TcuOutput(command, self._status(reading.step), observer, events)
+            if self.events_log is not None:
+                self.events_log.extend(events)
+        return TcuOutput(command, self._status(reading.step), observer, events, self.estimate)
 
     def _status(self, step: int) -> TcuStatus:
         return TcuStatus(step, self.stage(), self.strategy.corrections)

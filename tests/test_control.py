@@ -166,37 +166,76 @@ def test_extremum_seekings_slope_estimate_restarts_at_a_change_of_rail():
 def test_identified_drops_to_a_safe_creep_at_a_change_of_rail_and_climbs_to_the_new_peak():
     """The law alone, its creep following its set-point (a 7 ms lag, as the creep loop's) on a curve
     mu(v) = 2 mu_p (v / v_p) / (1 + (v / v_p)^2) (peak mu_p at v_p), mu^ = mu(creep).  A wet patch (0.30 at
-    0.9 km/h -> 0.10 at 1.8 km/h) brings the set-point to 0.7 km/h (``cap_kmh``) or below within 20 ms, and the climb
-    ends within 0.2 km/h of the patch's peak creep within 0.6 s; the dry rail again (mu^ rising) brings it
-    to 0.7 km/h (``cap_kmh``) or below within 20 ms, although the creep the patch carried (1.8) is twice the dry peak's.
-    ``max_kmh`` is extremum seeking's 12: the bound on the creep held has its own test."""
+    0.9 km/h -> 0.10 at 1.8 km/h) brings the set-point to half the one held (``drop_ratio``) or below within 20 ms,
+    and the climb ends within 0.2 km/h of the patch's peak creep within 0.6 s; the dry rail again (mu^ rising)
+    brings it to half the one held or below within 20 ms: below twice the dry peak creep (1.8), which the creep the
+    patch carried (1.8) reached.  The same with the estimate withheld (``blind``: the drop is what the law
+    measured).  ``max_kmh`` is extremum seeking's 12: the bound on the creep held has its own test."""
     from identifier.control import make_controller
     from identifier.control.base import ControlInput
     from identifier.settings import VehicleModel
 
-    law = make_controller("identified", VehicleModel(120.0, 9000.0, 4.0, 0.5), 0.9, {"max_kmh": 12.0})
-
     def mu(v, mu_p, v_p):
         return 2 * mu_p * (v / v_p) / (1 + (v / v_p) ** 2)
 
-    creep, dt, seen = 0.9, 1e-3, {}
-    rails = ((0.30, 0.9), (0.10, 1.8), (0.30, 0.9))          # dry, then the patch from 1 s, dry again from 2 s
-    for k in range(3000):
-        mu_p, v_p = rails[k // 1000]
-        m = mu(creep, mu_p, v_p)
-        law.torque_nm(ControlInput(k, k * dt, dt, 20000.0, creep, m * 10000, m, True))
-        creep += (law.v_hat - creep) * dt / 0.007
-        seen[k] = law.v_hat
-    assert max(seen[k] for k in range(1005, 1025)) <= 0.7 + 1e-9, "no drop at the patch"
-    assert abs(seen[1600] - 1.8) < 0.2, seen[1600]
-    assert max(seen[k] for k in range(2005, 2025)) <= 0.7 + 1e-9, "no drop at the dry rail's return"
+    for blind in (0, 1):
+        law = make_controller("identified", VehicleModel(120.0, 9000.0, 4.0, 0.5), 0.9,
+                              {"max_kmh": 12.0, "blind": blind})
+        creep, dt, seen = 0.9, 1e-3, {}
+        rails = ((0.30, 0.9), (0.10, 1.8), (0.30, 0.9))          # dry, then the patch from 1 s, dry again from 2 s
+        for k in range(3000):
+            mu_p, v_p = rails[k // 1000]
+            m = mu(creep, mu_p, v_p)
+            law.torque_nm(ControlInput(k, k * dt, dt, 20000.0, creep, m * 10000, m, True))
+            creep += (law.v_hat - creep) * dt / 0.007
+            seen[k] = law.v_hat
+        assert max(seen[k] for k in range(1005, 1025)) <= 0.5 * seen[999] + 1e-9, "no drop at the patch"
+        assert abs(seen[1600] - 1.8) < 0.2, seen[1600]
+        assert max(seen[k] for k in range(2005, 2025)) <= 0.5 * seen[1999] + 1e-9, "no drop at the dry rail's return"
+        assert max(seen[k] for k in range(2005, 2025)) < 1.8
+
+
+def test_identified_lifts_the_set_point_to_the_estimates_low_end_and_blind_does_not():
+    """The law alone, its creep following its set-point (a 7 ms lag) on mu(v) = 2 mu_p (v / v_p) / (1 + (v / v_p)^2),
+    peak 0.30 at 1.8 km/h, the set-point at 0.6 km/h, and an estimate of this rail (dated 0.2 s before, so
+    settled) whose 90 % peak-creep interval is [1.5, 2.2] km/h: the estimate is sure the peak lies above the
+    set-point.  ``identified`` with ``lift = 1`` holds 0.6 km/h while the creep loop has set the torque for less than ``settle_s``
+    (0.1 s), then lifts the set-point to 1.5 km/h at once (what follows is the law's other tests': the creep
+    loop's step then exceeds the demand and the rise test sees mu^ rise, docs/design/control.md); ``blind`` (the
+    estimate withheld) stays below 1.2 km/h for the 0.15 s (the dither alone climbs slowly); with the default
+    ``lift = 0`` the same."""
+    from identifier.control import make_controller
+    from identifier.control.base import ControlInput
+    from identifier.peak_estimate import PeakEstimate
+    from identifier.settings import VehicleModel
+
+    def mu(v):
+        return 2 * 0.30 * (v / 1.8) / (1 + (v / 1.8) ** 2)
+
+    def set_points(options):
+        law = make_controller("identified", VehicleModel(120.0, 9000.0, 4.0, 0.5), 0.9,
+                              {"max_kmh": 12.0, "startup_s": 10.0, **options})   # no change test: the lift alone
+        law.v_hat, creep, dt, out = 0.6, 0.6, 1e-3, []
+        for k in range(150):
+            m = mu(creep)
+            est = PeakEstimate(k, k * dt, 1.8, (1.5, 2.2), 0.30, (0.25, 0.35), k - 200, 40)
+            law.torque_nm(ControlInput(k, k * dt, dt, 20000.0, creep, m * 10000, m, False, estimate=est))
+            creep += (law.v_hat - creep) * dt / 0.007
+            out.append(law.v_hat)
+        return out
+
+    lifted = set_points({"lift": 1})
+    assert max(lifted[:95]) < 1.0 and max(lifted[95:110]) >= 1.5 - 1e-9, lifted[95:110]
+    assert max(set_points({"lift": 1, "blind": 1})) < 1.2
+    assert max(set_points({})) < 1.2                      # the default: off (docs/design/control.md)
 
 
 def test_identified_drops_when_the_dither_finds_it_past_a_peak_that_mu_hat_never_showed():
     """The law alone, its creep following its set-point with the dither (v^ + 0.05 sin(2 pi 8 t), a 7 ms lag)
     on mu(v) = 2 mu_p (v / v_p) / (1 + (v / v_p)^2), peak 0.30 at 0.9 km/h.  The set-point is put at 2.6 km/h,
     on the curve's tail, with mu^'s mean already there: no change of rail for the change test to see.  The
-    dither's slope estimate goes negative and the set-point drops to 0.7 km/h (``cap_kmh``) or below within 0.5 s; with
+    dither's slope estimate goes negative and the set-point drops below 1.3 km/h (half the one held, ``drop_ratio``:
+    below twice the peak creep) within 0.5 s; with
     ``past_slope = 0`` and ``rise_mu = 0`` (the dither walking down the tail raises mu^ too) the dither alone
     is still above twice the peak creep (1.8 km/h) then.  ``max_kmh`` is extremum seeking's 12 throughout (the
     bound on the creep held has its own test)."""
@@ -222,8 +261,8 @@ def test_identified_drops_when_the_dither_finds_it_past_a_peak_that_mu_hat_never
             lowest = min(lowest, law.v_hat)
         return lowest
 
-    assert set_point_after(None, 0.5) <= 0.7 + 1e-9
-    assert set_point_after({"rise_mu": 0.0}, 0.5) <= 0.7 + 1e-9          # the past-a-peak test alone
+    assert set_point_after(None, 0.5) <= 1.3 + 1e-9
+    assert set_point_after({"rise_mu": 0.0}, 0.5) <= 1.3 + 1e-9          # the past-a-peak test alone
     assert set_point_after({"past_slope": 0.0, "rise_mu": 0.0}, 0.5) > 1.8
 
 
@@ -232,7 +271,8 @@ def test_identified_drops_when_a_recovering_rail_raises_mu_hat_a_little_at_the_c
     its set-point with a 7 ms lag, on mu(v) = 2 mu_p (v / v_p) / (1 + (v / v_p)^2).  A patch (peak 0.19 at
     2.9 km/h) with the creep held at 2.3 km/h for 0.4 s: the set-point stays above 2 km/h.  Then over 0.1 s
     the rail blends into a dry one (peak 0.30 at 0.9 km/h): mu^ at 2.3 km/h rises only from 0.185 to 0.204.
-    The set-point is at 0.7 km/h (``cap_kmh``) or below by the end of the blend; with ``rise_mu = 0`` it is still above
+    The set-point is at half the one held (``drop_ratio``: 1.15 km/h, below twice the dry peak creep) or below by the
+    end of the blend; with ``rise_mu = 0`` it is still above
     1.8 km/h (twice the dry peak creep) then.  ``max_kmh`` is extremum seeking's 12 (the bound on the creep
     held has its own test)."""
     from identifier.control import make_controller
@@ -259,17 +299,18 @@ def test_identified_drops_when_a_recovering_rail_raises_mu_hat_a_little_at_the_c
 
     default, off = set_points({}), set_points({"rise_mu": 0.0})
     assert min(default[:400]) > 2.0, "a drop on a steady rail"
-    assert min(default[400:]) <= 0.7 + 1e-9
+    assert min(default[400:]) <= 0.5 * max(default) + 1e-9 < 1.8
     assert min(off) > 1.8
 
 
-def test_identified_holds_no_creep_a_quick_return_to_dry_rail_would_put_in_macro_slip(tmp_path_factory):
+def test_a_bound_on_the_creep_held_keeps_a_quick_return_to_dry_rail_out_of_macro_slip(tmp_path_factory):
     """tests/data/far_patch.toml: a patch peaking at 2.81 km/h, the demand just above its peak, then a dry
-    rail peaking at 0.89 km/h within 79 ms.  With ``max_kmh`` at extremum seeking's 12 the law holds the
-    creep near the patch's peak (above 2 km/h) and the return puts it past twice the dry peak creep for
-    more than 50 ms before mu^ has moved (the judged macro-slip of docs/design/control.md); with the
-    default bound (1.6 km/h) the creep on the patch stays within the bound plus the dither and no
-    macro-slip follows.  Both from the log's true states."""
+    rail peaking at 0.89 km/h within 79 ms.  With today's defaults (issue 50: no bound taken from a family's
+    extreme; the estimate bounds the creep by the *current* rail's peak) the law holds the creep near the
+    patch's peak (above 2 km/h) and the return puts it past twice the dry peak creep for more than 50 ms
+    before mu^ has moved: the estimate cannot know the next rail (docs/design/control.md).  With the family's
+    bound given as an option (``max_kmh`` 1.6 km/h, issue 36's default) the creep on the patch stays within the
+    bound plus the dither and no macro-slip follows.  Both from the log's true states."""
     far = ROOT / "tests" / "data" / "far_patch.toml"
 
     def longest_over_and_patch_creep(overrides):
@@ -283,10 +324,11 @@ def test_identified_holds_no_creep_a_quick_return_to_dry_rail_would_put_in_macro
         patch = (a["t"] >= 2.5) & (a["t"] < 5.3)
         return summary, longest, float(np.median(a["creep"][patch])), float(np.max(a["creep"][patch]))
 
-    summary, longest, median_kmh, top_kmh = longest_over_and_patch_creep({})
+    summary, longest, median_kmh, top_kmh = longest_over_and_patch_creep({"control.options.identified.max_kmh": 1.6})
     assert longest <= 50 and summary["macro_slip_count"] == 0, (longest, summary["macro_slip_s"])
     assert top_kmh < 1.6 + 0.15 and median_kmh > 1.3, (median_kmh, top_kmh)
-    summary, longest, median_kmh, top_kmh = longest_over_and_patch_creep({"control.options.identified.max_kmh": 12.0})
+    summary, longest, median_kmh, top_kmh = longest_over_and_patch_creep({})
+    print("defaults:", longest, summary["macro_slip_s"], median_kmh)
     assert longest > 50 and summary["macro_slip_count"] >= 1, (longest, summary["macro_slip_s"])
     assert median_kmh > 2.0, median_kmh
 
@@ -433,11 +475,17 @@ def test_in_closed_loop_gps_interval_holds_the_peak_the_law_holds_the_creep_at(t
     from hil.benchmarks.control import BASE, draw_text
     from hil.config import parse_scenario
 
-    text, drawn = draw_text((ROOT / BASE).read_text(), 1885060422, 37, 30.0)
+    text, drawn = draw_text((ROOT / BASE).read_text(), 1885060422, 37, 30.0, "narrow")   # issue 36's family
     assert 0.45 < drawn["patches"][-1]["peak_creep_kmh"] < 0.55
 
+    # the law this was measured with (issue 36's identified: replay's options for logs before the peak estimate),
+    # so the check stays one of gp's options
+    from hil.replay import NEWER_THAN_SOME_LOGS
+    law_then = next(o for key, _, o in NEWER_THAN_SOME_LOGS if key == "identified_peak_estimate")
+
     def confirmed(overrides):
-        scenario = parse_scenario(text, "draw 37", {"control.law": "identified", "run.duration_s": 13.0, **overrides})
+        scenario = parse_scenario(text, "draw 37", {"control.law": "identified", "run.duration_s": 13.0, **law_then,
+                                                    **overrides})
         summary = run(scenario, "gp", 1885060422 % 1000 + 37, bus="inprocess", out_dir=tmp_path_factory.mktemp("d37"),
                       progress=False)
         log = read_log(summary["mcap"])
@@ -517,7 +565,8 @@ def test_the_control_bench_reports_every_law_with_the_oracle_on_top_and_the_iden
 
     seed = case_seed("control bench")
     r = run_hil("bench", "control", "--draws", "1", "--duration-s", "12", "--speed-s", "0", "--seed", str(seed),
-                "--laws", "extremum_seeking,identified,oracle", "--json", "--doc", str(tmp_path), timeout=600)
+                "--family", "narrow", "--laws", "extremum_seeking,identified,blind,oracle", "--json", "--doc",
+                str(tmp_path), timeout=900)
     assert r.returncode == 0, r.stderr[-2000:]
     out = json.loads(r.stdout)
     assert out["seed"] == seed and out["draws"] == 1
@@ -527,6 +576,16 @@ def test_the_control_bench_reports_every_law_with_the_oracle_on_top_and_the_iden
                     "recovery_median_s", "torque_ripple_median_percent", "runs"):
             assert key in res, (law, key)
         assert len(res["runs"]) == 1
+        for key in ("confirmations", "wrong_confirmation_fraction", "estimate_coverage", "lead_time_median_ms",
+                    "lead_time_within_100ms_fraction"):
+            assert key in res, (law, key)
+    ident, blind = out["results"]["identified"], out["results"]["blind"]
+    assert out["family"]["name"] == "narrow"
+    assert ident["blind_eta_low_median"] == blind["eta_low_median"]
+    assert ident["contribution_eta_low_median"] == pytest.approx(
+        ident["runs"][0]["adhesion_utilisation_low"] - blind["runs"][0]["adhesion_utilisation_low"])
+    assert ident["contribution_eta_low_p5"] == pytest.approx(ident["contribution_eta_low_median"])
+    assert 0.0 <= ident["estimate_coverage"] <= 1.0
     oracle = out["results"]["oracle"]
     assert oracle["macro_slip_fraction"] == 0.0 and oracle["eta_low_median"] > 0.9, oracle
     a = out["results"]["identified"]["runs"][0]
@@ -537,11 +596,11 @@ def test_the_control_bench_reports_every_law_with_the_oracle_on_top_and_the_iden
         "drops": len(rows), "confirmed": len(confirmed),
         "holding_truth": sum(1 for d in confirmed if d["interval_holds_truth"] is True),
         "peak_creep_within_10_percent": sum(1 for d in confirmed if d["peak_creep_err_percent"] <= 10.0)}
-    report = (tmp_path / "control.md").read_text()
+    report = (tmp_path / "control-narrow.md").read_text()          # another family than the default: its name
     assert f"seed {seed}" in report
     assert "| 60 s logged run >= 10 x real time | not measured |" in report      # --speed-s 0: no speed run
     assert f"the identifier confirmed {len(confirmed)} of {len(rows)} drops" in report
-    assert (tmp_path / "control-eta-low.png").stat().st_size > 1000
+    assert (tmp_path / "control-narrow-eta-low.png").stat().st_size > 1000
 
 
 def test_macro_slip_counts_a_wheel_sliding_backwards():
@@ -558,3 +617,102 @@ def test_macro_slip_counts_a_wheel_sliding_backwards():
          "train_speed_ms": np.full(n, 10.0)}
     m = metrics(c, (), 1e-3, 1.3e5, 1000.0)
     assert m["macro_slip_count"] == 1 and m["macro_slip_s"] == pytest.approx(0.2)
+
+
+# -- issue 50: the peak estimate and the law acting on it --------------------------------------------------------
+def _rail_run(tmp_path_factory, name, overrides, law="identified"):
+    return _run(tmp_path_factory, law, {"run.duration_s": 6.0, **overrides})
+
+
+def test_identified_holds_the_creep_near_a_heavy_haul_rails_peak(tmp_path_factory):
+    """A heavy-haul dry rail (peak creep 3.2 km/h, flat top) around a wet patch, the driver asking more than the
+    dry rail carries: over the last second, on dry rail again, ``identified`` holds the creep within 10 % of the
+    true peak creep (the estimate's interval puts the peak there; the dither alone creeps towards it slowly)."""
+    _, summary, log = _rail_run(tmp_path_factory, "heavy", {
+        "rail.0.peak_creep_kmh": 3.2, "rail.2.peak_creep_kmh": 3.2, "control.demand_mu": [[0.0, 0.26], [0.5, 0.34]]})
+    a = _arrays(log)
+    last = a["t"] >= a["t"][-1] - 1.0
+    assert np.all(a["demand_mu"][last] > a["peak_mu"][last])       # the law, not the demand, sets the creep
+    creep = float(np.median(a["creep"][last]))
+    peak = float(np.median(a["peak_creep"][last]))
+    print("heavy haul: creep held", creep, "true peak creep", peak, summary["adhesion_utilisation_low"])
+    assert peak == pytest.approx(3.2, rel=0.02)
+    assert abs(creep - peak) <= 0.10 * peak
+
+
+def test_identified_keeps_a_leaf_patch_out_of_macro_slip(tmp_path_factory):
+    """A leaf patch (peak mu 0.05 at 0.3 km/h) after a dry rail held near 1.4 km/h: no macro-slip, in either
+    direction (|creep| above twice the peak creep for 50 ms)."""
+    _, summary, log = _rail_run(tmp_path_factory, "leaf", {"rail.1.peak_mu": 0.05, "rail.1.peak_creep_kmh": 0.3})
+    a = _arrays(log)
+    on_patch = (a["t"] > 2.1) & (a["t"] < 3.9)
+    assert float(np.median(a["peak_creep"][on_patch])) == pytest.approx(0.3, rel=0.05)
+    print("leaf:", summary["macro_slip_s"], summary["adhesion_utilisation_low"])
+    assert summary["macro_slip_s"] == 0.0 and summary["macro_slip_count"] == 0
+
+
+def test_the_estimate_agrees_with_its_numpy_reference():
+    """The compiled recursion (identifier/kernels.py) and the numpy reference give the same estimates, through
+    a change of rail (the run length pruned, the change dated)."""
+    from identifier.peak_estimate import PeakEstimator
+
+    rng = np.random.default_rng(50)
+    a, b = PeakEstimator(1e-3), PeakEstimator(1e-3, compiled=False)
+    for k in range(3000):
+        v = 0.6 + 0.4 * math.sin(k / 60.0)
+        m = (0.25 if k < 1500 else 0.1) * 2 * v / (1 + v * v) + 0.001 * rng.standard_normal()
+        ea, eb = a.add(k, k * 1e-3, v, m), b.add(k, k * 1e-3, v, m)
+        assert ea.peak_creep_ci == pytest.approx(eb.peak_creep_ci, rel=1e-9)
+        assert ea.peak_mu == pytest.approx(eb.peak_mu, rel=1e-9) and ea.since_step == eb.since_step
+    assert 1500 <= ea.since_step < 1600                      # the change dated, the dry samples forgotten
+    assert ea.peak_mu_ci[0] < 0.1 < ea.peak_mu_ci[1]
+
+
+def test_the_estimates_90_percent_intervals_cover_drawn_curves():
+    """300 curves of the ``default`` fault family (seed printed), each swept from 0.05 km/h to 1.5 x its peak creep
+    over 0.6 s with the sensors' noise: the final 90 % peak-creep interval holds the true peak creep in at least
+    70 % of them and at most 98 % (measured 85 %: issue 50's 85-95 % target on static rails; a correct
+    implementation at 85 % falls below 70 % of 300 with probability < 1e-5)."""
+    from plant.families import sample_curves
+    from identifier.peak_estimate import PeakEstimator
+
+    from .conftest import case_seed
+
+    seed = case_seed("estimate coverage")
+    print("seed", seed)
+    rng = np.random.default_rng(seed)
+    batch = sample_curves("default", 300, rng, 10.0)
+    hits = 0
+    for i in range(300):
+        v = np.linspace(0.05, 1.5 * batch.peak_creep_kmh[i], 600)
+        mu = batch.mu(v)[i]
+        e = PeakEstimator(1e-3)
+        for k in range(600):
+            est = e.add(k, k * 1e-3, v[k] + 0.0075 * rng.standard_normal(), mu[k] + 0.001 * rng.standard_normal())
+        hits += est.peak_creep_ci[0] <= batch.peak_creep_kmh[i] <= est.peak_creep_ci[1]
+    print("coverage", hits / 300)
+    assert 0.70 * 300 <= hits <= 0.98 * 300
+
+
+@pytest.mark.slow
+def test_blind_differs_from_identified_where_the_estimate_came_in_time():
+    """On drawn bench cases (seed printed), the first draw where an estimate held the true peak creep within 10 %
+    inside 100 ms of a change of rail: ``identified`` with the lift on (``lift = 1``; the default acts on no
+    estimate, docs/design/control.md) and ``blind`` (the same law, the estimate withheld) do not score the same."""
+    from hil.benchmarks.control import BASE, draw_text, run_point
+
+    from .conftest import case_seed
+
+    seed = case_seed("blind")
+    print("seed", seed)
+    for index in range(6):
+        text, _ = draw_text((ROOT / BASE).read_text(), seed, index, 13.0)
+        item = {"index": index, "text": text, "run_seed": seed % 1000 + index,
+                "set": {"control.options.identified.lift": 1}}
+        ident = run_point({**item, "law": "identified"})
+        if any(x is not None and x <= 100.0 for x in ident["lead_times_ms"]):
+            blind = run_point({**item, "law": "blind"})
+            print(index, ident["adhesion_utilisation_low"], blind["adhesion_utilisation_low"])
+            assert ident["adhesion_utilisation_low"] != blind["adhesion_utilisation_low"]
+            return
+    pytest.fail(f"no estimate in time on 6 draws of seed {seed}")

@@ -594,6 +594,9 @@ def start_recording(scenario, strategy: str, seed: int, bus: str, mode: str, pat
                              "identified_past_a_peak": "a drop and a climb when the dither finds it past a peak",
                              "identified_rise": "a drop and a climb when mu^ rises above its level at the creep held",
                              "identified_creep_bounds": "the creep held at most max_kmh 1.6 km/h; drops to cap_kmh 0.7",
+                             "identified_peak_estimate": "set-point, ceiling and drop from the peak estimate",
+                             "identified_relative_drop": "drops to a fraction of the set-point held; the new rail's "
+                                                         "estimate bounds it, its median sets it",
                              "gp_closed_loop_tracking": "gp's train-speed line refitted every sample, interval floors"})
         if dbc is not None:
             rec.metadata("dbc", dbc)

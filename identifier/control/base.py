@@ -42,6 +42,7 @@ class ControlInput:
     peak_mu_ci: tuple[float, float] | None = None
     confirmed: bool = False          # the identifier's latest curve is confirmed (or given up with a best estimate)
     peak_creep_kmh: float = math.nan     # the peak creep of the identifier's latest curve (NaN: none yet)
+    estimate: object | None = None       # the current rail's peak estimate (identifier/peak_estimate.py), or None
 
 
 def check_range(options: dict, name: str, lo: float, hi: float) -> None:
