@@ -756,7 +756,7 @@ def verdicts_50(results: dict) -> list[tuple[str, str]]:
     for name, test in TARGETS_50:
         try:
             out.append((name, "met" if test(results, a) else "missed"))
-        except (KeyError, TypeError):
+        except (KeyError, TypeError):  # a figure the run did not produce: the target reads 'not measured'
             out.append((name, "not measured"))
     return out
 
