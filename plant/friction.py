@@ -47,8 +47,9 @@ _INV_PHI = (math.sqrt(5.0) - 1.0) / 2.0
 
 def _golden_max(f, lo: float, hi: float, xtol: float) -> float:
     """The maximiser of ``f`` on [lo, hi] (unimodal there) to ``xtol``: golden-section search (Kiefer 1953),
-    the bracket shrinking by 1/phi a step.  Plain Python rather than scipy.optimize, whose import costs
-    0.4 s of every process start-up (the plant computes a peak at import, plant.families)."""
+    the bracket shrinking by 1/phi a step.  Plain Python rather than scipy.optimize: the plant computes a
+    peak at import (plant.families), and importing scipy.optimize for it weighed on every plant process's
+    start-up (docs/design/ci.md)."""
     a, b = lo, hi
     c, d = b - _INV_PHI * (b - a), a + _INV_PHI * (b - a)
     fc, fd = f(c), f(d)

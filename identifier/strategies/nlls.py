@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.optimize import least_squares
 
 from ..curve import jacobian, mu_model
 from .base import Strategy
@@ -35,7 +36,6 @@ def fit_curve(creep_speed_kmh, mu_samples, theta0, radius=None) -> np.ndarray:
     theta0 = np.asarray(theta0, float)
     lo, hi = parameter_bounds((theta0.size - 1) // 2, theta0, radius)
     start = np.clip(theta0, lo + 1e-9, hi - 1e-9)
-    from scipy.optimize import least_squares     # here, not at the top: scipy.optimize costs 0.4 s of every start-up
     result = least_squares(lambda th: mu_model(v, th) - y, start, jac=lambda th: jacobian(v, th),
                            method="trf", bounds=(lo, hi), x_scale="jac", max_nfev=200)
     return result.x

@@ -44,6 +44,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.optimize import least_squares
 
 from ..observer import LoadTorqueObserver
 from ..curve import jacobian, mu_model
@@ -141,7 +142,6 @@ def fit_curve_oa(model: ObserverAwareModel, v, mu, rho0: float, eta0: float, the
                               job=job)
     if solver == "lm":
         return bounded_lm(lambda th: (lin @ mu_model(v, th) + free, lin @ jacobian(v, th)), start, lo, hi, iterations)
-    from scipy.optimize import least_squares     # here, not at the top: scipy.optimize costs 0.4 s of every start-up
     res = least_squares(lambda th: lin @ mu_model(v, th) + free, start, jac=lambda th: lin @ jacobian(v, th),
                         method="trf", bounds=(lo, hi), x_scale="jac", max_nfev=200)
     return res.x
@@ -242,7 +242,6 @@ def _fit_oa_from(model, v, mu, rho0, eta0, start, bounds):
     lin, fr, fe = model.matrices(v.size)
     free = rho0 * fr + eta0 * fe - np.asarray(mu, float)
     x0 = np.clip(start, lo + 1e-9, hi - 1e-9)
-    from scipy.optimize import least_squares     # here, not at the top: scipy.optimize costs 0.4 s of every start-up
     res = least_squares(lambda th: lin @ mu_model(v, th) + free, x0, jac=lambda th: lin @ jacobian(v, th),
                         method="trf", bounds=(lo, hi), x_scale="jac", max_nfev=200)
     return res.x

@@ -26,6 +26,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.optimize import least_squares
 
 from .. import pf
 from ..curve import jacobian, mu_model
@@ -164,7 +165,6 @@ def fit_curve_mu0(creep_speed_kmh, mu_samples, theta0, radius=None) -> np.ndarra
         return j[:, 1:] + np.hstack([-j[:, :1] * np.ones((1, n)), np.zeros((v.size, n))])
 
     start = np.clip(theta0[1:], lo + 1e-9, hi - 1e-9)
-    from scipy.optimize import least_squares     # here, not at the top: scipy.optimize costs 0.4 s of every start-up
     res = least_squares(lambda x: mu_model(v, full(x)) - y, start, jac=jac, method="trf", bounds=(lo, hi),
                         x_scale="jac", max_nfev=200)
     return full(res.x)
