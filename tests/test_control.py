@@ -696,23 +696,28 @@ def test_the_estimates_90_percent_intervals_cover_drawn_curves():
 
 @pytest.mark.slow
 def test_blind_differs_from_identified_where_the_estimate_came_in_time():
-    """On drawn bench cases (seed printed), the first draw where an estimate held the true peak creep within 10 %
+    """On drawn bench cases (seed printed), the draws where an estimate held the true peak creep within 10 %
     inside 100 ms of a change of rail: ``identified`` with the lift on (``lift = 1``; the default acts on no
-    estimate, docs/design/control.md) and ``blind`` (the same law, the estimate withheld) do not score the same."""
+    estimate, docs/design/control.md) and ``blind`` (the same law, the estimate withheld) do not score the same
+    on at least one of them.  One such draw is not enough: the lift acts only where the estimate's interval lies
+    above the set-point held, which an estimate in time need not show (seed 807890090: equal on draws 1 and 2)."""
     from hil.benchmarks.control import BASE, draw_text, run_point
 
     from .conftest import case_seed
 
     seed = case_seed("blind")
     print("seed", seed)
-    for index in range(6):
+    in_time = 0
+    for index in range(8):
         text, _ = draw_text((ROOT / BASE).read_text(), seed, index, 13.0)
         item = {"index": index, "text": text, "run_seed": seed % 1000 + index,
                 "set": {"control.options.identified.lift": 1}}
         ident = run_point({**item, "law": "identified"})
         if any(x is not None and x <= 100.0 for x in ident["lead_times_ms"]):
+            in_time += 1
             blind = run_point({**item, "law": "blind"})
             print(index, ident["adhesion_utilisation_low"], blind["adhesion_utilisation_low"])
-            assert ident["adhesion_utilisation_low"] != blind["adhesion_utilisation_low"]
-            return
-    pytest.fail(f"no estimate in time on 6 draws of seed {seed}")
+            if ident["adhesion_utilisation_low"] != blind["adhesion_utilisation_low"]:
+                return
+    assert in_time, f"no estimate in time on 8 draws of seed {seed}"
+    pytest.fail(f"identified scored as blind on all {in_time} draws of seed {seed} with an estimate in time")

@@ -208,11 +208,14 @@ def test_the_process_noise_follows_the_slope():
 def test_peaks_past_the_first_bound_are_followed_and_confirmed_right():
     """Curves peaking at 3.2-6 km/h, past ``upper_peak_creep_kmh`` (3): the working range grows with the
     rise; every confirmation is right (within the tolerance), closed and inside the grown range, and most
-    are confirmed with a peak-creep interval that holds the truth.  (40 such curves, seed 11, offline:
-    40 confirmed right, 40 closed intervals holding the true peak creep.)"""
+    are confirmed with a peak-creep interval that holds the truth.  (400 such curves, seeds 1000-1099 x 4,
+    offline: 400 confirmed right, 391 closed intervals holding the true peak creep; the 9 misses lie below the
+    interval's low end by under 0.1 %.)  12 curves, at least 10 confirmed and 8 covering: with a miss rate of
+    4 % (above the 2.25 % measured) the chance of 5 or more misses in 12 is 6e-5.  (4 curves and 3 covering
+    failed on HIL_TEST_SEED=397632802: two misses by 0.03 % and 0.006 %.)"""
     rng = fresh_rng()
     confirmed = covered = 0
-    for i in range(4):
+    for i in range(12):
         phi = high_peak(rng)
         pre, samples = slip(curve(theta_from_phi(phi)), phi[0] * 1.06, rng, creep0_kmh=0.3 * phi[1],
                             max_creep_kmh=2.5 * phi[1])
@@ -225,7 +228,7 @@ def test_peaks_past_the_first_bound_are_followed_and_confirmed_right():
             confirmed += 1
             assert judged(e, phi[0], phi[1]) and not e.peak_open and e.peak_creep_ci[1] < strat.bound_kmh, (phi, e)
         covered += not e.peak_open and e.peak_creep_ci[0] <= phi[1] <= e.peak_creep_ci[1]
-    assert confirmed >= 3 and covered >= 3
+    assert confirmed >= 10 and covered >= 8
 
 
 def test_a_range_that_cannot_see_the_peak_reports_its_intervals_open_and_never_covering():
