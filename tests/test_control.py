@@ -708,8 +708,10 @@ def test_blind_differs_from_identified_where_the_estimate_came_in_time():
     seed = case_seed("blind")
     print("seed", seed)
     in_time = 0
-    for index in range(8):
-        text, _ = draw_text((ROOT / BASE).read_text(), seed, index, 13.0)
+    for index in range(12):
+        text, drawn = draw_text((ROOT / BASE).read_text(), seed, index, 13.0)
+        if not drawn["patches"]:            # a draw may hold no patch (one dry rail: no change)
+            continue
         item = {"index": index, "text": text, "run_seed": seed % 1000 + index,
                 "set": {"control.options.identified.lift": 1}}
         ident = run_point({**item, "law": "identified"})
@@ -719,5 +721,5 @@ def test_blind_differs_from_identified_where_the_estimate_came_in_time():
             print(index, ident["adhesion_utilisation_low"], blind["adhesion_utilisation_low"])
             if ident["adhesion_utilisation_low"] != blind["adhesion_utilisation_low"]:
                 return
-    assert in_time, f"no estimate in time on 8 draws of seed {seed}"
+    assert in_time, f"no estimate in time on 12 draws of seed {seed}"
     pytest.fail(f"identified scored as blind on all {in_time} draws of seed {seed} with an estimate in time")
