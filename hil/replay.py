@@ -46,10 +46,11 @@ from .trace import Trace, clean
 CAN_LOG_SUFFIXES = (".log", ".asc", ".blf", ".csv", ".trc", ".mf4")
 #: the option a closed-loop log recorded before gp dated changes of rail is replayed with (``load_mcap``)
 GP_RAIL_CHANGES_OFF = "identifier.options.gp.rail_changes"
-#: closed-loop behaviour newer than some logs: (the key of the log's ``run`` metadata that marks a log recorded
-#: with it, the law it concerns or None for any, the ``--set`` overrides that replay a log without it as it
-#: ran).  A law's commands do not reach a replay (the logged torques do), but its requests to re-arm the
+#: behaviour newer than some logs: (the key of the log's ``run`` metadata that marks a log recorded with it, the
+#: law it concerns, None for any closed-loop law or ``EVERY_RUN`` for open-loop runs too, the ``--set``
+#: overrides that replay a log without it as it ran).  A law's commands do not reach a replay (the logged torques do), but its requests to re-arm the
 #: identifier do, so the law must run as it did.
+EVERY_RUN = "*"
 NEWER_THAN_SOME_LOGS = (
     ("gp_rail_changes", None, {GP_RAIL_CHANGES_OFF: False}),
     ("identified_rail_climb", "identified", {"control.options.identified.change_mu": 0.0,
@@ -75,6 +76,7 @@ NEWER_THAN_SOME_LOGS = (
     ("gp_closed_loop_tracking", None, {"identifier.options.gp.track_train_speed": False,
                                        "identifier.options.gp.floor_peak_mu": 0.0,
                                        "identifier.options.gp.floor_peak_creep_kmh": 0.0}),
+    ("gp_open_loop_edge", EVERY_RUN, {"identifier.options.gp.open_loop_edge": False}),
 )
 #: topics a replay reads from an MCAP log
 REPLAY_TOPICS = {"/can/frames", "/plant/sensor", "/plant/state", "/tcu/identification", "/tcu/status"}
@@ -122,11 +124,12 @@ def load_mcap(path, scenario_file=None) -> ReplaySource:
                 else scenario_from_log(log, "; give the scenario with --scenario FILE"))
     run = log.metadata.get("run") or {}
     as_recorded = {}
-    if scenario.control.law != "demand" and run:
+    if run:
+        closed = scenario.control.law != "demand"
         for key, law, overrides in NEWER_THAN_SOME_LOGS:
-            if key not in run and law in (None, scenario.control.law):
+            if key not in run and (law == EVERY_RUN or closed and law in (None, scenario.control.law)):
                 as_recorded.update({k: v for k, v in overrides.items() if not _named_in(scenario, k)})
-    if as_recorded:           # a closed-loop log recorded before some of today's behaviour: replayed as it ran
+    if as_recorded:           # a log recorded before some of today's behaviour: replayed as it ran
         scenario = scenario_from_log(log, overrides=as_recorded) if scenario_file is None else \
             load_scenario(scenario_file, as_recorded)
     try:

@@ -587,7 +587,7 @@ def start_recording(scenario, strategy: str, seed: int, bus: str, mode: str, pat
         rec.metadata("versions", package_versions())
         rec.metadata("run", {"strategy": strategy, "seed": str(seed), "bus": bus, "mode": mode,
                              "exchange_period_s": repr(scenario.run.exchange_period_s),
-                             # closed-loop behaviour newer than some logs: replay runs a log without
+                             # behaviour newer than some logs: replay runs a log without
                              # these keys as it ran (hil/replay.py, NEWER_THAN_SOME_LOGS)
                              "gp_rail_changes": "dated in closed loop",
                              "identified_rail_climb": "a drop and a climb at each change of rail",
@@ -597,7 +597,8 @@ def start_recording(scenario, strategy: str, seed: int, bus: str, mode: str, pat
                              "identified_peak_estimate": "set-point, ceiling and drop from the peak estimate",
                              "identified_relative_drop": "drops to a fraction of the set-point held; the new rail's "
                                                          "estimate bounds it, its median sets it",
-                             "gp_closed_loop_tracking": "gp's train-speed line refitted every sample, interval floors"})
+                             "gp_closed_loop_tracking": "gp's train-speed line refitted every sample, interval floors",
+                             "gp_open_loop_edge": "gp confirms no maximum at the lowest creep seen in open loop either"})
         if dbc is not None:
             rec.metadata("dbc", dbc)
         if bus_meta is not None:

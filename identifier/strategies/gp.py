@@ -85,8 +85,12 @@ milliseconds, so are the intervals (docs/design/control.md measures both).  Noth
 before the settling restart.  And a maximum at the lowest creep seen since the restart is the data's
 edge, not a peak (the fall may have begun below): while more than (1 - ``confirm_level``) / 2 of the
 draws put it there, nothing is confirmed (as B bounds the rise above).  So a closed-loop confirmation
-needs the new rail's samples to span creeps on both sides of the claimed peak.  In open loop none of
-this applies: the slip starts from the stable side on one rail.
+needs the new rail's samples to span creeps on both sides of the claimed peak.  In open loop the slip
+starts from the stable side of one rail, and only that last guard applies (``open_loop_edge``): a rail
+that changes under an open-loop slip (a transition blending two rails) makes mu^ fall from the slip's
+first sample on, and the posterior's maximum is then the lowest creep seen, a point (every draw's
+maximum on the same grid creep: an interval of zero width), whatever the new rail's peak (a drawn bench,
+docs/design/identification.md).
 
 The numpy code here is the reference; ``compiled`` (default) runs the filter step, the peak draws
 with their quantiles and the published curve's shape search by their twins in identifier/kernels.py
@@ -159,6 +163,7 @@ DEFAULTS = {
     "change_min_mu": 0.003,              # the fall of mean mu^ beyond the curve's allowance that flags a change
     "change_fall_slope": 0.15,           # s_f, the steepest fall of a curve past its peak, mu per km/h
     "change_rise_slope": 3.5,            # s_r, the steepest rise of a curve, mu per km/h
+    "open_loop_edge": True,              # in open loop too: no confirmation of a maximum at the lowest creep seen
 }
 
 
@@ -252,6 +257,7 @@ class GpStrategy(SpeedModelStrategy):
         need(isinstance(o["change_window"], int) and not isinstance(o["change_window"], bool) and o["change_window"] >= 2,
              "change_window", "an integer >= 2")
         need(isinstance(o["rail_changes"], bool), "rail_changes", "true or false")
+        need(isinstance(o["open_loop_edge"], bool), "open_loop_edge", "true or false")
         need(isinstance(o["track_train_speed"], bool), "track_train_speed", "true or false")
         for key, top in (("floor_peak_mu", 1.0), ("floor_peak_creep_kmh", 10.0)):
             need(isinstance(o[key], (int, float)) and not isinstance(o[key], bool) and 0.0 <= o[key] <= top,
@@ -455,14 +461,14 @@ class GpStrategy(SpeedModelStrategy):
         if not self._compiled:
             draws = np.vstack(self.peak_draws())
             self.open_draws = int(np.count_nonzero(draws[1] == self.bound_kmh))
-            if self._dates_changes:
+            if self._guards_edge:
                 self.below_draws = int(np.count_nonzero(draws[1] <= self._lowest_seen_kmh()))
             return np.quantile(draws, qs, axis=1)
         out = np.empty((qs.size, 2))
         load_kernels().gp_peak(self.z, self.P, *self._seen(), PLAUSIBLE_SIGMAS, self.normals, self.log_x,
                                self.bound_kmh, qs, *self._scratch, self._draw_mu, self._draw_creep, out)
         self.open_draws = int(np.count_nonzero(self._draw_creep == self.bound_kmh))
-        if self._dates_changes:
+        if self._guards_edge:
             self.below_draws = int(np.count_nonzero(self._draw_creep <= self._lowest_seen_kmh()))
         return out
 
@@ -476,12 +482,22 @@ class GpStrategy(SpeedModelStrategy):
         of them put the peak at the newest creep."""
         return self.open_draws > 0.5 * (1.0 - level) * self._draw_creep.size
 
+    @property
+    def _guards_edge(self) -> bool:
+        """Whether a maximum at the lowest creep seen holds a confirmation back (module docstring)."""
+        return self._dates_changes or (not self.closed_loop and bool(self.opts["open_loop_edge"]))
+
+    def _at_edge(self) -> bool:
+        """More than (1 - confirm_level) / 2 of the last draws put the peak at the lowest creep seen since
+        the slip began (closed loop: since the restart): the data's edge, not a peak."""
+        return self.below_draws > 0.5 * (1.0 - float(self.opts["confirm_level"])) * self._draw_creep.size
+
     def _held_back(self) -> bool:
-        """Closed loop (module docstring): no confirmation while the settling restart is still ahead (or
-        the rail-change test has not filled its windows), nor while more than (1 - confirm_level) / 2 of
-        the last draws put the peak at the lowest creep seen since the restart."""
-        return (len(self._test_v) < self._test_v.maxlen or math.isfinite(self._settle_until_s)
-                or self.below_draws > 0.5 * (1.0 - float(self.opts["confirm_level"])) * self._draw_creep.size)
+        """No confirmation (module docstring): in closed loop while the settling restart is still ahead
+        (or the rail-change test has not filled its windows); in both, with the guard, at the data's edge."""
+        if self._dates_changes and (len(self._test_v) < self._test_v.maxlen or math.isfinite(self._settle_until_s)):
+            return True
+        return self._guards_edge and self._at_edge()
 
     def _evaluate(self, s: Sample) -> list[IdentificationEvent]:
         o = self.opts
@@ -504,7 +520,7 @@ class GpStrategy(SpeedModelStrategy):
         (mu_lo, creep_lo), _, (mu_mid, creep_mid), _, (mu_hi, creep_hi) = q
         if (check and n >= int(o["min_samples"]) and within_tolerance(mu_lo, mu_mid, mu_hi, float(o["tol_peak_mu"]))
                 and within_tolerance(creep_lo, creep_mid, creep_hi, float(o["tol_peak_creep"]))
-                and creep_hi < self.bound_kmh and not (self._dates_changes and self._held_back())):
+                and creep_hi < self.bound_kmh and not self._held_back()):
             return [self._publish(s, "confirmed", q)]
         return [self._publish(s, "unconfirmed" if ends else "correction", q)]
 
