@@ -313,3 +313,27 @@ def test_every_particle_strategy_declares_what_it_replaces():
                 assert getattr(cls, flag) is False, (name, flag, overridden)
             checked += 1
     assert checked >= 5 * 6
+
+
+def test_strategies_are_imported_when_first_asked_for_and_the_plant_side_never_imports_them():
+    """``identifier.strategies`` is a table (name -> module, class): a process that only needs the names (the
+    plant, ``hil check``, the CLI's help) does not import scipy.optimize (about 0.4 s a process); asking for a
+    class imports its module once, and every name of the package still resolves."""
+    import subprocess
+    import sys
+
+    code = ("import sys, hil.exchange, hil.session, hil.cli\n"
+            "from identifier import STRATEGIES, DEFAULT_STRATEGY\n"
+            "names = sorted(STRATEGIES); assert DEFAULT_STRATEGY in STRATEGIES and len(names) == len(STRATEGIES)\n"
+            "print('scipy.optimize' in sys.modules, ','.join(names))\n"
+            "from identifier.strategies import GpStrategy, fit_curve\n"
+            "print('scipy.optimize' in sys.modules, STRATEGIES['gp'] is GpStrategy is STRATEGIES['gp'])\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    before, after = r.stdout.splitlines()
+    assert before.split() == ["False", ",".join(sorted(STRATEGIES))]
+    assert after == "True True"
+    from identifier.strategies import PRESETS
+    for name, (base, changes, _) in PRESETS.items():
+        assert issubclass(STRATEGIES[name], STRATEGIES[base]) and STRATEGIES[name].name == name
+        assert STRATEGIES[name].defaults == {**STRATEGIES[base].defaults, **changes}
