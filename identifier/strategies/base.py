@@ -20,6 +20,19 @@ from ..messages import NAN_INTERVAL, IdentificationEvent
 from ..settings import IdentifierSettings
 
 
+
+_kernels = None
+
+
+def load_kernels():
+    """identifier.kernels (the strategies' compiled twins), imported on first use: numba's import costs ~0.2 s,
+    paid only where a compiled strategy is built."""
+    global _kernels
+    if _kernels is None:
+        from .. import kernels
+        _kernels = kernels
+    return _kernels
+
 @dataclass(frozen=True)
 class Sample:
     step: int

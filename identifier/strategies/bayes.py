@@ -70,8 +70,7 @@ from ..messages import IdentificationEvent
 from ..prior import NAMES, CurvePrior, theta_from_phi, theta_from_phi_floats
 from ..pf import weighted_quantiles
 from ..speed_likelihood import SpeedFilter
-from .base import Sample
-from .mdipf import load_kernels
+from .base import Sample, load_kernels
 from .speed_model import BaselineStats, SpeedModelStrategy, within_tolerance  # noqa: F401 (BaselineStats: tests)
 #: bins of the compiled quantiles' histogram (kernels.weighted_quantiles_hist): its error is below
 #: (max - min) / QUANTILE_BINS, e.g. 0.0013 km/h of peak creep over the default prior

@@ -111,8 +111,7 @@ import numpy as np
 
 from ..messages import IdentificationEvent
 from ..prior import DEFAULT_BOX, theta_from_phi, theta_from_phi_floats
-from .base import Sample
-from .mdipf import load_kernels
+from .base import Sample, load_kernels
 from .speed_model import BaselineStats, SpeedModelStrategy, within_tolerance
 
 #: a grid point whose posterior mean + this many standard deviations is below another's mean - as

@@ -96,7 +96,7 @@ from collections import deque
 import numpy as np
 
 from .. import pf
-from .base import Strategy, cloud_peak_intervals
+from .base import Strategy, cloud_peak_intervals, load_kernels
 from .nlls import GridAccumulator, fit_curve, fit_curve_grid, fit_curve_lm
 
 DEFAULTS = {
@@ -129,16 +129,7 @@ DEFAULTS = {
 }
 
 
-_K = None   # identifier.kernels once a compiled strategy is built (numba's import, ~0.2 s, only where used)
-
-
-def load_kernels():
-    """identifier.kernels, imported on first use."""
-    global _K
-    if _K is None:
-        from .. import kernels
-        _K = kernels
-    return _K
+_K = None   # identifier.kernels once a compiled strategy is built (base.load_kernels)
 
 
 def per_dimension(triple, n: int) -> np.ndarray:
@@ -192,7 +183,9 @@ class MdipfStrategy(Strategy):
         self._arange = np.arange(self.n_particles)
         self.weights = np.full(self.n_particles, 1.0 / self.n_particles)
         # the compiled step's buffers: log-likelihoods, the other weight vector, ancestor indices
-        self._compiled = bool(opts["compiled"]) and load_kernels().AVAILABLE
+        global _K
+        _K = load_kernels()
+        self._compiled = bool(opts["compiled"]) and _K.AVAILABLE
         if self._compiled:
             _K.warm_up()                     # compile / load now, before the fault, not on the first sample
             self._ll = np.empty(self.n_particles)

@@ -10,8 +10,7 @@ import math
 import numpy as np
 
 from ..messages import IdentificationEvent
-from .base import Sample, Strategy
-from .mdipf import load_kernels
+from .base import Sample, Strategy, load_kernels
 
 KMH_PER_MS = 3.6
 
