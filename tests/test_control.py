@@ -368,6 +368,26 @@ def test_a_control_option_out_of_range_is_one_line_at_load(tmp_path):
     assert not list(tmp_path.glob("*.mcap"))
 
 
+def test_the_control_bench_takes_set_and_refuses_a_bad_one_in_one_line_before_any_run(tmp_path):
+    """``hil bench control --set``: a field its scenario refuses is one line naming it, before the first run; a
+    good one reaches every run (the oracle's rail, scored by the bench, is not the law's) and the report's
+    command carries it."""
+    import json
+
+    r = run_hil("bench", "control", "--draws", "1", "--duration-s", "13", "--laws", "blind", "--speed-s", "0",
+                "--seed", "1", "--set", "identifier.options.gp.change_slow_window=7")
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert "change_slow_window" in last_line(r.stderr) and "%" not in r.stderr
+    args = ["bench", "control", "--draws", "1", "--duration-s", "13", "--laws", "constant_creep", "--speed-s", "0",
+            "--seed", "1", "--json"]
+    plain = json.loads(run_hil(*args).stdout)
+    held = json.loads(run_hil(*args, "--set", "control.options.constant_creep.set_fraction=0.3").stdout)
+    assert held["written"]["command"].endswith("--set control.options.constant_creep.set_fraction=0.3")
+    eta = [x["results"]["constant_creep"]["eta_low_median"] for x in (plain, held)]
+    print("eta_low, default and 0.3 of the nominal peak creep:", eta)
+    assert eta[0] != eta[1]
+
+
 def test_rail_segments_are_addressed_by_set_and_checked():
     sc = load_scenario(WET, {"rail.1.peak_mu": 0.08})
     assert sc.rail.segments[1].curve.peak()[1] == pytest.approx(0.08, abs=1e-6)

@@ -538,6 +538,9 @@ def register(sub) -> None:
     p.add_argument("--speed-s", type=float, default=60.0, help="then one run of this length with demand and with "
                    "identified, logged, for their speed (0: none; default 60 s)")
     p.add_argument("--laws", default=None, help="comma-separated laws (default: all, and the oracle)")
+    p.add_argument("--set", action="append", metavar="TABLE.KEY=VALUE",
+                   help="override a scenario field in every run, e.g. --set identifier.options.gp.rail_changes=false "
+                        "(an ablation on the same draws)")
     p.add_argument("--doc", metavar="DIR", default=None, help="write control.md, control.json and plots into DIR "
                    "(e.g. docs/benchmarks)")
     p.add_argument("--doc-name", default=None, help="the report's file names in --doc DIR (default: control, or "
@@ -554,6 +557,7 @@ def cmd_control_bench(args) -> int:
 
     from identifier.control import LAWS
 
+    from ..config import parse_scenario, parse_set
     from ..errors import ConfigError
     from ..progress import Progress, compile_kernels
     from ..sweep.engine import map_in_order
@@ -579,8 +583,11 @@ def cmd_control_bench(args) -> int:
         (Path(__file__).resolve().parents[2] / BASE).read_text()
     draws = [draw_text(base_text, seed, i, args.duration_s, fam) for i in range(args.draws)]
     prior_kmh = prior_set_point_kmh(fam) if PRIOR in laws else None
-    items = [{"index": i, "law": law, "text": text, "run_seed": seed % 1000 + i, "prior_kmh": prior_kmh}
-             for i, (text, _) in enumerate(draws) for law in laws]
+    overrides = parse_set(args.set)
+    if overrides:             # a bad field or value is one line now, not one per run
+        parse_scenario(draws[0][0], "--set", overrides)
+    items = [{"index": i, "law": law, "text": text, "run_seed": seed % 1000 + i, "prior_kmh": prior_kmh,
+              "set": overrides} for i, (text, _) in enumerate(draws) for law in laws]
     bar = Progress(len(items), "hil bench control", None)
     t0 = time.perf_counter()
     try:
@@ -688,6 +695,7 @@ def provenance(args, seed: int, load_before: float) -> dict:
     command = (f"hil bench control --draws {args.draws} --seed {seed} --duration-s {args.duration_s:g} "
                f"--family {getattr(args, 'family', 'default')} "
                f"--speed-s {args.speed_s:g}" + (f" --laws {args.laws}" if args.laws else "")
+               + "".join(f" --set {x}" for x in getattr(args, "set", None) or [])
                + (f" --workers {args.workers}" if args.workers is not None else ""))
     return {"command": command, "seed_drawn": args.seed is None,
             "utc": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M"), "commit": commit,
