@@ -244,8 +244,9 @@ class PlantCandidate:
 
         n_res = len(ctx.residuals(nominal.pred, ctx.sigma_nom, ctx.train))
         if starts is not None:
-            starts = [np.concatenate([np.clip([math.log(p[k]) if lg else p[k] for k, lg in zip(self.fit_params, self.log)],
-                                              lo, hi), np.asarray(x0, float) - ctx.x0]) for p, x0 in starts]
+            def u_of(p):
+                return np.clip([math.log(p[k]) if lg else p[k] for k, lg in zip(self.fit_params, self.log)], lo, hi)
+            starts = [np.concatenate([u_of(p), np.asarray(x0, float) - ctx.x0]) for p, x0 in starts]
         else:
             # coarse scan (a grid per parameter, all combinations) to start in the right basin
             grids = [np.linspace(a, b, n) for a, b, n in zip(lo, hi, self.scan)]

@@ -36,7 +36,8 @@ on a lattice coarser than the scenario's own name it beside whatever explains th
 (q^2 / 12) joins every model's noise floor.  No noise-floor test: an effect written with other
 equations than its candidate leaves a remainder above the noise and is still the right answer when it
 beats every alternative.  Two effects: ``forward`` (a second effect on top of the first, pairs fitted
-together; the pair must also win on data held out in time, ``time_veto``), from the best single and,
+together; the pair must also win on data held out in time, ``time_veto``, and beat its first alone
+fitted again from where its fit there landed, ``Forward.first_again``), from the best single and,
 when its pair is not accepted, from the other classes it does not beat (``other_firsts``,
 ``choose_pair``), and ``rejudge``.
 
@@ -438,7 +439,8 @@ def forward(ctx: Context, nom_fit: Fit, base: dict, first: Fit, first_row: Row, 
     and, when the first alone did not beat another class's best by the margin, with that class's best
     plus the same second effect (``pair_vs_runner``, read by ``rejudge``), and, last
     (it costs fits), the pair named must win on data held out in time (``time_veto``: fitted without the
-    serious stage, judged on it).  ``rejected_because`` says which test failed; ``own_tests_passed``, that
+    serious stage, judged on it) and, a plant first, beat the first alone fitted again from where its fit
+    there landed (``Forward.first_again``).  ``rejected_because`` says which test failed; ``own_tests_passed``, that
     the second passed its own tests and the pair was turned away only against other explanations
     (``pair_explanation`` lists it then).  ``exclude``: candidates
     not to offer; ``alone``: the single candidates' fits by name (the rival class's best is built on, not
@@ -448,7 +450,7 @@ def forward(ctx: Context, nom_fit: Fit, base: dict, first: Fit, first_row: Row, 
     The steps (``Forward``'s methods, in order): ``seconds`` (every second on top of the first, pairs
     of a plant and a sensor form fitted together), ``descend`` (the best second and the first refitted
     on top of each other), ``own_tests`` and ``answer`` (the second's own tests, the pair against every
-    single), ``against_rail``, ``against_runner``, ``in_time``."""
+    single), ``against_rail``, ``against_runner``, ``in_time`` (with ``first_again``)."""
     if first.name == "sensor_quantisation":
         return None
     fw = Forward(ctx, nom_fit, base, first, first_row, {c.name: c for c in candidates(ctx.scenario, exclude)},
