@@ -219,8 +219,7 @@ class PlantCandidate:
         """The effect fitted on ``ctx``'s training blocks: a coarse scan (``scan``), then least squares
         from its best three points and from the best with the nominal fit's start; or, given ``starts``
         ((parameter values by name, initial state) pairs; the values clipped to the range), least squares
-        from those alone, no scan (a
-        refit from where another fit landed: ``select.Forward.first_again``)."""
+        from those alone, no scan (a refit from where another fit landed: ``select.Forward.first_again``)."""
         fixed = fill_defaults({self.name: dict(EFFECTS[self.name].params)}, ctx.cfg)[self.name]
         sim = ctx.simulator(self.name, self.fit_params, fixed)
         torque = ctx.data.torque_cmd_nm

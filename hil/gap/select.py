@@ -440,9 +440,9 @@ def forward(ctx: Context, nom_fit: Fit, base: dict, first: Fit, first_row: Row, 
     plus the same second effect (``pair_vs_runner``, read by ``rejudge``), and, last
     (it costs fits), the pair named must win on data held out in time (``time_veto``: fitted without the
     serious stage, judged on it) and, a plant first, beat the first alone fitted again from where its fit
-    there landed (``Forward.first_again``).  ``rejected_because`` says which test failed; ``own_tests_passed``, that
-    the second passed its own tests and the pair was turned away only against other explanations
-    (``pair_explanation`` lists it then).  ``exclude``: candidates
+    there landed (``Forward.first_again``).  ``rejected_because`` says which test failed;
+    ``own_tests_passed``, that the second passed its own tests and the pair was turned away only against
+    other explanations (``pair_explanation`` lists it then).  ``exclude``: candidates
     not to offer; ``alone``: the single candidates' fits by name (the rival class's best is built on, not
     fitted again); a fit that fails at any step is appended to ``failed`` (a second effect whose fit on
     top fails is not ranked; a failed joint fit or refit keeps the fit it would replace).
@@ -708,8 +708,8 @@ class Forward:
     def first_again(self, veto: dict, early: Fit | None, out: dict) -> None:
         """After the veto in time, when the first is a plant effect: the first alone fitted again on the
         analysis window from where its fit on the data before the held-out stage landed (its parameters
-        and initial state: ``early``, ``time_veto``'s ``first_fit``; one local fit, no scan).  A fit of the first
-        that stopped in a poor basin leaves a remainder a second effect can take half of (a second-order
+        and initial state: ``early``, ``time_veto``'s ``first_fit``; one local fit, no scan).  A fit of
+        the first that stopped in a poor basin leaves a remainder a second effect can take half of (a second-order
         contact lag at 9.25 Hz fitted 13.5 Hz alone, a running resistance accepted on top: issue 51);
         fitted from another start the first alone may explain it.  The pair must beat that fit by the
         margin (``beats``), as it must beat every single candidate (``own_tests``): when that fit scores
