@@ -215,7 +215,11 @@ class PlantCandidate:
     log: tuple
     scan: tuple = (9,)     # coarse-scan points per parameter (log-spaced when ``log``)
 
-    def fit(self, ctx: Context, nominal: Fit) -> Fit:
+    def fit(self, ctx: Context, nominal: Fit, starts: list[tuple] | None = None) -> Fit:
+        """The effect fitted on ``ctx``'s training blocks: a coarse scan (``scan``), then least squares
+        from its best three points and from the best with the nominal fit's start; or, given ``starts``
+        ((parameter values by name, initial state) pairs; the values clipped to the range), least squares
+        from those alone, no scan (a refit from where another fit landed: ``select.Forward.first_again``)."""
         fixed = fill_defaults({self.name: dict(EFFECTS[self.name].params)}, ctx.cfg)[self.name]
         sim = ctx.simulator(self.name, self.fit_params, fixed)
         torque = ctx.data.torque_cmd_nm
@@ -238,13 +242,18 @@ class PlantCandidate:
             return ctx.residuals(ctx.predict(motor, train), ctx.sigma_nom, ctx.train)
 
         n_res = len(ctx.residuals(nominal.pred, ctx.sigma_nom, ctx.train))
-        # coarse scan (a grid per parameter, all combinations) to start in the right basin
-        grids = [np.linspace(a, b, n) for a, b, n in zip(lo, hi, self.scan)]
-        mesh = np.array(np.meshgrid(*grids, indexing="ij")).reshape(np_, -1).T
-        costs = [float(np.sum(resid(u) ** 2)) for u in mesh]
-        order = np.argsort(costs)
-        starts = [np.concatenate([mesh[i], np.zeros(2)]) for i in order[:3]]
-        starts.append(np.concatenate([mesh[order[0]], np.array(nominal.extra["x0"]) - ctx.x0]))
+        if starts is not None:
+            def u_of(p):
+                return np.clip([math.log(p[k]) if lg else p[k] for k, lg in zip(self.fit_params, self.log)], lo, hi)
+            starts = [np.concatenate([u_of(p), np.asarray(x0, float) - ctx.x0]) for p, x0 in starts]
+        else:
+            # coarse scan (a grid per parameter, all combinations) to start in the right basin
+            grids = [np.linspace(a, b, n) for a, b, n in zip(lo, hi, self.scan)]
+            mesh = np.array(np.meshgrid(*grids, indexing="ij")).reshape(np_, -1).T
+            costs = [float(np.sum(resid(u) ** 2)) for u in mesh]
+            order = np.argsort(costs)
+            starts = [np.concatenate([mesh[i], np.zeros(2)]) for i in order[:3]]
+            starts.append(np.concatenate([mesh[order[0]], np.array(nominal.extra["x0"]) - ctx.x0]))
         best = _fit_ls(resid, None, lo, hi, np.maximum(hi - lo, 1e-9) / 10, starts, ctx.sigma_nom)
         theta = theta_of(best.x)
         x0 = x0_nom + best.x[np_:]
