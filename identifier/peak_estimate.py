@@ -103,10 +103,14 @@ class PeakEstimator:
         self._s2 = (o["noise_mu"] ** 2) * o["correlation"]
         self._prec0 = 1.0 / o["prior_mu_sd"] ** 2
         self._b0 = o["prior_mu"] * self._prec0
-        self._log_h = math.log(period_s / o["hazard_s"])
-        self._log_1mh = math.log1p(-period_s / o["hazard_s"])
+        # the recursion runs once every ``every`` periods: the hazard and the memory are per update, dt = every
+        # periods (until 2026-11-29 they were per period, so the memory and the mean run length ran ``every``
+        # times longer than their options said: docs/design/control.md, issue 50, third pass)
+        dt = period_s * max(int(o["every"]), 1)
+        self._log_h = math.log(dt / o["hazard_s"])
+        self._log_1mh = math.log1p(-dt / o["hazard_s"])
         self._kmax = int(o["hypotheses"])
-        self._keep = math.exp(-period_s / o["memory_s"])
+        self._keep = math.exp(-dt / o["memory_s"])
         self._log_grid = np.log(PEAK_CREEP_GRID_KMH)
         rows = self._kmax + 1
         self.prec = np.full((rows, c), self._prec0)
