@@ -78,15 +78,15 @@ def _covered(rng, case) -> tuple[bool, bool]:
 
 def test_the_estimates_90_percent_intervals_cover_rails_that_change():
     """150 drawn dry -> patch -> dry sequences (seed printed; ``_covered``): the 90 % peak-creep interval holds the
-    true peak creep at the patch's end in at least 80 % of them and back on the dry rail in at least 70 %.
-    Measured (2026-11-29, 100 cases of seed 7): 94 % and 84 % (with the memory and hazard of before the third
-    pass, which ran five times longer than their options said: 81 % and 19 %, the dry rail's estimate held at the
-    "flat curve at the demand" the patch's samples left).  A correct implementation at 94 % (84 %) falls below
-    80 % (70 %) of 150 with probability < 1e-5."""
+    true peak creep at the patch's end in at least 85 % of them and back on the dry rail in at least 62 %.
+    Measured (2026-11-29, 400 cases of seed 123): 95.5 % and 78 %; with the memory and hazard of before issue 50's
+    third pass, which ran five times longer than their options said, 81 % and 19 % (100 cases of seed 7: the dry
+    rail's estimate held at the "flat curve at the demand" the patch's samples left).  A correct implementation at
+    95.5 % (78 %) falls below 85 % (62 %) of 150 with probability < 1e-5."""
     seed = case_seed("rails that change")
     print("seed", seed)
     rng = np.random.default_rng(seed)
     hits = np.array([_covered(rng, _sequence(rng)) for _ in range(150)])
     print("coverage at the patch's end, back on the dry rail:", hits.mean(axis=0))
-    assert hits[:, 0].sum() >= 0.80 * 150, hits.mean(axis=0)
-    assert hits[:, 1].sum() >= 0.70 * 150, hits.mean(axis=0)
+    assert hits[:, 0].sum() >= 0.85 * 150, hits.mean(axis=0)
+    assert hits[:, 1].sum() >= 0.62 * 150, hits.mean(axis=0)
