@@ -116,6 +116,8 @@ class PeakEstimator:
         # periods (until 2026-11-29 they were per period, so the memory and the mean run length ran ``every``
         # times longer than their options said: docs/design/control.md, issue 50, third pass)
         dt = period_s * max(int(o["every"]), 1)
+        if not o["hazard_s"] > dt:
+            raise ValueError(f"hazard_s {o['hazard_s']!r} must exceed the update interval, {dt:g} s")
         self._log_h = math.log(dt / o["hazard_s"])
         self._log_1mh = math.log1p(-dt / o["hazard_s"])
         self._kmax = int(o["hypotheses"])

@@ -90,3 +90,29 @@ def test_the_estimates_90_percent_intervals_cover_rails_that_change():
     print("coverage at the patch's end, back on the dry rail:", hits.mean(axis=0))
     assert hits[:, 0].sum() >= 0.85 * 150, hits.mean(axis=0)
     assert hits[:, 1].sum() >= 0.62 * 150, hits.mean(axis=0)
+
+
+def test_the_estimates_options_are_set_from_a_scenario_and_checked_at_load():
+    """``[identifier.options.peak_estimate]`` reaches the TCU's estimate; a misspelt key or a hazard shorter than
+    an update is one line at load.  memory_s 1.5 and hazard_s 10 (what ``hil replay`` sets for a log recorded
+    before the third pass of issue 50) give the per-update constants the estimate ran with then: exp(-period /
+    0.3) and period / 2 per update, every fifth period."""
+    import pytest
+
+    from hil.config import load_scenario
+    from hil.errors import ConfigError
+    from identifier.tcu import TractionIdentifier
+
+    from .test_control import WET
+
+    old = {"identifier.options.peak_estimate.memory_s": 1.5, "identifier.options.peak_estimate.hazard_s": 10.0}
+    settings = load_scenario(WET, {"control.law": "identified", **old}).identifier_settings()
+    est = TractionIdentifier(settings, "gp", 1).estimator
+    assert est._keep == pytest.approx(math.exp(-settings.period_s / 0.3), rel=1e-12)
+    assert est._log_h == pytest.approx(math.log(settings.period_s / 2.0), rel=1e-12)
+    assert TractionIdentifier(load_scenario(WET).identifier_settings(), "gp", 1).estimator._keep == \
+        pytest.approx(math.exp(-5 * settings.period_s / 0.3), rel=1e-12)
+    for bad in ({"identifier.options.peak_estimate.memroy_s": 1.0}, {"identifier.options.peak_estimate.hazard_s": 1e-4}):
+        with pytest.raises(ConfigError) as e:
+            load_scenario(WET, bad)
+        assert "[identifier.options.peak_estimate]" in str(e.value) and "\n" not in str(e.value)
