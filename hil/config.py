@@ -806,7 +806,9 @@ def _check_strategy_options(path, scenario) -> None:
     """Build each strategy named in [identifier.options.NAME] once, so a bad option fails at load."""
     from identifier import STRATEGIES
 
-    options = scenario.identifier.get("options", {})
+    options = dict(scenario.identifier.get("options", {}))
+    if PEAK_ESTIMATE in options:
+        _check_peak_estimate_options(path, options.pop(PEAK_ESTIMATE), scenario.run.exchange_period_s)
     for name, opts, where in _named_tables(path, "identifier.options", options, STRATEGIES, "strategy"):
         known = strategy_option_keys(STRATEGIES[name])
         for key, value in opts.items():
@@ -825,6 +827,30 @@ def _check_strategy_options(path, scenario) -> None:
             STRATEGIES[name](scenario.identifier_settings(), 0)
         except (ValueError, TypeError, ArithmeticError) as e:
             raise _fail(path, where, e) from None
+
+
+#: ``[identifier.options.peak_estimate]``: the options of the TCU's peak estimate (identifier/peak_estimate.py
+#: ``DEFAULTS``), beside the strategies' tables
+PEAK_ESTIMATE = "peak_estimate"
+
+
+def _check_peak_estimate_options(path, opts, period_s: float) -> None:
+    """Build the peak estimate once with ``opts``, so a bad option fails at load."""
+    from identifier.peak_estimate import DEFAULTS, PeakEstimator
+
+    where = f"[identifier.options.{PEAK_ESTIMATE}]"
+    if not isinstance(opts, dict):
+        raise _fail(path, where, "must be a table")
+    for key, value in opts.items():
+        if key not in DEFAULTS:
+            raise _fail(path, f"{where} {key}", f"unknown option (known: {', '.join(sorted(DEFAULTS))})")
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0 \
+                and key not in ("prior_mu", "min_creep_kmh"):
+            raise _fail(path, f"{where} {key}", f"must be a positive number, got {value!r}")
+    try:
+        PeakEstimator(period_s, opts, compiled=False)
+    except (ValueError, TypeError, ArithmeticError) as e:
+        raise _fail(path, where, e) from None
 
 
 #: the options every strategy takes (the shared evaluation constants)

@@ -73,6 +73,11 @@ NEWER_THAN_SOME_LOGS = (
     # (before identified_creep_bounds: a log older than both ran with that entry's bounds, so it must win)
     ("identified_creep_bounds", "identified", {"control.options.identified.max_kmh": 12.0,
                                                "control.options.identified.cap_kmh": 0.75}),
+    # the peak estimate's memory and hazard per update since 2026-11-29 (they ran per period, five times longer:
+    # memory_s 1.5 and hazard_s 10 in today's units give the constants of then exactly); only a law acting on the
+    # estimate (an option of ``identified``'s, or the first issue-50 merge's defaults) moves with them
+    ("peak_estimate_per_update", "identified", {"identifier.options.peak_estimate.memory_s": 1.5,
+                                                "identifier.options.peak_estimate.hazard_s": 10.0}),
     ("gp_closed_loop_tracking", None, {"identifier.options.gp.track_train_speed": False,
                                        "identifier.options.gp.floor_peak_mu": 0.0,
                                        "identifier.options.gp.floor_peak_creep_kmh": 0.0}),

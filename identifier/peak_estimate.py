@@ -23,16 +23,25 @@ s is the observer's noise ``noise_mu`` inflated by ``correlation`` (mu^ is a fil
 samples are not independent, so each counts as 1 / ``correlation`` of one; the value is chosen for the
 intervals' coverage, docs/design/control.md).
 
+**The samples and the memory.**  mu^ and the creep are low-passed over ``filter_s`` and the recursion runs on
+every ``every``-th of them: one update each dt = ``every`` x period.  Inside a run length the cells forget
+their past with the time constant ``memory_s`` (each update weighs the statistics by exp(-dt / ``memory_s``)):
+a rail that recovers as the wheel cleans it changes slowly, which a change-point test does not date, and on a
+rail the demand carries mu^ stays at the demand while the creep moves with the rail, which the curve model reads
+as a flat curve at the demand until those samples are forgotten.  The memory is what sets the intervals'
+coverage on rails that change (docs/design/control.md, issue 50 third pass: 0.3 s, 86 % on the bench's default
+family in closed loop; 1.5 s, 68 %).
+
 **Changes of rail: Bayesian online change-point detection** (Adams and MacKay 2007, arXiv 0710.3742).  The
 run length r (samples since the last change) has the posterior P(r | data) updated by the message passing of
-that paper with a constant hazard H = period / ``hazard_s``::
+that paper with a constant hazard H = dt / ``hazard_s`` per update::
 
     P(r + 1, x_1:t+1) = P(r, x_1:t) (1 - H) p(x_t+1 | r)                 growth
     P(0, x_1:t+1)     = sum_r P(r, x_1:t) H p(x_t+1 | prior)              a change
 
 each run length carrying the cell statistics of its own samples only (the samples before its change are
 forgotten).  As the paper suggests, the run lengths are pruned: the ``hypotheses`` most probable are kept
-(a new one is born every sample and survives only while it is among them).  The change is dated at the
+(a new one is born every update and survives only while it is among them).  The change is dated at the
 most probable run length's start (``since_step``).
 
 **What is published** (``PeakEstimate``): the mixture over run lengths and cells: the peak creep's 5, 50
@@ -103,10 +112,16 @@ class PeakEstimator:
         self._s2 = (o["noise_mu"] ** 2) * o["correlation"]
         self._prec0 = 1.0 / o["prior_mu_sd"] ** 2
         self._b0 = o["prior_mu"] * self._prec0
-        self._log_h = math.log(period_s / o["hazard_s"])
-        self._log_1mh = math.log1p(-period_s / o["hazard_s"])
+        # the recursion runs once every ``every`` periods: the hazard and the memory are per update, dt = every
+        # periods (until 2026-11-29 they were per period, so the memory and the mean run length ran ``every``
+        # times longer than their options said: docs/design/control.md, issue 50, third pass)
+        dt = period_s * max(int(o["every"]), 1)
+        if not o["hazard_s"] > dt:
+            raise ValueError(f"hazard_s {o['hazard_s']!r} must exceed the update interval, {dt:g} s")
+        self._log_h = math.log(dt / o["hazard_s"])
+        self._log_1mh = math.log1p(-dt / o["hazard_s"])
         self._kmax = int(o["hypotheses"])
-        self._keep = math.exp(-period_s / o["memory_s"])
+        self._keep = math.exp(-dt / o["memory_s"])
         self._log_grid = np.log(PEAK_CREEP_GRID_KMH)
         rows = self._kmax + 1
         self.prec = np.full((rows, c), self._prec0)

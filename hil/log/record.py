@@ -597,6 +597,7 @@ def start_recording(scenario, strategy: str, seed: int, bus: str, mode: str, pat
                              "identified_peak_estimate": "set-point, ceiling and drop from the peak estimate",
                              "identified_relative_drop": "drops to a fraction of the set-point held; the new rail's "
                                                          "estimate bounds it, its median sets it",
+                             "peak_estimate_per_update": "the peak estimate's memory and hazard per update",
                              "gp_closed_loop_tracking": "gp's train-speed line refitted every sample, interval floors",
                              "gp_open_loop_edge": "gp confirms no maximum at the lowest creep seen in open loop either"})
         if dbc is not None:
