@@ -48,8 +48,8 @@ CAN_LOG_SUFFIXES = (".log", ".asc", ".blf", ".csv", ".trc", ".mf4")
 GP_RAIL_CHANGES_OFF = "identifier.options.gp.rail_changes"
 #: behaviour newer than some logs: (the key of the log's ``run`` metadata that marks a log recorded with it, the
 #: law it concerns, None for any closed-loop law or ``EVERY_RUN`` for open-loop runs too, the ``--set``
-#: overrides that replay a log without it as it ran).  A law's commands do not reach a replay (the logged torques do), but its requests to re-arm the
-#: identifier do, so the law must run as it did.
+#: overrides that replay a log without it as it ran).  A law's commands do not reach a replay (the logged
+#: torques do), but its requests to re-arm the identifier do, so the law must run as it did.
 EVERY_RUN = "*"
 NEWER_THAN_SOME_LOGS = (
     ("gp_rail_changes", None, {GP_RAIL_CHANGES_OFF: False}),

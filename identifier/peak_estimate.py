@@ -29,8 +29,7 @@ their past with the time constant ``memory_s`` (each update weighs the statistic
 a rail that recovers as the wheel cleans it changes slowly, which a change-point test does not date, and on a
 rail the demand carries mu^ stays at the demand while the creep moves with the rail, which the curve model reads
 as a flat curve at the demand until those samples are forgotten.  The memory is what sets the intervals'
-coverage on rails that change (docs/design/control.md, issue 50 third pass: 0.3 s, 86 % on the bench's default
-family in closed loop; 1.5 s, 68 %).
+coverage on rails that change, and their width with it (docs/design/control.md, issue 50 third pass).
 
 **Changes of rail: Bayesian online change-point detection** (Adams and MacKay 2007, arXiv 0710.3742).  The
 run length r (samples since the last change) has the posterior P(r | data) updated by the message passing of
@@ -113,8 +112,7 @@ class PeakEstimator:
         self._prec0 = 1.0 / o["prior_mu_sd"] ** 2
         self._b0 = o["prior_mu"] * self._prec0
         # the recursion runs once every ``every`` periods: the hazard and the memory are per update, dt = every
-        # periods (until 2026-11-29 they were per period, so the memory and the mean run length ran ``every``
-        # times longer than their options said: docs/design/control.md, issue 50, third pass)
+        # periods, so both mean the seconds their options say
         dt = period_s * max(int(o["every"]), 1)
         if not o["hazard_s"] > dt:
             raise ValueError(f"hazard_s {o['hazard_s']!r} must exceed the update interval, {dt:g} s")

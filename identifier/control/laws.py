@@ -173,10 +173,8 @@ class Identified(ExtremumSeeking):
     ``settle_s`` ago (a change it has only just dated rests on a handful of samples of a blend of two rails).
     By default, nothing: every use measured either cost eta_low or added macro-slip on the default rail family
     (docs/design/control.md, 2026-11-29), so ``identified`` runs as ``blind`` unless an option turns one on.
-    **The lift** (``lift`` 1; off: on 100 draws it left the median eta_low unchanged and tripled the runs with
-    macro-slip, 15 % against 5 %; with the estimate calibrated on rails that change and the guards
-    ``lift_ratio`` 2 and ``lift_steady_mu`` 0.005, judged on 60 fresh draws, a mean contribution of +0.0005 and
-    macro-slip in 12 runs against ``blind``'s 10: still off, docs/design/control.md, issue 50 third pass).  While the creep loop, not the demand, has set the torque
+    **The lift** (``lift`` 1; off: with or without the guards below it added macro-slip to runs ``blind`` held,
+    for next to no eta_low, docs/design/control.md, issue 50).  While the creep loop, not the demand, has set the torque
     for ``settle_s`` (so the estimate has seen the rail at the creep held, and dated a change the demand hid)
     and the estimate's interval lies above the set-point (lo > v^: the peak is above it with 95 %), the
     set-point goes up to lo at once (``lift`` 2: to sqrt(lo x median); ``lift_kmh_per_s`` > 0: at that rate;

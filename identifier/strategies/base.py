@@ -20,7 +20,6 @@ from ..messages import NAN_INTERVAL, IdentificationEvent
 from ..settings import IdentifierSettings
 
 
-
 _kernels = None
 
 
@@ -32,6 +31,7 @@ def load_kernels():
         from .. import kernels
         _kernels = kernels
     return _kernels
+
 
 @dataclass(frozen=True)
 class Sample:
