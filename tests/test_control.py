@@ -621,6 +621,12 @@ def test_the_control_bench_reports_every_law_with_the_oracle_on_top_and_the_iden
     assert "| 60 s logged run >= 10 x real time | not measured |" in report      # --speed-s 0: no speed run
     assert f"the identifier confirmed {len(confirmed)} of {len(rows)} drops" in report
     assert (tmp_path / "control-narrow-eta-low.png").stat().st_size > 1000
+    # the estimate under each law: its changes of rail counted here from the runs, its lead time within 100 ms
+    for law in ("extremum_seeking", "oracle"):
+        leads = out["results"][law]["runs"][0]["lead_times_ms"]
+        within = sum(1 for x in leads if x is not None and x <= 100.0) / len(leads) if leads else None
+        cell = "-" if within is None else f"{within:.0%}"
+        assert f"| {law} | {len(leads)} | {cell} | " in report, law
 
 
 def test_macro_slip_counts_a_wheel_sliding_backwards():
