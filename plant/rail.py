@@ -31,6 +31,7 @@ a step is two points at the same time.  The motor torque asked is ``mu_d * torqu
 """
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass, field
 
@@ -43,6 +44,8 @@ _PEAK_GRID_KMH = np.linspace(PEAK_SEARCH_KMH[0], PEAK_SEARCH_KMH[1] / 2, 1501)
 #: the truth's peak is cached per train speed rounded to this (m/s) outside transitions; Polach peaks move
 #: by well under 0.1 % over it
 _SPEED_QUANTUM_MS = 0.05
+#: curves' mu on the peak search's grid kept (``RailSchedule._curve_mu``): 12 kB each
+_GRID_CACHE_ENTRIES = 64
 #: past a transition's end by this much, its alpha is 1 to the bit whatever the rounding of (t - start) / length
 _STEADY_MARGIN_S = 1e-9
 
@@ -69,6 +72,7 @@ class RailSchedule:
     segments: tuple[RailSegment, ...]
     recovery: dict[int, Recovery] = field(default_factory=dict)     # segment index -> its recovery
     _cache: dict = field(default_factory=dict, repr=False, compare=False)
+    _grid_cache: dict = field(default_factory=dict, repr=False, compare=False)
     #: (from, until, alphas, index): a span of time without a transition under way, where both are constant
     _steady: tuple = field(default=(math.inf, -math.inf, (), 0), repr=False, compare=False)
 
@@ -166,12 +170,28 @@ class RailSchedule:
         hi = max((j for j, a in enumerate(alphas, start=1) if a > 0.0), default=0)
         mus = []
         for i in range(lo, max(hi, lo) + 1):
-            mu = self.segments[i].curve.mu_at(creep_speed_kmh, train_speed_ms)
+            mu = self._curve_mu(self.segments[i].curve, creep_speed_kmh, train_speed_ms)
             if i in self.recovery and cleaned:
                 rho = cleaned[list(self.recovery).index(i)]
-                mu = mu + rho * (self.recovery[i].reference.mu_at(creep_speed_kmh, train_speed_ms) - mu)
+                mu = mu + rho * (self._curve_mu(self.recovery[i].reference, creep_speed_kmh, train_speed_ms) - mu)
             mus.append(mu)
         return self._blend(mus, alphas[lo:max(hi, lo)])
+
+    def _curve_mu(self, curve, creep_speed_kmh, train_speed_ms: float):
+        """``curve.mu_at``; on the peak search's grid kept per (curve, train speed), read-only: over a
+        transition or a recovery only the weights change, not the curves, and the truth asks every period
+        (the same arrays, so the same blend to the bit)."""
+        if creep_speed_kmh is not _PEAK_GRID_KMH:
+            return curve.mu_at(creep_speed_kmh, train_speed_ms)
+        key = (id(curve), train_speed_ms)
+        hit = self._grid_cache.get(key)
+        if hit is None:
+            if len(self._grid_cache) >= _GRID_CACHE_ENTRIES:
+                self._grid_cache.clear()
+            hit = np.asarray(curve.mu_at(creep_speed_kmh, train_speed_ms))
+            hit.setflags(write=False)
+            self._grid_cache[key] = hit
+        return hit
 
     def peak(self, t_s: float, train_speed_ms: float, cleaned=()) -> tuple[float, float]:
         """(creep speed km/h, mu) at the peak of the true curve at ``t_s`` and ``train_speed_ms``."""
@@ -219,7 +239,7 @@ class DemandProfile:
         ts, ys = self.times_s, self.demand_mu
         if t_s >= ts[-1]:
             return ys[-1]
-        j = int(np.searchsorted(ts, t_s, side="right"))      # ts[j-1] <= t < ts[j]
+        j = bisect.bisect_right(ts, t_s)                     # ts[j-1] <= t < ts[j] (numpy's searchsorted, right)
         t0, t1 = ts[j - 1], ts[j]
         return ys[j - 1] + (ys[j] - ys[j - 1]) * (t_s - t0) / (t1 - t0)
 

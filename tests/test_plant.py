@@ -145,3 +145,29 @@ def test_a_curves_peak_and_stable_inverse_agree_with_scipy_on_drawn_curves():
         target = 0.8 * mu + 0.2 * float(c.mu(0.0))
         root = brentq(lambda x: float(c.mu(x)) - target, 0.0, v, xtol=1e-13)
         assert c.creep_for_mu(target) == pytest.approx(root, abs=1e-11), (seed, i)
+
+
+def test_the_truths_peak_over_a_transition_and_a_recovery_is_the_uncached_search_to_the_bit():
+    """The rail's true peak (``RailSchedule.peak``, asked every period) keeps each curve's values on its search
+    grid across a transition and a recovery; every period's (peak creep, peak mu) equals the same search made
+    afresh by a schedule with nothing kept, while the train speed moves a Polach curve's peak."""
+    import copy
+
+    from plant.friction import PolachCurve
+    from plant.rail import RailSchedule, RailSegment, Recovery
+
+    dry = PolachCurve(0.3, 0.3, 0.8, 0.7, 0.5, 60.0, 10.0)
+    wet = PolachCurve(0.12, 0.5, 0.6, 0.6, 0.4, 25.0, 10.0)
+    rail = RailSchedule((RailSegment(0.0, dry), RailSegment(1.0, wet, 0.4, "wet")), {1: Recovery(2e5, dry)})
+    peaks = set()
+    for k, t_s in enumerate(np.arange(0.95, 1.6, 0.007)):
+        v_t = 10.0 + 0.13 * k                      # a train speed that moves the peak: new grid rows are made too
+        cleaned = (min(0.9, 0.011 * k),)           # a patch being cleaned
+        fresh = copy.deepcopy(rail)
+        fresh._cache.clear()
+        fresh._grid_cache.clear()
+        peak = rail.peak(t_s, v_t, cleaned)
+        assert peak == fresh.peak(t_s, v_t, cleaned), (k, t_s)
+        peaks.add(peak)
+    assert len(peaks) > 50                          # the peak did move with the speed, the blend and the cleaning
+    assert rail._grid_cache and all(not a.flags.writeable for a in rail._grid_cache.values())
