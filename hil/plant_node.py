@@ -28,8 +28,8 @@ from .bus.frames import (STATE_FAULT, STATE_RUNNING, STATE_STARTING, TCU_IDS, Fr
 from .bus.link import Sender, heartbeat_period_s, poll_until, silence_limit_s
 from .bus.mapping import codec_for
 from .bus.secoc import node_key
-from .log.record import (Recorder, write_command, write_frame, write_identification, write_plant_state,
-                         write_rail_truth, write_sensor, write_status)
+from .log.record import (Recorder, write_command, write_estimate, write_frame, write_identification,
+                         write_plant_state, write_rail_truth, write_sensor, write_status)
 from .traction import TruthTrack
 from .trace import Trace
 from .bus.verdicts import (ANSWERED_TWICE, BAD_SEQUENCE, DUPLICATE, FOREIGN, FRESH, LATE, NOT_REJECTED, PROBE,
@@ -181,6 +181,7 @@ class PlantNode:
         self.last_status_step = -1
         self.last_result_step = -1
         self.last_sample_index = -1
+        self.last_estimate_step = -1
         self.tcu_state: int | None = None
         self.tcu_step: int | None = None       # the last step the TCU's heartbeat says it took
         self._sensor_msg: can.Message | None = None
@@ -326,6 +327,14 @@ class PlantNode:
             return FRESH
         if name == "TcuInterval":
             return FRESH if self.trace.interval(v) else BAD_SEQUENCE
+        if name == "TcuEstimate":
+            if not (self.last_estimate_step <= v.step <= current):
+                return BAD_SEQUENCE
+            self.last_estimate_step = v.step
+            self.trace.estimate(v)
+            if rec:
+                write_estimate(rec, v)
+            return FRESH
         if name == "TcuSample":
             if v.index != self.last_sample_index + 1 or not (0 <= v.step <= current):
                 return BAD_SEQUENCE

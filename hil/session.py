@@ -182,11 +182,6 @@ def idle_spinners(settings, cpus, log):
             spinners.kill()
 
 
-def _estimates(tcu) -> list | None:
-    """The built-in TCU's trace of peak estimates (identifier/tcu.py), None for a TCU in another process."""
-    return getattr(getattr(getattr(tcu, "node", None), "identifier", None), "estimate_trace", None)
-
-
 class Tcu:
     """The other end of the bus, by transport: ``inprocess`` (a ``TcuNode`` in this thread behind
     ``InprocessTcuBus``), ``process`` (``python -m hil.tcu_node`` as a child, which writes its report
@@ -456,7 +451,7 @@ class Session:
                    **(node.counters() if node else {}),
                    **(timing.summary(node.late_commands) if timing else {}),
                    "control": "external" if tcu.transport == "external" else self.scenario.control.law,
-                   **(node.rig.truth.metrics(self.trace.events, _estimates(tcu)) if node else {}), **extra}))
+                   **(node.rig.truth.metrics(self.trace.events, self.trace.estimates or None) if node else {}), **extra}))
 
     def finish(self, timing, wall_s: float, verdict: dict | None = None) -> dict:
         """After the loop (its ``Timing`` and wall seconds): the TCU told the run is over and its last

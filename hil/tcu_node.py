@@ -73,6 +73,7 @@ class TcuNode:
         self.sensor_frames = 0
         self.events = 0
         self.samples_sent = 0
+        self.estimates_sent = 0      # entries of the identifier's estimate trace sent as TcuEstimate frames
         self.stale_skipped = 0       # sensor frames passed over after a stall (newest_sensor_only)
         self.resent = 0              # the last answered step's reading again: its command sent again
         self._last_command = None    # the TorqueCommand of the last answered step
@@ -129,7 +130,7 @@ class TcuNode:
                 if interval is not None:
                     results.append(interval)
             return ([] if send is not None else [command_frame]) + self._new_samples(reading.step) + results \
-                + [c.status(out.status, out.observer)]
+                + self._new_estimates() + [c.status(out.status, out.observer)]
         if frame.name == "DriverDemand":
             if frame.value.step <= self.last_demand_step:
                 self.rejected[BAD_SEQUENCE] += 1
@@ -144,6 +145,16 @@ class TcuNode:
             if frame.value.state in (STATE_FINISHED, STATE_FAULT):
                 self.finished = True
         return []          # TCU frames of another node: nothing to do
+
+    def _new_estimates(self) -> list[can.Message]:
+        """A TcuEstimate frame for each estimate the identifier kept since the last call (its trace holds one in
+        ``ESTIMATE_TRACE_STEPS`` periods, in closed loop); none for an estimate the frame cannot carry."""
+        trace = self.identifier.estimate_trace
+        if len(trace) == self.estimates_sent:
+            return []
+        new = trace[self.estimates_sent:]
+        self.estimates_sent = len(trace)
+        return [m for m in (self.codec.estimate(e) for e in new) if m is not None]
 
     def _new_samples(self, step: int) -> list[can.Message]:
         strategy = self.identifier.strategy

@@ -36,6 +36,8 @@ class Trace:
         self.samples_v: list[float] = []
         self.samples_mu: list[float] = []
         self.detected_step: int | None = None
+        #: the TCU's peak estimates as its TcuEstimate frames brought them (``hil.bus.frames.EstimateReport``)
+        self.estimates: list = []
         self._truth_mu: dict[int, float] = {}
         self._observer_mu: dict[int, float] = {}
 
@@ -66,6 +68,10 @@ class Trace:
                                                        peak_open=r.peak_open)
                 return True
         return False
+
+    def estimate(self, r) -> None:
+        """A peak estimate of the TCU's (``EstimateReport``), in the order they came."""
+        self.estimates.append(r)
 
     def settle(self, upto_step: int | None = None) -> list:
         """The pending results of steps up to ``upto_step`` (all: None), now final: moved to ``events``

@@ -20,6 +20,9 @@ Entities (all scalars sent with ``rr.send_columns``)
   ``/creep/fault_onset``, ``/creep/serious_start``: vertical markers at t_f and t_serious;
   ``/creep/peak_creep_kmh``: the fault curve's peak creep (crossing it starts the serious stage);
 - ``/mu/{true,observed}``: true adhesion mu and the observer's mu^, with the same markers;
+- ``/creep/true_peak_kmh``, ``/mu/true_peak``: the current rail's true peak (closed-loop runs, ``/plant/rail``),
+  and ``/creep/estimate/{peak,lo,hi}_kmh``, ``/mu/estimate/{peak,lo,hi}``: the TCU's estimate of it with its
+  90 % interval (``/tcu/estimate``, from its TcuEstimate frames);
 - ``/tcu/{stage,corrections}``: TCU stage (0 monitoring, 1 identifying, 2 confirmed, 3 gave up) and
   correction count;
 - ``/curve/samples`` (mu^ over measured creep from slip detection to confirmation),
@@ -50,6 +53,12 @@ STAGE_CODES = {"normal": 0, "early": 1, "serious": 2}
 C_TRAIN, C_WHEEL = (31, 119, 180), (255, 127, 14)
 C_TRUE, C_MEAS = (44, 160, 44), (214, 39, 40)
 C_FAULT, C_SERIOUS = (148, 103, 189), (140, 86, 75)
+C_ESTIMATE = (23, 190, 207)
+#: the TCU's estimate of the current rail's peak (``/tcu/estimate``): centre and 90 % interval, creep then mu
+ESTIMATE_ENTITIES = ("/creep/estimate/peak_kmh", "/creep/estimate/lo_kmh", "/creep/estimate/hi_kmh",
+                     "/mu/estimate/peak", "/mu/estimate/lo", "/mu/estimate/hi")
+ESTIMATE_NAMES = ("TCU's estimate of the peak creep (km/h)", "its 90 % interval, low end", "its 90 % interval, high end",
+                  "TCU's estimate of the peak mu", "its 90 % interval, low end", "its 90 % interval, high end")
 
 
 def corrections_and_final(events) -> tuple[list, object]:
@@ -136,7 +145,7 @@ def curve_figure_png(data: "LogHead", samples_v, samples_mu, events) -> bytes:
 
 #: the topics the recording streams (read in a second pass, never held whole)
 STREAMED_TOPICS = {"/plant/state", "/tcu/observer", "/tcu/status", "/can/frames", "/loop/timing", "/plant/rail",
-                   "/control/metrics"}
+                   "/control/metrics", "/tcu/estimate"}
 #: rows a streamed entity holds before they go to the .rrd in one ``rr.send_columns``
 BATCH_ROWS = 20_000
 
@@ -211,7 +220,7 @@ class _Stream:
             "/speed/train_kmh", "/speed/wheel_kmh", "/creep/true_kmh", "/creep/measured_kmh", "/mu/true",
             "/mu/observed", "/tcu/stage", "/tcu/corrections", "/tcu/plant_stage", "/timing/round_trip_us",
             "/timing/lateness_us", "/timing/missed_deadlines", "/creep/true_peak_kmh", "/mu/true_peak",
-            "/torque/applied_nm", "/torque/demand_nm")}
+            "/torque/applied_nm", "/torque/demand_nm", *ESTIMATE_ENTITIES)}
         self.t_f, self.t_from, self.t_to = t_f, t_from, t_to
         self.t_range = _Range()
         self.creep, self.creep_meas, self.mu, self.mu_hat = _Range(), _Range(), _Range(), _Range()
@@ -224,6 +233,7 @@ class _Stream:
         self.samples_v: list[float] = []
         self.samples_mu: list[float] = []
         self.rail = 0                                     # /plant/rail rows (logs before closed loop: none)
+        self.estimates = 0                                # /tcu/estimate rows (a TCU that sends no estimate: none)
         self.metrics = None                               # /control/metrics
         self.torque_per_mu_nm = None
 
@@ -258,6 +268,11 @@ class _Stream:
                 c["/torque/demand_nm"].add(m.t_s, m.demand_mu * self.torque_per_mu_nm)
         elif topic == "/control/metrics":
             self.metrics = m
+        elif topic == "/tcu/estimate":
+            self.estimates += 1
+            for entity, value in zip(ESTIMATE_ENTITIES, (m.peak_creep_kmh, m.peak_creep_lo_kmh, m.peak_creep_hi_kmh,
+                                                         m.peak_mu, m.peak_mu_lo, m.peak_mu_hi)):
+                c[entity].add(m.t_s, value)
         elif topic == "/tcu/observer":
             self.observers += 1
             t = m.t_s
@@ -321,6 +336,8 @@ def build_recording(head: LogHead, rec):
     _line(rr, rec, "/tcu/corrections", "corrections Q", (255, 127, 14))
     _line(rr, rec, "/creep/true_peak_kmh", "true peak creep of the current rail (km/h)", C_SERIOUS, 1.0)
     _line(rr, rec, "/mu/true_peak", "true peak mu of the current rail", C_SERIOUS, 1.0)
+    for entity, name, width in zip(ESTIMATE_ENTITIES, ESTIMATE_NAMES, (1.5, 0.75, 0.75) * 2):
+        _line(rr, rec, entity, name, C_ESTIMATE, width)
     _line(rr, rec, "/torque/applied_nm", "torque applied (N m)", C_TRUE, 2.0)
     _line(rr, rec, "/torque/demand_nm", "driver's demand (N m)", C_MEAS, 1.0)
     stream.torque_per_mu_nm = sc.vehicle.torque_per_mu_nm

@@ -44,6 +44,11 @@ class ObserverSample:
     load_torque_nm: float
 
 
+#: the TCU keeps (and sends in a TcuEstimate frame) one peak estimate in this many periods: the run summary's
+#: ``peak_estimate`` per rail change is computed from them (identifier/peak_estimate.py)
+ESTIMATE_TRACE_STEPS = 10
+
+
 @dataclass(frozen=True)
 class IdentificationEvent:
     step: int

@@ -19,16 +19,14 @@ from . import curve as curve_model
 from .control import DEFAULT_LAW, ControlInput, make_controller
 from .drill import Drill
 from .excitation import Excitation
-from .messages import (STAGE_CONFIRMED, STAGE_GAVE_UP, STAGE_IDENTIFYING, STAGE_MONITORING, ObserverSample,
-                       SensorReading, TcuOutput, TcuStatus, TorqueCommand)
+from .messages import (ESTIMATE_TRACE_STEPS, STAGE_CONFIRMED, STAGE_GAVE_UP, STAGE_IDENTIFYING, STAGE_MONITORING,
+                       ObserverSample, SensorReading, TcuOutput, TcuStatus, TorqueCommand)
 from .observer import LoadTorqueObserver
 from .peak_estimate import PeakEstimator
 from .settings import IdentifierSettings
 from .strategies import DEFAULT_STRATEGY, Sample, make_strategy
 
 KMH_PER_MS = 3.6
-#: the run keeps one estimate in this many periods for its summary (identifier/peak_estimate.py)
-ESTIMATE_TRACE_STEPS = 10
 
 
 def creep_speed_kmh(reading: SensorReading, vehicle) -> float:

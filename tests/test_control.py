@@ -442,6 +442,10 @@ def test_the_rerun_view_shows_the_true_peak_and_the_torque_against_the_demand(ru
     n = len(log.topic("/plant/rail"))
     for entity in ("/creep/true_peak_kmh", "/mu/true_peak", "/torque/demand_nm", "/torque/applied_nm"):
         assert rows.get((entity, "Scalars:scalars")) == n, entity
+    n_estimates = len(log.topic("/tcu/estimate"))        # the TCU's estimate of the rail's peak, and its interval
+    assert n_estimates > 0
+    for entity in view.ESTIMATE_ENTITIES:
+        assert rows.get((entity, "Scalars:scalars")) == n_estimates, entity
     v = subprocess.run([rerun_exe(), "rrd", "verify", str(rrd)], capture_output=True, text=True, timeout=120)
     assert v.returncode == 0, v.stderr
 
@@ -749,3 +753,37 @@ def test_blind_differs_from_identified_where_the_estimate_came_in_time():
                 return
     assert in_time, f"no estimate in time on 12 draws of seed {seed}"
     pytest.fail(f"identified scored as blind on all {in_time} draws of seed {seed} with an estimate in time")
+
+
+def test_the_tcus_peak_estimate_travels_in_its_frame_is_logged_and_summarised_in_either_transport(runs, tmp_path):
+    """Issue 50: the TCU's estimate of the current rail's peak goes on the bus (TcuEstimate, every tenth period in
+    closed loop) and the plant logs it (``/tcu/estimate``) and judges it (``peak_estimate`` per rail change).
+    The logged estimates are the identifier's own to the bit (the same TCU run again on the log's plant frames,
+    as ``hil replay`` runs it), and a TCU in its own process on the local bus gives the same log rows and
+    summary as the in-process one."""
+    import json
+
+    from hil.replay import load_mcap
+
+    scenario, summary, log = runs["identified"]
+    rows = [(m.step, m.peak_creep_kmh, (m.peak_creep_lo_kmh, m.peak_creep_hi_kmh), m.peak_mu,
+             (m.peak_mu_lo, m.peak_mu_hi), m.since_step) for m in log.topic("/tcu/estimate")]
+    assert len(rows) > 100
+    src = load_mcap(summary["mcap"])
+    node = TcuNode(scenario, "gp", 1, codec=FrameCodec(scenario.run.exchange_period_s))
+    for msg in src.frames:
+        node.handle(msg)
+    own = [(e.step, e.peak_creep_kmh, tuple(e.peak_creep_ci), e.peak_mu, tuple(e.peak_mu_ci), e.since_step)
+           for e in node.identifier.estimate_trace]
+    assert rows == own
+    changes = [x["change_s"] for x in summary["peak_estimate"]]
+    assert changes == [s.start_s for s in scenario.rail.segments[1:]]
+    r = run_hil("run", str(WET), "--set", "control.law=identified", "--bus", "local", "--json", "--out",
+                str(tmp_path), timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    other = json.loads(r.stdout)
+    assert other["transport"] == "process" and summary["transport"] == "inprocess"
+    assert other["peak_estimate"] == summary["peak_estimate"]
+    other_rows = [(m.step, m.peak_creep_kmh, (m.peak_creep_lo_kmh, m.peak_creep_hi_kmh), m.peak_mu,
+                   (m.peak_mu_lo, m.peak_mu_hi), m.since_step) for m in read_log(other["mcap"]).topic("/tcu/estimate")]
+    assert other_rows == rows

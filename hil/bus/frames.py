@@ -17,7 +17,8 @@ zeroed and does not read it.
 
 Frame schedule per exchange period: DriverDemand then PlantSensor (plant -> TCU), then TorqueCommand, TcuSample (0..n,
 one per sample the strategy took), TcuResult (0..n, only on an identification event, each followed by its
-TcuInterval when the strategy says how sure it is) and TcuStatus
+TcuInterval when the strategy says how sure it is), TcuEstimate (every ``ESTIMATE_TRACE_STEPS``-th period
+while the TCU estimates the current rail's peak, in closed loop; optional) and TcuStatus
 (TCU -> plant, in this order), heartbeats both ways every ``heartbeat_period_s`` of wall time.
 """
 from __future__ import annotations
@@ -32,14 +33,15 @@ from typing import NamedTuple
 import can
 import cantools
 
-from identifier.messages import (DriverDemand, IdentificationEvent, ObserverSample, SensorReading, TcuStatus,
-                                 TorqueCommand)
+from identifier.messages import (ESTIMATE_TRACE_STEPS, DriverDemand, IdentificationEvent, ObserverSample,
+                                 SensorReading, TcuStatus, TorqueCommand)
 
 DBC_NAME = "hil.dbc"
 DBC_PATH = Path(__file__).parent.parent / DBC_NAME
 
 # frame ids (also in the DBC; checked against it at load)
 SENSOR_ID, COMMAND_ID, STATUS_ID, RESULT_ID, INTERVAL_ID, SAMPLE_ID = 0x100, 0x110, 0x120, 0x130, 0x131, 0x140
+ESTIMATE_ID = 0x132
 DEMAND_ID = 0x108
 PLANT_HEARTBEAT_ID, TCU_HEARTBEAT_ID = 0x701, 0x702
 #: the TCU's scenario digest, sent before each heartbeat until the first reading (``FrameCodec.tcu_scenario``)
@@ -48,7 +50,8 @@ TCU_SCENARIO_ID = 0x703
 #: reading): how many a run holds depends on timing, so comparisons of runs' frame streams leave them out
 WALL_CLOCK_IDS = frozenset({PLANT_HEARTBEAT_ID, TCU_HEARTBEAT_ID, TCU_SCENARIO_ID})
 PLANT_IDS = frozenset({SENSOR_ID, DEMAND_ID, PLANT_HEARTBEAT_ID})
-TCU_IDS = frozenset({COMMAND_ID, STATUS_ID, RESULT_ID, INTERVAL_ID, SAMPLE_ID, TCU_HEARTBEAT_ID, TCU_SCENARIO_ID})
+TCU_IDS = frozenset({COMMAND_ID, STATUS_ID, RESULT_ID, INTERVAL_ID, ESTIMATE_ID, SAMPLE_ID, TCU_HEARTBEAT_ID,
+                     TCU_SCENARIO_ID})
 
 # heartbeat states
 STATE_STARTING, STATE_RUNNING, STATE_FINISHED, STATE_FAULT = 0, 1, 2, 3
@@ -97,6 +100,19 @@ class SampleReport:
     detected_step: int
     creep_speed_kmh: float
     mu_hat: float
+
+
+@dataclass(frozen=True)
+class EstimateReport:
+    """The TCU's estimate of the current rail's peak at ``step`` as a TcuEstimate frame carries it: the fields
+    of ``identifier.peak_estimate.PeakEstimate`` but its sample count (``t_s`` is ``step`` periods)."""
+    step: int
+    t_s: float
+    peak_creep_kmh: float
+    peak_creep_ci: tuple[float, float]
+    peak_mu: float
+    peak_mu_ci: tuple[float, float]
+    since_step: int
 
 
 class Frame(NamedTuple):
@@ -169,8 +185,8 @@ class FrameCodec:
         self.period_s = period_s
         self._by_id = {m.frame_id: m for m in self.db.messages}
         expected = {SENSOR_ID: "PlantSensor", DEMAND_ID: "DriverDemand", COMMAND_ID: "TorqueCommand", STATUS_ID: "TcuStatus",
-                    RESULT_ID: "TcuResult", INTERVAL_ID: "TcuInterval", SAMPLE_ID: "TcuSample", PLANT_HEARTBEAT_ID: "PlantHeartbeat", TCU_HEARTBEAT_ID: "TcuHeartbeat",
-                    TCU_SCENARIO_ID: "TcuScenario"}
+                    RESULT_ID: "TcuResult", INTERVAL_ID: "TcuInterval", ESTIMATE_ID: "TcuEstimate", SAMPLE_ID: "TcuSample",
+                    PLANT_HEARTBEAT_ID: "PlantHeartbeat", TCU_HEARTBEAT_ID: "TcuHeartbeat", TCU_SCENARIO_ID: "TcuScenario"}
         for fid, name in expected.items():
             if fid not in self._by_id or self._by_id[fid].name != name:
                 raise ValueError(f"{DBC_NAME}: frame 0x{fid:X} must be {name}")
@@ -306,6 +322,17 @@ class FrameCodec:
                                        "IntervalKind": KINDS.index(e.kind), "IntervalLevel": INTERVAL_LEVEL_PERCENT,
                                        **signals, "IntervalOpen": int(bool(e.peak_open))})
 
+    def estimate(self, e) -> can.Message | None:
+        """The TcuEstimate frame of a peak estimate (``PeakEstimate`` or ``EstimateReport``), or None when a
+        value is not finite or lies beyond the DBC's ranges (sent as no estimate rather than as a frame to reject)."""
+        signals = {"EstPeakCreep": e.peak_creep_kmh, "EstPeakCreepLo": e.peak_creep_ci[0],
+                   "EstPeakCreepHi": e.peak_creep_ci[1], "EstPeakMu": e.peak_mu, "EstPeakMuLo": e.peak_mu_ci[0],
+                   "EstPeakMuHi": e.peak_mu_ci[1]}
+        limits = {name: (lo, hi) for name, _, lo, hi in self._limits[ESTIMATE_ID]}
+        if not all(math.isfinite(v) and limits[k][0] <= v <= limits[k][1] for k, v in signals.items()):
+            return None
+        return self._msg(ESTIMATE_ID, {"EstimateStep": e.step, "SinceStep": max(int(e.since_step), 0), **signals})
+
     def sample(self, r: SampleReport) -> can.Message:
         return self._msg(SAMPLE_ID, {"SampleStep": r.step, "SampleIndex": min(r.index, 65535),
                                      "DetectedStep": r.detected_step, "SampleCreep": r.creep_speed_kmh,
@@ -420,6 +447,11 @@ class FrameCodec:
             return IntervalReport(int(v["IntervalStep"]), int(v["IntervalCorrection"]), KINDS[int(v["IntervalKind"])],
                                   int(v["IntervalLevel"]), (float(v["PeakMuLo"]), float(v["PeakMuHi"])),
                                   (float(v["PeakCreepLo"]), float(v["PeakCreepHi"])), bool(v["IntervalOpen"]))
+        if fid == ESTIMATE_ID:
+            step = int(v["EstimateStep"])
+            return EstimateReport(step, step * self.period_s, float(v["EstPeakCreep"]),
+                                  (float(v["EstPeakCreepLo"]), float(v["EstPeakCreepHi"])), float(v["EstPeakMu"]),
+                                  (float(v["EstPeakMuLo"]), float(v["EstPeakMuHi"])), int(v["SinceStep"]))
         if fid == SAMPLE_ID:
             return SampleReport(int(v["SampleStep"]), int(v["SampleIndex"]), int(v["DetectedStep"]),
                                 float(v["SampleCreep"]), float(v["SampleMu"]))
@@ -459,13 +491,16 @@ def fd_frame_time_s(data_len: int, bitrate: int, data_bitrate: int, brs: bool = 
 
 def bus_load(db, period_s: float, heartbeat_period_s: float, bitrate: int, data_bitrate: int) -> dict:
     """Worst-case bus load of the HIL schedule: per exchange period one sensor, status and command
-    frame; heartbeats from both sides every ``heartbeat_period_s``; the peak adds a sample frame and a
-    result frame in the same period (samples flow only while identifying; results once a window).
+    frame, and a peak estimate every ``ESTIMATE_TRACE_STEPS`` periods (closed loop); heartbeats from both sides
+    every ``heartbeat_period_s``; the peak adds a sample frame and a result frame in the same period (samples
+    flow only while identifying; results once a window).
     """
     lengths = {m.frame_id: m.length for m in db.messages}
     per_period = sum(fd_frame_time_s(lengths[i], bitrate, data_bitrate) for i in (SENSOR_ID, STATUS_ID, COMMAND_ID))
     heartbeats = sum(fd_frame_time_s(lengths[i], bitrate, data_bitrate)
                      for i in (PLANT_HEARTBEAT_ID, TCU_HEARTBEAT_ID)) / heartbeat_period_s
+    if ESTIMATE_ID in lengths:
+        per_period += fd_frame_time_s(lengths[ESTIMATE_ID], bitrate, data_bitrate) / ESTIMATE_TRACE_STEPS
     steady = per_period / period_s + heartbeats
     peak = steady + sum(fd_frame_time_s(lengths[i], bitrate, data_bitrate) for i in (RESULT_ID, SAMPLE_ID)) / period_s
     return {"bitrate": bitrate, "data_bitrate": data_bitrate, "period_s": period_s,

@@ -33,7 +33,7 @@ A frame whose id the mapping does not name and that is no HIL frame is counted b
 (``unmapped_id:0x123``, passed, not acted on; the summary's ``unmapped_ids``).
 
 The HIL's own frames (heartbeats both ways and the built-in TCU's identification frames TcuStatus,
-TcuResult, TcuInterval, TcuSample: CAN FD, ``hil/hil.dbc``) still travel beside the mapped ones; a
+TcuResult, TcuInterval, TcuEstimate, TcuSample: CAN FD, ``hil/hil.dbc``) still travel beside the mapped ones; a
 TCU of another make sends none and ignores them.  Their ids are therefore reserved: a mapped message
 with one of them is refused.
 
@@ -50,8 +50,8 @@ import can
 from identifier.messages import DriverDemand, SensorReading, TorqueCommand
 
 from ..errors import ConfigError
-from .frames import (COMMAND_ID, DBC_PATH, DEMAND_ID, INTERVAL_ID, PLANT_HEARTBEAT_ID, RESULT_ID, SAMPLE_ID,
-                     SENSOR_ID, STATUS_ID, TCU_HEARTBEAT_ID, Frame, FrameCodec)
+from .frames import (COMMAND_ID, DBC_PATH, DEMAND_ID, ESTIMATE_ID, INTERVAL_ID, PLANT_HEARTBEAT_ID, RESULT_ID,
+                     SAMPLE_ID, SENSOR_ID, STATUS_ID, TCU_HEARTBEAT_ID, Frame, FrameCodec)
 
 #: the quantities the plant sends, and the one it receives
 SENT = ("motor_speed_rad_s", "train_speed_ms", "demand_torque_nm")
@@ -61,7 +61,7 @@ QUANTITIES = SENT + RECEIVED
 TCU_FRAMES = "tcu_frames"
 #: the HIL frames that still travel on a mapped bus (heartbeats, the built-in TCU's identification frames)
 RESERVED_IDS = {PLANT_HEARTBEAT_ID: "PlantHeartbeat", TCU_HEARTBEAT_ID: "TcuHeartbeat", STATUS_ID: "TcuStatus",
-                RESULT_ID: "TcuResult", INTERVAL_ID: "TcuInterval", SAMPLE_ID: "TcuSample"}
+                RESULT_ID: "TcuResult", INTERVAL_ID: "TcuInterval", ESTIMATE_ID: "TcuEstimate", SAMPLE_ID: "TcuSample"}
 
 
 @dataclass(frozen=True)
@@ -347,6 +347,9 @@ class MappedCodec:
 
     def interval(self, e):
         return self.hil.interval(e)
+
+    def estimate(self, e):
+        return self.hil.estimate(e)
 
     def sample(self, r):
         return self.hil.sample(r)

@@ -652,6 +652,12 @@ def write_status(rec: Recorder, status, observer, period_s: float) -> None:
     rec.row("/tcu/status", t, (status.step, t, status.stage, STAGE_NAMES[status.stage], status.correction))
 
 
+def write_estimate(rec: Recorder, e) -> None:
+    """``/tcu/estimate``: the TCU's estimate of the current rail's peak (a TcuEstimate frame's ``EstimateReport``)."""
+    rec.row("/tcu/estimate", e.t_s, (e.step, e.t_s, e.peak_creep_kmh, e.peak_creep_ci[0], e.peak_creep_ci[1],
+                                     e.peak_mu, e.peak_mu_ci[0], e.peak_mu_ci[1], e.since_step))
+
+
 def write_identification(rec: Recorder, e, strategy: str) -> None:
     """``/tcu/identification`` and its line on ``/run/events``."""
     rec.write("/tcu/identification", e.t_s, step=e.step, t_s=e.t_s, kind=e.kind, correction=e.correction,

@@ -27,6 +27,7 @@ TOPICS = {
     "/run/summary": "RunSummary",
     "/plant/rail": "RailTruth",
     "/control/metrics": "ControlMetrics",
+    "/tcu/estimate": "PeakEstimate",
 }
 
 _T = descriptor_pb2.FieldDescriptorProto
@@ -72,6 +73,11 @@ MESSAGES: dict[str, list[tuple[str, str, bool]]] = {
                        ("macro_slip_s", "double", False), ("macro_slip_count", "int32", False),
                        ("reaction_ms", "double", False), ("recovery_s", "double", False),
                        ("torque_ripple_percent", "double", False)],
+    # the TCU's estimate of the current rail's peak, as its TcuEstimate frames bring it (identifier/peak_estimate.py)
+    "PeakEstimate": [("step", "int64", False), ("t_s", "double", False), ("peak_creep_kmh", "double", False),
+                     ("peak_creep_lo_kmh", "double", False), ("peak_creep_hi_kmh", "double", False),
+                     ("peak_mu", "double", False), ("peak_mu_lo", "double", False), ("peak_mu_hi", "double", False),
+                     ("since_step", "int64", False)],
 }
 
 #: topic -> its message's field names in order: a row written positionally (``Recorder.row``) gives its
