@@ -132,6 +132,9 @@ def bench_json_keys(out: dict, stderr: str, seed: int, doc) -> None:
     assert out["cases"] == BENCH_CASES and out["seed"] == seed and f"seed {seed}" in stderr
     for k in ("top1_accuracy", "none_accuracy", "false_confident_rate"):
         assert out[k] is None or 0 <= out[k] <= 1
+    for rec in out["records"]:        # a diagnosis' CPU seconds beside its wall seconds (one process, two cores)
+        assert 0 < rec["diagnosis_cpu_s"] <= 2 * rec["diagnosis_s"] + 0.5, rec
+    assert out["median_diagnosis_cpu_s"] > 0 and "s of CPU)" in (doc / "gap.md").read_text()
     assert "false-confident" in (doc / "gap.md").read_text()
     assert f"--seed {seed} --mix {BENCH_MIX} --doc {doc}`" in (doc / "gap.md").read_text()   # the command as run
     assert json.loads((doc / "gap.json").read_text())["cases"] == BENCH_CASES

@@ -239,10 +239,10 @@ def run_case(scenario, kind: str, effects: dict, run_seed: int, out_dir: Path, i
     summary = run(real, "nlls", run_seed, bus="inprocess", out_dir=out_dir / f"case{i:03d}", progress=False,
                   log=lambda text: None)
     path = summary["mcap"]
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     held = sorted(n for n in effects if n in held_out())             # the truth's own form is no candidate
     out, result = diagnose(read_real_log(path), scenario, identify=False, exclude=held)   # blind: no truth here
-    wall = time.perf_counter() - t0
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     truth = read_log(path).metadata.get(TRUTH_KEY, {})                  # only now, for scoring (none: nominal)
     which = out["which"]
     truth_set = truth_classes(effects)
@@ -254,7 +254,7 @@ def run_case(scenario, kind: str, effects: dict, run_seed: int, out_dir: Path, i
            "false_confident": bool(set(named_set) - set(truth_set)),
            "shrink_percent": out["shrink"]["held_out_gap_shrink_percent"],
            "nominal_gap": which["nominal_held_out_gap"], "best": which["ranking"][0]["effect"],
-           "best_form": which["ranking"][0]["form"], "diagnosis_s": wall, "log": path,
+           "best_form": which["ranking"][0]["form"], "diagnosis_s": wall, "diagnosis_cpu_s": cpu, "log": path,
            "description": (which.get("description") or {}).get("sentence"),
            "described_variables": (which.get("description") or {}).get("variables", []),
            "oracle": limit, "excluded": held, "ranked_candidates": [r["candidate"] for r in which["ranking"]],
@@ -448,6 +448,8 @@ def summarise(records: list[dict]) -> dict:
         "per_form": per_form, "confusion": confusion,
         "failed_fits": sum(len(r.get("failed_candidates", [])) for r in records),
         "median_diagnosis_s": float(np.median([r["diagnosis_s"] for r in records])) if records else None,
+        # the CPU seconds of this process (a loaded machine stretches the wall seconds, not these)
+        "median_diagnosis_cpu_s": float(np.median([r["diagnosis_cpu_s"] for r in records])) if records else None,
     }
 
 
@@ -478,7 +480,8 @@ def markdown(result: dict) -> str:
              f"{' --mix ' + result['mix_arg'] if result.get('mix_arg') else ''}"
              f"{' --doc ' + str(result['doc_arg']) if result.get('doc_arg') else ''}` "
              f"(seed drawn at run time: {result['seed_drawn']}); wall {result['wall_s']:.0f} s, "
-             f"median diagnosis {f(result['median_diagnosis_s'], '.1f')} s.", "",
+             f"median diagnosis {f(result['median_diagnosis_s'], '.1f')} s "
+             f"({f(result.get('median_diagnosis_cpu_s'), '.1f')} s of CPU).", "",
              "Cases by kind: " + ", ".join(f"{k} {v}" for k, v in result["by_kind"].items()), "",
              "| figure | measured | target (issues 18 and 35) |", "|---|---|---|",
              f"| top-1, single effects in a held-out form | {pct(result['top1_accuracy_held_out_forms'])} | >= 80 % of "
@@ -634,7 +637,8 @@ def summary_text(result: dict) -> str:
                  f"{f(result['two_effect_both_found'], '.3f')}; median shrink when right "
                  f"{f(result['median_shrink_percent'], '.1f')} %; median parameter error "
                  f"{f(result['median_param_err_percent'], '.2f')} %; median diagnosis "
-                 f"{f(result.get('median_diagnosis_s'), '.1f')} s")
+                 f"{f(result.get('median_diagnosis_s'), '.1f')} s ({f(result.get('median_diagnosis_cpu_s'), '.1f')} s "
+                 f"of CPU)")
     cal = result.get("calibration")
     if cal:
         lines.append("  right per grade: " + ", ".join(f"{g} {c['right']} of {c['cases']}" for g, c in cal.items())
