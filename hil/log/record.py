@@ -657,7 +657,8 @@ def write_identification(rec: Recorder, e, strategy: str) -> None:
     rec.write("/tcu/identification", e.t_s, step=e.step, t_s=e.t_s, kind=e.kind, correction=e.correction,
               params=list(e.params), j_ef=e.j_ef, samples=e.samples, strategy=strategy,
               peak_mu_ci=list(e.peak_mu_ci), peak_creep_ci=list(e.peak_creep_ci),
-              peak_open=bool(e.peak_open))
+              peak_open=bool(e.peak_open), samples_from_s=float(e.samples_from_s),
+              samples_to_s=float(e.samples_to_s))
     rec.event(e.t_s, "INFO", f"{e.kind} Q={e.correction} after {e.samples} samples: "
               + ", ".join(f"{x:.5g}" for x in e.params))
 

@@ -538,7 +538,7 @@ class GpStrategy(SpeedModelStrategy):
         mu0, a, r = self._shape
         theta = theta_from_phi_floats((float(mu_mid), float(creep_mid), min(mu0, 0.5 * float(mu_mid)), a, r))
         return self.event(s, kind, theta, (float(mu_lo), float(mu_hi)), (float(creep_lo), float(creep_hi)),
-                          peak_open=peak_open)
+                          peak_open=peak_open, samples_from_s=self.samples_seen[self._n0].t_s)
 
     def fit_shape(self, peak_mu: float, peak_creep_kmh: float) -> tuple[float, float, float]:
         """(mu(0), a, r) of identifier/prior.py's form, on SHAPE_GRID, whose curve through the peak
