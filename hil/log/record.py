@@ -599,7 +599,8 @@ def start_recording(scenario, strategy: str, seed: int, bus: str, mode: str, pat
                                                          "estimate bounds it, its median sets it",
                              "peak_estimate_per_update": "the peak estimate's memory and hazard per update",
                              "gp_closed_loop_tracking": "gp's train-speed line refitted every sample, interval floors",
-                             "gp_open_loop_edge": "gp confirms no maximum at the lowest creep seen in open loop either"})
+                             "gp_open_loop_edge": "gp confirms no maximum at the lowest creep seen in open loop either",
+                             "gp_one_rail": "gp confirms in closed loop only from a window that holds one rail"})
         if dbc is not None:
             rec.metadata("dbc", dbc)
         if bus_meta is not None:

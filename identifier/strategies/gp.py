@@ -163,7 +163,14 @@ DEFAULTS = {
     "change_fall_slope": 0.15,           # s_f, the steepest fall of a curve past its peak, mu per km/h
     "change_rise_slope": 3.5,            # s_r, the steepest rise of a curve, mu per km/h
     "open_loop_edge": True,              # in open loop too: no confirmation of a maximum at the lowest creep seen
+    "stationary_sigmas": 2.0,            # closed loop: a confirmation's window must hold one rail (0: no test)
+    "estimate_changes": True,            # closed loop: a change the TCU's peak estimate dates inside the window restarts it
+    "estimate_agrees": True,             # closed loop: no confirmation whose intervals miss the estimate's entirely
 }
+
+#: the residuals of the stationarity test are averaged over blocks of this many samples (several of the
+#: observer's lags 2 / p: the blocks' means are then nearly independent)
+STATIONARY_BLOCK = 10
 
 
 class GpStrategy(SpeedModelStrategy):
@@ -224,6 +231,10 @@ class GpStrategy(SpeedModelStrategy):
         self._settle_until_s = math.inf       # closed loop: the restart that ends the slip's first stretch
         self.restarts = 0
         self.below_draws = 0                  # of the last peak draws, those whose maximum is the lowest seen creep
+        #: set by the TCU before each sample (closed loop): its peak estimate of the current rail
+        #: (identifier/peak_estimate.py ``PeakEstimate``), or None
+        self.rail_estimate = None
+        self.refused = {"estimate_change": 0, "not_stationary": 0, "estimate_disagrees": 0}
 
     @property
     def _dates_changes(self) -> bool:
@@ -257,6 +268,10 @@ class GpStrategy(SpeedModelStrategy):
              "change_window", "an integer >= 2")
         need(isinstance(o["rail_changes"], bool), "rail_changes", "true or false")
         need(isinstance(o["open_loop_edge"], bool), "open_loop_edge", "true or false")
+        for key in ("estimate_changes", "estimate_agrees"):
+            need(isinstance(o[key], bool), key, "true or false")
+        need(isinstance(o["stationary_sigmas"], (int, float)) and not isinstance(o["stationary_sigmas"], bool)
+             and math.isfinite(o["stationary_sigmas"]) and o["stationary_sigmas"] >= 0, "stationary_sigmas", "a number >= 0")
         need(isinstance(o["track_train_speed"], bool), "track_train_speed", "true or false")
         for key, top in (("floor_peak_mu", 1.0), ("floor_peak_creep_kmh", 10.0)):
             need(isinstance(o[key], (int, float)) and not isinstance(o[key], bool) and 0.0 <= o[key] <= top,
@@ -520,8 +535,82 @@ class GpStrategy(SpeedModelStrategy):
         if (check and n >= int(o["min_samples"]) and within_tolerance(mu_lo, mu_mid, mu_hi, float(o["tol_peak_mu"]))
                 and within_tolerance(creep_lo, creep_mid, creep_hi, float(o["tol_peak_creep"]))
                 and creep_hi < self.bound_kmh and not self._held_back()):
-            return [self._publish(s, "confirmed", q)]
+            refusal = self._unattributable(s, q)
+            if refusal is None:
+                return [self._publish(s, "confirmed", q)]
+            self.refused[refusal] += 1
+            if refusal != "estimate_disagrees":     # the window holds more than one rail: forget it
+                event = self._publish(s, "unconfirmed" if ends else "correction", q)
+                self._restart(s)
+                self.restarts += 1
+                return [event]
         return [self._publish(s, "unconfirmed" if ends else "correction", q)]
+
+    def _unattributable(self, s: Sample, q: np.ndarray) -> str | None:
+        """Why a confirmation due now cannot be attributed to one rail (module docstring), or None: in closed loop,
+        ``estimate_change``: the TCU's peak estimate dates a change of rail after the window's first sample;
+        ``not_stationary``: the stationarity test; ``estimate_disagrees``: the published intervals and the
+        estimate's share no peak mu or no peak creep."""
+        if not self._dates_changes:
+            return None
+        o, est = self.opts, self.rail_estimate
+        first = self.samples_seen[self._n0]
+        if est is not None and o["estimate_changes"] and est.since_step > first.step:
+            return "estimate_change"
+        sig = float(o["stationary_sigmas"])
+        if sig > 0 and self._drift_sigmas(self._interval_half_width_mu(q)) > sig:
+            return "not_stationary"
+        if est is not None and o["estimate_agrees"]:
+            (mu_lo, creep_lo), (mu_hi, creep_hi) = self._published_bounds(q)
+            (e_mu_lo, e_mu_hi), (e_v_lo, e_v_hi) = est.peak_mu_ci, est.peak_creep_ci
+            if mu_hi < e_mu_lo or mu_lo > e_mu_hi or creep_hi < e_v_lo or creep_lo > e_v_hi:
+                return "estimate_disagrees"
+        return None
+
+    def _published_bounds(self, q: np.ndarray) -> tuple[tuple[float, float], tuple[float, float]]:
+        """((peak mu lo, peak creep lo), (hi, hi)) of the intervals ``_publish`` would state from ``q`` (the floors
+        applied in closed loop)."""
+        (mu_lo, creep_lo), (mu_mid, creep_mid), (mu_hi, creep_hi) = q[1], q[2], q[3]
+        if self.closed_loop:
+            f_mu, f_creep = float(self.opts["floor_peak_mu"]), float(self.opts["floor_peak_creep_kmh"])
+            mu_lo, mu_hi = min(mu_lo, mu_mid - f_mu), max(mu_hi, mu_mid + f_mu)
+            creep_lo, creep_hi = min(creep_lo, creep_mid - f_creep), max(creep_hi, creep_mid + f_creep)
+        return (float(mu_lo), float(creep_lo)), (float(mu_hi), float(creep_hi))
+
+    def _interval_half_width_mu(self, q: np.ndarray) -> float:
+        """The published peak-mu interval's least half-width about its median: how far the rail's mu may move
+        across the window and the interval still hold it."""
+        (lo, _), (hi, _) = self._published_bounds(q)
+        mid = float(q[2][0])
+        return max(min(mid - lo, hi - mid), 0.0)
+
+    def _drift_sigmas(self, allowed_mu: float) -> float:
+        """The stationarity test (module docstring): r = mu^ - m^(v) over the window's samples (v the creep ``lag``
+        samples earlier, m^ the posterior mean); d = mean(r, second half) - mean(r, first half) with its standard
+        error from block means (``STATIONARY_BLOCK`` samples); returns (|d| - ``allowed_mu``) / se (0 when too
+        few blocks)."""
+        ss = self.samples_seen[self._n0:]
+        lag = self._lag
+        n_blocks = (len(ss) - lag) // STATIONARY_BLOCK
+        if n_blocks < 4:
+            return 0.0
+        n = n_blocks * STATIONARY_BLOCK
+        ss = ss[len(ss) - lag - n:]
+        v = np.array([x.creep_speed_kmh for x in ss[:n]])
+        mu = np.array([x.mu_hat for x in ss[lag:lag + n]])
+        m = np.interp(np.log(np.maximum(v, math.exp(self._log_x_list[0]))), self.log_x, self.z[1:])
+        blocks = (mu - m).reshape(n_blocks, STATIONARY_BLOCK).mean(axis=1)
+        if not np.all(np.isfinite(blocks)):
+            return 0.0
+        h = n_blocks // 2
+        d = float(blocks[n_blocks - h:].mean() - blocks[:h].mean())
+        var = float(np.var(np.concatenate([blocks[:h] - blocks[:h].mean(), blocks[n_blocks - h:] - blocks[n_blocks - h:].mean()]),
+                           ddof=0)) * (2 * h) / max(2 * h - 2, 1)
+        se = math.sqrt(var * 2.0 / h) if var > 0 else 0.0
+        excess = abs(d) - allowed_mu
+        if excess <= 0:
+            return 0.0
+        return excess / se if se > 0 else math.inf
 
     def _publish(self, s: Sample, kind: str, q: np.ndarray) -> IdentificationEvent:
         """The event of ``kind`` with the median peak and the intervals at ``report_level`` (rows 1-3
