@@ -163,9 +163,11 @@ DEFAULTS = {
     "change_fall_slope": 0.15,           # s_f, the steepest fall of a curve past its peak, mu per km/h
     "change_rise_slope": 3.5,            # s_r, the steepest rise of a curve, mu per km/h
     "open_loop_edge": True,              # in open loop too: no confirmation of a maximum at the lowest creep seen
-    "stationary_sigmas": 2.0,            # closed loop: a confirmation's window must hold one rail (0: no test)
-    "estimate_changes": True,            # closed loop: a change the TCU's peak estimate dates inside the window restarts it
-    "estimate_agrees": True,             # closed loop: no confirmation whose intervals miss the estimate's entirely
+    "one_rail": True,                    # closed loop: confirm only from a window that holds one rail (the tests below)
+    "stationary_sigmas": 1.0,            # mu^'s drift against the posterior beyond the interval, in standard errors
+    "stationary_blocks": 10,             # the fewest of the drift test's blocks a confirmation's window spans
+    "estimate_changes": True,            # a change the TCU's peak estimate dates inside the window restarts it
+    "estimate_agrees": True,             # no confirmation whose intervals miss the estimate's entirely
 }
 
 #: the residuals of the stationarity test are averaged over blocks of this many samples (several of the
@@ -234,7 +236,7 @@ class GpStrategy(SpeedModelStrategy):
         #: set by the TCU before each sample (closed loop): its peak estimate of the current rail
         #: (identifier/peak_estimate.py ``PeakEstimate``), or None
         self.rail_estimate = None
-        self.refused = {"estimate_change": 0, "not_stationary": 0, "estimate_disagrees": 0}
+        self.refused = {"estimate_change": 0, "too_short": 0, "not_stationary": 0, "estimate_disagrees": 0}
 
     @property
     def _dates_changes(self) -> bool:
@@ -268,8 +270,10 @@ class GpStrategy(SpeedModelStrategy):
              "change_window", "an integer >= 2")
         need(isinstance(o["rail_changes"], bool), "rail_changes", "true or false")
         need(isinstance(o["open_loop_edge"], bool), "open_loop_edge", "true or false")
-        for key in ("estimate_changes", "estimate_agrees"):
+        for key in ("one_rail", "estimate_changes", "estimate_agrees"):
             need(isinstance(o[key], bool), key, "true or false")
+        need(isinstance(o["stationary_blocks"], int) and not isinstance(o["stationary_blocks"], bool)
+             and o["stationary_blocks"] >= 4, "stationary_blocks", "an integer >= 4")
         need(isinstance(o["stationary_sigmas"], (int, float)) and not isinstance(o["stationary_sigmas"], bool)
              and math.isfinite(o["stationary_sigmas"]) and o["stationary_sigmas"] >= 0, "stationary_sigmas", "a number >= 0")
         need(isinstance(o["track_train_speed"], bool), "track_train_speed", "true or false")
@@ -539,7 +543,7 @@ class GpStrategy(SpeedModelStrategy):
             if refusal is None:
                 return [self._publish(s, "confirmed", q)]
             self.refused[refusal] += 1
-            if refusal != "estimate_disagrees":     # the window holds more than one rail: forget it
+            if refusal in ("estimate_change", "not_stationary"):     # the window holds more than one rail: forget it
                 event = self._publish(s, "unconfirmed" if ends else "correction", q)
                 self._restart(s)
                 self.restarts += 1
@@ -549,16 +553,18 @@ class GpStrategy(SpeedModelStrategy):
     def _unattributable(self, s: Sample, q: np.ndarray) -> str | None:
         """Why a confirmation due now cannot be attributed to one rail (module docstring), or None: in closed loop,
         ``estimate_change``: the TCU's peak estimate dates a change of rail after the window's first sample;
+        ``too_short``: the window spans fewer than ``stationary_blocks`` of the stationarity test's blocks;
         ``not_stationary``: the stationarity test; ``estimate_disagrees``: the published intervals and the
         estimate's share no peak mu or no peak creep."""
-        if not self._dates_changes:
+        if not (self._dates_changes and self.opts["one_rail"]):
             return None
         o, est = self.opts, self.rail_estimate
         first = self.samples_seen[self._n0]
         if est is not None and o["estimate_changes"] and est.since_step > first.step:
             return "estimate_change"
-        sig = float(o["stationary_sigmas"])
-        if sig > 0 and self._drift_sigmas(self._interval_half_width_mu(q)) > sig:
+        if (len(self.samples_seen) - self._n0 - self._lag) // STATIONARY_BLOCK < int(o["stationary_blocks"]):
+            return "too_short"
+        if self._drift_sigmas(self._interval_half_width_mu(q)) > float(o["stationary_sigmas"]):
             return "not_stationary"
         if est is not None and o["estimate_agrees"]:
             (mu_lo, creep_lo), (mu_hi, creep_hi) = self._published_bounds(q)
