@@ -92,6 +92,26 @@ first sample on, and the posterior's maximum is then the lowest creep seen, a po
 maximum on the same grid creep: an interval of zero width), whatever the new rail's peak (a drawn bench,
 docs/design/identification.md).
 
+And a closed-loop confirmation must rest on samples of one rail (``one_rail``): a transition between rails
+lasts up to a second, and a patch recovers as the wheel cleans it, which the test above (a fast fall) does
+not date.  Before confirming, with the window the samples since the last restart:
+
+- the TCU's peak estimate (identifier/peak_estimate.py, set on ``rail_estimate`` before each sample) dates
+  a change of rail after the window's first sample (``estimate_changes``): the window restarts;
+- stationarity (``stationary_sigmas``): r = mu^ - m^(v), v the creep ``lag`` samples earlier, m^ the
+  posterior mean, averaged over blocks of ``STATIONARY_BLOCK`` samples; d = mean(second half's blocks) -
+  mean(first half's), se from the blocks' spread.  A static rail gives d = 0 within its noise; the rail may
+  move by the published peak-mu interval's half-width w and the interval still hold it, so
+
+      (|d| - w) / se > ``stationary_sigmas``   ->  the window restarts
+
+  and a window of fewer than ``stationary_blocks`` blocks is too short to tell (no confirmation yet);
+- the published intervals share no peak mu or no peak creep with the estimate's 90 % intervals
+  (``estimate_agrees``): withheld, the window kept (one of the two is wrong; the next check may agree).
+
+Every event states the span of the samples it rests on (``IdentificationEvent.samples_from_s`` to
+``samples_to_s``: the slip's first sample, or the last restart, to its own), which a bench judges it over.
+
 The numpy code here is the reference; ``compiled`` (default) runs the filter step, the peak draws
 with their quantiles and the published curve's shape search by their twins in identifier/kernels.py
 (``gp_update``, ``gp_peak``, ``exp_shape_fit``): the numpy calls' overhead, not their arithmetic,
