@@ -582,7 +582,7 @@ class GpStrategy(SpeedModelStrategy):
         first = self.samples_seen[self._n0]
         if est is not None and o["estimate_changes"] and est.since_step > first.step:
             return "estimate_change"
-        if (len(self.samples_seen) - self._n0 - self._lag) // STATIONARY_BLOCK < int(o["stationary_blocks"]):
+        if (len(self._v) - self._n0 - self._lag) // STATIONARY_BLOCK < int(o["stationary_blocks"]):
             return "too_short"
         if self._drift_sigmas(self._interval_half_width_mu(q)) > float(o["stationary_sigmas"]):
             return "not_stationary"
@@ -615,23 +615,22 @@ class GpStrategy(SpeedModelStrategy):
         samples earlier, m^ the posterior mean); d = mean(r, second half) - mean(r, first half) with its standard
         error from block means (``STATIONARY_BLOCK`` samples); returns (|d| - ``allowed_mu``) / se (0 when too
         few blocks)."""
-        ss = self.samples_seen[self._n0:]
-        lag = self._lag
-        n_blocks = (len(ss) - lag) // STATIONARY_BLOCK
+        lag, end = self._lag, len(self._v)       # _v, _mu: every sample's creep and mu^ (Strategy)
+        n_blocks = (end - self._n0 - lag) // STATIONARY_BLOCK
         if n_blocks < 4:
             return 0.0
         n = n_blocks * STATIONARY_BLOCK
-        ss = ss[len(ss) - lag - n:]
-        v = np.array([x.creep_speed_kmh for x in ss[:n]])
-        mu = np.array([x.mu_hat for x in ss[lag:lag + n]])
+        v = np.array(self._v[end - lag - n:end - lag])
+        mu = np.array(self._mu[end - n:end])
         m = np.interp(np.log(np.maximum(v, math.exp(self._log_x_list[0]))), self.log_x, self.z[1:])
-        blocks = (mu - m).reshape(n_blocks, STATIONARY_BLOCK).mean(axis=1)
-        if not np.all(np.isfinite(blocks)):
+        blocks = ((mu - m).reshape(n_blocks, STATIONARY_BLOCK).sum(axis=1) / STATIONARY_BLOCK).tolist()
+        if not all(math.isfinite(b) for b in blocks):
             return 0.0
         h = n_blocks // 2
-        d = float(blocks[n_blocks - h:].mean() - blocks[:h].mean())
-        var = float(np.var(np.concatenate([blocks[:h] - blocks[:h].mean(), blocks[n_blocks - h:] - blocks[n_blocks - h:].mean()]),
-                           ddof=0)) * (2 * h) / max(2 * h - 2, 1)
+        first, second = blocks[:h], blocks[n_blocks - h:]
+        m1, m2 = sum(first) / h, sum(second) / h
+        d = m2 - m1
+        var = (sum((b - m1) ** 2 for b in first) + sum((b - m2) ** 2 for b in second)) / max(2 * h - 2, 1)
         se = math.sqrt(var * 2.0 / h) if var > 0 else 0.0
         excess = abs(d) - allowed_mu
         if excess <= 0:
