@@ -82,6 +82,8 @@ NEWER_THAN_SOME_LOGS = (
                                        "identifier.options.gp.floor_peak_mu": 0.0,
                                        "identifier.options.gp.floor_peak_creep_kmh": 0.0}),
     ("gp_open_loop_edge", EVERY_RUN, {"identifier.options.gp.open_loop_edge": False}),
+    # gp's closed-loop confirmation refused from a window that does not hold one rail (2026-11-29, issue 50)
+    ("gp_one_rail", None, {"identifier.options.gp.one_rail": False}),
 )
 #: topics a replay reads from an MCAP log
 REPLAY_TOPICS = {"/can/frames", "/plant/sensor", "/plant/state", "/tcu/identification", "/tcu/status"}

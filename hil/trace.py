@@ -65,7 +65,8 @@ class Trace:
         for i, e in enumerate(self._pending):
             if (e.step, e.correction, e.kind) == (r.step, r.correction, r.kind):
                 self._pending[i] = dataclasses.replace(e, peak_mu_ci=r.peak_mu_ci, peak_creep_ci=r.peak_creep_ci,
-                                                       peak_open=r.peak_open)
+                                                       peak_open=r.peak_open, samples_from_s=r.samples_from_s,
+                                                       samples_to_s=r.samples_to_s)
                 return True
         return False
 

@@ -63,6 +63,11 @@ class IdentificationEvent:
     # open: the peak may lie past the creeps seen, so both intervals' upper ends are the strategy's working
     # range, not the data (an open interval never counts as covering the truth)
     peak_open: bool = False
+    # what the result is about: the time span (s) of the samples it rests on, first to last (NaN: not stated; a
+    # strategy that forgets samples at a change of rail states the span since); a bench judges the result against
+    # the rail under the wheel over that span (hil/benchmarks/control.py ``confirmation_figures``)
+    samples_from_s: float = math.nan
+    samples_to_s: float = math.nan
 
 
 @dataclass(frozen=True)

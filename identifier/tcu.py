@@ -252,6 +252,7 @@ class TractionIdentifier:
         if self.drill is not None and (self.detector.detected_step is None or (
                 not self._observer_aware and reading.step - self.detector.detected_step < self._settle_steps - 1)):
             self.drill.tick()       # monitoring, or settling: the strategy's first sample is still ahead
+        self.strategy.rail_estimate = self.estimate     # gp's test of a confirmation's window (closed loop)
         if self._wants_readings:
             self.strategy.on_reading(reading.step, reading.motor_speed_rad_s, reading.train_speed_ms)
         if self._observer_aware:

@@ -518,8 +518,9 @@ def test_in_closed_loop_gps_interval_holds_the_peak_the_law_holds_the_creep_at(t
         e = next(e for e in log.topic("/tcu/identification") if e.kind == "confirmed" and e.t_s > 11.0)
         return rows[0], e
 
+    # (and gp's one_rail off: it would restart the window whose creep drifts, and confirm later, right)
     off = {"identifier.options.gp.track_train_speed": False, "identifier.options.gp.floor_peak_mu": 0.0,
-           "identifier.options.gp.floor_peak_creep_kmh": 0.0}
+           "identifier.options.gp.floor_peak_creep_kmh": 0.0, "identifier.options.gp.one_rail": False}
     row, e = confirmed(off)
     print("off:", e.t_s, e.peak_mu_ci, e.peak_creep_ci, row)
     assert row["interval_holds_truth"] is False and e.peak_creep_ci[1] < 0.48
@@ -787,3 +788,63 @@ def test_the_tcus_peak_estimate_travels_in_its_frame_is_logged_and_summarised_in
     other_rows = [(m.step, m.peak_creep_kmh, (m.peak_creep_lo_kmh, m.peak_creep_hi_kmh), m.peak_mu,
                    (m.peak_mu_lo, m.peak_mu_hi), m.since_step) for m in read_log(other["mcap"]).topic("/tcu/estimate")]
     assert other_rows == rows
+
+
+def test_gp_confirms_nothing_from_samples_that_straddle_a_change_of_rail_and_the_bench_judges_the_span(tmp_path_factory):
+    """Draw 2 of ``hil bench control``'s seed 939869376 (the default family), ``identified``: the rail changes
+    through a transition of tenths of a second from about 2.4 s.  With gp's ``one_rail`` off it confirms, tens of
+    milliseconds after a restart, from samples over which the true peak moves beyond its interval (a blend,
+    attributed to no one rail segment); with the default, no confirmation's samples straddle a change and it
+    confirms later from the new rail's samples alone, its interval holding the true peak over their whole span.
+    The log carries each confirmation's span (``samples_from_s``, ``samples_to_s``, through the TcuInterval frame),
+    and the bench's judgement (``confirmation_figures``) reads it: the same confirmation said to rest on samples
+    from before the change is wrong, though right at its publish time."""
+    import dataclasses
+
+    from hil.benchmarks.control import BASE, DEFAULT_FAMILY, confirmation_figures, draw_text
+    from hil.config import parse_scenario
+    from identifier.messages import IdentificationEvent
+
+    text, _ = draw_text((ROOT / BASE).read_text(), 939869376, 2, 13.0, DEFAULT_FAMILY)
+
+    def confirmations(overrides):
+        scenario = parse_scenario(text, "draw 2", {"control.law": "identified", "run.duration_s": 3.3, **overrides})
+        summary = run(scenario, "gp", 939869376 % 1000 + 2, bus="inprocess", mode="lockstep",
+                      out_dir=tmp_path_factory.mktemp("d2"), progress=False)
+        log = read_log(summary["mcap"])
+        rail = log.topic("/plant/rail")
+        truth = {"t_s": np.array([m.t_s for m in rail]), "peak_mu": np.array([m.peak_mu for m in rail]),
+                 "peak_creep_kmh": np.array([m.peak_creep_kmh for m in rail])}
+        conf = [e for e in log.topic("/tcu/identification") if e.kind == "confirmed"]
+        return truth, conf
+
+    def span_holds(truth, e):
+        span = (truth["t_s"] >= e.samples_from_s - 1e-9) & (truth["t_s"] <= e.samples_to_s + 1e-9)
+        mu, v = truth["peak_mu"][span], truth["peak_creep_kmh"][span]
+        return bool(span.any() and np.all((e.peak_mu_ci[0] <= mu) & (mu <= e.peak_mu_ci[1])
+                                          & (e.peak_creep_ci[0] <= v) & (v <= e.peak_creep_ci[1])))
+
+    truth, off = confirmations({"identifier.options.gp.one_rail": False})
+    print("one_rail off:", [(e.samples_from_s, e.samples_to_s, tuple(e.peak_creep_ci)) for e in off])
+    assert off and all(e.samples_from_s < e.samples_to_s == pytest.approx(e.t_s) for e in off)
+    blend = [e for e in off if not span_holds(truth, e)]
+    assert blend
+    span = (truth["t_s"] >= blend[0].samples_from_s) & (truth["t_s"] <= blend[0].samples_to_s)
+    moved = np.ptp(truth["peak_mu"][span])
+    assert moved > blend[0].peak_mu_ci[1] - blend[0].peak_mu_ci[0]          # the true peak moved beyond the interval
+    assert confirmation_figures(truth, off)["wrong"] >= len(blend)
+
+    truth, on = confirmations({})
+    print("default:", [(e.samples_from_s, e.samples_to_s, tuple(e.peak_creep_ci)) for e in on])
+    assert on and all(span_holds(truth, e) for e in on)
+    assert confirmation_figures(truth, on) == {"confirmations": len(on), "wrong": 0, "zero_width": 0,
+                                               "wrong_at_publish": 0, "span_not_stated": 0}
+    e = on[0]
+    as_event = IdentificationEvent(e.step, e.t_s, e.kind, e.correction, tuple(e.params), e.j_ef, e.samples,
+                                   tuple(e.peak_mu_ci), tuple(e.peak_creep_ci), e.peak_open, e.samples_from_s,
+                                   e.samples_to_s)
+    before_change = dataclasses.replace(as_event, samples_from_s=2.0)      # the dry rail's samples too
+    fig = confirmation_figures(truth, [before_change])
+    assert fig["wrong"] == 1 and fig["wrong_at_publish"] == 0
+    unstated = dataclasses.replace(as_event, samples_from_s=math.nan, samples_to_s=math.nan)
+    assert confirmation_figures(truth, [unstated])["span_not_stated"] == 1

@@ -416,3 +416,29 @@ def test_compiled_decoders_judge_and_decode_as_the_dict_path(codec):
                 a, b = fast[0].value, slow_out[0].value
                 assert repr(a) == repr(b), (hex(fid), a, b)      # repr: NaN fields compare equal
     assert {"ok", "non_finite", "out_of_range"} <= seen
+
+
+def test_the_span_of_a_results_samples_crosses_the_bus(codec, ffcc_a):
+    """SamplesStated / SamplesFromStep / SamplesToStep (TcuInterval): the span of the samples a result rests on
+    arrives as the TCU stated it and the trace keeps it on the event; a result that states none (an older TCU's, an
+    older log's frame: those bytes zero) arrives with NaN."""
+    from hil.bus.frames import INTERVAL_ID
+    from hil.trace import Trace
+
+    stated = IdentificationEvent(640, 0.64, "confirmed", 12, (0.0, 0.6, -0.6, -0.5, -1.1), math.nan, 140,
+                                 (0.1483, 0.1502), (2.77, 3.0), samples_from_s=0.501, samples_to_s=0.64)
+    msg = codec.interval(stated)
+    v = codec.db.decode_message(INTERVAL_ID, bytes(msg.data), decode_choices=False)
+    assert (v["SamplesStated"], v["SamplesFromStep"], v["SamplesToStep"]) == (1, 501, 640)
+    report = codec.classify(msg)[0].value
+    assert report.samples_from_s == pytest.approx(0.501) and report.samples_to_s == pytest.approx(0.64)
+    trace = Trace(ffcc_a)
+    trace.result(codec.classify(codec.result(stated))[0].value)
+    assert trace.interval(report)
+    (e,) = trace.settle()
+    assert e.samples_from_s == pytest.approx(0.501) and e.samples_to_s == pytest.approx(0.64)
+    unstated = codec.interval(IdentificationEvent(640, 0.64, "confirmed", 12, (0.0, 0.6, -0.6, -0.5, -1.1), math.nan,
+                                                  140, (0.1483, 0.1502), (2.77, 3.0)))
+    assert bytes(unstated.data[41:50]) == bytes(9)
+    r = codec.classify(unstated)[0].value
+    assert math.isnan(r.samples_from_s) and math.isnan(r.samples_to_s)

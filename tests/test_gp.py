@@ -301,7 +301,8 @@ def test_below_the_first_bound_the_grown_grid_changes_nothing():
                                         ("upper_peak_creep_kmh", 9.0), ("peak_creep_cap_kmh", 2.0),
                                         ("range_growth", 1.0), ("model_mu_std", math.nan), ("bogus", 1),
                                         ("rail_changes", 1), ("change_window", 1), ("change_settle_s", -0.1),
-                                        ("change_fall_slope", math.inf)])
+                                        ("change_fall_slope", math.inf), ("one_rail", 1), ("stationary_blocks", 3),
+                                        ("stationary_sigmas", -1.0), ("estimate_agrees", "yes")])
 def test_bad_options_are_refused_by_name(key, value):
     with pytest.raises(ValueError, match=key):
         make_strategy("gp", settings(**{key: value}))
@@ -402,6 +403,10 @@ def test_in_closed_loop_a_change_of_rail_is_dated_and_no_wrong_peak_is_confirmed
     assert closed.restarts >= 1
     assert [e.kind for e in events].count("confirmed") == 1 and last.kind == "confirmed"
     assert abs(0.5 * sum(last.peak_creep_ci) / wet[1] - 1) <= 0.10
+    # what it states it rests on: the samples since its last restart, all on the wet rail (the blend ends 0.1 s after
+    # the first sample), to the confirmation's own; in open loop every event's samples run from the slip's first
+    assert last.samples_to_s == last.t_s and last.samples_from_s >= samples[0].t_s + 0.1
+    assert all(e.samples_from_s == samples[0].t_s and e.samples_to_s == e.t_s for e in open_loop)
     # the closed loop's options off (the dating, the interval floors), it identifies as the open one did without
     # its guard at the data's edge
     off = make_strategy("gp", settings(rail_changes=False, floor_peak_mu=0.0, floor_peak_creep_kmh=0.0), seed=3)

@@ -285,3 +285,32 @@ def test_a_replay_keeps_a_control_option_the_logs_scenario_sets_itself():
     assert not _named_in(plain, "control.options.identified.max_kmh")
     assert not _named_in(named, "control.options.identified.rise_mu")
     assert not _named_in(named, "identifier.options.gp.rail_changes")
+
+
+def test_a_closed_loop_gp_log_recorded_before_gp_refused_a_window_of_two_rails_replays_the_same(tmp_path):
+    """tests/data/draw2-gp-identified-120-9a9465d.mcap: draw 2 of ``hil bench control``'s seed 939869376 (written
+    out by ``draw_text``), run by commit 9a9465d with ``hil run DRAW --seed 120 --bus inprocess --set
+    control.law=identified --set rail.1.start_s=0.7 --set rail.2.start_s=3.3 --set run.duration_s=1.0``: gp
+    confirmed at 0.983 s a peak creep of 0.36-0.40 km/h from samples taken while the rail blended into a patch
+    peaking at 0.215 km/h.  Its run metadata has no ``gp_one_rail``, so the replay runs gp with ``one_rail`` off and
+    gives what it logged; today's gp, refusing that window, confirms nothing in that second (a new log of the same
+    run marks it and replays the same too)."""
+    from hil.log.read import read_log
+
+    path = ROOT / "tests" / "data" / "draw2-gp-identified-120-9a9465d.mcap"
+    r = hil("replay", path, "--json")
+    assert r.returncode == 0, r.stderr
+    s = json.loads(r.stdout)
+    assert s["control"] == "identified" and s["strategy"] == "gp" and s["counterfactual"] is False
+    assert s["matches_log"] is True and s["t_identified_s"] == s["logged"]["t_identified_s"] == 0.983
+    scenario = tmp_path / "draw2.toml"
+    scenario.write_text(read_log(path).metadata["scenario"]["toml"])
+    r = hil("run", scenario, "--seed", "120", "--bus", "inprocess", "--set", "control.law=identified", "--set",
+            "rail.1.start_s=0.7", "--set", "rail.2.start_s=3.3", "--set", "run.duration_s=1.0", "--out", tmp_path,
+            "--json", "--no-rrd")
+    assert r.returncode == 0, r.stderr
+    today = json.loads(r.stdout)
+    assert today["identified"] is False
+    r = hil("replay", today["mcap"], "--json")
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["matches_log"] is True

@@ -90,6 +90,8 @@ class IntervalReport:
     peak_mu_ci: tuple[float, float]
     peak_creep_ci: tuple[float, float]
     peak_open: bool = False      # the upper ends are the TCU's working range, not the data's (IdentificationEvent)
+    samples_from_s: float = math.nan     # the span of the samples the result rests on (IdentificationEvent; NaN: not
+    samples_to_s: float = math.nan       # stated)
 
 
 @dataclass(frozen=True)
@@ -320,7 +322,15 @@ class FrameCodec:
             return None            # beyond the DBC's ranges: sent as no interval rather than as a frame to reject
         return self._msg(INTERVAL_ID, {"IntervalStep": e.step, "IntervalCorrection": e.correction,
                                        "IntervalKind": KINDS.index(e.kind), "IntervalLevel": INTERVAL_LEVEL_PERCENT,
-                                       **signals, "IntervalOpen": int(bool(e.peak_open))})
+                                       **signals, "IntervalOpen": int(bool(e.peak_open)), **self._span(e)})
+
+    def _span(self, e: IdentificationEvent) -> dict:
+        """SamplesStated, SamplesFromStep, SamplesToStep of an event (its samples' span, as steps; 0 when not stated)."""
+        a, b = getattr(e, "samples_from_s", math.nan), getattr(e, "samples_to_s", math.nan)
+        if not (math.isfinite(a) and math.isfinite(b) and 0.0 <= a <= b):
+            return {"SamplesStated": 0, "SamplesFromStep": 0, "SamplesToStep": 0}
+        return {"SamplesStated": 1, "SamplesFromStep": min(round(a / self.period_s), 0xFFFFFFFF),
+                "SamplesToStep": min(round(b / self.period_s), 0xFFFFFFFF)}
 
     def estimate(self, e) -> can.Message | None:
         """The TcuEstimate frame of a peak estimate (``PeakEstimate`` or ``EstimateReport``), or None when a
@@ -446,7 +456,9 @@ class FrameCodec:
         if fid == INTERVAL_ID:
             return IntervalReport(int(v["IntervalStep"]), int(v["IntervalCorrection"]), KINDS[int(v["IntervalKind"])],
                                   int(v["IntervalLevel"]), (float(v["PeakMuLo"]), float(v["PeakMuHi"])),
-                                  (float(v["PeakCreepLo"]), float(v["PeakCreepHi"])), bool(v["IntervalOpen"]))
+                                  (float(v["PeakCreepLo"]), float(v["PeakCreepHi"])), bool(v["IntervalOpen"]),
+                                  *((int(v["SamplesFromStep"]) * self.period_s, int(v["SamplesToStep"]) * self.period_s)
+                                    if v.get("SamplesStated") else (math.nan, math.nan)))
         if fid == ESTIMATE_ID:
             step = int(v["EstimateStep"])
             return EstimateReport(step, step * self.period_s, float(v["EstPeakCreep"]),

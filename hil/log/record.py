@@ -599,7 +599,8 @@ def start_recording(scenario, strategy: str, seed: int, bus: str, mode: str, pat
                                                          "estimate bounds it, its median sets it",
                              "peak_estimate_per_update": "the peak estimate's memory and hazard per update",
                              "gp_closed_loop_tracking": "gp's train-speed line refitted every sample, interval floors",
-                             "gp_open_loop_edge": "gp confirms no maximum at the lowest creep seen in open loop either"})
+                             "gp_open_loop_edge": "gp confirms no maximum at the lowest creep seen in open loop either",
+                             "gp_one_rail": "gp confirms in closed loop only from a window that holds one rail"})
         if dbc is not None:
             rec.metadata("dbc", dbc)
         if bus_meta is not None:
@@ -663,7 +664,8 @@ def write_identification(rec: Recorder, e, strategy: str) -> None:
     rec.write("/tcu/identification", e.t_s, step=e.step, t_s=e.t_s, kind=e.kind, correction=e.correction,
               params=list(e.params), j_ef=e.j_ef, samples=e.samples, strategy=strategy,
               peak_mu_ci=list(e.peak_mu_ci), peak_creep_ci=list(e.peak_creep_ci),
-              peak_open=bool(e.peak_open))
+              peak_open=bool(e.peak_open), samples_from_s=float(e.samples_from_s),
+              samples_to_s=float(e.samples_to_s))
     rec.event(e.t_s, "INFO", f"{e.kind} Q={e.correction} after {e.samples} samples: "
               + ", ".join(f"{x:.5g}" for x in e.params))
 

@@ -92,6 +92,26 @@ first sample on, and the posterior's maximum is then the lowest creep seen, a po
 maximum on the same grid creep: an interval of zero width), whatever the new rail's peak (a drawn bench,
 docs/design/identification.md).
 
+And a closed-loop confirmation must rest on samples of one rail (``one_rail``): a transition between rails
+lasts up to a second, and a patch recovers as the wheel cleans it, which the test above (a fast fall) does
+not date.  Before confirming, with the window the samples since the last restart:
+
+- the TCU's peak estimate (identifier/peak_estimate.py, set on ``rail_estimate`` before each sample) dates
+  a change of rail after the window's first sample (``estimate_changes``): the window restarts;
+- stationarity (``stationary_sigmas``): r = mu^ - m^(v), v the creep ``lag`` samples earlier, m^ the
+  posterior mean, averaged over blocks of ``STATIONARY_BLOCK`` samples; d = mean(second half's blocks) -
+  mean(first half's), se from the blocks' spread.  A static rail gives d = 0 within its noise; the rail may
+  move by the published peak-mu interval's half-width w and the interval still hold it, so
+
+      (|d| - w) / se > ``stationary_sigmas``   ->  the window restarts
+
+  and a window of fewer than ``stationary_blocks`` blocks is too short to tell (no confirmation yet);
+- the published intervals share no peak mu or no peak creep with the estimate's 90 % intervals
+  (``estimate_agrees``): withheld, the window kept (one of the two is wrong; the next check may agree).
+
+Every event states the span of the samples it rests on (``IdentificationEvent.samples_from_s`` to
+``samples_to_s``: the slip's first sample, or the last restart, to its own), which a bench judges it over.
+
 The numpy code here is the reference; ``compiled`` (default) runs the filter step, the peak draws
 with their quantiles and the published curve's shape search by their twins in identifier/kernels.py
 (``gp_update``, ``gp_peak``, ``exp_shape_fit``): the numpy calls' overhead, not their arithmetic,
@@ -163,7 +183,16 @@ DEFAULTS = {
     "change_fall_slope": 0.15,           # s_f, the steepest fall of a curve past its peak, mu per km/h
     "change_rise_slope": 3.5,            # s_r, the steepest rise of a curve, mu per km/h
     "open_loop_edge": True,              # in open loop too: no confirmation of a maximum at the lowest creep seen
+    "one_rail": True,                    # closed loop: confirm only from a window that holds one rail (the tests below)
+    "stationary_sigmas": 1.0,            # mu^'s drift against the posterior beyond the interval, in standard errors
+    "stationary_blocks": 10,             # the fewest of the drift test's blocks a confirmation's window spans
+    "estimate_changes": True,            # a change the TCU's peak estimate dates inside the window restarts it
+    "estimate_agrees": True,             # no confirmation whose intervals miss the estimate's entirely
 }
+
+#: the residuals of the stationarity test are averaged over blocks of this many samples (several of the
+#: observer's lags 2 / p: the blocks' means are then nearly independent)
+STATIONARY_BLOCK = 10
 
 
 class GpStrategy(SpeedModelStrategy):
@@ -224,6 +253,10 @@ class GpStrategy(SpeedModelStrategy):
         self._settle_until_s = math.inf       # closed loop: the restart that ends the slip's first stretch
         self.restarts = 0
         self.below_draws = 0                  # of the last peak draws, those whose maximum is the lowest seen creep
+        #: set by the TCU before each sample (closed loop): its peak estimate of the current rail
+        #: (identifier/peak_estimate.py ``PeakEstimate``), or None
+        self.rail_estimate = None
+        self.refused = {"estimate_change": 0, "too_short": 0, "not_stationary": 0, "estimate_disagrees": 0}
 
     @property
     def _dates_changes(self) -> bool:
@@ -257,6 +290,12 @@ class GpStrategy(SpeedModelStrategy):
              "change_window", "an integer >= 2")
         need(isinstance(o["rail_changes"], bool), "rail_changes", "true or false")
         need(isinstance(o["open_loop_edge"], bool), "open_loop_edge", "true or false")
+        for key in ("one_rail", "estimate_changes", "estimate_agrees"):
+            need(isinstance(o[key], bool), key, "true or false")
+        need(isinstance(o["stationary_blocks"], int) and not isinstance(o["stationary_blocks"], bool)
+             and o["stationary_blocks"] >= 4, "stationary_blocks", "an integer >= 4")
+        need(isinstance(o["stationary_sigmas"], (int, float)) and not isinstance(o["stationary_sigmas"], bool)
+             and math.isfinite(o["stationary_sigmas"]) and o["stationary_sigmas"] >= 0, "stationary_sigmas", "a number >= 0")
         need(isinstance(o["track_train_speed"], bool), "track_train_speed", "true or false")
         for key, top in (("floor_peak_mu", 1.0), ("floor_peak_creep_kmh", 10.0)):
             need(isinstance(o[key], (int, float)) and not isinstance(o[key], bool) and 0.0 <= o[key] <= top,
@@ -520,8 +559,83 @@ class GpStrategy(SpeedModelStrategy):
         if (check and n >= int(o["min_samples"]) and within_tolerance(mu_lo, mu_mid, mu_hi, float(o["tol_peak_mu"]))
                 and within_tolerance(creep_lo, creep_mid, creep_hi, float(o["tol_peak_creep"]))
                 and creep_hi < self.bound_kmh and not self._held_back()):
-            return [self._publish(s, "confirmed", q)]
+            refusal = self._unattributable(s, q)
+            if refusal is None:
+                return [self._publish(s, "confirmed", q)]
+            self.refused[refusal] += 1
+            if refusal in ("estimate_change", "not_stationary"):     # the window holds more than one rail: forget it
+                event = self._publish(s, "unconfirmed" if ends else "correction", q)
+                self._restart(s)
+                self.restarts += 1
+                return [event]
         return [self._publish(s, "unconfirmed" if ends else "correction", q)]
+
+    def _unattributable(self, s: Sample, q: np.ndarray) -> str | None:
+        """Why a confirmation due now cannot be attributed to one rail (module docstring), or None: in closed loop,
+        ``estimate_change``: the TCU's peak estimate dates a change of rail after the window's first sample;
+        ``too_short``: the window spans fewer than ``stationary_blocks`` of the stationarity test's blocks;
+        ``not_stationary``: the stationarity test; ``estimate_disagrees``: the published intervals and the
+        estimate's share no peak mu or no peak creep."""
+        if not (self._dates_changes and self.opts["one_rail"]):
+            return None
+        o, est = self.opts, self.rail_estimate
+        first = self.samples_seen[self._n0]
+        if est is not None and o["estimate_changes"] and est.since_step > first.step:
+            return "estimate_change"
+        if (len(self._v) - self._n0 - self._lag) // STATIONARY_BLOCK < int(o["stationary_blocks"]):
+            return "too_short"
+        if self._drift_sigmas(self._interval_half_width_mu(q)) > float(o["stationary_sigmas"]):
+            return "not_stationary"
+        if est is not None and o["estimate_agrees"]:
+            (mu_lo, creep_lo), (mu_hi, creep_hi) = self._published_bounds(q)
+            (e_mu_lo, e_mu_hi), (e_v_lo, e_v_hi) = est.peak_mu_ci, est.peak_creep_ci
+            if mu_hi < e_mu_lo or mu_lo > e_mu_hi or creep_hi < e_v_lo or creep_lo > e_v_hi:
+                return "estimate_disagrees"
+        return None
+
+    def _published_bounds(self, q: np.ndarray) -> tuple[tuple[float, float], tuple[float, float]]:
+        """((peak mu lo, peak creep lo), (hi, hi)) of the intervals ``_publish`` would state from ``q`` (the floors
+        applied in closed loop)."""
+        (mu_lo, creep_lo), (mu_mid, creep_mid), (mu_hi, creep_hi) = q[1], q[2], q[3]
+        if self.closed_loop:
+            f_mu, f_creep = float(self.opts["floor_peak_mu"]), float(self.opts["floor_peak_creep_kmh"])
+            mu_lo, mu_hi = min(mu_lo, mu_mid - f_mu), max(mu_hi, mu_mid + f_mu)
+            creep_lo, creep_hi = min(creep_lo, creep_mid - f_creep), max(creep_hi, creep_mid + f_creep)
+        return (float(mu_lo), float(creep_lo)), (float(mu_hi), float(creep_hi))
+
+    def _interval_half_width_mu(self, q: np.ndarray) -> float:
+        """The published peak-mu interval's least half-width about its median: how far the rail's mu may move
+        across the window and the interval still hold it."""
+        (lo, _), (hi, _) = self._published_bounds(q)
+        mid = float(q[2][0])
+        return max(min(mid - lo, hi - mid), 0.0)
+
+    def _drift_sigmas(self, allowed_mu: float) -> float:
+        """The stationarity test (module docstring): r = mu^ - m^(v) over the window's samples (v the creep ``lag``
+        samples earlier, m^ the posterior mean); d = mean(r, second half) - mean(r, first half) with its standard
+        error from block means (``STATIONARY_BLOCK`` samples); returns (|d| - ``allowed_mu``) / se (0 when too
+        few blocks)."""
+        lag, end = self._lag, len(self._v)       # _v, _mu: every sample's creep and mu^ (Strategy)
+        n_blocks = (end - self._n0 - lag) // STATIONARY_BLOCK
+        if n_blocks < 4:
+            return 0.0
+        n = n_blocks * STATIONARY_BLOCK
+        v = np.array(self._v[end - lag - n:end - lag])
+        mu = np.array(self._mu[end - n:end])
+        m = np.interp(np.log(np.maximum(v, math.exp(self._log_x_list[0]))), self.log_x, self.z[1:])
+        blocks = ((mu - m).reshape(n_blocks, STATIONARY_BLOCK).sum(axis=1) / STATIONARY_BLOCK).tolist()
+        if not all(math.isfinite(b) for b in blocks):
+            return 0.0
+        h = n_blocks // 2
+        first, second = blocks[:h], blocks[n_blocks - h:]
+        m1, m2 = sum(first) / h, sum(second) / h
+        d = m2 - m1
+        var = (sum((b - m1) ** 2 for b in first) + sum((b - m2) ** 2 for b in second)) / max(2 * h - 2, 1)
+        se = math.sqrt(var * 2.0 / h) if var > 0 else 0.0
+        excess = abs(d) - allowed_mu
+        if excess <= 0:
+            return 0.0
+        return excess / se if se > 0 else math.inf
 
     def _publish(self, s: Sample, kind: str, q: np.ndarray) -> IdentificationEvent:
         """The event of ``kind`` with the median peak and the intervals at ``report_level`` (rows 1-3
@@ -538,7 +652,7 @@ class GpStrategy(SpeedModelStrategy):
         mu0, a, r = self._shape
         theta = theta_from_phi_floats((float(mu_mid), float(creep_mid), min(mu0, 0.5 * float(mu_mid)), a, r))
         return self.event(s, kind, theta, (float(mu_lo), float(mu_hi)), (float(creep_lo), float(creep_hi)),
-                          peak_open=peak_open)
+                          peak_open=peak_open, samples_from_s=self.samples_seen[self._n0].t_s)
 
     def fit_shape(self, peak_mu: float, peak_creep_kmh: float) -> tuple[float, float, float]:
         """(mu(0), a, r) of identifier/prior.py's form, on SHAPE_GRID, whose curve through the peak

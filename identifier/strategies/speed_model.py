@@ -95,11 +95,12 @@ class SpeedModelStrategy(Strategy):
             raise ValueError(f"{self.name}: unknown option(s) {', '.join(sorted(unknown))}")
         return {**self.defaults, **self.options}
 
-    def event(self, s: Sample, kind: str, theta, peak_mu_ci, peak_creep_ci, peak_open: bool = False
-              ) -> IdentificationEvent:
+    def event(self, s: Sample, kind: str, theta, peak_mu_ci, peak_creep_ci, peak_open: bool = False,
+              samples_from_s: float = math.nan) -> IdentificationEvent:
         """The event of ``kind`` (correction, confirmed, unconfirmed) with the curve and its intervals
-        (``peak_open``: their upper ends are the working range's, not the data's); the strategy's state
-        follows it (``confirmed``, ``gave_up``, ``corrections``)."""
+        (``peak_open``: their upper ends are the working range's, not the data's) and the span of the samples it
+        rests on, ``samples_from_s`` to this sample's time (NaN: not stated); the strategy's state follows it
+        (``confirmed``, ``gave_up``, ``corrections``)."""
         self.theta, self.peak_mu_ci, self.peak_creep_ci = np.asarray(theta, float), peak_mu_ci, peak_creep_ci
         if kind == "confirmed":
             self.confirmed = True
@@ -108,7 +109,8 @@ class SpeedModelStrategy(Strategy):
         else:
             self.corrections += 1
         return IdentificationEvent(s.step, s.t_s, kind, self.corrections, tuple(float(x) for x in self.theta),
-                                   math.nan, len(self._v), self.peak_mu_ci, self.peak_creep_ci, bool(peak_open))
+                                   math.nan, len(self._v), self.peak_mu_ci, self.peak_creep_ci, bool(peak_open),
+                                   float(samples_from_s), s.t_s if math.isfinite(samples_from_s) else math.nan)
 
     def on_reading(self, step: int, motor_speed_rad_s: float, train_speed_ms: float) -> None:
         """Every reading before the slip: the baseline of the noise and of the train speed."""
