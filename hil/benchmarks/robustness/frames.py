@@ -174,7 +174,8 @@ class Forger:
         if kind == "interval_bad":      # an interval for a result that was never sent
             return c._msg(INTERVAL_ID, {"IntervalStep": k, "IntervalCorrection": 40000 + rng.randrange(20000),
                                         "IntervalKind": 0, "IntervalLevel": 90, "PeakMuLo": 0.1, "PeakMuHi": 0.2,
-                                        "PeakCreepLo": 1.0, "PeakCreepHi": 2.0, "IntervalOpen": 0})
+                                        "PeakCreepLo": 1.0, "PeakCreepHi": 2.0, "IntervalOpen": 0,
+                                        "SamplesStated": 0, "SamplesFromStep": 0, "SamplesToStep": 0})
         if kind == "plant_hb":
             return c.plant_heartbeat(rng.randrange(65536), STATE_RUNNING, k)
         if kind in ("altered", "random_trailer"):
