@@ -256,7 +256,6 @@ class GpStrategy(SpeedModelStrategy):
         #: set by the TCU before each sample (closed loop): its peak estimate of the current rail
         #: (identifier/peak_estimate.py ``PeakEstimate``), or None
         self.rail_estimate = None
-        self.refused = {"estimate_change": 0, "too_short": 0, "not_stationary": 0, "estimate_disagrees": 0}
 
     @property
     def _dates_changes(self) -> bool:
@@ -562,7 +561,6 @@ class GpStrategy(SpeedModelStrategy):
             refusal = self._unattributable(s, q)
             if refusal is None:
                 return [self._publish(s, "confirmed", q)]
-            self.refused[refusal] += 1
             if refusal in ("estimate_change", "not_stationary"):     # the window holds more than one rail: forget it
                 event = self._publish(s, "unconfirmed" if ends else "correction", q)
                 self._restart(s)
@@ -593,11 +591,12 @@ class GpStrategy(SpeedModelStrategy):
                 return "estimate_disagrees"
         return None
 
-    def _published_bounds(self, q: np.ndarray) -> tuple[tuple[float, float], tuple[float, float]]:
-        """((peak mu lo, peak creep lo), (hi, hi)) of the intervals ``_publish`` would state from ``q`` (the floors
-        applied in closed loop)."""
+    def _published_bounds(self, q: np.ndarray, peak_open: bool = False
+                          ) -> tuple[tuple[float, float], tuple[float, float]]:
+        """((peak mu lo, peak creep lo), (hi, hi)) of the intervals ``_publish`` states from ``q``: in closed loop
+        never narrower than the floors (module docstring), but an open interval's upper ends stay the range's."""
         (mu_lo, creep_lo), (mu_mid, creep_mid), (mu_hi, creep_hi) = q[1], q[2], q[3]
-        if self.closed_loop:
+        if self.closed_loop and not peak_open:
             f_mu, f_creep = float(self.opts["floor_peak_mu"]), float(self.opts["floor_peak_creep_kmh"])
             mu_lo, mu_hi = min(mu_lo, mu_mid - f_mu), max(mu_hi, mu_mid + f_mu)
             creep_lo, creep_hi = min(creep_lo, creep_mid - f_creep), max(creep_hi, creep_mid + f_creep)
@@ -640,14 +639,9 @@ class GpStrategy(SpeedModelStrategy):
     def _publish(self, s: Sample, kind: str, q: np.ndarray) -> IdentificationEvent:
         """The event of ``kind`` with the median peak and the intervals at ``report_level`` (rows 1-3
         of ``q``, the quantiles of ``_evaluate``; columns peak mu, peak creep)."""
-        (mu_lo, creep_lo), (mu_mid, creep_mid), (mu_hi, creep_hi) = q[1], q[2], q[3]
+        mu_mid, creep_mid = q[2]
         peak_open = self._open_beyond(float(self.opts["report_level"]))
-        # in closed loop never narrower than the floors (module docstring); an open interval's upper ends
-        # stay the range's
-        if self.closed_loop and not peak_open:
-            f_mu, f_creep = float(self.opts["floor_peak_mu"]), float(self.opts["floor_peak_creep_kmh"])
-            mu_lo, mu_hi = min(mu_lo, mu_mid - f_mu), max(mu_hi, mu_mid + f_mu)
-            creep_lo, creep_hi = min(creep_lo, creep_mid - f_creep), max(creep_hi, creep_mid + f_creep)
+        (mu_lo, creep_lo), (mu_hi, creep_hi) = self._published_bounds(q, peak_open)
         self.theta_peak = (float(mu_mid), float(creep_mid))
         mu0, a, r = self._shape
         theta = theta_from_phi_floats((float(mu_mid), float(creep_mid), min(mu0, 0.5 * float(mu_mid)), a, r))
